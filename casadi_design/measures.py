@@ -1,0 +1,159 @@
+"""Numeric measures of a calibration plan: the test-pose measure and the classical criteria.
+
+For a plan of m experiments with transformation matrices ``B_i`` (stacked: ``S``), the
+information matrix is ``M = sum_i B_i^T B_i = S^T S`` and ``cov(X) = sigma^2 M^-1``.
+
+* test-pose measure (paper eq. 12 and 15): ``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)``, the
+  expected mean square error (m^2) at test pose j after compensation; reported as the RMS error
+  ``sqrt(rho_j)`` (m) and its maximum over the test poses.
+* D: ``log det M``; A: ``trace M^-1``; E (the paper's "SVD approach"): ``s_L``, the smallest
+  singular value of S; T: ``trace M``; condition: ``s_1 / s_L``.
+* observability indices: O1 = (s_1...s_L)^(1/L) / sqrt(m), O2 = s_L / s_1, O3 = s_L,
+  O4 = s_L^2 / s_1, O5 = 1 / sum(1 / s_l).
+
+These numpy functions are the twins of the symbolic objectives in :mod:`casadi_design.nlp`;
+tests check that both agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Relative eigenvalue threshold below which M counts as singular.
+SINGULAR_RTOL = 1e-12
+
+
+@dataclass(frozen=True)
+class Criterion:
+    """One design criterion.
+
+    Attributes
+    ----------
+    name : the name used in problem files and results.
+    sense : "min" or "max", the better direction of ``score``.
+    score : the field of :class:`Scores` that holds its value.
+    label : description for people, with units.
+    """
+
+    name: str
+    sense: str
+    score: str
+    label: str
+
+
+CRITERIA: dict[str, Criterion] = {
+    c.name: c
+    for c in (
+        Criterion("test-pose", "min", "max_rms_error_m", "max over test poses of sqrt(rho) (m)"),
+        Criterion("D", "max", "log_det_M", "log det M (D-optimality)"),
+        Criterion("A", "min", "trace_M_inv", "trace M^-1 (A-optimality)"),
+        Criterion("E", "max", "s_min", "smallest singular value s_L (E-optimality, SVD approach)"),
+        Criterion("T", "max", "trace_M", "trace M (T-optimality)"),
+        Criterion("condition", "min", "condition", "condition number s_1/s_L"),
+    )
+}
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Every measure of one plan. Values in SI units of B (lengths in m)."""
+
+    rms_error_m: np.ndarray
+    max_rms_error_m: float
+    log_det_M: float
+    trace_M_inv: float
+    s_min: float
+    trace_M: float
+    condition: float
+    observability: dict[str, float]
+    identifiable: bool
+
+    def value(self, criterion: str) -> float:
+        return float(getattr(self, CRITERIA[criterion].score))
+
+    def as_dict(self) -> dict:
+        return {
+            "rms_error_m": [float(v) for v in self.rms_error_m],
+            "max_rms_error_m": self.max_rms_error_m,
+            "log_det_M": self.log_det_M,
+            "trace_M_inv": self.trace_M_inv,
+            "s_min": self.s_min,
+            "trace_M": self.trace_M,
+            "condition": self.condition,
+            "observability": self.observability,
+            "identifiable": self.identifiable,
+        }
+
+
+def information_matrix(B: np.ndarray) -> np.ndarray:
+    """``M = sum_i B_i^T B_i`` for ``B`` of shape (m, d, L) (or the stacked S, shape (m d, L))."""
+    S = np.asarray(B, dtype=float).reshape(-1, np.shape(B)[-1])
+    return S.T @ S
+
+
+def test_pose_rho(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
+    """``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)`` (m^2) for ``B0`` of shape (s, r, L).
+
+    Infinite where ``M`` is singular.
+    """
+    B0 = np.asarray(B0, dtype=float)
+    try:
+        C = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        return np.full(B0.shape[0], np.inf)
+    Y = np.linalg.solve(C, B0.transpose(0, 2, 1))
+    return sigma**2 * np.einsum("sij,sij->s", Y, Y)
+
+
+def observability_indices(s: np.ndarray, m: int) -> dict[str, float]:
+    """O1..O5 from the singular values ``s`` (descending) of the stacked S of m experiments."""
+    L = len(s)
+    with np.errstate(divide="ignore"):
+        return {
+            "O1": float(np.exp(np.mean(np.log(s))) / np.sqrt(m)),
+            "O2": float(s[-1] / s[0]),
+            "O3": float(s[-1]),
+            "O4": float(s[-1] ** 2 / s[0]),
+            "O5": float(1.0 / np.sum(1.0 / s)) if s[-1] > 0 else 0.0,
+        } if L else {}
+
+
+def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
+    """All measures of a plan.
+
+    Parameters
+    ----------
+    B : ndarray, shape (m, d, L)
+        Transformation matrices of the m experiments (measured rows).
+    B0 : ndarray, shape (s, r, L)
+        Transformation matrices at the s test poses (required rows).
+    sigma : float, m
+        Standard deviation of the measurement noise.
+    """
+    B = np.asarray(B, dtype=float)
+    M = information_matrix(B)
+    lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
+    s = np.sqrt(lam)
+    identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
+    if identifiable:
+        rho = test_pose_rho(M, B0, sigma)
+        log_det = float(np.sum(np.log(lam)))
+        trace_inv = float(np.sum(1.0 / lam))
+        condition = float(s[0] / s[-1])
+    else:
+        rho = np.full(np.shape(B0)[0], np.inf)
+        log_det, trace_inv, condition = -np.inf, np.inf, np.inf
+    rms = np.sqrt(rho)
+    return Scores(
+        rms_error_m=rms,
+        max_rms_error_m=float(np.max(rms)),
+        log_det_M=log_det,
+        trace_M_inv=trace_inv,
+        s_min=float(s[-1]),
+        trace_M=float(np.trace(M)),
+        condition=condition,
+        observability=observability_indices(s, B.shape[0]),
+        identifiable=identifiable,
+    )

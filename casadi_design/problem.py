@@ -1,0 +1,419 @@
+"""Problem files: TOML descriptions of a calibration design case, loaded into frozen data.
+
+The format is documented in ``docs/problem-format.md``. Every field is checked on load;
+errors name the file, the field, what is allowed and what was given.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ProblemError
+from .measures import CRITERIA
+from .models import CASES, CalibrationModel, calibration_model
+from .robots import Robot, load_urdf, make_robot, planar_2r_ik, planar_arm
+from .symbolic import symbolic_kinematics
+
+FORCE_MODES = ("equal", "bound", "fixed")
+#: Rank test of identifiability: relative singular-value threshold of the column-scaled S.
+IDENTIFIABILITY_RTOL = 1e-9
+#: Random configurations stacked for the identifiability test.
+IDENTIFIABILITY_SAMPLES = 60
+
+SECTIONS: dict[str, set[str] | None] = {
+    "": {"name", "description", "robot", "calibration", "measurement", "test_poses",
+         "experiments", "design", "solver"},
+    "robot": {"planar_links_m", "urdf", "frame", "joint_limits_rad"},
+    "robot.joint_limits_rad": None,  # joint names: checked against the model instead
+    "calibration": {"case", "parameters", "compliant_joints", "wrench_components"},
+    "measurement": {"components", "sigma_m"},
+    "test_poses": {"components", "joints_rad", "points_m", "line_m", "elbow", "force_N", "forces_N"},
+    "test_poses.line_m": {"start", "end", "nodes"},
+    "experiments": {"m", "force", "workspace"},
+    "experiments.force": {"mode", "magnitude_N", "vector_N"},
+    "experiments.workspace": {"box_min_m", "box_max_m", "half_spaces"},
+    "design": {"criteria"},
+    "solver": {"starts", "seed", "max_iter", "tol", "ipopt"},
+    "solver.ipopt": None,  # passed through to IPOPT unchanged
+}
+
+
+@dataclass(frozen=True, eq=False)
+class TestPoses:
+    """The s test poses: where accuracy is required (a machining trajectory's nodes).
+
+    Attributes
+    ----------
+    q : ndarray, shape (s, n), rad
+    F : ndarray, shape (s, nF), N (and N m): machining wrench at each node.
+    position_m : ndarray, shape (s, 3), m: nominal position of the measured frame.
+    """
+
+    q: np.ndarray
+    F: np.ndarray
+    position_m: np.ndarray
+
+    @property
+    def s(self) -> int:
+        return self.q.shape[0]
+
+
+@dataclass(frozen=True)
+class ForceSpec:
+    """Calibration load of every experiment.
+
+    ``mode``: "equal" (``|F| = magnitude_N``, direction free), "bound" (``|F| <= magnitude_N``)
+    or "fixed" (``F = vector_N`` in every experiment). Norms are over the wrench components.
+    """
+
+    mode: str
+    magnitude_N: float
+    vector_N: tuple[float, ...] = ()
+
+
+@dataclass(frozen=True)
+class HalfSpace:
+    """``normal . p >= offset_m`` for the measured point ``p`` (m)."""
+
+    normal: tuple[float, float, float]
+    offset_m: float
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Where the measured point may be during calibration (box and half-spaces, m)."""
+
+    box_min_m: tuple[float, float, float] | None = None
+    box_max_m: tuple[float, float, float] | None = None
+    half_spaces: tuple[HalfSpace, ...] = ()
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Multi-start IPOPT settings; ``ipopt`` options pass through unchanged."""
+
+    starts: int = 20
+    seed: int = 0
+    max_iter: int = 3000
+    tol: float = 1e-10
+    ipopt: tuple[tuple[str, Any], ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """A loaded, checked design case."""
+
+    name: str
+    path: str
+    raw: dict
+    robot: Robot
+    model: CalibrationModel
+    sigma_m: float
+    test_poses: TestPoses
+    m_values: tuple[int, ...]
+    force: ForceSpec | None
+    workspace: Workspace
+    criteria: tuple[str, ...]
+    solver: SolverSettings = field(default_factory=SolverSettings)
+
+
+class _Reader:
+    """Typed access to one TOML table with file/field-qualified errors."""
+
+    def __init__(self, path: str, table: dict, section: str):
+        self.path, self.table, self.section = path, table, section
+        allowed = SECTIONS[section]
+        unknown = sorted(set(table) - allowed) if allowed is not None else []
+        if unknown:
+            raise self.error(
+                f"unknown key '{unknown[0]}'", f"allowed: {', '.join(sorted(allowed))}"
+            )
+
+    def where(self, key: str | None = None) -> str:
+        sec = f"[{self.section}]" if self.section else "top level"
+        return f"{self.path}: {sec}" + (f".{key}" if key else "")
+
+    def error(self, what: str, hint: str, key: str | None = None) -> ProblemError:
+        return ProblemError(f"{self.where(key)}: {what}; {hint}")
+
+    def get(self, key: str, kind: type | tuple, default: Any = ..., hint: str = "") -> Any:
+        if key not in self.table:
+            if default is ...:
+                raise self.error("missing", hint or f"add {key} = ...", key)
+            return default
+        value = self.table[key]
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+            name = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
+            raise self.error(f"expected {name}, got {value!r}", hint or "fix its type", key)
+        return value
+
+    def array(self, key: str, shape: tuple, default: Any = ..., hint: str = "") -> np.ndarray | Any:
+        value = self.get(key, list, default, hint)
+        if value is default and default is not ...:
+            return default
+        try:
+            arr = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            raise self.error(f"expected numbers, got {value!r}", hint or "give a list of numbers", key)
+        ok = arr.ndim == len(shape) and all(w in (None, d) for w, d in zip(shape, arr.shape))
+        if not ok or not np.all(np.isfinite(arr)):
+            want = " x ".join("any" if w is None else str(w) for w in shape)
+            raise self.error(f"expected finite numbers of shape {want}, got {value!r}", hint or "", key)
+        return arr
+
+    def sub(self, key: str, required: bool = False) -> _Reader | None:
+        if key not in self.table:
+            if required:
+                raise self.error("missing section", f"add a [{self._name(key)}] table", key)
+            return None
+        value = self.table[key]
+        if not isinstance(value, dict):
+            raise self.error(f"expected a table, got {value!r}", f"write it as [{self._name(key)}]", key)
+        return _Reader(self.path, value, self._name(key))
+
+    def _name(self, key: str) -> str:
+        return f"{self.section}.{key}" if self.section else key
+
+
+def load_problem(path: str | Path) -> Problem:
+    """Read, check and build a problem file."""
+    path = str(path)
+    try:
+        with open(path, "rb") as fh:
+            raw = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ProblemError(f"{path}: no such problem file")
+    except tomllib.TOMLDecodeError as exc:
+        raise ProblemError(f"{path}: not valid TOML ({exc}); check the syntax at that line")
+    return build_problem(raw, path)
+
+
+def build_problem(raw: dict, path: str = "<problem>") -> Problem:
+    """Check and build a problem from its parsed TOML ``raw``."""
+    top = _Reader(path, raw, "")
+    name = top.get("name", str, Path(path).stem)
+    robot = _robot(top.sub("robot", required=True))
+    cal = top.sub("calibration", required=True)
+    meas = top.sub("measurement", required=True)
+    case = cal.get("case", str, hint=f"allowed: {', '.join(CASES)}")
+    if case not in CASES:
+        raise cal.error(f"'{case}' is not a calibration case", f"allowed: {', '.join(CASES)}", "case")
+    elastic = case in ("elastostatic", "both")
+    measured = tuple(meas.get("components", list, hint="e.g. components = [\"x\", \"y\", \"z\"]"))
+    sigma = meas.get("sigma_m", float, hint="the measurement noise std in m, e.g. 1e-4")
+    if not sigma > 0:
+        raise meas.error(f"must be positive, got {sigma}", "give the noise std in m", "sigma_m")
+    tp = top.sub("test_poses", required=True)
+    accuracy = tuple(tp.get("components", list, list(measured)))
+    wrench = tuple(cal.get("wrench_components", list, [] if not elastic else ...,
+                           hint="the wrench components of F, e.g. [\"fx\", \"fy\"]"))
+    if not elastic and wrench:
+        raise cal.error("is only used by elasto-static cases", "remove it", "wrench_components")
+    kin = symbolic_kinematics(robot)
+    model = calibration_model(
+        kin,
+        case,
+        measured=measured,
+        accuracy=accuracy,
+        geometric=tuple(cal.get("parameters", list, [])),
+        compliant=tuple(cal.get("compliant_joints", list)) if "compliant_joints" in cal.table else None,
+        force=wrench,
+    )
+    test_poses = _test_poses(tp, robot, model)
+    exp = top.sub("experiments", required=True)
+    m_raw = exp.get("m", (int, list), hint="the number of experiments, e.g. m = [1, 5]")
+    m_values = tuple(m_raw) if isinstance(m_raw, list) else (m_raw,)
+    if not m_values or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in m_values):
+        raise exp.error(f"expected positive integers, got {m_raw!r}", "e.g. m = [1, 5]", "m")
+    force = _force(exp.sub("force", required=elastic), model) if elastic else None
+    if not elastic and "force" in exp.table:
+        raise exp.error("a geometric case applies no load", "remove [experiments.force]", "force")
+    workspace = _workspace(exp.sub("workspace"))
+    design = top.sub("design", required=True)
+    criteria = tuple(design.get("criteria", list, hint="e.g. criteria = [\"test-pose\", \"D\", \"E\"]"))
+    for c in criteria:
+        if c not in CRITERIA:
+            raise design.error(f"has '{c}'", f"allowed: {', '.join(CRITERIA)}", "criteria")
+    if not criteria or len(set(criteria)) != len(criteria):
+        raise design.error(f"has {list(criteria)}", f"list distinct names among: {', '.join(CRITERIA)}", "criteria")
+    solver = _solver(top.sub("solver"))
+    problem = Problem(name, path, raw, robot, model, sigma, test_poses, m_values, force,
+                      workspace, criteria, solver)
+    check_identifiable(problem, exp)
+    return problem
+
+
+def _robot(r: _Reader) -> Robot:
+    frame = r.get("frame", str, hint="the measured frame, e.g. frame = \"tool\"")
+    has_planar, has_urdf = "planar_links_m" in r.table, "urdf" in r.table
+    if has_planar == has_urdf:
+        raise r.error("give exactly one of planar_links_m and urdf",
+                      "e.g. planar_links_m = [0.6, 0.4] or urdf = \"example-robot-data:ur_description/urdf/ur10_robot.urdf\"")
+    if has_planar:
+        links = r.array("planar_links_m", (None,))
+        if len(links) == 0 or np.any(links <= 0):
+            raise r.error(f"expected positive link lengths, got {links.tolist()}", "lengths in m", "planar_links_m")
+        model = planar_arm(links)
+    else:
+        model = load_urdf(r.get("urdf", str))
+    limits_table = r.sub("joint_limits_rad")
+    limits = {}
+    if limits_table is not None:
+        for j, v in limits_table.table.items():
+            arr = np.array(v, dtype=float) if isinstance(v, list) else None
+            if arr is None or arr.shape != (2,):
+                raise limits_table.error(f"expected [lower, upper], got {v!r}", "rad (m for prismatic joints)", j)
+            limits[j] = tuple(arr)
+    try:
+        return make_robot(model, frame, limits)
+    except ProblemError as exc:
+        raise ProblemError(f"{r.path}: {exc}") from None
+
+
+
+def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses:
+    given = [k for k in ("joints_rad", "points_m", "line_m") if k in tp.table]
+    if len(given) != 1:
+        raise tp.error(f"has {given or 'none'} of joints_rad, points_m, line_m", "give exactly one")
+    if given[0] == "joints_rad":
+        q = tp.array("joints_rad", (None, robot.n), hint=f"one row of {robot.n} joint angles (rad) per pose")
+    else:
+        if given[0] == "points_m":
+            pts = tp.array("points_m", (None, 2), hint="one row (x, y) in m per point")
+        else:
+            line = tp.sub("line_m")
+            start = line.array("start", (2,), hint="(x, y) of the first node, m")
+            end = line.array("end", (2,), hint="(x, y) of the last node, m")
+            nodes = line.get("nodes", int, hint="number of nodes, >= 2")
+            if nodes < 2:
+                raise line.error(f"must be >= 2, got {nodes}", "give the number of nodes", "nodes")
+            pts = start + np.linspace(0.0, 1.0, nodes)[:, None] * (end - start)
+        elbow = tp.get("elbow", str, "up")
+        if elbow not in ("up", "down"):
+            raise tp.error(f"'{elbow}'", "allowed: up, down", "elbow")
+        try:
+            q = np.array([planar_2r_ik(robot, p, elbow) for p in pts])
+        except ProblemError as exc:
+            raise ProblemError(f"{tp.path}: {exc}") from None
+    outside = np.flatnonzero(np.any((q < robot.q_min - 1e-12) | (q > robot.q_max + 1e-12), axis=1))
+    if outside.size:
+        raise tp.error(f"test pose {int(outside[0])} (q = {q[outside[0]].round(4).tolist()} rad) is outside the joint limits",
+                       "move the pose or widen [robot.joint_limits_rad]")
+    nF = model.nF
+    if "forces_N" in tp.table and "force_N" in tp.table:
+        raise tp.error("has both force_N and forces_N", "give one")
+    if "forces_N" in tp.table:
+        F = tp.array("forces_N", (q.shape[0], nF), hint=f"one row of {nF} wrench components per test pose")
+    elif "force_N" in tp.table:
+        F = np.tile(tp.array("force_N", (nF,), hint=f"{nF} wrench components"), (q.shape[0], 1))
+    elif nF:
+        raise tp.error("missing force_N", f"give the machining wrench, {nF} components in N (N m)", "force_N")
+    else:
+        F = np.zeros((q.shape[0], 0))
+    pos = np.array([np.asarray(model.position(qi)).ravel() for qi in q])
+    return TestPoses(q=q, F=F, position_m=pos)
+
+
+def _force(f: _Reader, model: CalibrationModel) -> ForceSpec:
+    mode = f.get("mode", str, hint=f"allowed: {', '.join(FORCE_MODES)}")
+    if mode not in FORCE_MODES:
+        raise f.error(f"'{mode}'", f"allowed: {', '.join(FORCE_MODES)}", "mode")
+    if mode == "fixed":
+        vec = f.array("vector_N", (model.nF,), hint=f"{model.nF} wrench components, N (N m)")
+        if "magnitude_N" in f.table:
+            raise f.error("is not used with mode = \"fixed\"", "remove it", "magnitude_N")
+        return ForceSpec(mode, float(np.linalg.norm(vec)), tuple(vec.tolist()))
+    magnitude = f.get("magnitude_N", float, hint="the largest load the rig applies, N")
+    if not magnitude > 0:
+        raise f.error(f"must be positive, got {magnitude}", "give the load in N", "magnitude_N")
+    if "vector_N" in f.table:
+        raise f.error(f"is only used with mode = \"fixed\", not \"{mode}\"", "remove it", "vector_N")
+    return ForceSpec(mode, magnitude)
+
+
+def _workspace(w: _Reader | None) -> Workspace:
+    if w is None:
+        return Workspace()
+    lo = w.array("box_min_m", (3,), None, hint="(x, y, z) in m")
+    hi = w.array("box_max_m", (3,), None, hint="(x, y, z) in m")
+    if (lo is None) != (hi is None):
+        raise w.error("give both box_min_m and box_max_m", "or neither")
+    if lo is not None and not np.all(lo < hi):
+        raise w.error(f"box_min_m {lo.tolist()} must be below box_max_m {hi.tolist()}", "fix the box")
+    spaces = []
+    for k, hs in enumerate(w.get("half_spaces", list, [])):
+        if not isinstance(hs, dict) or set(hs) != {"normal", "offset_m"}:
+            raise w.error(f"entry {k} is {hs!r}", "write { normal = [nx, ny, nz], offset_m = b } for normal . p >= b", "half_spaces")
+        normal = np.array(hs["normal"], dtype=float)
+        if normal.shape != (3,) or not np.linalg.norm(normal) > 0:
+            raise w.error(f"entry {k} normal is {hs['normal']!r}", "give a non-zero 3-vector", "half_spaces")
+        spaces.append(HalfSpace(tuple(normal.tolist()), float(hs["offset_m"])))
+    return Workspace(
+        None if lo is None else tuple(lo.tolist()),
+        None if hi is None else tuple(hi.tolist()),
+        tuple(spaces),
+    )
+
+
+def _solver(s: _Reader | None) -> SolverSettings:
+    if s is None:
+        return SolverSettings()
+    d = SolverSettings()
+    starts = s.get("starts", int, d.starts)
+    if starts < 1:
+        raise s.error(f"must be >= 1, got {starts}", "give the number of IPOPT starts", "starts")
+    ipopt = s.sub("ipopt")
+    return SolverSettings(
+        starts=starts,
+        seed=s.get("seed", int, d.seed),
+        max_iter=s.get("max_iter", int, d.max_iter),
+        tol=s.get("tol", float, d.tol),
+        ipopt=tuple(sorted(ipopt.table.items())) if ipopt else (),
+    )
+
+
+
+def check_identifiable(problem: Problem, exp: _Reader) -> None:
+    """Fail early when X cannot be identified: too few experiments or a rank-deficient model.
+
+    Stacks B over ``IDENTIFIABILITY_SAMPLES`` random configurations (and random loads), scales
+    its columns to unit norm and requires every singular value above
+    ``IDENTIFIABILITY_RTOL`` times the largest.
+    """
+    model = problem.model
+    d, L = len(model.measured_rows), model.L
+    m_min = -(-L // d)
+    small = [m for m in problem.m_values if m < m_min]
+    if small:
+        raise exp.error(
+            f"m = {small[0]} is too small: {L} parameters ({', '.join(model.parameter_names)}) "
+            f"with {d} measured components per experiment need m >= {m_min}",
+            f"use m >= {m_min}",
+            "m",
+        )
+    rng = np.random.default_rng(12345)
+    robot = problem.robot
+    rows = []
+    for _ in range(IDENTIFIABILITY_SAMPLES):
+        q = rng.uniform(robot.q_min, robot.q_max)
+        F = rng.normal(size=model.nF)
+        rows.append(model.B_numeric(q, F))
+    S = np.vstack(rows)
+    S = S / np.maximum(np.linalg.norm(S, axis=0), np.finfo(float).tiny)
+    _, sv, Vt = np.linalg.svd(S, full_matrices=False)
+    null = sv < IDENTIFIABILITY_RTOL * sv[0]
+    if np.any(null):
+        v = Vt[np.flatnonzero(null)[0]]
+        involved = [model.parameter_names[i] for i in np.flatnonzero(np.abs(v) > 1e-6)]
+        raise ProblemError(
+            f"{problem.path}: [calibration]: the parameters are not identifiable from "
+            f"{', '.join(problem.raw['measurement']['components'])} measurements: {' and '.join(involved)} act as one combination "
+            f"(rank {int(np.sum(~null))} of {L}); remove one of them from [calibration].parameters"
+        )

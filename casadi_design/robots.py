@@ -1,0 +1,232 @@
+"""Robot models: Pinocchio models of serial arms, their joint limits and numeric kinematics.
+
+A :class:`Robot` is the fixed description used by every later step: a ``pinocchio.Model``,
+the frame whose placement is measured, and the chain of joints that move it (the design
+variables ``q``, in that order, rad for revolute and m for prismatic joints).
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from .errors import ProblemError
+
+#: Joint types the symbolic translator supports (one configuration variable each).
+SUPPORTED_JOINTS = (
+    "JointModelRX",
+    "JointModelRY",
+    "JointModelRZ",
+    "JointModelRevoluteUnaligned",
+    "JointModelPX",
+    "JointModelPY",
+    "JointModelPZ",
+    "JointModelPrismaticUnaligned",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class Robot:
+    """A serial chain to calibrate.
+
+    Attributes
+    ----------
+    name : str
+    model : pinocchio.Model
+    frame : str
+        Frame whose placement is measured (the tool frame).
+    joints : tuple of str
+        Joints supporting ``frame``, root first: the order of ``q``.
+    q_min, q_max : ndarray, shape (n,)
+        Joint limits, rad (revolute) or m (prismatic).
+    """
+
+    name: str
+    model: pin.Model
+    frame: str
+    joints: tuple[str, ...]
+    q_min: np.ndarray
+    q_max: np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Number of joints in the chain."""
+        return len(self.joints)
+
+    @property
+    def frame_id(self) -> int:
+        return self.model.getFrameId(self.frame)
+
+    @property
+    def joint_ids(self) -> tuple[int, ...]:
+        return tuple(self.model.getJointId(j) for j in self.joints)
+
+    def full_q(self, q: np.ndarray) -> np.ndarray:
+        """Pinocchio configuration of the whole model with the chain at ``q`` (others neutral)."""
+        q_full = pin.neutral(self.model)
+        for jid, qj in zip(self.joint_ids, np.asarray(q, dtype=float), strict=True):
+            q_full[self.model.joints[jid].idx_q] = qj
+        return q_full
+
+
+def planar_arm(link_lengths_m: list[float] | tuple[float, ...], name: str = "planar") -> pin.Model:
+    """Planar serial arm in the x-y plane: revolute joints about z, links along local x.
+
+    Joint ``i`` (named ``joint{i}``) sits at the end of link ``i-1``; the frame ``tool`` sits at
+    the end of the last link. At ``q = 0`` the arm is stretched along +x.
+
+    Parameters
+    ----------
+    link_lengths_m : sequence of float, m
+    """
+    lengths = [float(v) for v in link_lengths_m]
+    model = pin.Model()
+    model.name = name
+    parent = 0
+    offset = 0.0
+    for i, length in enumerate(lengths, start=1):
+        placement = pin.SE3(np.eye(3), np.array([offset, 0.0, 0.0]))
+        parent = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i}")
+        offset = length
+    model.lowerPositionLimit[:] = -np.pi
+    model.upperPositionLimit[:] = np.pi
+    tool = pin.SE3(np.eye(3), np.array([offset, 0.0, 0.0]))
+    model.addFrame(pin.Frame("tool", parent, tool, pin.FrameType.OP_FRAME))
+    return model
+
+
+def example_robot_data_dir() -> Path:
+    """Folder of the URDFs shipped by the ``example-robot-data`` wheel (no download)."""
+    dist = importlib.metadata.distribution("example-robot-data")
+    root = Path(str(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")))
+    if not root.is_dir():
+        raise ProblemError(
+            f"example-robot-data is installed but its robots folder {root} is missing; "
+            "reinstall it with: pip install --force-reinstall example-robot-data"
+        )
+    return root
+
+
+def load_urdf(path: str | Path) -> pin.Model:
+    """Load a URDF into a ``pinocchio.Model`` (kinematics only).
+
+    ``path`` is a file path, or ``example-robot-data:<relative path>`` for a URDF shipped by
+    the example-robot-data package, e.g. ``example-robot-data:ur_description/urdf/ur10_robot.urdf``.
+    """
+    text = str(path)
+    prefix = "example-robot-data:"
+    file = example_robot_data_dir() / text[len(prefix) :] if text.startswith(prefix) else Path(text)
+    if not file.is_file():
+        raise ProblemError(f"[robot].urdf: file {file} does not exist; give a URDF path")
+    return pin.buildModelFromUrdf(str(file))
+
+
+def make_robot(
+    model: pin.Model,
+    frame: str,
+    joint_limits: dict[str, tuple[float, float]] | None = None,
+    name: str | None = None,
+) -> Robot:
+    """Wrap a Pinocchio model as a :class:`Robot` measured at ``frame``.
+
+    Parameters
+    ----------
+    joint_limits : dict joint name -> (lower, upper), rad or m
+        Overrides the model's limits for the named joints.
+    """
+    if not model.existFrame(frame):
+        names = [f.name for f in model.frames if f.name != "universe"]
+        raise ProblemError(f"[robot].frame: unknown frame '{frame}'; the model has: {', '.join(names)}")
+    parent = model.frames[model.getFrameId(frame)].parentJoint
+    chain = [j for j in model.supports[parent] if j != 0]
+    for jid in chain:
+        kind = model.joints[jid].shortname()
+        if kind not in SUPPORTED_JOINTS:
+            raise ProblemError(
+                f"[robot]: joint '{model.names[jid]}' is a {kind}; supported: "
+                + ", ".join(SUPPORTED_JOINTS)
+                + " (declare continuous URDF joints as revolute with limits)"
+            )
+    joints = tuple(model.names[j] for j in chain)
+    idx = [model.joints[j].idx_q for j in chain]
+    q_min = np.array(model.lowerPositionLimit[idx], dtype=float)
+    q_max = np.array(model.upperPositionLimit[idx], dtype=float)
+    for jname, bounds in (joint_limits or {}).items():
+        if jname not in joints:
+            raise ProblemError(
+                f"[robot.joint_limits]: unknown joint '{jname}'; the chain to '{frame}' has: "
+                + ", ".join(joints)
+            )
+        lo, hi = (float(b) for b in bounds)
+        if not lo < hi:
+            raise ProblemError(f"[robot.joint_limits].{jname}: lower {lo} must be below upper {hi}")
+        k = joints.index(jname)
+        q_min[k], q_max[k] = lo, hi
+    bad = [j for j, lo, hi in zip(joints, q_min, q_max) if not (np.isfinite(lo) and np.isfinite(hi))]
+    if bad:
+        raise ProblemError(
+            f"[robot.joint_limits]: joints {', '.join(bad)} have no finite limits in the model; "
+            "give them in [robot.joint_limits] as name = [lower, upper]"
+        )
+    return Robot(name or model.name, model, frame, joints, q_min, q_max)
+
+
+def frame_placement(robot: Robot, q: np.ndarray) -> pin.SE3:
+    """Numeric placement of ``robot.frame`` at chain configuration ``q`` (Pinocchio)."""
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, robot.full_q(q))
+    return data.oMf[robot.frame_id]
+
+
+def frame_jacobian(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """Numeric 6 x n Jacobian of ``robot.frame``, world-aligned at the frame origin (Pinocchio).
+
+    Rows are (vx, vy, vz, wx, wy, wz); columns follow ``robot.joints``.
+    """
+    data = robot.model.createData()
+    J = pin.computeFrameJacobian(
+        robot.model, data, robot.full_q(q), robot.frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+    )
+    cols = [robot.model.joints[j].idx_v for j in robot.joint_ids]
+    return np.asarray(J[:, cols])
+
+
+def planar_2r_ik(robot: Robot, point_m: np.ndarray, elbow: str) -> np.ndarray:
+    """Closed-form inverse kinematics of a two-link planar arm built by :func:`planar_arm`.
+
+    Parameters
+    ----------
+    point_m : ndarray, shape (2,), m
+        Target (x, y) of the tool frame.
+    elbow : {"up", "down"}
+        Branch: "up" gives q2 <= 0 (elbow on the left of the base-to-tool line, seen from +z),
+        "down" gives q2 >= 0.
+
+    Returns
+    -------
+    q : ndarray, shape (2,), rad
+    """
+    if robot.n != 2:
+        raise ProblemError(
+            f"[test_poses]: Cartesian test points need a two-link planar arm; '{robot.name}' has "
+            f"{robot.n} joints; give joint-space test poses instead"
+        )
+    l1 = float(robot.model.jointPlacements[robot.joint_ids[1]].translation[0])
+    l2 = float(robot.model.frames[robot.frame_id].placement.translation[0])
+    x, y = (float(v) for v in point_m)
+    c2 = (x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2)
+    if abs(c2) > 1 + 1e-12:
+        r = np.hypot(x, y)
+        raise ProblemError(
+            f"[test_poses]: point ({x * 1e3:.1f}, {y * 1e3:.1f}) mm is out of reach: distance "
+            f"{r * 1e3:.1f} mm, reachable {abs(l1 - l2) * 1e3:.1f} to {(l1 + l2) * 1e3:.1f} mm"
+        )
+    sign = {"up": -1.0, "down": 1.0}[elbow]
+    q2 = sign * np.arccos(np.clip(c2, -1.0, 1.0))
+    q1 = np.arctan2(y, x) - np.arctan2(l2 * np.sin(q2), l1 + l2 * np.cos(q2))
+    q1 = (q1 + np.pi) % (2 * np.pi) - np.pi
+    return np.array([q1, q2])

@@ -1,0 +1,207 @@
+"""Multi-start IPOPT solution of the design NLP: the only module that runs a solver.
+
+Each design (criterion, m) is solved from ``starts`` random feasible plans drawn from a
+generator seeded by ``(seed, m, criterion)``, so a design is reproducible on its own (a sweep
+gives the same plan as a single solve). Every start is recorded; the best converged,
+feasible start wins, judged by the criterion's own numeric score. A start that IPOPT does not
+solve is a status, not an exception.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .errors import DesignError
+from .measures import CRITERIA, Scores, score_plan
+from .nlp import DesignNLP, build_nlp, test_pose_matrices
+from .problem import Problem
+
+#: IPOPT return statuses accepted as converged.
+CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+#: Largest constraint violation accepted in a returned plan (m, or relative for loads).
+FEASIBILITY_TOL = 1e-6
+#: Random configurations tried per experiment to satisfy the workspace constraints.
+SAMPLING_TRIES = 2000
+
+
+@dataclass(frozen=True)
+class StartRecord:
+    """One IPOPT start: its status, iterations, criterion score and test-pose error (m)."""
+
+    status: str
+    iterations: int
+    value: float
+    max_rms_error_m: float
+    feasible: bool
+
+    @property
+    def converged(self) -> bool:
+        return self.status in CONVERGED and self.feasible
+
+
+@dataclass(frozen=True, eq=False)
+class Design:
+    """The best plan found for one criterion and number of experiments.
+
+    Attributes
+    ----------
+    Q : ndarray, shape (m, n), rad
+    F : ndarray, shape (m, nF), N (N m)
+    scores : every measure of the plan.
+    status : IPOPT status of the winning start.
+    starts : every start, in the order run.
+    wall_s : wall time of the multi-start solve, s.
+    """
+
+    criterion: str
+    m: int
+    Q: np.ndarray
+    F: np.ndarray
+    scores: Scores
+    status: str
+    starts: tuple[StartRecord, ...]
+    wall_s: float
+    seed: int
+
+    @property
+    def converged_starts(self) -> int:
+        return sum(s.converged for s in self.starts)
+
+    @property
+    def iterations(self) -> int:
+        return sum(s.iterations for s in self.starts)
+
+
+def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
+    """The generator of a design's starts: depends on ``seed``, ``criterion`` and ``m`` only."""
+    return np.random.default_rng([seed, m, list(CRITERIA).index(criterion)])
+
+
+def workspace_violation(problem: Problem, p: np.ndarray) -> float:
+    """Largest violation (m) of the workspace constraints by the measured point ``p``."""
+    ws, v = problem.workspace, 0.0
+    if ws.box_min_m is not None:
+        v = max(v, float(np.max(np.r_[np.array(ws.box_min_m) - p, p - np.array(ws.box_max_m)])))
+    for hs in ws.half_spaces:
+        n = np.array(hs.normal)
+        v = max(v, float((hs.offset_m - n @ p) / np.linalg.norm(n)))
+    return v
+
+
+def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A random feasible plan: ``Q`` (n x m, rad) within the limits and workspace, ``F`` (nF x m, N)."""
+    robot, model, force = problem.robot, problem.model, problem.force
+    Q = np.empty((robot.n, m))
+    for i in range(m):
+        for _ in range(SAMPLING_TRIES):
+            q = rng.uniform(robot.q_min, robot.q_max)
+            if workspace_violation(problem, np.asarray(model.position(q)).ravel()) <= 0:
+                break
+        else:
+            raise DesignError(
+                f"{problem.path}: [experiments.workspace] leaves no feasible pose: none of "
+                f"{SAMPLING_TRIES} random configurations within the joint limits puts the measured "
+                "point inside it; enlarge the workspace or widen the joint limits"
+            )
+        Q[:, i] = q
+    if model.nF == 0:
+        return Q, np.zeros((0, m))
+    if force.mode == "fixed":
+        return Q, np.tile(np.array(force.vector_N)[:, None], (1, m))
+    d = rng.normal(size=(model.nF, m))
+    return Q, force.magnitude_N * d / np.linalg.norm(d, axis=0)
+
+
+def _feasible(problem: Problem, Q: np.ndarray, F: np.ndarray) -> bool:
+    robot, force = problem.robot, problem.force
+    if np.any(Q < robot.q_min[:, None] - FEASIBILITY_TOL) or np.any(Q > robot.q_max[:, None] + FEASIBILITY_TOL):
+        return False
+    if F.size and force.mode != "fixed":
+        ratio = np.linalg.norm(F, axis=0) / force.magnitude_N
+        if np.any(ratio > 1 + FEASIBILITY_TOL) or force.mode == "equal" and np.any(ratio < 1 - FEASIBILITY_TOL):
+            return False
+    return all(
+        workspace_violation(problem, np.asarray(problem.model.position(q)).ravel()) <= FEASIBILITY_TOL
+        for q in Q.T
+    )
+
+
+def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) -> Scores:
+    """Scores of a plan given as ``Q`` (n x m, rad) and ``F`` (nF x m, N)."""
+    B = np.array([problem.model.B_numeric(q, f) for q, f in zip(Q.T, F.T)])
+    return score_plan(B, B0, problem.sigma_m)
+
+
+def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.Function:
+    """IPOPT on the NLP, with the problem's solver settings (raw options passed through)."""
+    s = problem.solver
+    opts = {
+        "ipopt.max_iter": s.max_iter,
+        "ipopt.tol": s.tol,
+        "ipopt.print_level": 5 if verbose else 0,
+        "ipopt.sb": "yes",
+        "print_time": verbose,
+        "error_on_fail": False,
+        "show_eval_warnings": verbose,
+    }
+    opts.update({f"ipopt.{k}": v for k, v in s.ipopt})
+    return ca.nlpsol(f"design_m{nlp.m}", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
+
+
+def solve_design(
+    problem: Problem,
+    criterion: str,
+    m: int,
+    B0: np.ndarray | None = None,
+    starts: int | None = None,
+    verbose: bool = False,
+) -> Design:
+    """Best plan of ``m`` experiments for ``criterion`` over the multi-start.
+
+    Raises
+    ------
+    DesignError
+        When no start converges to a feasible plan (the message lists the IPOPT statuses).
+    """
+    B0 = test_pose_matrices(problem) if B0 is None else B0
+    t0 = time.perf_counter()
+    nlp = build_nlp(problem, criterion, m, B0)
+    solver = make_solver(problem, nlp, verbose)
+    rng = start_rng(problem.solver.seed, criterion, m)
+    crit = CRITERIA[criterion]
+    sign = 1.0 if crit.sense == "min" else -1.0
+    records, best = [], None
+    for _ in range(starts or problem.solver.starts):
+        Q0, F0 = random_plan(problem, m, rng)
+        sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+        stats = solver.stats()
+        Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
+        Q = np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None])
+        scores = plan_scores(problem, Q, F, B0)
+        rec = StartRecord(
+            status=str(stats["return_status"]),
+            iterations=int(stats.get("iter_count", 0)),
+            value=scores.value(criterion),
+            max_rms_error_m=scores.max_rms_error_m,
+            feasible=_feasible(problem, Q, F) and scores.identifiable,
+        )
+        records.append(rec)
+        if rec.converged and (best is None or sign * rec.value < sign * best[0].value):
+            best = (rec, Q, F, scores)
+    if best is None:
+        counts: dict[str, int] = {}
+        for r in records:
+            key = r.status if r.feasible else f"{r.status} (infeasible plan)"
+            counts[key] = counts.get(key, 0) + 1
+        raise DesignError(
+            f"{problem.path}: criterion {criterion}, m = {m}: none of {len(records)} starts converged "
+            f"to a feasible plan (IPOPT: {', '.join(f'{k} x {v}' for k, v in counts.items())}); "
+            "raise [solver].starts or max_iter, or relax the constraints"
+        )
+    rec, Q, F, scores = best
+    return Design(criterion, m, Q.T.copy(), F.T.copy(), scores, rec.status, tuple(records),
+                  time.perf_counter() - t0, problem.solver.seed)

@@ -1,0 +1,135 @@
+"""Translate a ``pinocchio.Model`` into CasADi expressions of the measured frame.
+
+The PyPI ``pin`` wheels do not ship ``pinocchio.casadi``, so the forward kinematics is rebuilt
+here from the model's joint placements, joint axes and frame placement, with the geometric
+errors of the calibration model built in:
+
+    oMf(q, Pi) = E(Pi_base) * prod_j [ jointPlacement_j * E(Pi_j) * X_j(q_j + dq_j) ] * fMt * E(Pi_tool)
+
+where ``E(d) = (Rx(rx) Ry(ry) Rz(rz), (tx, ty, tz))`` is a small placement error (m, rad),
+``dq_j`` is joint j's offset and ``X_j`` its motion (rotation about, or translation along, its
+axis). At ``Pi = 0`` this is Pinocchio's kinematics; tests check it to 1e-10.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+
+from .robots import Robot
+
+#: Rows of a twist / wrench in the order used everywhere (linear first, world-aligned axes).
+TWIST_ROWS = ("x", "y", "z", "rx", "ry", "rz")
+#: The six components of a small placement error.
+PLACEMENT_ERRORS = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+
+@dataclass(frozen=True, eq=False)
+class SymbolicKinematics:
+    """CasADi functions of the measured frame of a :class:`Robot`.
+
+    Attributes
+    ----------
+    parameter_names : tuple of str
+        Names of the full geometric error vector ``Pi``: ``base.<e>``, then per joint
+        ``<joint>.offset`` and ``<joint>.<e>``, then ``tool.<e>``, with ``<e>`` in
+        tx, ty, tz (m), rx, ry, rz (rad).
+    placement : casadi.Function
+        ``(q, Pi) -> (R, p)``: rotation (3 x 3) and position (3, m) of the frame in the world.
+    jacobian : casadi.Function
+        ``q -> J``: 6 x n Jacobian at ``Pi = 0``, rows (vx, vy, vz, wx, wy, wz), world-aligned
+        axes at the frame origin (Pinocchio's LOCAL_WORLD_ALIGNED).
+    error_jacobian : casadi.Function
+        ``q -> J_Pi``: 6 x len(Pi) derivative of the frame's small displacement
+        (dp, dtheta), same rows as ``jacobian``, with respect to ``Pi`` at ``Pi = 0``.
+    """
+
+    robot: Robot
+    parameter_names: tuple[str, ...]
+    placement: ca.Function
+    jacobian: ca.Function
+    error_jacobian: ca.Function
+
+
+def _rot(axis: np.ndarray, angle: ca.SX) -> ca.SX:
+    """Rotation matrix about a unit ``axis`` by ``angle`` (Rodrigues), exact zeros kept."""
+    K = ca.SX(np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]))
+    return ca.SX.eye(3) + ca.sin(angle) * K + (1 - ca.cos(angle)) * (K @ K)
+
+
+def _axis_and_kind(joint: pin.JointModel) -> tuple[np.ndarray, str]:
+    kind = joint.shortname()
+    unit = {"X": np.array([1.0, 0, 0]), "Y": np.array([0, 1.0, 0]), "Z": np.array([0, 0, 1.0])}
+    if kind in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
+        axis = np.asarray(joint.extract().axis, dtype=float)
+        return axis / np.linalg.norm(axis), "R" if "Revolute" in kind else "P"
+    return unit[kind[-1]], kind[len("JointModel")]
+
+
+def _error_placement(d: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """``E(d)`` for ``d = (tx, ty, tz, rx, ry, rz)``: (Rx Ry Rz, t)."""
+    R = _rot(np.array([1.0, 0, 0]), d[3]) @ _rot(np.array([0, 1.0, 0]), d[4])
+    return R @ _rot(np.array([0, 0, 1.0]), d[5]), d[0:3]
+
+
+def _compose(Ra, pa, Rb, pb):
+    return Ra @ Rb, pa + Ra @ pb
+
+
+def twist_jacobian(R: ca.SX, p: ca.SX, v: ca.SX) -> ca.SX:
+    """6 x len(v) derivative of the frame displacement (dp, dtheta) with respect to ``v``.
+
+    Linear rows: ``dp/dv``. Angular rows: ``vee(dR/dv_k R^T)``, the world-aligned small
+    rotation (rad) produced by a unit change of ``v_k``.
+    """
+    dR = ca.jacobian(ca.vec(R), v)
+    cols = []
+    for k in range(v.numel()):
+        S = ca.reshape(dR[:, k], 3, 3) @ R.T
+        cols.append(ca.vertcat(S[2, 1] - S[1, 2], S[0, 2] - S[2, 0], S[1, 0] - S[0, 1]) / 2)
+    return ca.vertcat(ca.jacobian(p, v), ca.horzcat(*cols))
+
+
+def parameter_names(robot: Robot) -> tuple[str, ...]:
+    """Names of the full geometric error vector ``Pi`` (see :class:`SymbolicKinematics`)."""
+    names = [f"base.{e}" for e in PLACEMENT_ERRORS]
+    for joint in robot.joints:
+        names += [f"{joint}.offset"] + [f"{joint}.{e}" for e in PLACEMENT_ERRORS]
+    return tuple(names + [f"tool.{e}" for e in PLACEMENT_ERRORS])
+
+
+def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
+    """Build the CasADi kinematics of ``robot.frame`` with the geometric errors ``Pi``."""
+    model = robot.model
+    names = parameter_names(robot)
+    q = ca.SX.sym("q", robot.n)
+    Pi = ca.SX.sym("Pi", len(names))
+    R, p = _error_placement(Pi[0:6])
+    for k, jid in enumerate(robot.joint_ids):
+        base = 6 + 7 * k
+        M = model.jointPlacements[jid]
+        R, p = _compose(R, p, ca.SX(M.rotation), ca.SX(M.translation))
+        R, p = _compose(R, p, *_error_placement(Pi[base + 1 : base + 7]))
+        axis, kind = _axis_and_kind(model.joints[jid])
+        qk = q[k] + Pi[base]
+        if kind == "R":
+            R = R @ _rot(axis, qk)
+        else:
+            p = p + R @ (ca.SX(axis) * qk)
+    fMt = model.frames[robot.frame_id].placement
+    R, p = _compose(R, p, ca.SX(fMt.rotation), ca.SX(fMt.translation))
+    R, p = _compose(R, p, *_error_placement(Pi[-6:]))
+
+    zero = ca.DM.zeros(len(names))
+    J = ca.substitute(twist_jacobian(R, p, q), Pi, zero)
+    J_Pi = ca.substitute(twist_jacobian(R, p, Pi), Pi, zero)
+    return SymbolicKinematics(
+        robot=robot,
+        parameter_names=names,
+        placement=ca.Function("placement", [q, Pi], [R, p], ["q", "Pi"], ["R", "p"]),
+        jacobian=ca.Function("J", [q], [J], ["q"], ["J"]),
+        error_jacobian=ca.Function("J_Pi", [q], [J_Pi], ["q"], ["J_Pi"]),
+    )

@@ -1,0 +1,8 @@
+"""Solve a design case: python scripts/solve_case.py problems/<case>.toml [--out DIR]."""
+
+import sys
+
+from casadi_design.cli import main
+
+if __name__ == "__main__":
+    sys.exit(main(["solve", *sys.argv[1:]]))
