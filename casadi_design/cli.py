@@ -15,7 +15,7 @@ from .errors import DesignError, ProblemError
 
 
 def _solve(args: argparse.Namespace) -> int:
-    from .nlp import test_pose_matrices
+    from .nlp import B0_at_test_poses
     from .plotting import fig1, save_figure
     from .problem import load_problem
     from .results import format_solver_lines, format_table, write_results
@@ -25,7 +25,7 @@ def _solve(args: argparse.Namespace) -> int:
     problem = load_problem(args.problem)
     m_values = args.m or list(problem.m_values)
     criteria = args.criteria or list(problem.criteria)
-    B0 = test_pose_matrices(problem)
+    B0 = B0_at_test_poses(problem)
     designs = [solve_design(problem, c, m, B0, starts=args.starts, verbose=args.verbose)
                for m in m_values for c in criteria]
     wall = time.perf_counter() - t0

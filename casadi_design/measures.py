@@ -93,7 +93,7 @@ def information_matrix(B: np.ndarray) -> np.ndarray:
     return S.T @ S
 
 
-def test_pose_rho(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
+def rho_at_test_poses(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
     """``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)`` (m^2) for ``B0`` of shape (s, r, L).
 
     Infinite where ``M`` is singular.
@@ -138,7 +138,7 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
     s = np.sqrt(lam)
     identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
     if identifiable:
-        rho = test_pose_rho(M, B0, sigma)
+        rho = rho_at_test_poses(M, B0, sigma)
         log_det = float(np.sum(np.log(lam)))
         trace_inv = float(np.sum(1.0 / lam))
         condition = float(s[0] / s[-1])

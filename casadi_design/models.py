@@ -150,7 +150,7 @@ def calibration_model(
                 )
         comp_idx = [robot.joints.index(j) for j in compliant]
         names += [f"k.{j}" for j in compliant]
-        f_rows = row_indices(tuple(force), WRENCH_ROWS, "[experiments.force].components")
+        f_rows = row_indices(tuple(force), WRENCH_ROWS, "[calibration].wrench_components")
 
     q = ca.SX.sym("q", robot.n)
     F = ca.SX.sym("F", len(f_rows))

@@ -49,10 +49,12 @@ class DesignNLP:
 
     ``plan(x) -> (Q, F)`` gives the joint values (n x m, rad) and loads (nF x m, N).
     ``start(Q, F) -> x0`` completes a start point with the auxiliary variables.
+    ``scale`` is the constant factor of M inside the NLP (``information`` returns ``scale M``).
     """
 
     criterion: str
     m: int
+    scale: float
     x: ca.SX
     f: ca.SX
     g: ca.SX
@@ -168,7 +170,7 @@ OBJECTIVES: dict[str, Callable[[ca.SX, np.ndarray], Objective]] = {
 }
 
 
-def test_pose_matrices(problem: Problem) -> np.ndarray:
+def B0_at_test_poses(problem: Problem) -> np.ndarray:
     """``B0_j`` at every test pose, shape (s, r, L)."""
     tp = problem.test_poses
     return np.array([problem.model.B_numeric(q, F, accuracy=True) for q, F in zip(tp.q, tp.F)])
@@ -177,7 +179,7 @@ def test_pose_matrices(problem: Problem) -> np.ndarray:
 def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = None) -> DesignNLP:
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem)."""
     model, robot, force = problem.model, problem.robot, problem.force
-    B0 = test_pose_matrices(problem) if B0 is None else B0
+    B0 = B0_at_test_poses(problem) if B0 is None else B0
     n, nF = robot.n, model.nF
     Q = ca.SX.sym("Q", n, m)
     free_force = nF > 0 and force is not None and force.mode != "fixed"
@@ -229,5 +231,5 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
         M0 = np.asarray(information(np.concatenate([x_plan, np.zeros(x.numel() - n_plan)])))
         return np.concatenate([x_plan, obj.init(M0)])
 
-    return DesignNLP(criterion, m, x, obj.f, ca.vertcat(*g), lbx, ubx,
+    return DesignNLP(criterion, m, scale, x, obj.f, ca.vertcat(*g), lbx, ubx,
                      np.concatenate(lbg), np.concatenate(ubg), plan, information, start)

@@ -171,7 +171,9 @@ class _Reader:
     def sub(self, key: str, required: bool = False) -> _Reader | None:
         if key not in self.table:
             if required:
-                raise self.error("missing section", f"add a [{self._name(key)}] table", key)
+                raise ProblemError(
+                    f"{self.path}: [{self._name(key)}]: missing section; add a [{self._name(key)}] table"
+                )
             return None
         value = self.table[key]
         if not isinstance(value, dict):

@@ -17,7 +17,7 @@ import numpy as np
 
 from .errors import DesignError
 from .measures import CRITERIA, Scores, score_plan
-from .nlp import DesignNLP, build_nlp, test_pose_matrices
+from .nlp import DesignNLP, build_nlp, B0_at_test_poses
 from .problem import Problem
 
 #: IPOPT return statuses accepted as converged.
@@ -167,7 +167,7 @@ def solve_design(
     DesignError
         When no start converges to a feasible plan (the message lists the IPOPT statuses).
     """
-    B0 = test_pose_matrices(problem) if B0 is None else B0
+    B0 = B0_at_test_poses(problem) if B0 is None else B0
     t0 = time.perf_counter()
     nlp = build_nlp(problem, criterion, m, B0)
     solver = make_solver(problem, nlp, verbose)

@@ -1,0 +1,74 @@
+"""The command line: results.json recomputed without the package, figures, error paths."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from casadi_design.cli import main
+from tests.conftest import PAPER, ROOT
+
+L1, L2 = 0.6, 0.4  # the paper's arm, m
+
+
+def _A(q, F):
+    """Planar 2R elasto-static matrix [J_n J_n^T F], written out by hand."""
+    s1, c1, s12, c12 = np.sin(q[0]), np.cos(q[0]), np.sin(q[0] + q[1]), np.cos(q[0] + q[1])
+    J = np.array([[-L1 * s1 - L2 * s12, -L2 * s12], [L1 * c1 + L2 * c12, L2 * c12]])
+    return J * (J.T @ F)[None, :]
+
+
+@pytest.fixture(scope="module")
+def solved(tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    assert main(["solve", str(PAPER), "--out", str(out), "--starts", "6"]) == 0
+    return out, json.loads((out / "results.json").read_text())
+
+
+def test_results_json_recomputes_without_the_package(solved):
+    _, res = solved
+    assert res["problem"] == "paper_planar_2r" and res["seed"] == 2024 and res["sigma_m"] == 1e-4
+    assert res["robot"]["planar_links_m"] == [L1, L2]
+    assert {(d["criterion"], d["m"]) for d in res["designs"]} == {
+        (c, m) for c in ("test-pose", "D", "E") for m in (1, 5)}
+    A0 = [_A(np.array(t["q_rad"]), np.array(t["force"])) for t in res["test_poses"]]
+    for d in res["designs"]:
+        assert len(d["experiments"]) == d["m"]
+        assert d["solver"]["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+        assert d["solver"]["starts"] == 6 and d["solver"]["wall_s"] > 0
+        M = sum(_A(np.array(e["q_rad"]), np.array(e["force"])).T @ _A(np.array(e["q_rad"]), np.array(e["force"]))
+                for e in d["experiments"])
+        rms = [res["sigma_m"] * np.sqrt(np.trace(a @ np.linalg.inv(M) @ a.T)) for a in A0]
+        np.testing.assert_allclose(d["rms_error_m"], rms, rtol=1e-8)
+        assert d["max_rms_error_m"] == pytest.approx(max(rms), rel=1e-12)
+
+
+def test_figures_are_real_images(solved):
+    import matplotlib.image
+
+    out, _ = solved
+    img = matplotlib.image.imread(out / "fig1.png")
+    assert img.shape[0] > 400 and img.shape[1] > 800
+    assert img[..., :3].std() > 0.05  # not blank
+    assert (out / "fig1.pdf").read_bytes().startswith(b"%PDF")
+
+
+def test_bad_problem_exits_2_with_one_line_and_writes_nothing(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(PAPER.read_text().replace("sigma_m = 1.0e-4", "sigma_m = -1.0"))
+    out = tmp_path / "out"
+    assert main(["solve", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "[measurement].sigma_m: must be positive" in err[0]
+    assert not out.exists()
+
+
+def test_script_is_a_thin_wrapper(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(PAPER.read_text().replace('"E"]', '"Z"]'))
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "solve_case.py"), str(bad)],
+                         capture_output=True, text=True)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert "[design].criteria: has 'Z'" in run.stderr

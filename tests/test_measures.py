@@ -1,0 +1,131 @@
+"""Measures: numpy twins against the symbolic objectives, identities and invariances."""
+
+import casadi as ca
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from casadi_design.measures import CRITERIA, information_matrix, score_plan, rho_at_test_poses
+from casadi_design.nlp import OBJECTIVES, build_nlp, B0_at_test_poses
+from casadi_design.solve import random_plan, solve_design
+from tests.conftest import build, paper_raw
+
+REL = 1e-9
+
+
+def _random_plan_B(paper, m, seed):
+    Q, F = random_plan(paper, m, np.random.default_rng(seed))
+    return Q, F, np.array([paper.model.B_numeric(q, f) for q, f in zip(Q.T, F.T)])
+
+
+def test_criteria_tables_agree():
+    assert set(CRITERIA) == set(OBJECTIVES)
+
+
+def test_M_symmetric_psd_and_rho_formula(paper):
+    B0 = B0_at_test_poses(paper)
+    _, _, B = _random_plan_B(paper, 3, 0)
+    M = information_matrix(B)
+    np.testing.assert_allclose(M, M.T)
+    assert np.all(np.linalg.eigvalsh(M) > 0)
+    direct = [paper.sigma_m**2 * np.trace(b @ np.linalg.inv(M) @ b.T) for b in B0]
+    np.testing.assert_allclose(rho_at_test_poses(M, B0, paper.sigma_m), direct, rtol=REL)
+
+
+@pytest.mark.parametrize("criterion", ["test-pose", "D", "A", "T"])
+def test_symbolic_objective_equals_numpy_twin(paper, criterion):
+    B0 = B0_at_test_poses(paper)
+    nlp = build_nlp(paper, criterion, 3, B0)
+    Q, F, B = _random_plan_B(paper, 3, 1)
+    x0 = nlp.start(Q, F)
+    f = float(ca.Function("f", [nlp.x], [nlp.f])(x0))
+    sc = score_plan(B, B0, paper.sigma_m)
+    c, L = nlp.scale, paper.model.L
+    if criterion == "test-pose":
+        g = np.asarray(ca.Function("g", [nlp.x], [nlp.g])(x0)).ravel()[: B0.shape[0]]
+        np.testing.assert_allclose(np.sqrt((g + f)) * paper.sigma_m, sc.rms_error_m, rtol=REL)
+    else:
+        expected = {"D": -(sc.log_det_M + L * np.log(c)), "A": sc.trace_M_inv / c, "T": -c * sc.trace_M}
+        assert f == pytest.approx(expected[criterion], rel=REL)
+
+
+@pytest.mark.parametrize("criterion", ["E", "condition", "test-pose"])
+def test_nonsmooth_objectives_reach_their_value_at_the_optimum(paper, criterion):
+    """At the optimum s = lambda_min(cM), kappa = (s_1/s_L)^2 and t = max_j rho_j / sigma^2."""
+    d = solve_design(paper, criterion, 2, starts=4)
+    nlp = build_nlp(paper, criterion, 2)
+    B = np.array([paper.model.B_numeric(q, f) for q, f in zip(d.Q, d.F)])
+    lam = np.linalg.eigvalsh(information_matrix(B))
+    assert d.scores.s_min**2 == pytest.approx(lam[0], rel=REL)
+    assert d.scores.condition == pytest.approx(np.sqrt(lam[-1] / lam[0]), rel=REL)
+    # re-solve from the optimum: the epigraph/PSD variables take the criterion's value
+    from casadi_design.solve import make_solver
+
+    sol = make_solver(paper, nlp)(x0=nlp.start(d.Q.T, d.F.T), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    f = float(sol["f"])
+    Q, F = (np.asarray(v) for v in nlp.plan(sol["x"]))
+    sc = score_plan(np.array([paper.model.B_numeric(q, g) for q, g in zip(Q.T, F.T)]),
+                    B0_at_test_poses(paper), paper.sigma_m)
+    expected = {"E": -nlp.scale * sc.s_min**2, "condition": sc.condition**2,
+                "test-pose": (sc.max_rms_error_m / paper.sigma_m) ** 2}[criterion]
+    assert f == pytest.approx(expected, rel=1e-6)
+
+
+def test_observability_indices_from_svd(paper):
+    _, _, B = _random_plan_B(paper, 4, 2)
+    s = np.linalg.svd(B.reshape(-1, B.shape[-1]), compute_uv=False)
+    o = score_plan(B, B0_at_test_poses(paper), paper.sigma_m).observability
+    L, m = len(s), 4
+    assert o["O1"] == pytest.approx(np.prod(s) ** (1 / L) / np.sqrt(m), rel=REL)
+    assert o["O2"] == pytest.approx(s[-1] / s[0], rel=REL)
+    assert o["O3"] == pytest.approx(s[-1], rel=REL)
+    assert o["O4"] == pytest.approx(s[-1] ** 2 / s[0], rel=REL)
+    assert o["O5"] == pytest.approx(1 / np.sum(1 / s), rel=REL)
+
+
+def test_log_det_scales_with_L_log_c(paper):
+    _, _, B = _random_plan_B(paper, 2, 3)
+    B0 = B0_at_test_poses(paper)
+    c = 7.3
+    a, b = score_plan(B, B0, 1.0), score_plan(np.sqrt(c) * B, B0, 1.0)
+    assert b.log_det_M - a.log_det_M == pytest.approx(2 * np.log(c), rel=REL)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-3, 3), min_size=4, max_size=4), st.integers(0, 1000))
+def test_test_pose_measure_invariant_under_reparametrisation(paper, t, seed):
+    """X -> T X (B -> B T^-1) leaves rho unchanged; E changes; log det shifts by -2 log|det T|."""
+    T = np.array(t).reshape(2, 2) + 4 * np.eye(2)
+    _, _, B = _random_plan_B(paper, 2, seed)
+    B0 = B0_at_test_poses(paper)
+    Ti = np.linalg.inv(T)
+    a, b = score_plan(B, B0, 1e-4), score_plan(B @ Ti, B0 @ Ti, 1e-4)
+    np.testing.assert_allclose(b.rms_error_m, a.rms_error_m, rtol=1e-7)
+    assert b.log_det_M == pytest.approx(a.log_det_M - 2 * np.log(abs(np.linalg.det(T))), rel=1e-7, abs=1e-7)
+
+
+def test_E_is_not_invariant_under_reparametrisation(paper):
+    """Under X -> T X the ranking of plans by E changes (k2 in other units), not by test-pose."""
+    B0 = B0_at_test_poses(paper)
+    Ti = np.linalg.inv(np.diag([1.0, 10.0]))
+    plans = [_random_plan_B(paper, 2, seed)[2] for seed in range(20)]
+    E = np.array([score_plan(B, B0, 1.0).s_min for B in plans])
+    E_T = np.array([score_plan(B @ Ti, B0 @ Ti, 1.0).s_min for B in plans])
+    rms = np.array([score_plan(B, B0, 1.0).max_rms_error_m for B in plans])
+    rms_T = np.array([score_plan(B @ Ti, B0 @ Ti, 1.0).max_rms_error_m for B in plans])
+    assert np.argsort(E).tolist() != np.argsort(E_T).tolist()
+    assert np.argsort(rms).tolist() == np.argsort(rms_T).tolist()
+
+
+def test_closed_form_two_offsets_one_pose():
+    """Planar 2R, joint offsets only, one pose: det M = (l1 l2 sin q2)^2, largest at q2 = +/- pi/2."""
+    raw = paper_raw()
+    raw["calibration"] = {"case": "geometric", "parameters": ["joint1.offset", "joint2.offset"]}
+    del raw["experiments"]["force"]
+    raw["test_poses"].pop("force_N")
+    raw["experiments"]["m"] = 1
+    problem = build(raw)
+    d = solve_design(problem, "D", 1, starts=5)
+    assert abs(np.sin(d.Q[0, 1])) == pytest.approx(1.0, abs=1e-6)
+    assert d.scores.log_det_M == pytest.approx(2 * np.log(0.6 * 0.4), rel=1e-8)

@@ -1,0 +1,138 @@
+"""Problem files: every shipped file loads; every bad input gets one clear message."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from casadi_design.errors import DesignError, ProblemError
+from casadi_design.problem import load_problem
+from casadi_design.solve import solve_design
+from tests.conftest import ROOT, build, paper_raw
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "problems").glob("*.toml")), ids=lambda p: p.name)
+def test_every_problem_file_loads_and_builds(path):
+    from casadi_design.nlp import build_nlp
+
+    problem = load_problem(path)
+    assert problem.test_poses.s >= 1
+    for c in problem.criteria:
+        build_nlp(problem, c, max(problem.m_values))
+
+
+def test_paper_problem_is_the_papers_example(paper):
+    assert paper.sigma_m == 1e-4
+    np.testing.assert_allclose(paper.test_poses.position_m[[0, -1], :2], [[-0.6, 0.4], [0.6, 0.4]], atol=1e-12)
+    np.testing.assert_allclose(paper.test_poses.F, np.tile([0.0, 100.0], (paper.test_poses.s, 1)))
+    assert paper.model.parameter_names == ("k.joint1", "k.joint2")
+    assert paper.m_values == (1, 5) and paper.force.magnitude_N == 100.0
+
+
+def _edit(path: str, value):
+    raw = paper_raw()
+    *parents, key = path.split(".")
+    table = raw
+    for p in parents:
+        table = table.setdefault(p, {})
+    if value is None:
+        del table[key]
+    else:
+        table[key] = value
+    return raw
+
+
+@pytest.mark.parametrize(
+    "path, value, match",
+    [
+        ("design.criteria", ["test-pose", "d-opt"], r"\[design\].criteria: has 'd-opt'; allowed: test-pose, D, A, E, T, condition"),
+        ("design.critera", ["D"], r"\[design\]: unknown key 'critera'; allowed: criteria"),
+        ("speed", 3, r"top level: unknown key 'speed'"),
+        ("measurement", None, r"\[measurement\]: missing section"),
+        ("measurement.sigma_m", None, r"\[measurement\].sigma_m: missing"),
+        ("measurement.sigma_m", -1.0, r"sigma_m: must be positive"),
+        ("measurement.sigma_m", "0.1 mm", r"sigma_m: expected float"),
+        ("test_poses.line_m", {"start": [-0.6, 0.4], "end": [1.2, 0.4], "nodes": 5}, r"out of reach: distance 1264.9 mm, reachable 200.0 to 1000.0 mm"),
+        ("test_poses.line_m", {"start": [-0.6, 0.4], "end": [0.6, 0.4]}, r"\[test_poses.line_m\].nodes: missing"),
+        ("test_poses.elbow", "left", r"\[test_poses\].elbow: 'left'; allowed: up, down"),
+        ("test_poses.force_N", [0.0, 1.0, 2.0], r"force_N: expected finite numbers of shape 2"),
+        ("experiments.m", [1, 0], r"\[experiments\].m: expected positive integers"),
+        ("experiments.force.mode", "free", r"mode: 'free'; allowed: equal, bound, fixed"),
+        ("robot.frame", "flange", r"unknown frame 'flange'; the model has: .*tool"),
+        ("robot.joint_limits_rad", {"elbow": [-1, 1]}, r"unknown joint 'elbow'; the chain to 'tool' has: joint1, joint2"),
+        ("robot.joint_limits_rad", {"joint1": [1, -1]}, r"lower 1.0 must be below upper -1.0"),
+        ("calibration.compliant_joints", ["joint3"], r"unknown joint 'joint3'"),
+        ("robot.urdf", "nowhere.urdf", r"give exactly one of planar_links_m and urdf"),
+    ],
+)
+def test_bad_input_messages(path, value, match):
+    with pytest.raises(ProblemError, match=match):
+        build(_edit(path, value))
+
+
+def test_m_too_small_for_the_parameters():
+    raw = paper_raw()
+    raw["calibration"] = {"case": "both", "parameters": ["joint2.tx", "tool.tx"],
+                          "wrench_components": ["fx", "fy"]}
+    raw["experiments"]["m"] = [1, 5]
+    with pytest.raises(ProblemError, match=r"m = 1 is too small: 4 parameters .* need m >= 2; use m >= 2"):
+        build(raw)
+
+
+def test_non_identifiable_parameter_set():
+    """A base rotation about z and joint 1's offset move the tool identically."""
+    raw = paper_raw()
+    raw["calibration"] = {"case": "geometric", "parameters": ["joint1.offset", "base.rz", "tool.tx"]}
+    del raw["experiments"]["force"]
+    del raw["test_poses"]["force_N"]
+    raw["experiments"]["m"] = [2, 5]
+    with pytest.raises(ProblemError, match=r"not identifiable .*joint1.offset and base.rz act as one combination"):
+        build(raw)
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ProblemError, match="no such problem file"):
+        load_problem(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[robot\nframe = 1\n")
+    with pytest.raises(ProblemError, match=r"bad.toml: not valid TOML"):
+        load_problem(bad)
+
+
+def test_test_pose_outside_joint_limits():
+    raw = paper_raw()
+    raw["robot"]["joint_limits_rad"] = {"joint2": [0.0, 3.0]}
+    with pytest.raises(ProblemError, match=r"test pose 0 .* is outside the joint limits"):
+        build(raw)
+
+
+def test_infeasible_workspace_is_a_clear_error():
+    raw = paper_raw()
+    raw["experiments"]["workspace"] = {"half_spaces": [{"normal": [1.0, 0.0, 0.0], "offset_m": 2.0}]}
+    problem = build(raw)
+    with pytest.raises(DesignError, match=r"\[experiments.workspace\] leaves no feasible pose"):
+        solve_design(problem, "D", 1, starts=1)
+
+
+def test_solver_failure_is_a_status_then_a_clear_error():
+    raw = paper_raw()
+    raw["solver"]["max_iter"] = 1
+    problem = build(raw)
+    with pytest.raises(DesignError, match=r"none of 2 starts converged .*Maximum_Iterations_Exceeded.* x 2"):
+        solve_design(problem, "test-pose", 5, starts=2)
+
+
+def test_problem_files_have_documented_keys():
+    doc = (ROOT / "docs" / "problem-format.md").read_text()
+    from casadi_design.problem import SECTIONS
+
+    for section, keys in SECTIONS.items():
+        for key in keys or ():
+            assert f"`{key}`" in doc, f"{section}.{key} is not documented"
+
+
+def test_path_is_named_in_messages(tmp_path):
+    f = tmp_path / "case.toml"
+    f.write_text(Path(ROOT / "problems" / "paper_planar_2r.toml").read_text().replace('"E"]', '"F"]'))
+    with pytest.raises(ProblemError, match=r"case.toml: \[design\].criteria: has 'F'"):
+        load_problem(f)
