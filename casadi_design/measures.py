@@ -110,7 +110,7 @@ def rho_at_test_poses(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray
 def observability_indices(s: np.ndarray, m: int) -> dict[str, float]:
     """O1..O5 from the singular values ``s`` (descending) of the stacked S of m experiments."""
     L = len(s)
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):
         return {
             "O1": float(np.exp(np.mean(np.log(s))) / np.sqrt(m)),
             "O2": float(s[-1] / s[0]),

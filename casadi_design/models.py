@@ -148,6 +148,11 @@ def calibration_model(
                     f"[calibration].compliant_joints: unknown joint '{j}'; the chain has: "
                     + ", ".join(robot.joints)
                 )
+        if not compliant or len(set(compliant)) != len(compliant):
+            raise ProblemError(
+                f"[calibration].compliant_joints: has {list(compliant)}; list distinct joints among "
+                + ", ".join(robot.joints)
+            )
         comp_idx = [robot.joints.index(j) for j in compliant]
         names += [f"k.{j}" for j in compliant]
         f_rows = row_indices(tuple(force), WRENCH_ROWS, "[calibration].wrench_components")

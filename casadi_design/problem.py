@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import casadi as ca
 import numpy as np
 
 from .errors import ProblemError
@@ -37,6 +38,7 @@ SECTIONS: dict[str, set[str] | None] = {
     "experiments": {"m", "force", "workspace"},
     "experiments.force": {"mode", "magnitude_N", "vector_N"},
     "experiments.workspace": {"box_min_m", "box_max_m", "half_spaces"},
+    "experiments.workspace.half_spaces": {"normal", "offset_m"},
     "design": {"criteria"},
     "solver": {"starts", "seed", "max_iter", "tol", "ipopt"},
     "solver.ipopt": None,  # passed through to IPOPT unchanged
@@ -159,6 +161,8 @@ class _Reader:
         if value is default and default is not ...:
             return default
         try:
+            if any(isinstance(v, bool) for v in np.ravel(np.array(value, dtype=object))):
+                raise TypeError("booleans are not numbers")
             arr = np.array(value, dtype=float)
         except (TypeError, ValueError):
             raise self.error(f"expected numbers, got {value!r}", hint or "give a list of numbers", key)
@@ -199,6 +203,15 @@ def load_problem(path: str | Path) -> Problem:
 
 def build_problem(raw: dict, path: str = "<problem>") -> Problem:
     """Check and build a problem from its parsed TOML ``raw``."""
+    try:
+        return _build(raw, path)
+    except ProblemError as exc:
+        if str(exc).startswith(f"{path}: "):
+            raise
+        raise ProblemError(f"{path}: {exc}") from None
+
+
+def _build(raw: dict, path: str) -> Problem:
     top = _Reader(path, raw, "")
     name = top.get("name", str, Path(path).stem)
     robot = _robot(top.sub("robot", required=True))
@@ -218,6 +231,9 @@ def build_problem(raw: dict, path: str = "<problem>") -> Problem:
                            hint="the wrench components of F, e.g. [\"fx\", \"fy\"]"))
     if not elastic and wrench:
         raise cal.error("is only used by elasto-static cases", "remove it", "wrench_components")
+    for key, used in (("parameters", case != "elastostatic"), ("compliant_joints", elastic)):
+        if key in cal.table and not used:
+            raise cal.error(f"is not used by case '{case}'", "remove it or change the case", key)
     kin = symbolic_kinematics(robot)
     model = calibration_model(
         kin,
@@ -234,6 +250,8 @@ def build_problem(raw: dict, path: str = "<problem>") -> Problem:
     m_values = tuple(m_raw) if isinstance(m_raw, list) else (m_raw,)
     if not m_values or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in m_values):
         raise exp.error(f"expected positive integers, got {m_raw!r}", "e.g. m = [1, 5]", "m")
+    if len(set(m_values)) != len(m_values):
+        raise exp.error(f"has repeated values {list(m_values)}", "list each m once", "m")
     force = _force(exp.sub("force", required=elastic), model) if elastic else None
     if not elastic and "force" in exp.table:
         raise exp.error("a geometric case applies no load", "remove [experiments.force]", "force")
@@ -264,19 +282,14 @@ def _robot(r: _Reader) -> Robot:
             raise r.error(f"expected positive link lengths, got {links.tolist()}", "lengths in m", "planar_links_m")
         model = planar_arm(links)
     else:
-        model = load_urdf(r.get("urdf", str))
-    limits_table = r.sub("joint_limits_rad")
-    limits = {}
-    if limits_table is not None:
-        for j, v in limits_table.table.items():
-            arr = np.array(v, dtype=float) if isinstance(v, list) else None
-            if arr is None or arr.shape != (2,):
-                raise limits_table.error(f"expected [lower, upper], got {v!r}", "rad (m for prismatic joints)", j)
-            limits[j] = tuple(arr)
-    try:
-        return make_robot(model, frame, limits)
-    except ProblemError as exc:
-        raise ProblemError(f"{r.path}: {exc}") from None
+        urdf = r.get("urdf", str)
+        if not urdf.startswith("example-robot-data:") and not Path(urdf).is_absolute():
+            urdf = str(Path(r.path).parent / urdf)
+        model = load_urdf(urdf)
+    lt = r.sub("joint_limits_rad")
+    limits = {j: tuple(lt.array(j, (2,), hint="[lower, upper] in rad (m for prismatic joints)"))
+              for j in (lt.table if lt else {})}
+    return make_robot(model, frame, limits)
 
 
 
@@ -285,6 +298,8 @@ def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses
     if len(given) != 1:
         raise tp.error(f"has {given or 'none'} of joints_rad, points_m, line_m", "give exactly one")
     if given[0] == "joints_rad":
+        if "elbow" in tp.table:
+            raise tp.error("only applies to Cartesian test points", "remove it", "elbow")
         q = tp.array("joints_rad", (None, robot.n), hint=f"one row of {robot.n} joint angles (rad) per pose")
     else:
         if given[0] == "points_m":
@@ -300,15 +315,14 @@ def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses
         elbow = tp.get("elbow", str, "up")
         if elbow not in ("up", "down"):
             raise tp.error(f"'{elbow}'", "allowed: up, down", "elbow")
-        try:
-            q = np.array([planar_2r_ik(robot, p, elbow) for p in pts])
-        except ProblemError as exc:
-            raise ProblemError(f"{tp.path}: {exc}") from None
+        q = np.array([planar_2r_ik(robot, p, elbow) for p in pts])
     outside = np.flatnonzero(np.any((q < robot.q_min - 1e-12) | (q > robot.q_max + 1e-12), axis=1))
     if outside.size:
         raise tp.error(f"test pose {int(outside[0])} (q = {q[outside[0]].round(4).tolist()} rad) is outside the joint limits",
                        "move the pose or widen [robot.joint_limits_rad]")
     nF = model.nF
+    if nF == 0 and ("force_N" in tp.table or "forces_N" in tp.table):
+        raise tp.error("a geometric case has no machining load in its model", "remove force_N / forces_N")
     if "forces_N" in tp.table and "force_N" in tp.table:
         raise tp.error("has both force_N and forces_N", "give one")
     if "forces_N" in tp.table:
@@ -329,6 +343,8 @@ def _force(f: _Reader, model: CalibrationModel) -> ForceSpec:
         raise f.error(f"'{mode}'", f"allowed: {', '.join(FORCE_MODES)}", "mode")
     if mode == "fixed":
         vec = f.array("vector_N", (model.nF,), hint=f"{model.nF} wrench components, N (N m)")
+        if not np.any(vec):
+            raise f.error("is zero: a zero load identifies no compliance", "give the applied load", "vector_N")
         if "magnitude_N" in f.table:
             raise f.error("is not used with mode = \"fixed\"", "remove it", "magnitude_N")
         return ForceSpec(mode, float(np.linalg.norm(vec)), tuple(vec.tolist()))
@@ -351,12 +367,13 @@ def _workspace(w: _Reader | None) -> Workspace:
         raise w.error(f"box_min_m {lo.tolist()} must be below box_max_m {hi.tolist()}", "fix the box")
     spaces = []
     for k, hs in enumerate(w.get("half_spaces", list, [])):
-        if not isinstance(hs, dict) or set(hs) != {"normal", "offset_m"}:
+        if not isinstance(hs, dict):
             raise w.error(f"entry {k} is {hs!r}", "write { normal = [nx, ny, nz], offset_m = b } for normal . p >= b", "half_spaces")
-        normal = np.array(hs["normal"], dtype=float)
-        if normal.shape != (3,) or not np.linalg.norm(normal) > 0:
-            raise w.error(f"entry {k} normal is {hs['normal']!r}", "give a non-zero 3-vector", "half_spaces")
-        spaces.append(HalfSpace(tuple(normal.tolist()), float(hs["offset_m"])))
+        h = _Reader(w.path, hs, "experiments.workspace.half_spaces")
+        normal = h.array("normal", (3,), hint="a non-zero 3-vector")
+        if not np.linalg.norm(normal) > 0:
+            raise h.error("is zero", "give a non-zero 3-vector", "normal")
+        spaces.append(HalfSpace(tuple(normal.tolist()), h.get("offset_m", float, hint="b in normal . p >= b, m")))
     return Workspace(
         None if lo is None else tuple(lo.tolist()),
         None if hi is None else tuple(hi.tolist()),
@@ -371,14 +388,36 @@ def _solver(s: _Reader | None) -> SolverSettings:
     starts = s.get("starts", int, d.starts)
     if starts < 1:
         raise s.error(f"must be >= 1, got {starts}", "give the number of IPOPT starts", "starts")
-    ipopt = s.sub("ipopt")
-    return SolverSettings(
+    settings = SolverSettings(
         starts=starts,
         seed=s.get("seed", int, d.seed),
         max_iter=s.get("max_iter", int, d.max_iter),
         tol=s.get("tol", float, d.tol),
-        ipopt=tuple(sorted(ipopt.table.items())) if ipopt else (),
+        ipopt=tuple(sorted(s.sub("ipopt").table.items())) if "ipopt" in s.table else (),
     )
+    for key, value in (("seed", settings.seed), ("max_iter", settings.max_iter), ("tol", settings.tol)):
+        if value < 0 or key == "tol" and value == 0:
+            raise s.error(f"must be {'positive' if key == 'tol' else '>= 0'}, got {value}", "fix it", key)
+    _check_ipopt_options(s, settings)
+    return settings
+
+
+def _check_ipopt_options(s: _Reader, settings: SolverSettings) -> None:
+    """Try the [solver.ipopt] options on a one-variable NLP, so a bad option fails at load."""
+    if not settings.ipopt:
+        return
+    x = ca.SX.sym("x")
+    opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "error_on_fail": False,
+            **{f"ipopt.{k}": v for k, v in settings.ipopt}}
+    try:
+        solver = ca.nlpsol("check", "ipopt", {"x": x, "f": x**2}, opts)
+        solver(x0=1.0)
+        status = solver.stats()["return_status"]
+    except RuntimeError as exc:
+        status = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
+    if status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded"):
+        raise s.error(f"IPOPT rejected the options {dict(settings.ipopt)} ({status})",
+                      "check the names and values against the IPOPT options reference", "ipopt")
 
 
 
@@ -405,7 +444,7 @@ def check_identifiable(problem: Problem, exp: _Reader) -> None:
     rows = []
     for _ in range(IDENTIFIABILITY_SAMPLES):
         q = rng.uniform(robot.q_min, robot.q_max)
-        F = rng.normal(size=model.nF)
+        F = np.array(problem.force.vector_N) if problem.force and problem.force.mode == "fixed" else rng.normal(size=model.nF)
         rows.append(model.B_numeric(q, F))
     S = np.vstack(rows)
     S = S / np.maximum(np.linalg.norm(S, axis=0), np.finfo(float).tiny)
@@ -414,8 +453,11 @@ def check_identifiable(problem: Problem, exp: _Reader) -> None:
     if np.any(null):
         v = Vt[np.flatnonzero(null)[0]]
         involved = [model.parameter_names[i] for i in np.flatnonzero(np.abs(v) > 1e-6)]
+        field = "compliant_joints" if all(p.startswith("k.") for p in involved) else "parameters"
+        what = (f"{involved[0]} has no effect on them" if len(involved) == 1
+                else f"{' and '.join(involved)} act as one combination")
         raise ProblemError(
-            f"{problem.path}: [calibration]: the parameters are not identifiable from "
-            f"{', '.join(problem.raw['measurement']['components'])} measurements: {' and '.join(involved)} act as one combination "
-            f"(rank {int(np.sum(~null))} of {L}); remove one of them from [calibration].parameters"
+            f"{problem.path}: [calibration].{field}: the parameters are not identifiable from "
+            f"{', '.join(problem.raw['measurement']['components'])} measurements: {what} "
+            f"(rank {int(np.sum(~null))} of {L}); remove {'it' if len(involved) == 1 else 'one of them'}"
         )

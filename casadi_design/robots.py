@@ -101,7 +101,12 @@ def planar_arm(link_lengths_m: list[float] | tuple[float, ...], name: str = "pla
 
 def example_robot_data_dir() -> Path:
     """Folder of the URDFs shipped by the ``example-robot-data`` wheel (no download)."""
-    dist = importlib.metadata.distribution("example-robot-data")
+    try:
+        dist = importlib.metadata.distribution("example-robot-data")
+    except importlib.metadata.PackageNotFoundError:
+        raise ProblemError(
+            "[robot].urdf: example-robot-data is not installed; pip install example-robot-data"
+        ) from None
     root = Path(str(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")))
     if not root.is_dir():
         raise ProblemError(
@@ -122,7 +127,10 @@ def load_urdf(path: str | Path) -> pin.Model:
     file = example_robot_data_dir() / text[len(prefix) :] if text.startswith(prefix) else Path(text)
     if not file.is_file():
         raise ProblemError(f"[robot].urdf: file {file} does not exist; give a URDF path")
-    return pin.buildModelFromUrdf(str(file))
+    try:
+        return pin.buildModelFromUrdf(str(file))
+    except (RuntimeError, ValueError) as exc:
+        raise ProblemError(f"[robot].urdf: Pinocchio cannot read {file} ({exc}); check the URDF") from None
 
 
 def make_robot(
@@ -158,19 +166,19 @@ def make_robot(
     for jname, bounds in (joint_limits or {}).items():
         if jname not in joints:
             raise ProblemError(
-                f"[robot.joint_limits]: unknown joint '{jname}'; the chain to '{frame}' has: "
+                f"[robot.joint_limits_rad]: unknown joint '{jname}'; the chain to '{frame}' has: "
                 + ", ".join(joints)
             )
         lo, hi = (float(b) for b in bounds)
         if not lo < hi:
-            raise ProblemError(f"[robot.joint_limits].{jname}: lower {lo} must be below upper {hi}")
+            raise ProblemError(f"[robot.joint_limits_rad].{jname}: lower {lo} must be below upper {hi}")
         k = joints.index(jname)
         q_min[k], q_max[k] = lo, hi
     bad = [j for j, lo, hi in zip(joints, q_min, q_max) if not (np.isfinite(lo) and np.isfinite(hi))]
     if bad:
         raise ProblemError(
-            f"[robot.joint_limits]: joints {', '.join(bad)} have no finite limits in the model; "
-            "give them in [robot.joint_limits] as name = [lower, upper]"
+            f"[robot.joint_limits_rad]: joints {', '.join(bad)} have no finite limits in the model; "
+            "give them in [robot.joint_limits_rad] as name = [lower, upper]"
         )
     return Robot(name or model.name, model, frame, joints, q_min, q_max)
 

@@ -63,6 +63,18 @@ def _edit(path: str, value):
         ("robot.joint_limits_rad", {"joint1": [1, -1]}, r"lower 1.0 must be below upper -1.0"),
         ("calibration.compliant_joints", ["joint3"], r"unknown joint 'joint3'"),
         ("robot.urdf", "nowhere.urdf", r"give exactly one of planar_links_m and urdf"),
+        ("robot.joint_limits_rad", {"joint1": ["a", 0]}, r"joint_limits_rad\].joint1: expected numbers"),
+        ("robot.joint_limits_rad", {"joint1": [True, 1.0]}, r"joint_limits_rad\].joint1: expected numbers"),
+        ("calibration.compliant_joints", [], r"compliant_joints: has \[\]; list distinct joints"),
+        ("calibration.compliant_joints", ["joint1", "joint1"], r"compliant_joints: has .*list distinct joints"),
+        ("calibration.parameters", ["nonsense"], r"\[calibration\].parameters: is not used by case 'elastostatic'"),
+        ("experiments.m", [5, 5], r"\[experiments\].m: has repeated values"),
+        ("experiments.force", {"mode": "fixed", "vector_N": [0.0, 0.0]}, r"vector_N: is zero"),
+        ("experiments.workspace", {"half_spaces": [{"normal": [0, 1, 0], "offset_m": "x"}]}, r"half_spaces\].offset_m: expected float"),
+        ("experiments.workspace", {"half_spaces": [{"normal": [0, 1], "offset_m": 0.0}]}, r"half_spaces\].normal: expected finite numbers of shape 3"),
+        ("solver.ipopt", {"no_such_option": 3}, r"\[solver\].ipopt: IPOPT rejected the options"),
+        ("solver.tol", -1.0, r"\[solver\].tol: must be positive"),
+        ("test_poses.joints_rad", [[0.1, 0.2]], r"give exactly one"),
     ],
 )
 def test_bad_input_messages(path, value, match):
@@ -86,7 +98,23 @@ def test_non_identifiable_parameter_set():
     del raw["experiments"]["force"]
     del raw["test_poses"]["force_N"]
     raw["experiments"]["m"] = [2, 5]
-    with pytest.raises(ProblemError, match=r"not identifiable .*joint1.offset and base.rz act as one combination"):
+    with pytest.raises(ProblemError, match=r"parameters: the parameters are not identifiable .*joint1.offset and base.rz act as one combination"):
+        build(raw)
+    raw["calibration"]["parameters"] = ["joint1.offset", "tool.rx"]
+    with pytest.raises(ProblemError, match=r"not identifiable .*tool.rx has no effect on them .*remove it"):
+        build(raw)
+
+
+def test_geometric_case_rejects_loads_and_elbow_with_joints():
+    raw = paper_raw()
+    raw["calibration"] = {"case": "geometric", "parameters": ["joint1.offset", "joint2.offset"]}
+    del raw["experiments"]["force"]
+    with pytest.raises(ProblemError, match=r"\[test_poses\]: a geometric case has no machining load"):
+        build(raw)
+    del raw["test_poses"]["force_N"]
+    del raw["test_poses"]["line_m"]
+    raw["test_poses"]["joints_rad"] = [[0.1, 1.0]]
+    with pytest.raises(ProblemError, match=r"\[test_poses\].elbow: only applies to Cartesian"):
         build(raw)
 
 
@@ -127,7 +155,7 @@ def test_problem_files_have_documented_keys():
     from casadi_design.problem import SECTIONS
 
     for section, keys in SECTIONS.items():
-        for key in keys or ():
+        for key in set(keys or ()) - {k.split(".")[-1] for k in SECTIONS}:
             assert f"`{key}`" in doc, f"{section}.{key} is not documented"
 
 
