@@ -51,12 +51,18 @@ class CalibrationModel:
     force_rows : tuple of int
         Wrench components that ``F`` holds (indices into ``WRENCH_ROWS``); empty when no force
         enters B (geometric case).
+    markers_m : ndarray, shape (k, 3)
+        Measured points in the measured frame (m); the frame origin by default.
     B : casadi.Function
-        ``(q, F) -> B``, the measured rows (calibration experiments).
+        ``(q, F) -> B``: measured rows of one experiment (d x L), whitened by the noise model
+        so that ``M = sum B^T B`` is ``sigma^2`` times the weighted-least-squares information.
     B0 : casadi.Function
-        ``(q, F) -> B0``, the rows whose accuracy is required at test poses.
+        ``(q, F) -> B0``, the rows whose accuracy is required at test poses (at the frame
+        origin, machining wrench applied there).
     position : casadi.Function
-        ``q -> p``, nominal position (m) of the measured frame, for workspace constraints.
+        ``q -> p``, nominal position (m) of the measured frame's origin.
+    points : casadi.Function
+        ``q -> P``, 3 x k nominal positions (m) of the measured points (workspace constraints).
     """
 
     kinematics: SymbolicKinematics
@@ -65,14 +71,21 @@ class CalibrationModel:
     measured_rows: tuple[int, ...]
     accuracy_rows: tuple[int, ...]
     force_rows: tuple[int, ...]
+    markers_m: np.ndarray
     B: ca.Function
     B0: ca.Function
     position: ca.Function
+    points: ca.Function
 
     @property
     def L(self) -> int:
         """Number of parameters to identify, dim X."""
         return len(self.parameter_names)
+
+    @property
+    def d(self) -> int:
+        """Measured values per experiment."""
+        return self.B.size1_out(0)
 
     @property
     def n(self) -> int:
@@ -85,13 +98,36 @@ class CalibrationModel:
     def B_numeric(self, q: np.ndarray, F: np.ndarray, accuracy: bool = False) -> np.ndarray:
         fn = self.B0 if accuracy else self.B
         return np.asarray(fn(np.asarray(q, float), np.asarray(F, float)), dtype=float).reshape(
-            len(self.accuracy_rows if accuracy else self.measured_rows), self.L
+            fn.size1_out(0), self.L
         )
 
 
-def elastostatic_matrix(J: ca.SX, W: ca.SX, rows: tuple[int, ...], joints: tuple[int, ...]) -> ca.SX:
-    """``A = [J_n J_n^T W]`` for the compliant ``joints`` (column indices of J), ``rows`` of J."""
-    return ca.horzcat(*[J[list(rows), n] * ca.dot(J[:, n], W) for n in joints])
+def elastostatic_matrix(J: ca.SX, W: ca.SX, joints: tuple[int, ...]) -> ca.SX:
+    """``A = [J_n J_n^T W]``: 6 x len(joints) deflection twist per unit compliance of ``joints``."""
+    return ca.horzcat(*[J[:, n] * ca.dot(J[:, n], W) for n in joints])
+
+
+def _skew(c: ca.SX) -> ca.SX:
+    return ca.vertcat(
+        ca.horzcat(0, -c[2], c[1]), ca.horzcat(c[2], 0, -c[0]), ca.horzcat(-c[1], c[0], 0)
+    )
+
+
+def measurement_map(R: ca.SX, rows: tuple[int, ...], markers: np.ndarray) -> ca.SX:
+    """Map G from the frame's small displacement twist (dp, dtheta) to the measured values.
+
+    Position rows of each marker ``r`` (frame coordinates): ``dp - [R r]x dtheta``; then the
+    orientation rows once. ``rows`` index x, y, z, rx, ry, rz.
+    """
+    pos = [r for r in rows if r < 3]
+    blocks = []
+    for r in markers:
+        c = R @ ca.DM(r)
+        blocks.append(ca.horzcat(ca.SX.eye(3), -_skew(c))[pos, :])
+    rot = [r - 3 for r in rows if r >= 3]
+    if rot:
+        blocks.append(ca.horzcat(ca.SX.zeros(3, 3), ca.SX.eye(3))[rot, :])
+    return ca.vertcat(*blocks)
 
 
 def calibration_model(
@@ -102,23 +138,37 @@ def calibration_model(
     geometric: tuple[str, ...] = (),
     compliant: tuple[str, ...] | None = None,
     force: tuple[str, ...] = (),
+    markers_m: np.ndarray | None = None,
+    load_point_m: np.ndarray | None = None,
+    whitening: np.ndarray | None = None,
 ) -> CalibrationModel:
     """Build B(q, F) for a calibration case.
 
     Parameters
     ----------
-    measured : component names among x, y, z, rx, ry, rz measured in each experiment.
-    accuracy : components required at the test poses (default: ``measured``).
+    measured : component names among x, y, z, rx, ry, rz measured in each experiment; the
+        position components are measured at every marker.
+    accuracy : components required at the test poses, at the frame origin (default:
+        ``measured``).
     geometric : names of the geometric errors to identify (see ``kinematics.parameter_names``);
         required for the geometric and combined cases.
     compliant : joints whose compliance is identified (default: every joint of the chain).
     force : wrench components among fx, fy, fz, mx, my, mz held by F (elasto-static cases).
+    markers_m : ndarray, shape (k, 3), m
+        Measured points in the measured frame (default: its origin).
+    load_point_m : ndarray, shape (3,), m
+        Where the calibration force acts, in the measured frame (default: its origin); an
+        offset adds the moment ``(R r) x f``.
+    whitening : ndarray, shape (d, d)
+        ``sigma * Sigma^-1/2`` for a measurement covariance ``Sigma`` and reference ``sigma``
+        (default identity): B is pre-multiplied by it (weighted least squares).
     """
     if case not in CASES:
         raise ProblemError(f"[calibration].case: '{case}'; allowed: {', '.join(CASES)}")
     robot = kinematics.robot
     m_rows = row_indices(tuple(measured), TWIST_ROWS, "[measurement].components")
     a_rows = row_indices(tuple(accuracy or measured), TWIST_ROWS, "[test_poses].components")
+    markers = np.zeros((1, 3)) if markers_m is None else np.asarray(markers_m, dtype=float).reshape(-1, 3)
     names: list[str] = []
     geo_idx: list[int] = []
     if case in ("geometric", "both"):
@@ -159,21 +209,32 @@ def calibration_model(
 
     q = ca.SX.sym("q", robot.n)
     F = ca.SX.sym("F", len(f_rows))
-    W = ca.SX.zeros(6)
+    R, p = kinematics.placement(q, ca.DM.zeros(len(kinematics.parameter_names)))
+    W0 = ca.SX.zeros(6)
     for i, r in enumerate(f_rows):
-        W[r] = F[i]
+        W0[r] = F[i]
+    lever = R @ ca.DM(np.zeros(3) if load_point_m is None else np.asarray(load_point_m, dtype=float))
+    W = ca.vertcat(W0[:3], W0[3:] + ca.cross(lever, W0[:3]))
     J = kinematics.jacobian(q)
     J_Pi = kinematics.error_jacobian(q)
 
-    def B_of(rows: tuple[int, ...]) -> ca.SX:
+    def twist_matrix(W: ca.SX) -> ca.SX:
         blocks = []
         if geo_idx:
-            blocks.append(J_Pi[list(rows), geo_idx])
+            blocks.append(J_Pi[:, geo_idx])
         if comp_idx:
-            blocks.append(elastostatic_matrix(J, W, rows, tuple(comp_idx)))
+            blocks.append(elastostatic_matrix(J, W, tuple(comp_idx)))
         return ca.horzcat(*blocks)
 
-    _, p = kinematics.placement(q, ca.DM.zeros(len(kinematics.parameter_names)))
+    G = measurement_map(R, m_rows, markers)
+    if whitening is not None:
+        if np.shape(whitening) != (G.shape[0], G.shape[0]):
+            raise ProblemError(
+                f"[measurement]: the noise model is {np.shape(whitening)} but each experiment "
+                f"measures {G.shape[0]} values; give one sigma or covariance row per value"
+            )
+        G = ca.DM(whitening) @ G
+    G0 = measurement_map(R, a_rows, np.zeros((1, 3)))
     return CalibrationModel(
         kinematics=kinematics,
         case=case,
@@ -181,7 +242,9 @@ def calibration_model(
         measured_rows=m_rows,
         accuracy_rows=a_rows,
         force_rows=f_rows,
-        B=ca.Function("B", [q, F], [B_of(m_rows)], ["q", "F"], ["B"]),
-        B0=ca.Function("B0", [q, F], [B_of(a_rows)], ["q", "F"], ["B0"]),
+        markers_m=markers,
+        B=ca.Function("B", [q, F], [G @ twist_matrix(W)], ["q", "F"], ["B"]),
+        B0=ca.Function("B0", [q, F], [G0 @ twist_matrix(W0)], ["q", "F"], ["B0"]),
         position=ca.Function("p", [q], [p], ["q"], ["p"]),
+        points=ca.Function("points", [q], [p + R @ ca.DM(markers.T)], ["q"], ["P"]),
     )

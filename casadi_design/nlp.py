@@ -20,6 +20,7 @@ measured point (box and half-spaces).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -170,6 +171,40 @@ OBJECTIVES: dict[str, Callable[[ca.SX, np.ndarray], Objective]] = {
 }
 
 
+@functools.cache
+def pose_constraints(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndarray]:
+    """Workspace constraints of one configuration: ``lb <= g(q) <= ub`` (m).
+
+    Every measured point in the box, the half-spaces (``n.p >= b``, n normalised) and the
+    tracker's sphere; every joint origin and measured point above the floor.
+    """
+    ws, model = problem.workspace, problem.model
+    q = ca.SX.sym("q", problem.robot.n)
+    P = model.points(q)
+    g, lb, ub = [], [], []
+    for j in range(P.shape[1]):
+        p = P[:, j]
+        if ws.box_min_m is not None:
+            g.append(p)
+            lb += list(ws.box_min_m)
+            ub += list(ws.box_max_m)
+        for hs in ws.half_spaces:
+            n = np.array(hs.normal) / np.linalg.norm(hs.normal)
+            g.append(ca.dot(ca.DM(n), p))
+            lb.append(hs.offset_m / np.linalg.norm(hs.normal))
+            ub.append(np.inf)
+        if ws.sphere_center_m is not None:
+            g.append(ca.sqrt(ca.sumsqr(p - ca.DM(ws.sphere_center_m)) + 1e-12))
+            lb.append(-np.inf)
+            ub.append(ws.sphere_radius_m)
+    if ws.floor_z_m is not None:
+        z = ca.horzcat(model.kinematics.joint_origins(q), P)[2, :].T
+        g.append(z)
+        lb += [ws.floor_z_m] * z.numel()
+        ub += [np.inf] * z.numel()
+    return ca.Function("workspace", [q], [ca.vertcat(*g) if g else ca.SX(0, 1)]), np.array(lb), np.array(ub)
+
+
 def B0_at_test_poses(problem: Problem) -> np.ndarray:
     """``B0_j`` at every test pose, shape (s, r, L)."""
     tp = problem.test_poses
@@ -183,7 +218,10 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     n, nF = robot.n, model.nF
     Q = ca.SX.sym("Q", n, m)
     free_force = nF > 0 and force is not None and force.mode != "fixed"
-    if free_force:
+    if free_force and force.mode == "direction":
+        f = ca.SX.sym("a", 1, m)  # F = a |F|max u, 0 <= a <= 1
+        F = force.magnitude_N * ca.DM(force.direction) @ f
+    elif free_force:
         f = ca.SX.sym("f", nF, m)
         F = force.magnitude_N * f
     else:
@@ -200,33 +238,39 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     obj = OBJECTIVES[criterion](M, np.sqrt(scale) * B0)
 
     g, lbg, ubg = [obj.g], [obj.lbg], [obj.ubg]
-    if free_force:
+    if free_force and force.mode != "direction":
         norms = ca.sum1(f**2).T
         g.append(norms)
         lbg.append(np.ones(m) if force.mode == "equal" else np.zeros(m))
         ubg.append(np.ones(m))
-    ws = problem.workspace
+    g_pose, lb_pose, ub_pose = pose_constraints(problem)
     for i in range(m):
-        p = model.position(Q[:, i])
-        if ws.box_min_m is not None:
-            g.append(p)
-            lbg.append(np.array(ws.box_min_m))
-            ubg.append(np.array(ws.box_max_m))
-        for hs in ws.half_spaces:
-            g.append(ca.dot(ca.DM(hs.normal), p))
-            lbg.append(np.array([hs.offset_m]))
-            ubg.append(np.array([np.inf]))
+        g.append(g_pose(Q[:, i]))
+        lbg.append(lb_pose)
+        ubg.append(ub_pose)
+    dmin = problem.workspace.min_joint_distance_rad
+    if dmin > 0:
+        pairs = [ca.sumsqr(Q[:, i] - Q[:, j]) for i in range(m) for j in range(i + 1, m)]
+        g.append(ca.vertcat(*pairs) if pairs else ca.SX(0, 1))
+        lbg.append(np.full(len(pairs), dmin**2))
+        ubg.append(np.full(len(pairs), np.inf))
 
     qv, fv = ca.vec(Q), ca.vec(f)
     x = ca.vertcat(qv, fv, obj.w)
-    lbx = np.concatenate([np.tile(robot.q_min, m), -np.ones(fv.numel()), obj.lbw])
+    f_lb = 0.0 if free_force and force.mode == "direction" else -1.0
+    lbx = np.concatenate([np.tile(robot.q_min, m), np.full(fv.numel(), f_lb), obj.lbw])
     ubx = np.concatenate([np.tile(robot.q_max, m), np.ones(fv.numel()), obj.ubw])
     plan = ca.Function("plan", [x], [Q, F], ["x"], ["Q", "F"])
     information = ca.Function("M", [x], [M], ["x"], ["M"])
     n_plan = qv.numel() + fv.numel()
 
     def start(Q0: np.ndarray, F0: np.ndarray) -> np.ndarray:
-        f0 = (F0 / force.magnitude_N).ravel(order="F") if free_force else np.zeros(0)
+        if not free_force:
+            f0 = np.zeros(0)
+        elif force.mode == "direction":
+            f0 = np.array(force.direction) @ F0 / force.magnitude_N
+        else:
+            f0 = (F0 / force.magnitude_N).ravel(order="F")
         x_plan = np.concatenate([np.asarray(Q0).ravel(order="F"), f0])
         M0 = np.asarray(information(np.concatenate([x_plan, np.zeros(x.numel() - n_plan)])))
         return np.concatenate([x_plan, obj.init(M0)])

@@ -15,12 +15,23 @@ import casadi as ca
 import numpy as np
 
 from .errors import ProblemError
+from .identifiability import BaseSet, base_set
 from .measures import CRITERIA
 from .models import CASES, CalibrationModel, calibration_model
-from .robots import Robot, load_urdf, make_robot, planar_2r_ik, planar_arm
+from .robots import (
+    DHJoint,
+    Robot,
+    add_tool_frame,
+    dh_arm,
+    load_urdf,
+    make_robot,
+    placement_from_xyz_rpy,
+    planar_2r_ik,
+    planar_arm,
+)
 from .symbolic import symbolic_kinematics
 
-FORCE_MODES = ("equal", "bound", "fixed")
+FORCE_MODES = ("equal", "bound", "fixed", "direction")
 #: Rank test of identifiability: relative singular-value threshold of the column-scaled S.
 IDENTIFIABILITY_RTOL = 1e-9
 #: Random configurations stacked for the identifiability test.
@@ -29,15 +40,18 @@ IDENTIFIABILITY_SAMPLES = 60
 SECTIONS: dict[str, set[str] | None] = {
     "": {"name", "description", "robot", "calibration", "measurement", "test_poses",
          "experiments", "design", "solver"},
-    "robot": {"planar_links_m", "urdf", "frame", "joint_limits_rad"},
+    "robot": {"planar_links_m", "urdf", "dh", "frame", "tool_xyz_m", "tool_rpy_deg", "joint_limits_rad"},
+    "robot.dh": {"convention", "joints", "flange_xyz_m", "flange_rpy_deg"},
+    "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "limits_deg"},
     "robot.joint_limits_rad": None,  # joint names: checked against the model instead
     "calibration": {"case", "parameters", "compliant_joints", "wrench_components"},
-    "measurement": {"components", "sigma_m"},
+    "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
     "test_poses": {"components", "joints_rad", "points_m", "line_m", "elbow", "force_N", "forces_N"},
     "test_poses.line_m": {"start", "end", "nodes"},
     "experiments": {"m", "force", "workspace"},
-    "experiments.force": {"mode", "magnitude_N", "vector_N"},
-    "experiments.workspace": {"box_min_m", "box_max_m", "half_spaces"},
+    "experiments.force": {"mode", "magnitude_N", "vector_N", "direction", "load_point_m"},
+    "experiments.workspace": {"box_min_m", "box_max_m", "half_spaces", "sphere_center_m",
+                              "sphere_radius_m", "floor_z_m", "min_joint_distance_rad"},
     "experiments.workspace.half_spaces": {"normal", "offset_m"},
     "design": {"criteria"},
     "solver": {"starts", "seed", "max_iter", "tol", "ipopt"},
@@ -69,13 +83,18 @@ class TestPoses:
 class ForceSpec:
     """Calibration load of every experiment.
 
-    ``mode``: "equal" (``|F| = magnitude_N``, direction free), "bound" (``|F| <= magnitude_N``)
-    or "fixed" (``F = vector_N`` in every experiment). Norms are over the wrench components.
+    ``mode``: "equal" (``|F| = magnitude_N``, direction free), "bound" (``|F| <= magnitude_N``),
+    "fixed" (``F = vector_N`` in every experiment) or "direction" (``F = a magnitude_N u`` with
+    the unit ``direction`` u fixed and ``0 <= a <= 1``: a hung weight of choosable mass).
+    Norms are over the wrench components. ``load_point_m`` (measured frame, m) is where the
+    force acts.
     """
 
     mode: str
     magnitude_N: float
     vector_N: tuple[float, ...] = ()
+    direction: tuple[float, ...] = ()
+    load_point_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -88,11 +107,20 @@ class HalfSpace:
 
 @dataclass(frozen=True)
 class Workspace:
-    """Where the measured point may be during calibration (box and half-spaces, m)."""
+    """Where the robot may be during calibration (m, rad).
+
+    Every measured point inside the box, the half-spaces and the sphere (the tracker's range);
+    every joint origin and measured point at ``z >= floor_z_m``; the configurations of any two
+    experiments at least ``min_joint_distance_rad`` apart (Euclidean norm of q_i - q_j).
+    """
 
     box_min_m: tuple[float, float, float] | None = None
     box_max_m: tuple[float, float, float] | None = None
     half_spaces: tuple[HalfSpace, ...] = ()
+    sphere_center_m: tuple[float, float, float] | None = None
+    sphere_radius_m: float | None = None
+    floor_z_m: float | None = None
+    min_joint_distance_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -108,7 +136,8 @@ class SolverSettings:
 
 @dataclass(frozen=True, eq=False)
 class Problem:
-    """A loaded, checked design case."""
+    """A loaded, checked design case. ``base_set`` is set when the parameters were selected
+    automatically (``parameters = "identifiable"``)."""
 
     name: str
     path: str
@@ -122,6 +151,7 @@ class Problem:
     workspace: Workspace
     criteria: tuple[str, ...]
     solver: SolverSettings = field(default_factory=SolverSettings)
+    base_set: BaseSet | None = None
 
 
 class _Reader:
@@ -235,24 +265,38 @@ def _build(raw: dict, path: str) -> Problem:
         if key in cal.table and not used:
             raise cal.error(f"is not used by case '{case}'", "remove it or change the case", key)
     kin = symbolic_kinematics(robot)
+    markers = meas.array("markers_m", (None, 3), None, hint="one row (x, y, z) in m per marker, in the measured frame")
+    exp = top.sub("experiments", required=True)
+    fsub = exp.sub("force", required=elastic) if elastic else None
+    load_point = fsub.array("load_point_m", (3,), np.zeros(3), hint="(x, y, z) in the measured frame, m") if fsub else None
+    parameters = cal.get("parameters", (list, str), [])
+    chosen = None
+    if isinstance(parameters, str):
+        if parameters != "identifiable":
+            raise cal.error(f"'{parameters}'", "give a list of names or \"identifiable\"", "parameters")
+        full = calibration_model(kin, "geometric", measured, geometric=kin.parameter_names, markers_m=markers)
+        chosen = base_set(full)
+        parameters = list(chosen.kept)
     model = calibration_model(
         kin,
         case,
         measured=measured,
         accuracy=accuracy,
-        geometric=tuple(cal.get("parameters", list, [])),
+        geometric=tuple(parameters),
         compliant=tuple(cal.get("compliant_joints", list)) if "compliant_joints" in cal.table else None,
         force=wrench,
+        markers_m=markers,
+        load_point_m=load_point,
+        whitening=_whitening(meas, measured, markers, sigma),
     )
     test_poses = _test_poses(tp, robot, model)
-    exp = top.sub("experiments", required=True)
     m_raw = exp.get("m", (int, list), hint="the number of experiments, e.g. m = [1, 5]")
     m_values = tuple(m_raw) if isinstance(m_raw, list) else (m_raw,)
     if not m_values or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in m_values):
         raise exp.error(f"expected positive integers, got {m_raw!r}", "e.g. m = [1, 5]", "m")
     if len(set(m_values)) != len(m_values):
         raise exp.error(f"has repeated values {list(m_values)}", "list each m once", "m")
-    force = _force(exp.sub("force", required=elastic), model) if elastic else None
+    force = _force(fsub, model) if elastic else None
     if not elastic and "force" in exp.table:
         raise exp.error("a geometric case applies no load", "remove [experiments.force]", "force")
     workspace = _workspace(exp.sub("workspace"))
@@ -265,32 +309,99 @@ def _build(raw: dict, path: str) -> Problem:
         raise design.error(f"has {list(criteria)}", f"list distinct names among: {', '.join(CRITERIA)}", "criteria")
     solver = _solver(top.sub("solver"))
     problem = Problem(name, path, raw, robot, model, sigma, test_poses, m_values, force,
-                      workspace, criteria, solver)
+                      workspace, criteria, solver, chosen)
     check_identifiable(problem, exp)
     return problem
 
 
+def _whitening(meas: _Reader, measured: tuple[str, ...], markers, sigma: float) -> np.ndarray | None:
+    """``sigma * Sigma^-1/2`` for the per-value noise of one experiment (None: all values sigma).
+
+    Values are ordered as measured: the position components of each marker, then the
+    orientation components. ``sigma_axes_m`` gives a std per x, y, z axis, ``sigma_rad`` the
+    orientation std, ``covariance`` the full d x d covariance (m^2, rad^2).
+    """
+    k = 1 if markers is None else len(markers)
+    pos = [c for c in measured if c in ("x", "y", "z")]
+    rot = [c for c in measured if c in ("rx", "ry", "rz")]
+    d = k * len(pos) + len(rot)
+    if rot and "sigma_rad" not in meas.table and "covariance" not in meas.table:
+        raise meas.error("orientation is measured but its noise is not given", "add sigma_rad (rad)", "sigma_rad")
+    if "covariance" in meas.table:
+        if "sigma_axes_m" in meas.table or "sigma_rad" in meas.table:
+            raise meas.error("give either covariance or sigma_axes_m / sigma_rad", "not both", "covariance")
+        C = meas.array("covariance", (d, d), hint=f"a {d} x {d} symmetric positive definite matrix (m^2, rad^2)")
+        try:
+            Lc = np.linalg.cholesky(C) if np.allclose(C, C.T) else None
+        except np.linalg.LinAlgError:
+            Lc = None
+        if Lc is None:
+            raise meas.error("is not symmetric positive definite", "give a valid covariance (m^2, rad^2)", "covariance")
+        return sigma * np.linalg.inv(Lc)
+    axes = meas.array("sigma_axes_m", (3,), None, hint="std of x, y, z in m")
+    srad = meas.get("sigma_rad", float, None)
+    if axes is None and srad is None:
+        return None
+    for name, v in (("sigma_axes_m", axes), ("sigma_rad", srad)):
+        if v is not None and not np.all(np.asarray(v) > 0):
+            raise meas.error(f"must be positive, got {v}", "give standard deviations", name)
+    std = [axes["xyz".index(c)] if axes is not None else sigma for _ in range(k) for c in pos] + [srad] * len(rot)
+    return np.diag(sigma / np.array(std, dtype=float))
+
+
 def _robot(r: _Reader) -> Robot:
     frame = r.get("frame", str, hint="the measured frame, e.g. frame = \"tool\"")
-    has_planar, has_urdf = "planar_links_m" in r.table, "urdf" in r.table
-    if has_planar == has_urdf:
-        raise r.error("give exactly one of planar_links_m and urdf",
-                      "e.g. planar_links_m = [0.6, 0.4] or urdf = \"example-robot-data:ur_description/urdf/ur10_robot.urdf\"")
-    if has_planar:
+    given = [k for k in ("planar_links_m", "urdf", "dh") if k in r.table]
+    if len(given) != 1:
+        raise r.error(f"has {given or 'none'} of planar_links_m, urdf, dh", "give exactly one, e.g. "
+                      "planar_links_m = [0.6, 0.4] or urdf = \"example-robot-data:ur_description/urdf/ur10_robot.urdf\"")
+    if given[0] == "planar_links_m":
         links = r.array("planar_links_m", (None,))
         if len(links) == 0 or np.any(links <= 0):
             raise r.error(f"expected positive link lengths, got {links.tolist()}", "lengths in m", "planar_links_m")
         model = planar_arm(links)
-    else:
+    elif given[0] == "urdf":
         urdf = r.get("urdf", str)
         if not urdf.startswith("example-robot-data:") and not Path(urdf).is_absolute():
             urdf = str(Path(r.path).parent / urdf)
         model = load_urdf(urdf)
+    else:
+        model = _dh(r.sub("dh"))
+    if "tool_xyz_m" in r.table or "tool_rpy_deg" in r.table:
+        tool = placement_from_xyz_rpy(r.array("tool_xyz_m", (3,), np.zeros(3)),
+                                      np.radians(r.array("tool_rpy_deg", (3,), np.zeros(3))))
+        frame = add_tool_frame(model, frame, tool)
     lt = r.sub("joint_limits_rad")
     limits = {j: tuple(lt.array(j, (2,), hint="[lower, upper] in rad (m for prismatic joints)"))
               for j in (lt.table if lt else {})}
     return make_robot(model, frame, limits)
 
+
+def _dh(d: _Reader):
+    convention = d.get("convention", str, hint="standard or modified")
+    rows_raw = d.get("joints", list, hint="one table per joint: { name, type, theta_offset_deg, d_m, a_m, alpha_deg, limits_deg }")
+    if not rows_raw:
+        raise d.error("is empty", "give one row per joint", "joints")
+    rows = []
+    for k, row in enumerate(rows_raw):
+        if not isinstance(row, dict):
+            raise d.error(f"row {k} is {row!r}", "write each row as an inline table { name = ..., ... }", "joints")
+        j = _Reader(f"{d.path}: [robot.dh].joints row {k}", row, "robot.dh.joints")
+        missing = sorted(SECTIONS["robot.dh.joints"] - set(row))
+        if missing:
+            raise j.error(f"misses {', '.join(missing)}", "every row needs name, type (R or P), theta_offset_deg, d_m, a_m, alpha_deg, limits_deg")
+        lim = np.radians(j.array("limits_deg", (2,)))
+        kind = j.get("type", str)
+        if kind != "R":
+            raise j.error(f"'{kind}'", "allowed: R (describe prismatic axes in a URDF)", "type")
+        rows.append(DHJoint(j.get("name", str), kind, np.radians(j.get("theta_offset_deg", float)), j.get("d_m", float),
+                            j.get("a_m", float), np.radians(j.get("alpha_deg", float)), lim[0], lim[1]))
+    names = [row.name for row in rows]
+    if len(set(names)) != len(names):
+        raise d.error(f"has repeated joint names {names}", "name each joint once", "joints")
+    flange = placement_from_xyz_rpy(d.array("flange_xyz_m", (3,), np.zeros(3)),
+                                    np.radians(d.array("flange_rpy_deg", (3,), np.zeros(3))))
+    return dh_arm(rows, convention, flange)
 
 
 def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses:
@@ -347,13 +458,25 @@ def _force(f: _Reader, model: CalibrationModel) -> ForceSpec:
             raise f.error("is zero: a zero load identifies no compliance", "give the applied load", "vector_N")
         if "magnitude_N" in f.table:
             raise f.error("is not used with mode = \"fixed\"", "remove it", "magnitude_N")
-        return ForceSpec(mode, float(np.linalg.norm(vec)), tuple(vec.tolist()))
+        return ForceSpec(mode, float(np.linalg.norm(vec)), tuple(vec.tolist()), (), _load_point(f))
     magnitude = f.get("magnitude_N", float, hint="the largest load the rig applies, N")
     if not magnitude > 0:
         raise f.error(f"must be positive, got {magnitude}", "give the load in N", "magnitude_N")
     if "vector_N" in f.table:
         raise f.error(f"is only used with mode = \"fixed\", not \"{mode}\"", "remove it", "vector_N")
-    return ForceSpec(mode, magnitude)
+    direction: tuple[float, ...] = ()
+    if mode == "direction":
+        u = f.array("direction", (model.nF,), hint=f"{model.nF} wrench components of the load's direction")
+        if not np.linalg.norm(u) > 0:
+            raise f.error("is zero", "give the direction of the load", "direction")
+        direction = tuple((u / np.linalg.norm(u)).tolist())
+    elif "direction" in f.table:
+        raise f.error(f"is only used with mode = \"direction\", not \"{mode}\"", "remove it", "direction")
+    return ForceSpec(mode, magnitude, (), direction, _load_point(f))
+
+
+def _load_point(f: _Reader) -> tuple[float, float, float]:
+    return tuple(f.array("load_point_m", (3,), np.zeros(3)).tolist())
 
 
 def _workspace(w: _Reader | None) -> Workspace:
@@ -374,10 +497,21 @@ def _workspace(w: _Reader | None) -> Workspace:
         if not np.linalg.norm(normal) > 0:
             raise h.error("is zero", "give a non-zero 3-vector", "normal")
         spaces.append(HalfSpace(tuple(normal.tolist()), h.get("offset_m", float, hint="b in normal . p >= b, m")))
+    center = w.array("sphere_center_m", (3,), None, hint="(x, y, z) of the tracker, m")
+    radius = w.get("sphere_radius_m", float, None, hint="the tracker's range, m")
+    if (center is None) != (radius is None) or radius is not None and radius <= 0:
+        raise w.error("give both sphere_center_m and a positive sphere_radius_m", "or neither")
+    dmin = w.get("min_joint_distance_rad", float, 0.0)
+    if dmin < 0:
+        raise w.error(f"must be >= 0, got {dmin}", "give a distance in rad", "min_joint_distance_rad")
     return Workspace(
         None if lo is None else tuple(lo.tolist()),
         None if hi is None else tuple(hi.tolist()),
         tuple(spaces),
+        None if center is None else tuple(center.tolist()),
+        radius,
+        w.get("floor_z_m", float, None),
+        dmin,
     )
 
 
@@ -429,7 +563,7 @@ def check_identifiable(problem: Problem, exp: _Reader) -> None:
     ``IDENTIFIABILITY_RTOL`` times the largest.
     """
     model = problem.model
-    d, L = len(model.measured_rows), model.L
+    d, L = model.d, model.L
     m_min = -(-L // d)
     small = [m for m in problem.m_values if m < m_min]
     if small:
@@ -444,7 +578,10 @@ def check_identifiable(problem: Problem, exp: _Reader) -> None:
     rows = []
     for _ in range(IDENTIFIABILITY_SAMPLES):
         q = rng.uniform(robot.q_min, robot.q_max)
-        F = np.array(problem.force.vector_N) if problem.force and problem.force.mode == "fixed" else rng.normal(size=model.nF)
+        force = problem.force
+        F = (np.array(force.vector_N) if force and force.mode == "fixed"
+             else np.array(force.direction) if force and force.mode == "direction"
+             else rng.normal(size=model.nF))
         rows.append(model.B_numeric(q, F))
     S = np.vstack(rows)
     S = S / np.maximum(np.linalg.norm(S, axis=0), np.finfo(float).tiny)

@@ -99,6 +99,91 @@ def planar_arm(link_lengths_m: list[float] | tuple[float, ...], name: str = "pla
     return model
 
 
+@dataclass(frozen=True)
+class DHJoint:
+    """One row of a Denavit-Hartenberg table (lengths m, angles rad).
+
+    Standard DH (``convention="standard"``): ``T_i = Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``.
+    Modified DH (Craig, ``"modified"``): ``T_i = Rx(alpha_i) Tx(a_i) Rz(theta_i) Tz(d_i)``,
+    where this row's ``alpha``/``a`` are Craig's alpha_{i-1}/a_{i-1}.
+    ``theta_i = q_i + theta_offset`` for revolute (R) joints; ``d_i = q_i + d`` for prismatic (P).
+    """
+
+    name: str
+    kind: str
+    theta_offset: float
+    d: float
+    a: float
+    alpha: float
+    lower: float
+    upper: float
+
+
+def _rz(t: float) -> pin.SE3:
+    return pin.SE3(pin.AngleAxis(t, np.array([0.0, 0, 1])).matrix(), np.zeros(3))
+
+
+def _rx(t: float) -> pin.SE3:
+    return pin.SE3(pin.AngleAxis(t, np.array([1.0, 0, 0])).matrix(), np.zeros(3))
+
+
+def _tz(d: float) -> pin.SE3:
+    return pin.SE3(np.eye(3), np.array([0.0, 0, d]))
+
+
+def _tx(a: float) -> pin.SE3:
+    return pin.SE3(np.eye(3), np.array([a, 0.0, 0]))
+
+
+def dh_arm(
+    rows: list[DHJoint], convention: str, tool: pin.SE3 | None = None, name: str = "dh"
+) -> pin.Model:
+    """Serial arm from a DH table: joints about / along local z, frame ``flange`` after the last row.
+
+    ``tool`` is the flange-to-tool placement after the last row (identity by default).
+    """
+    if convention not in ("standard", "modified"):
+        raise ProblemError(f"[robot.dh].convention: '{convention}'; allowed: standard, modified")
+    model = pin.Model()
+    model.name = name
+    parent, pending = 0, pin.SE3.Identity()
+    for row in rows:
+        if row.kind not in ("R", "P"):
+            raise ProblemError(f"[robot.dh].joints: joint '{row.name}' has type '{row.kind}'; allowed: R, P")
+        fixed = _rz(row.theta_offset) if row.kind == "P" else _tz(row.d)
+        shift = _tz(row.d) if row.kind == "P" else _rz(row.theta_offset)
+        if convention == "standard":
+            placement = pending * (shift if row.kind == "R" else fixed * shift)
+            after = _tx(row.a) * _rx(row.alpha)
+            if row.kind == "R":
+                after = fixed * after
+        else:
+            placement = pending * _rx(row.alpha) * _tx(row.a) * (shift if row.kind == "R" else fixed * shift)
+            after = fixed if row.kind == "R" else pin.SE3.Identity()
+        joint = pin.JointModelRZ() if row.kind == "R" else pin.JointModelPZ()
+        parent = model.addJoint(parent, joint, placement, row.name)
+        model.lowerPositionLimit[model.joints[parent].idx_q] = row.lower
+        model.upperPositionLimit[model.joints[parent].idx_q] = row.upper
+        pending = after
+    model.addFrame(pin.Frame("flange", parent, pending * (tool or pin.SE3.Identity()), pin.FrameType.OP_FRAME))
+    return model
+
+
+def placement_from_xyz_rpy(xyz_m, rpy_rad) -> pin.SE3:
+    """``SE3`` from a translation (m) and roll-pitch-yaw angles (rad), URDF convention."""
+    return pin.SE3(pin.rpy.rpyToMatrix(*(float(v) for v in rpy_rad)), np.asarray(xyz_m, dtype=float))
+
+
+def add_tool_frame(model: pin.Model, frame: str, placement: pin.SE3, name: str = "tcp") -> str:
+    """Add a tool frame ``name`` at ``placement`` relative to ``frame``; returns its name."""
+    if not model.existFrame(frame):
+        names = [f.name for f in model.frames if f.name != "universe"]
+        raise ProblemError(f"[robot].frame: unknown frame '{frame}'; the model has: {', '.join(names)}")
+    parent = model.frames[model.getFrameId(frame)]
+    model.addFrame(pin.Frame(name, parent.parentJoint, parent.placement * placement, pin.FrameType.OP_FRAME))
+    return name
+
+
 def example_robot_data_dir() -> Path:
     """Folder of the URDFs shipped by the ``example-robot-data`` wheel (no download)."""
     try:

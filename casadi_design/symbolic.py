@@ -45,6 +45,8 @@ class SymbolicKinematics:
     error_jacobian : casadi.Function
         ``q -> J_Pi``: 6 x len(Pi) derivative of the frame's small displacement
         (dp, dtheta), same rows as ``jacobian``, with respect to ``Pi`` at ``Pi = 0``.
+    joint_origins : casadi.Function
+        ``q -> P``: 3 x n nominal positions (m) of the chain's joint origins.
     """
 
     robot: Robot
@@ -52,6 +54,7 @@ class SymbolicKinematics:
     placement: ca.Function
     jacobian: ca.Function
     error_jacobian: ca.Function
+    joint_origins: ca.Function
 
 
 def _rot(axis: np.ndarray, angle: ca.SX) -> ca.SX:
@@ -108,11 +111,13 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
     q = ca.SX.sym("q", robot.n)
     Pi = ca.SX.sym("Pi", len(names))
     R, p = _error_placement(Pi[0:6])
+    origins = []
     for k, jid in enumerate(robot.joint_ids):
         base = 6 + 7 * k
         M = model.jointPlacements[jid]
         R, p = _compose(R, p, ca.SX(M.rotation), ca.SX(M.translation))
         R, p = _compose(R, p, *_error_placement(Pi[base + 1 : base + 7]))
+        origins.append(p)
         axis, kind = _axis_and_kind(model.joints[jid])
         qk = q[k] + Pi[base]
         if kind == "R":
@@ -132,4 +137,5 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
         placement=ca.Function("placement", [q, Pi], [R, p], ["q", "Pi"], ["R", "p"]),
         jacobian=ca.Function("J", [q], [J], ["q"], ["J"]),
         error_jacobian=ca.Function("J_Pi", [q], [J_Pi], ["q"], ["J_Pi"]),
+        joint_origins=ca.Function("origins", [q], [ca.substitute(ca.horzcat(*origins), Pi, zero)], ["q"], ["P"]),
     )

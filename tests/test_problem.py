@@ -62,7 +62,7 @@ def _edit(path: str, value):
         ("robot.joint_limits_rad", {"elbow": [-1, 1]}, r"unknown joint 'elbow'; the chain to 'tool' has: joint1, joint2"),
         ("robot.joint_limits_rad", {"joint1": [1, -1]}, r"lower 1.0 must be below upper -1.0"),
         ("calibration.compliant_joints", ["joint3"], r"unknown joint 'joint3'"),
-        ("robot.urdf", "nowhere.urdf", r"give exactly one of planar_links_m and urdf"),
+        ("robot.urdf", "nowhere.urdf", r"\[robot\]: has .* of planar_links_m, urdf, dh; give exactly one"),
         ("robot.joint_limits_rad", {"joint1": ["a", 0]}, r"joint_limits_rad\].joint1: expected numbers"),
         ("robot.joint_limits_rad", {"joint1": [True, 1.0]}, r"joint_limits_rad\].joint1: expected numbers"),
         ("calibration.compliant_joints", [], r"compliant_joints: has \[\]; list distinct joints"),
