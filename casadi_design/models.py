@@ -53,6 +53,10 @@ class CalibrationModel:
         enters B (geometric case).
     markers_m : ndarray, shape (k, 3)
         Measured points in the measured frame (m); the frame origin by default.
+    column_scale : ndarray, shape (L,)
+        ``c``: B is written for the scaled parameters ``c * X`` (column k of B divided by
+        ``c_k``); ones unless the problem asks for column scaling. The test-pose measure does
+        not depend on it; D-optimal plans neither; A, E, T and condition do.
     B : casadi.Function
         ``(q, F) -> B``: measured rows of one experiment (d x L), whitened by the noise model
         so that ``M = sum B^T B`` is ``sigma^2`` times the weighted-least-squares information.
@@ -72,6 +76,7 @@ class CalibrationModel:
     accuracy_rows: tuple[int, ...]
     force_rows: tuple[int, ...]
     markers_m: np.ndarray
+    column_scale: np.ndarray
     B: ca.Function
     B0: ca.Function
     position: ca.Function
@@ -141,6 +146,7 @@ def calibration_model(
     markers_m: np.ndarray | None = None,
     load_point_m: np.ndarray | None = None,
     whitening: np.ndarray | None = None,
+    column_scale: np.ndarray | None = None,
 ) -> CalibrationModel:
     """Build B(q, F) for a calibration case.
 
@@ -162,6 +168,8 @@ def calibration_model(
     whitening : ndarray, shape (d, d)
         ``sigma * Sigma^-1/2`` for a measurement covariance ``Sigma`` and reference ``sigma``
         (default identity): B is pre-multiplied by it (weighted least squares).
+    column_scale : ndarray, shape (L,)
+        Scales of the parameters (see :class:`CalibrationModel`); ones by default.
     """
     if case not in CASES:
         raise ProblemError(f"[calibration].case: '{case}'; allowed: {', '.join(CASES)}")
@@ -235,6 +243,8 @@ def calibration_model(
             )
         G = ca.DM(whitening) @ G
     G0 = measurement_map(R, a_rows, np.zeros((1, 3)))
+    c = np.ones(len(names)) if column_scale is None else np.asarray(column_scale, dtype=float)
+    Cinv = ca.DM(np.diag(1.0 / c))
     return CalibrationModel(
         kinematics=kinematics,
         case=case,
@@ -243,8 +253,9 @@ def calibration_model(
         accuracy_rows=a_rows,
         force_rows=f_rows,
         markers_m=markers,
-        B=ca.Function("B", [q, F], [G @ twist_matrix(W)], ["q", "F"], ["B"]),
-        B0=ca.Function("B0", [q, F], [G0 @ twist_matrix(W0)], ["q", "F"], ["B0"]),
+        column_scale=c,
+        B=ca.Function("B", [q, F], [G @ twist_matrix(W) @ Cinv], ["q", "F"], ["B"]),
+        B0=ca.Function("B0", [q, F], [G0 @ twist_matrix(W0) @ Cinv], ["q", "F"], ["B0"]),
         position=ca.Function("p", [q], [p], ["q"], ["p"]),
         points=ca.Function("points", [q], [p + R @ ca.DM(markers.T)], ["q"], ["P"]),
     )

@@ -176,7 +176,7 @@ def pose_constraints(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndar
     """Workspace constraints of one configuration: ``lb <= g(q) <= ub`` (m).
 
     Every measured point in the box, the half-spaces (``n.p >= b``, n normalised) and the
-    tracker's sphere; every joint origin and measured point above the floor.
+    tracker's sphere; every moving joint origin and measured point above the floor.
     """
     ws, model = problem.workspace, problem.model
     q = ca.SX.sym("q", problem.robot.n)
@@ -198,7 +198,9 @@ def pose_constraints(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndar
             lb.append(-np.inf)
             ub.append(ws.sphere_radius_m)
     if ws.floor_z_m is not None:
+        # origins fixed to the base (not depending on q) are where the robot stands: not constrained
         z = ca.horzcat(model.kinematics.joint_origins(q), P)[2, :].T
+        z = ca.vertcat(*[z[k] for k in range(z.numel()) if ca.depends_on(z[k], q)])
         g.append(z)
         lb += [ws.floor_z_m] * z.numel()
         ub += [np.inf] * z.numel()

@@ -4,22 +4,28 @@ object API (``matplotlib.figure.Figure``), so it runs headless with no display."
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter, NullLocator
 
 from .results import write_atomic
 from .solve import Design
 
+if TYPE_CHECKING:
+    from .sweep import Sweep
+
 STYLES = {
-    "test-pose": dict(color="tab:red", ls="-", lw=2.0),
-    "D": dict(color="tab:blue", ls="--", lw=1.5),
-    "A": dict(color="tab:green", ls="-.", lw=1.5),
-    "E": dict(color="tab:purple", ls=":", lw=2.0),
-    "T": dict(color="tab:brown", ls=(0, (5, 1, 1, 1)), lw=1.5),
-    "condition": dict(color="tab:gray", ls=(0, (3, 1)), lw=1.5),
+    "test-pose": {"color": "tab:red", "ls": "-", "lw": 2.0},
+    "D": {"color": "tab:blue", "ls": "--", "lw": 1.5},
+    "A": {"color": "tab:green", "ls": "-.", "lw": 1.5},
+    "E": {"color": "tab:purple", "ls": ":", "lw": 2.0},
+    "T": {"color": "tab:brown", "ls": (0, (5, 1, 1, 1)), "lw": 1.5},
+    "condition": {"color": "tab:gray", "ls": (0, (3, 1)), "lw": 1.5},
 }
 LABELS = {"test-pose": "Test-pose approach", "D": "D-optimality", "A": "A-optimality",
           "E": "SVD approach (E-optimality)", "T": "T-optimality", "condition": "Condition number"}
@@ -37,13 +43,33 @@ def path_coordinate(position_m: np.ndarray) -> tuple[np.ndarray, str]:
     return s, "arc length along the test poses (mm)"
 
 
-def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design], xlabel: str) -> None:
+#: Style of a plan given by the user (``casadi-design evaluate``).
+USER_STYLE = {"color": "tab:orange", "ls": "-", "lw": 5.0, "alpha": 0.5}  # wide: shows beneath an equal curve
+#: Style of the reference line "repeat the best single pose m times".
+REPEAT_STYLE = {"color": "k", "ls": ":", "lw": 1.2}
+
+
+@dataclass(frozen=True)
+class Band:
+    """One curve of a band plot: its label, line style and ``sqrt(rho_j)`` (m) per test pose."""
+
+    label: str
+    style: dict
+    rms_error_m: np.ndarray
+
+    @classmethod
+    def of(cls, design: Design) -> Band:
+        return cls(LABELS[design.criterion], STYLES[design.criterion], design.scores.rms_error_m)
+
+
+def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], xlabel: str) -> None:
     """``+/- sqrt(rho)`` (mm) around the target trajectory for each design, maxima labelled."""
     ax.axhline(0.0, color="k", lw=1.0, label="Target trajectory")
     for d in designs:
-        e = d.scores.rms_error_m * 1e3
-        style = STYLES[d.criterion]
-        ax.plot(x_mm, e, label=LABELS[d.criterion], **style)
+        d = d if isinstance(d, Band) else Band.of(d)
+        e = d.rms_error_m * 1e3
+        style = d.style
+        ax.plot(x_mm, e, label=d.label, **style)
         ax.plot(x_mm, -e, **style)
         j = int(np.argmax(e))
         ax.plot([x_mm[j]], [e[j]], "o", color=style["color"], ms=4)
@@ -65,6 +91,59 @@ def fig1(position_m: np.ndarray, designs: list[Design], m_values: list[int]) -> 
         draw_error_bands(ax, x, [d for d in designs if d.m == m], xlabel)
         ax.set_ylim(-1.25 * top, 1.25 * top)
         ax.set_title(f"({letter}) {m} calibration experiment{'s' if m > 1 else ''}")
+    return fig
+
+
+def bands_figure(position_m: np.ndarray, bands: list[Design | Band], title: str) -> Figure:
+    """One panel of error bands, e.g. a user's plan against the optimal plans of the same m."""
+    x, xlabel = path_coordinate(position_m)
+    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
+    ax = fig.subplots()
+    draw_error_bands(ax, x, bands, xlabel)
+    top = max(float(np.max((b if isinstance(b, Band) else Band.of(b)).rms_error_m)) for b in bands) * 1e3
+    ax.set_ylim(-1.25 * top, 1.25 * top)
+    ax.set_title(title)
+    return fig
+
+
+def draw_max_error_vs_m(ax: Axes, sweep: Sweep, log: bool = False) -> None:
+    """Max over the test poses of ``sqrt(rho)`` (mm) against m, one line per criterion, and
+    the reference "repeat the best single pose" ``e(m_ref) sqrt(m_ref / m)``."""
+    ms = np.array(sweep.m_values)
+    for c in sweep.criteria:
+        e = np.array([sweep.designs[c, m].scores.max_rms_error_m for m in ms]) * 1e3
+        style = {**STYLES[c], "ls": "-" if c == "test-pose" else STYLES[c]["ls"]}
+        ax.plot(ms, e, marker="o", ms=4, label=LABELS[c], **style)
+    if sweep.reference is not None:
+        m_ref = sweep.reference.m
+        mm = np.linspace(max(m_ref, ms.min()), ms.max(), 200) if len(ms) > 1 else ms
+        label = (r"Best single pose repeated m times ($e_1/\sqrt{m}$)" if m_ref == 1 else
+                 f"Best {m_ref}-pose plan repeated ($e_{{{m_ref}}}\\sqrt{{{m_ref}/m}}$)")
+        ax.plot(mm, [sweep.repeat_reference_m(v) * 1e3 for v in mm], **REPEAT_STYLE, label=label)
+    if log:
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xticks(ms, [str(m) for m in ms])
+        ax.xaxis.set_minor_locator(NullLocator())
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_locator(LogLocator(subs=np.arange(1.0, 10.0)))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+    else:
+        ax.set_xticks(ms)
+        ax.set_ylim(bottom=0)
+    ax.set_xlabel("number of calibration experiments m")
+    ax.set_ylabel(r"max over test poses of $\sqrt{\rho}$ (mm)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+
+
+def sweep_figure(sweep: Sweep, log: bool = False) -> Figure:
+    """Accuracy against the number of experiments for every criterion of a sweep."""
+    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
+    ax = fig.subplots()
+    draw_max_error_vs_m(ax, sweep, log)
+    ax.set_title("Worst expected error along the test poses vs number of experiments", fontsize=10)
     return fig
 
 

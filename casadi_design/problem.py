@@ -7,15 +7,17 @@ errors name the file, the field, what is allowed and what was given.
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import casadi as ca
 import numpy as np
+import pinocchio as pin
 
 from .errors import ProblemError
 from .identifiability import BaseSet, base_set
+from .ik import path_ik, sample_path
 from .measures import CRITERIA
 from .models import CASES, CalibrationModel, calibration_model
 from .robots import (
@@ -46,14 +48,16 @@ SECTIONS: dict[str, set[str] | None] = {
     "robot.joint_limits_rad": None,  # joint names: checked against the model instead
     "calibration": {"case", "parameters", "compliant_joints", "wrench_components"},
     "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
-    "test_poses": {"components", "joints_rad", "points_m", "line_m", "elbow", "force_N", "forces_N"},
+    "test_poses": {"components", "joints_rad", "points_m", "line_m", "path", "tool_rpy_deg", "seed_q_deg",
+                   "elbow", "force_N", "forces_N", "segment_forces_N"},
+    "test_poses.path": {"kind", "points_m", "nodes"},
     "test_poses.line_m": {"start", "end", "nodes"},
     "experiments": {"m", "force", "workspace"},
     "experiments.force": {"mode", "magnitude_N", "vector_N", "direction", "load_point_m"},
     "experiments.workspace": {"box_min_m", "box_max_m", "half_spaces", "sphere_center_m",
                               "sphere_radius_m", "floor_z_m", "min_joint_distance_rad"},
     "experiments.workspace.half_spaces": {"normal", "offset_m"},
-    "design": {"criteria"},
+    "design": {"criteria", "parameter_scaling"},
     "solver": {"starts", "seed", "max_iter", "tol", "ipopt"},
     "solver.ipopt": None,  # passed through to IPOPT unchanged
 }
@@ -277,9 +281,7 @@ def _build(raw: dict, path: str) -> Problem:
         full = calibration_model(kin, "geometric", measured, geometric=kin.parameter_names, markers_m=markers)
         chosen = base_set(full)
         parameters = list(chosen.kept)
-    model = calibration_model(
-        kin,
-        case,
+    model_args = dict(
         measured=measured,
         accuracy=accuracy,
         geometric=tuple(parameters),
@@ -289,6 +291,7 @@ def _build(raw: dict, path: str) -> Problem:
         load_point_m=load_point,
         whitening=_whitening(meas, measured, markers, sigma),
     )
+    model = calibration_model(kin, case, **model_args)
     test_poses = _test_poses(tp, robot, model)
     m_raw = exp.get("m", (int, list), hint="the number of experiments, e.g. m = [1, 5]")
     m_values = tuple(m_raw) if isinstance(m_raw, list) else (m_raw,)
@@ -307,11 +310,18 @@ def _build(raw: dict, path: str) -> Problem:
             raise design.error(f"has '{c}'", f"allowed: {', '.join(CRITERIA)}", "criteria")
     if not criteria or len(set(criteria)) != len(criteria):
         raise design.error(f"has {list(criteria)}", f"list distinct names among: {', '.join(CRITERIA)}", "criteria")
+    scaling = design.get("parameter_scaling", str, "column")
+    if scaling not in ("column", "none"):
+        raise design.error(f"'{scaling}'", "allowed: column, none", "parameter_scaling")
     solver = _solver(top.sub("solver"))
     problem = Problem(name, path, raw, robot, model, sigma, test_poses, m_values, force,
                       workspace, criteria, solver, chosen)
-    check_identifiable(problem, exp)
-    return problem
+    S = check_identifiable(problem, exp)
+    if scaling == "none":
+        return problem
+    # parameters in units that give every column of B unit RMS over random poses (Khalil)
+    c = np.sqrt(np.mean(S.reshape(-1, model.d, model.L) ** 2, axis=0).sum(axis=0))
+    return replace(problem, model=calibration_model(kin, case, column_scale=c, **model_args))
 
 
 def _whitening(meas: _Reader, measured: tuple[str, ...], markers, sigma: float) -> np.ndarray | None:
@@ -405,10 +415,13 @@ def _dh(d: _Reader):
 
 
 def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses:
-    given = [k for k in ("joints_rad", "points_m", "line_m") if k in tp.table]
+    given = [k for k in ("joints_rad", "points_m", "line_m", "path") if k in tp.table]
     if len(given) != 1:
-        raise tp.error(f"has {given or 'none'} of joints_rad, points_m, line_m", "give exactly one")
-    if given[0] == "joints_rad":
+        raise tp.error(f"has {given or 'none'} of joints_rad, points_m, line_m, path", "give exactly one")
+    segment = None
+    if given[0] == "path":
+        q, segment = _path(tp, robot)
+    elif given[0] == "joints_rad":
         if "elbow" in tp.table:
             raise tp.error("only applies to Cartesian test points", "remove it", "elbow")
         q = tp.array("joints_rad", (None, robot.n), hint=f"one row of {robot.n} joint angles (rad) per pose")
@@ -434,9 +447,16 @@ def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses
     nF = model.nF
     if nF == 0 and ("force_N" in tp.table or "forces_N" in tp.table):
         raise tp.error("a geometric case has no machining load in its model", "remove force_N / forces_N")
-    if "forces_N" in tp.table and "force_N" in tp.table:
-        raise tp.error("has both force_N and forces_N", "give one")
-    if "forces_N" in tp.table:
+    loads = [k for k in ("force_N", "forces_N", "segment_forces_N") if k in tp.table]
+    if len(loads) > 1:
+        raise tp.error(f"has {', '.join(loads)}", "give one of them")
+    if "segment_forces_N" in tp.table:
+        if segment is None:
+            raise tp.error("needs a path", "use force_N or forces_N", "segment_forces_N")
+        per_segment = tp.array("segment_forces_N", (int(segment.max()) + 1, nF),
+                               hint=f"one row of {nF} wrench components per path segment")
+        F = per_segment[segment]
+    elif "forces_N" in tp.table:
         F = tp.array("forces_N", (q.shape[0], nF), hint=f"one row of {nF} wrench components per test pose")
     elif "force_N" in tp.table:
         F = np.tile(tp.array("force_N", (nF,), hint=f"{nF} wrench components"), (q.shape[0], 1))
@@ -446,6 +466,29 @@ def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses
         F = np.zeros((q.shape[0], 0))
     pos = np.array([np.asarray(model.position(qi)).ravel() for qi in q])
     return TestPoses(q=q, F=F, position_m=pos)
+
+
+def _path(tp: _Reader, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """Test poses on a Cartesian path, by IK with a constant tool orientation."""
+    path = tp.sub("path")
+    kind = path.get("kind", str, hint="line, polyline, arc or points")
+    need = {"line": 2, "arc": 3, "polyline": None, "points": None}
+    if kind not in need:
+        raise path.error(f"'{kind}'", "allowed: line, polyline, arc, points", "kind")
+    pts = path.array("points_m", (need[kind], 3), hint="rows (x, y, z) in m: line 2, arc 3 (start, via, end), polyline/points any")
+    if len(pts) < 2 and kind != "points":
+        raise path.error("needs at least 2 points", "add points", "points_m")
+    nodes = path.get("nodes", int, 1 if kind == "points" else ..., hint="number of nodes, >= 2")
+    if kind == "points" and "nodes" in path.table:
+        raise path.error("is not used with kind = \"points\"", "remove it", "nodes")
+    if kind != "points" and nodes < 2:
+        raise path.error(f"must be >= 2, got {nodes}", "give the number of nodes", "nodes")
+    positions, segment = sample_path(kind, pts, nodes)
+    position_only = "tool_rpy_deg" not in tp.table
+    rotation = pin.rpy.rpyToMatrix(*np.radians(tp.array("tool_rpy_deg", (3,), np.zeros(3))))
+    seed = np.radians(tp.array("seed_q_deg", (robot.n,), np.degrees((robot.q_min + robot.q_max) / 2),
+                               hint=f"{robot.n} joint values in deg"))
+    return path_ik(robot, positions, rotation, seed, position_only), segment
 
 
 def _force(f: _Reader, model: CalibrationModel) -> ForceSpec:
@@ -555,37 +598,42 @@ def _check_ipopt_options(s: _Reader, settings: SolverSettings) -> None:
 
 
 
-def check_identifiable(problem: Problem, exp: _Reader) -> None:
+def check_identifiable(problem: Problem, exp: _Reader) -> np.ndarray:
     """Fail early when X cannot be identified: too few experiments or a rank-deficient model.
 
-    Stacks B over ``IDENTIFIABILITY_SAMPLES`` random configurations (and random loads), scales
-    its columns to unit norm and requires every singular value above
-    ``IDENTIFIABILITY_RTOL`` times the largest.
+    Stacks B over ``IDENTIFIABILITY_SAMPLES`` random configurations with the calibration
+    loads (random directions where free), scales its columns by their norms under random
+    loads and requires every singular value above
+    ``IDENTIFIABILITY_RTOL`` times the largest. Returns the stacked (unscaled) B.
     """
     model = problem.model
-    d, L = model.d, model.L
+    L = model.L
+    rng = np.random.default_rng(12345)
+    robot, force = problem.robot, problem.force
+    rows, generic = [], []
+    for _ in range(IDENTIFIABILITY_SAMPLES):
+        q = rng.uniform(robot.q_min, robot.q_max)
+        F_any = rng.normal(size=model.nF)
+        F = (np.array(force.vector_N) if force and force.mode == "fixed"
+             else np.array(force.direction) if force and force.mode == "direction" else F_any)
+        rows.append(model.B_numeric(q, F))
+        generic.append(model.B_numeric(q, F_any))
+    # an experiment gives at most d independent values (three markers on a rigid tool: 6, not 9)
+    d = max(np.linalg.matrix_rank(B, tol=1e-10 * np.abs(B).max()) for B in rows)
     m_min = -(-L // d)
     small = [m for m in problem.m_values if m < m_min]
     if small:
         raise exp.error(
             f"m = {small[0]} is too small: {L} parameters ({', '.join(model.parameter_names)}) "
-            f"with {d} measured components per experiment need m >= {m_min}",
+            f"with {d} independent measured values per experiment need m >= {m_min}",
             f"use m >= {m_min}",
             "m",
         )
-    rng = np.random.default_rng(12345)
-    robot = problem.robot
-    rows = []
-    for _ in range(IDENTIFIABILITY_SAMPLES):
-        q = rng.uniform(robot.q_min, robot.q_max)
-        force = problem.force
-        F = (np.array(force.vector_N) if force and force.mode == "fixed"
-             else np.array(force.direction) if force and force.mode == "direction"
-             else rng.normal(size=model.nF))
-        rows.append(model.B_numeric(q, F))
     S = np.vstack(rows)
-    S = S / np.maximum(np.linalg.norm(S, axis=0), np.finfo(float).tiny)
-    _, sv, Vt = np.linalg.svd(S, full_matrices=False)
+    # columns scaled by their norm under generic loads, so that a parameter the actual
+    # loads cannot excite stays a (near) zero column
+    Sn = S / np.maximum(np.linalg.norm(np.vstack(generic), axis=0), np.finfo(float).tiny)
+    _, sv, Vt = np.linalg.svd(Sn, full_matrices=False)
     null = sv < IDENTIFIABILITY_RTOL * sv[0]
     if np.any(null):
         v = Vt[np.flatnonzero(null)[0]]
@@ -593,8 +641,11 @@ def check_identifiable(problem: Problem, exp: _Reader) -> None:
         field = "compliant_joints" if all(p.startswith("k.") for p in involved) else "parameters"
         what = (f"{involved[0]} has no effect on them" if len(involved) == 1
                 else f"{' and '.join(involved)} act as one combination")
+        if field == "compliant_joints" and force and force.mode in ("fixed", "direction"):
+            what += " under the calibration load of [experiments.force]"
         raise ProblemError(
             f"{problem.path}: [calibration].{field}: the parameters are not identifiable from "
             f"{', '.join(problem.raw['measurement']['components'])} measurements: {what} "
             f"(rank {int(np.sum(~null))} of {L}); remove {'it' if len(involved) == 1 else 'one of them'}"
         )
+    return S

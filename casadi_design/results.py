@@ -6,6 +6,7 @@ this package: sigma, the test poses (q, F), every plan (q, F) and its errors.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import tempfile
@@ -13,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .measures import CRITERIA
+from .measures import CRITERIA, Scores
 from .problem import Problem
-from .solve import Design
+from .solve import Design, StartRecord
 
 #: Relative tolerance within which two starts count as reaching the same optimum.
 SAME_OPTIMUM_RTOL = 1e-6
@@ -86,6 +87,70 @@ def results_dict(problem: Problem, designs: list[Design]) -> dict:
         ],
         "designs": [design_record(d) for d in designs],
     }
+
+
+def design_from_record(record: dict) -> Design:
+    """The :class:`Design` written by :func:`design_record` (exact: JSON floats round-trip)."""
+    m, exps = record["m"], record["experiments"]
+    names = {f.name for f in dataclasses.fields(Scores)}
+    scores = Scores(rms_error_m=np.array(record["rms_error_m"], dtype=float),
+                    **{k: v for k, v in record["scores"].items() if k in names})
+    solver = record["solver"]
+    return Design(
+        criterion=record["criterion"],
+        m=m,
+        Q=np.array([e["q_rad"] for e in exps], dtype=float).reshape(m, len(exps[0]["q_rad"])),
+        F=np.array([e["force"] for e in exps], dtype=float).reshape(m, len(exps[0]["force"])),
+        scores=scores,
+        status=solver["status"],
+        starts=tuple(StartRecord(**s) for s in solver["per_start"]),
+        wall_s=solver["wall_s"],
+        seed=solver["seed"],
+    )
+
+
+def read_json(path: Path) -> dict:
+    """A results.json / sweep.json file, or the one inside a folder (sweep.json first)."""
+    path = Path(path)
+    if path.is_dir():
+        found = [path / n for n in ("sweep.json", "results.json") if (path / n).is_file()]
+        if not found:
+            raise OutputError(f"{path}: no sweep.json or results.json in this folder; "
+                              "give the file written by `casadi-design solve` or `sweep`")
+        path = found[0]
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise OutputError(f"{path}: no such results file") from None
+    except json.JSONDecodeError as exc:
+        raise OutputError(f"{path}: not valid JSON ({exc}); give a results.json or sweep.json") from None
+    if not isinstance(record, dict) or "designs" not in record:
+        raise OutputError(f"{path}: has no 'designs'; give a results.json or sweep.json")
+    record["_path"] = str(path)
+    return record
+
+
+class OutputError(ValueError):
+    """An output folder or file cannot be written (or read back) as asked."""
+
+
+def prepare_out(out: Path, force: bool = False, resume: bool = False) -> Path:
+    """Check that ``out`` may be written: missing, empty, or ``force``/``resume`` given.
+
+    Nothing is created here, so an error later leaves no folder behind.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a folder; choose another --out")
+    if out.is_dir() and any(out.iterdir()) and not (force or resume):
+        raise OutputError(f"{out}: folder exists and is not empty; add --force to overwrite "
+                          "its files (or choose another --out)")
+    return out
+
+
+def write_json(path: Path, record: dict) -> None:
+    """``record`` as indented JSON, atomically."""
+    write_atomic(path, (json.dumps(record, indent=2) + "\n").encode())
 
 
 def write_atomic(path: Path, data: bytes) -> None:

@@ -10,15 +10,20 @@ solve is a status, not an exception.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
 from .errors import DesignError
 from .measures import CRITERIA, Scores, score_plan
-from .nlp import DesignNLP, build_nlp, B0_at_test_poses
+from .nlp import B0_at_test_poses, DesignNLP, build_nlp, pose_constraints
 from .problem import Problem
+
+if TYPE_CHECKING:
+    from .parallel import StartExecutor
 
 #: IPOPT return statuses accepted as converged.
 CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -81,15 +86,13 @@ def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
     return np.random.default_rng([seed, m, list(CRITERIA).index(criterion)])
 
 
-def workspace_violation(problem: Problem, p: np.ndarray) -> float:
-    """Largest violation (m) of the workspace constraints by the measured point ``p``."""
-    ws, v = problem.workspace, 0.0
-    if ws.box_min_m is not None:
-        v = max(v, float(np.max(np.r_[np.array(ws.box_min_m) - p, p - np.array(ws.box_max_m)])))
-    for hs in ws.half_spaces:
-        n = np.array(hs.normal)
-        v = max(v, float((hs.offset_m - n @ p) / np.linalg.norm(n)))
-    return v
+def workspace_violation(problem: Problem, q: np.ndarray) -> float:
+    """Largest violation (m) of the workspace constraints by configuration ``q``."""
+    g_fn, lb, ub = pose_constraints(problem)
+    if not lb.size:
+        return 0.0
+    g = np.asarray(g_fn(q)).ravel()
+    return float(np.max(np.r_[lb - g, g - ub, 0.0]))
 
 
 def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +102,7 @@ def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.
     for i in range(m):
         for _ in range(SAMPLING_TRIES):
             q = rng.uniform(robot.q_min, robot.q_max)
-            if workspace_violation(problem, np.asarray(model.position(q)).ravel()) <= 0:
+            if workspace_violation(problem, q) <= 0:
                 break
         else:
             raise DesignError(
@@ -112,6 +115,8 @@ def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.
         return Q, np.zeros((0, m))
     if force.mode == "fixed":
         return Q, np.tile(np.array(force.vector_N)[:, None], (1, m))
+    if force.mode == "direction":
+        return Q, force.magnitude_N * np.outer(force.direction, rng.uniform(0.5, 1.0, m))
     d = rng.normal(size=(model.nF, m))
     return Q, force.magnitude_N * d / np.linalg.norm(d, axis=0)
 
@@ -124,10 +129,14 @@ def _feasible(problem: Problem, Q: np.ndarray, F: np.ndarray) -> bool:
         ratio = np.linalg.norm(F, axis=0) / force.magnitude_N
         if np.any(ratio > 1 + FEASIBILITY_TOL) or force.mode == "equal" and np.any(ratio < 1 - FEASIBILITY_TOL):
             return False
-    return all(
-        workspace_violation(problem, np.asarray(problem.model.position(q)).ravel()) <= FEASIBILITY_TOL
-        for q in Q.T
-    )
+        off_axis = F - np.outer(force.direction, np.array(force.direction) @ F) if force.direction else 0.0
+        if np.any(np.abs(off_axis) > FEASIBILITY_TOL * force.magnitude_N):
+            return False
+    dmin = problem.workspace.min_joint_distance_rad
+    m = Q.shape[1]
+    if any(np.linalg.norm(Q[:, i] - Q[:, j]) < dmin - FEASIBILITY_TOL for i in range(m) for j in range(i + 1, m)):
+        return False
+    return all(workspace_violation(problem, q) <= FEASIBILITY_TOL for q in Q.T)
 
 
 def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) -> Scores:
@@ -152,6 +161,30 @@ def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.F
     return ca.nlpsol(f"design_m{nlp.m}", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
 
 
+def solve_start(
+    problem: Problem, nlp: DesignNLP, solver: ca.Function, B0: np.ndarray, Q0: np.ndarray, F0: np.ndarray
+) -> tuple[StartRecord, np.ndarray, np.ndarray, Scores]:
+    """One IPOPT start of ``solver`` on ``nlp`` from ``Q0`` (n x m, rad), ``F0`` (nF x m, N).
+
+    The unit of work of the multi-start, run here or in worker processes
+    (:mod:`casadi_design.parallel`). Returns the start's record, its plan ``Q`` (n x m, rad),
+    ``F`` (nF x m, N) and the plan's scores.
+    """
+    sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    stats = solver.stats()
+    Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
+    Q = np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None])
+    scores = plan_scores(problem, Q, F, B0)
+    rec = StartRecord(
+        status=str(stats["return_status"]),
+        iterations=int(stats.get("iter_count", 0)),
+        value=scores.value(nlp.criterion),
+        max_rms_error_m=scores.max_rms_error_m,
+        feasible=_feasible(problem, Q, F) and scores.identifiable,
+    )
+    return rec, Q, F, scores
+
+
 def solve_design(
     problem: Problem,
     criterion: str,
@@ -159,8 +192,24 @@ def solve_design(
     B0: np.ndarray | None = None,
     starts: int | None = None,
     verbose: bool = False,
+    *,
+    initial_plans: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    executor: StartExecutor | None = None,
+    progress: Callable[[int], object] | None = None,
 ) -> Design:
     """Best plan of ``m`` experiments for ``criterion`` over the multi-start.
+
+    The ``starts`` seeded random plans are drawn first (from :func:`start_rng`, so they do not
+    depend on ``initial_plans`` or ``executor``); the ``initial_plans`` run after them as
+    additional starts. Starts are judged in that order and a later start wins only when it is
+    strictly better, so extra starts can only improve the seeded result.
+
+    Parameters
+    ----------
+    initial_plans : extra starts ``(Q0, F0)``: ``Q0`` shape (n, m), rad; ``F0`` shape (nF, m), N.
+    executor : runs the starts elsewhere (:mod:`casadi_design.parallel`); None runs them here,
+        one after the other. The result is the same either way.
+    progress : called with 1 after each start (e.g. ``tqdm.update``).
 
     Raises
     ------
@@ -169,26 +218,29 @@ def solve_design(
     """
     B0 = B0_at_test_poses(problem) if B0 is None else B0
     t0 = time.perf_counter()
-    nlp = build_nlp(problem, criterion, m, B0)
-    solver = make_solver(problem, nlp, verbose)
     rng = start_rng(problem.solver.seed, criterion, m)
+    plans = [random_plan(problem, m, rng) for _ in range(starts or problem.solver.starts)]
+    for k, (Q0, F0) in enumerate(initial_plans):
+        Q0, F0 = np.asarray(Q0, dtype=float), np.asarray(F0, dtype=float)
+        F0 = F0.reshape(0, m) if F0.size == 0 and problem.model.nF == 0 else F0
+        if Q0.shape != (problem.robot.n, m) or F0.shape != (problem.model.nF, m):
+            raise ValueError(
+                f"solve_design: initial plan {k} has Q of shape {Q0.shape} and F of shape "
+                f"{F0.shape}; expected ({problem.robot.n}, {m}) and ({problem.model.nF}, {m})"
+            )
+        plans.append((Q0, F0))
+    if executor is None:
+        nlp = build_nlp(problem, criterion, m, B0)
+        solver = make_solver(problem, nlp, verbose)
+        results = (solve_start(problem, nlp, solver, B0, Q0, F0) for Q0, F0 in plans)
+    else:
+        results = executor.map_starts(problem, criterion, m, B0, plans, verbose)
     crit = CRITERIA[criterion]
     sign = 1.0 if crit.sense == "min" else -1.0
     records, best = [], None
-    for _ in range(starts or problem.solver.starts):
-        Q0, F0 = random_plan(problem, m, rng)
-        sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
-        stats = solver.stats()
-        Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
-        Q = np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None])
-        scores = plan_scores(problem, Q, F, B0)
-        rec = StartRecord(
-            status=str(stats["return_status"]),
-            iterations=int(stats.get("iter_count", 0)),
-            value=scores.value(criterion),
-            max_rms_error_m=scores.max_rms_error_m,
-            feasible=_feasible(problem, Q, F) and scores.identifiable,
-        )
+    for rec, Q, F, scores in results:
+        if progress is not None:
+            progress(1)
         records.append(rec)
         if rec.converged and (best is None or sign * rec.value < sign * best[0].value):
             best = (rec, Q, F, scores)

@@ -32,8 +32,11 @@ for the batched linear algebra. Plans with the same m share their true robots an
 
 from __future__ import annotations
 
+import argparse
+import functools
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -45,22 +48,28 @@ import numpy as np
 from .errors import DesignError, ProblemError
 from .measures import information_matrix, score_plan
 from .models import CalibrationModel
-from .problem import Problem
+from .problem import Problem, load_problem
 from .results import write_atomic
 from .solve import Design
 from .symbolic import twist_jacobian
 
-#: Fixed-point iterations of the joint deflection ``dq = diag(k) J(q + dq)^T W``.
-DEFLECTION_ITERATIONS = 10
+#: Fixed-point iterations of the joint deflection ``dq = diag(k) J(q + dq)^T W``: the update
+#: shrinks by ~``k |W| reach`` per iteration, so 5 reach DEFLECTION_TOL up to ``k |W| reach``
+#: ~ 0.01 (k = 1e-4 rad/(N m) under 100 N at 1 m: 100 times a stiff industrial joint).
+DEFLECTION_ITERATIONS = 5
 #: Largest last fixed-point update (rad, or m for prismatic joints) accepted for the true robot.
 DEFLECTION_TOL = 1e-9
 #: Levenberg-Marquardt: converged when the Gauss-Newton correction moves the model's
-#: prediction of the measurements by less than this fraction of sigma.
-LM_TOL = 1e-6
+#: prediction of the measurements by less than this fraction of sigma (1e-3: changes the
+#: error variance by ~1e-6 relative, and stays above the rounding floor of the cost,
+#: ~sqrt(|r| 1e-16 m) ~ 1e-6 sigma at sigma = 0.1 mm).
+LM_TOL = 1e-3
 LM_MAX_ITERATIONS = 100
 LM_LAMBDA0 = 1e-3
-#: Newton iterations of the compensation: converged when every joint step is below this (rad, m).
-COMPENSATION_STEP_TOL = 1e-13
+#: Compensation (Newton): converged when the identified model misses the target by at most
+#: this fraction of sigma, or when the joint step falls below COMPENSATION_STEP_TOL (rad, m).
+COMPENSATION_TOL = 1e-6
+COMPENSATION_STEP_TOL = 1e-12
 COMPENSATION_MAX_ITERATIONS = 20
 #: Level of the confidence intervals of the empirical RMS errors.
 CONFIDENCE = 0.95
@@ -86,6 +95,12 @@ class ErrorSpreads:
     angle_rad: float = math.radians(0.05)
     k_nominal: float = 1e-6
     k_log_spread: float = 0.2
+
+    def __post_init__(self):
+        for name, value in self.as_dict().items():
+            if not (math.isfinite(value) and value >= 0):
+                raise ProblemError(
+                    f"virtual calibration: error spread {name} = {value}; give a finite value >= 0")
 
     def scaled(self, factor: float) -> ErrorSpreads:
         """Spreads with the lengths, angles and nominal compliance multiplied by ``factor``."""
@@ -119,23 +134,29 @@ class NonlinearModel:
 
     Inputs of every function: ``q`` (n, rad), ``F`` (nF, N), ``X`` (L, the model's parameter
     vector: geometric errors in m and rad, compliances) and, for deviations, ``ref`` (12: the
-    column-major rotation and the position, m, of the reference pose).
+    column-major rotation and the position, m, of the reference pose). ``step`` is the largest
+    last update of the deflection fixed point (rad, or m for prismatic joints).
 
     Attributes
     ----------
     pose : casadi.Function
-        ``(q, F, X) -> (ref, step)``: the deflected frame pose as a reference vector, and the
-        largest last update of the deflection fixed point (rad or m).
-    deviation : casadi.Function
-        ``(q, F, X, ref) -> (dev, step)``: the 6 deviation rows (m, rad) from ``ref``.
-    jacobians : casadi.Function
-        ``(q, F, X, ref) -> (dev, d dev / d X, d dev / d q)``: shapes 6, 6 x L, 6 x n.
+        ``(q, F, X) -> ref``: the deflected frame pose as a reference vector.
+    measurement : casadi.Function
+        ``(q, F, X, ref) -> (y, step)``: the measured deviation rows (d) from ``ref``.
+    measurement_jacobian : casadi.Function
+        ``(q, F, X, ref) -> (y, dy/dX)``: shapes d and d x L.
+    accuracy : casadi.Function
+        ``(q, F, X, ref) -> (e, step)``: the required deviation rows (r) from ``ref``.
+    accuracy_jacobian : casadi.Function
+        ``(q, F, X, ref) -> (e, de/dq)``: shapes r and r x n.
     """
 
     model: CalibrationModel
     pose: ca.Function
-    deviation: ca.Function
-    jacobians: ca.Function
+    measurement: ca.Function
+    measurement_jacobian: ca.Function
+    accuracy: ca.Function
+    accuracy_jacobian: ca.Function
 
 
 def nonlinear_model(model: CalibrationModel) -> NonlinearModel:
@@ -166,17 +187,24 @@ def nonlinear_model(model: CalibrationModel) -> NonlinearModel:
             new = k * (jacobian(q + dq, Pi).T @ W)
             dq, step = new, ca.mmax(ca.fabs(new - dq))
     R, p = kin.placement(q + dq, Pi)
-    R_ref = ca.reshape(ref[0:9], 3, 3)
-    A = R @ R_ref.T
+    A = R @ ca.reshape(ref[0:9], 3, 3).T
     S = (A - A.T) / 2
     dev = ca.vertcat(p - ref[9:12], S[2, 1], S[0, 2], S[1, 0])
+    y, e = dev[list(model.measured_rows)], dev[list(model.accuracy_rows)]
+    args, names = [q, F, X, ref], ["q", "F", "X", "ref"]
     return NonlinearModel(
         model=model,
-        pose=ca.Function("pose", [q, F, X], [ca.vertcat(ca.vec(R), p), step]),
-        deviation=ca.Function("deviation", [q, F, X, ref], [dev, step]),
-        jacobians=ca.Function("jacobians", [q, F, X, ref],
-                              [dev, ca.jacobian(dev, X), ca.jacobian(dev, q)]),
+        pose=ca.Function("pose", [q, F, X], [ca.vertcat(ca.vec(R), p)], names[:3], ["ref"]),
+        measurement=ca.Function("y", args, [y, step], names, ["y", "step"]),
+        measurement_jacobian=ca.Function("dy", args, [y, ca.jacobian(y, X)], names, ["y", "dy_dX"]),
+        accuracy=ca.Function("e", args, [e, step], names, ["e", "step"]),
+        accuracy_jacobian=ca.Function("de", args, [e, ca.jacobian(e, q)], names, ["e", "de_dq"]),
     )
+
+
+@functools.lru_cache(maxsize=32)
+def _mapped(fn: ca.Function, N: int) -> ca.Function:
+    return fn.map(N)
 
 
 def evaluate(fn: ca.Function, *rows: np.ndarray) -> list[np.ndarray]:
@@ -191,7 +219,7 @@ def evaluate(fn: ca.Function, *rows: np.ndarray) -> list[np.ndarray]:
     list of ndarray, shape (N, rows of output b, columns of output b), one per output
     """
     N = rows[0].shape[0]
-    out = fn.map(N)(*[np.ascontiguousarray(np.asarray(a, dtype=float).T) for a in rows])
+    out = _mapped(fn, N)(*[np.ascontiguousarray(np.asarray(a, dtype=float).T) for a in rows])
     out = out if isinstance(out, (list, tuple)) else [out]
     return [np.asarray(o).reshape(fn.size1_out(b), N, fn.size2_out(b)).transpose(1, 0, 2)
             for b, o in enumerate(out)]
@@ -220,15 +248,17 @@ def draw_true_parameters(model: CalibrationModel, spreads: ErrorSpreads, trials:
     return X
 
 
-def _true_deviation(nl: NonlinearModel, q, F, X, ref, spreads: ErrorSpreads) -> np.ndarray:
-    """Deviation rows (N, 6) of true robots, checking that their deflection has converged."""
-    dev, step = evaluate(nl.deviation, q, F, X, ref)
+def true_deviation(fn: ca.Function, spreads: ErrorSpreads, *rows: np.ndarray) -> np.ndarray:
+    """Deviation rows of N true robots, shape (N, rows of ``fn``), by ``nl.measurement`` or
+    ``nl.accuracy``; checks that their deflection fixed point has converged."""
+    dev, step = evaluate(fn, *rows)
     worst = float(np.max(step, initial=0.0))
     if worst > DEFLECTION_TOL:
         raise DesignError(
             f"virtual calibration: the joint deflection of the true robots did not converge in "
             f"{DEFLECTION_ITERATIONS} fixed-point iterations (last update {worst:.2e}); the nominal "
-            f"compliance k_nominal = {spreads.k_nominal:g} is too large for the loads, lower it"
+            f"compliance k_nominal = {spreads.k_nominal:g} is too large for the loads; lower it "
+            "(--k, --scales)"
         )
     return dev[:, :, 0]
 
@@ -262,7 +292,7 @@ def identify_nonlinear(nl: NonlinearModel, Q: np.ndarray, F: np.ndarray, ref: np
                        max_iterations: int = LM_MAX_ITERATIONS) -> tuple[np.ndarray, Identification]:
     """Levenberg-Marquardt on the nonlinear model, every trial at once, from ``X = 0``.
 
-    Minimises ``|y - h(X)|^2`` with ``h`` the measured rows of ``nl.deviation`` at the plan's
+    Minimises ``|y - h(X)|^2`` with ``h = nl.measurement`` at the plan's
     ``Q`` (m, n), ``F`` (m, nF) and nominal references ``ref`` (m, 12). Step:
     ``(H + lambda diag H) dX = J^T r`` with ``H = J^T J``. A trial has converged when its
     Gauss-Newton correction changes the predicted measurements by at most ``LM_TOL sigma``
@@ -273,19 +303,16 @@ def identify_nonlinear(nl: NonlinearModel, Q: np.ndarray, F: np.ndarray, ref: np
     X : ndarray, shape (trials, L)
     report : :class:`Identification` (trials still not converged after ``max_iterations``)
     """
-    rows = list(nl.model.measured_rows)
     trials, m = y.shape[0], Q.shape[0]
 
     def residual(X: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = len(which)
-        dev, dX, _ = evaluate(nl.jacobians, np.tile(Q, (t, 1)), np.tile(F, (t, 1)),
-                              np.repeat(X, m, axis=0), np.tile(ref, (t, 1)))
-        r = y[which] - dev[:, rows, 0].reshape(t, -1)
-        return r, dX[:, rows, :].reshape(t, -1, nl.model.L)
+        h, dh = evaluate(nl.measurement_jacobian, np.tile(Q, (t, 1)), np.tile(F, (t, 1)),
+                         np.repeat(X, m, axis=0), np.tile(ref, (t, 1)))
+        return y[which] - h.reshape(t, -1), dh.reshape(t, -1, nl.model.L)
 
     X = np.zeros((trials, nl.model.L))
-    everyone = np.arange(trials)
-    r, J = residual(X, everyone)
+    r, J = residual(X, np.arange(trials))
     cost = np.sum(r**2, axis=1)
     lam = np.full(trials, LM_LAMBDA0)
     active = np.ones(trials, dtype=bool)
@@ -306,53 +333,58 @@ def identify_nonlinear(nl: NonlinearModel, Q: np.ndarray, F: np.ndarray, ref: np
         r_new, J_new = residual(trial_X, a)
         better = np.sum(r_new**2, axis=1) < cost[a]
         ok = a[better]
-        X[ok], r[ok], J[ok], cost[ok] = trial_X[better], r_new[better], J_new[better], np.sum(r_new[better] ** 2, axis=1)
+        X[ok], r[ok], J[ok] = trial_X[better], r_new[better], J_new[better]
+        cost[ok] = np.sum(r[ok] ** 2, axis=1)
         lam[ok] /= 10.0
         lam[a[~better]] *= 10.0
     return X, Identification("Levenberg-Marquardt", iterations, int(active.sum()))
 
 
 def compensate(nl: NonlinearModel, q0: np.ndarray, F0: np.ndarray, target: np.ndarray,
-               X: np.ndarray) -> tuple[np.ndarray, float]:
+               X: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Corrected commands: the identified model ``X`` puts the frame on ``target``.
 
-    Newton (minimum-norm steps) on ``dev(q_c, F0, X, target) = 0`` in the required rows
-    (``[test_poses].components``), from ``q_c = q0``, for N stacked cases at once.
+    Newton (minimum-norm steps) on ``e(q_c, F0, X, target) = 0`` with ``e = nl.accuracy`` (the
+    ``[test_poses].components`` rows), from ``q_c = q0``, for N stacked cases at once. A case is
+    done when ``|e| <= COMPENSATION_TOL sigma`` or its step is below ``COMPENSATION_STEP_TOL``.
 
     Parameters
     ----------
     q0 : ndarray, shape (N, n), rad;  F0 : ndarray, shape (N, nF), N (machining wrench)
     target : ndarray, shape (N, 12): nominal poses at ``q0`` (see :class:`NonlinearModel`)
     X : ndarray, shape (N, L): identified parameters
+    sigma : float, m: measurement noise, the scale of the tolerance
 
     Returns
     -------
     q_c : ndarray, shape (N, n)
-    model_residual : float, m (rad): largest remaining ``|dev|`` of the identified model,
-        zero unless the required rows cannot all be met with n joints.
+    done : ndarray of bool, shape (N,): False where Newton did not converge in
+        ``COMPENSATION_MAX_ITERATIONS`` steps (the identified model cannot reach the target).
+    model_residual : float, m (rad): largest remaining ``|e|`` of the identified model over
+        the converged cases, below the tolerance unless the required rows cannot all be met
+        with n joints.
     """
-    rows = list(nl.model.accuracy_rows)
     qc = np.array(q0, dtype=float)
+    done = np.zeros(len(qc), dtype=bool)
+    miss = np.zeros(len(qc))
     for _ in range(COMPENSATION_MAX_ITERATIONS):
-        dev, _, dq = evaluate(nl.jacobians, qc, F0, X, target)
-        step = -np.linalg.pinv(dq[:, rows, :]) @ dev[:, rows, :]
-        qc = qc + step[..., 0]
-        if np.max(np.abs(step)) < COMPENSATION_STEP_TOL:
+        a = np.flatnonzero(~done)
+        e, de = evaluate(nl.accuracy_jacobian, qc[a], F0[a], X[a], target[a])
+        miss[a] = np.linalg.norm(e[..., 0], axis=1)
+        step = -(np.linalg.pinv(de) @ e)[..., 0]
+        stop = (miss[a] <= COMPENSATION_TOL * sigma) | (np.max(np.abs(step), axis=1) <= COMPENSATION_STEP_TOL)
+        done[a[stop]] = True
+        qc[a[~stop]] += step[~stop]
+        if done.all():
             break
-    else:
-        raise DesignError(
-            f"virtual calibration: compensation did not converge in {COMPENSATION_MAX_ITERATIONS} "
-            "Newton steps; the identified errors are too large for the test poses (reduce the "
-            "error spreads) or a test pose is singular"
-        )
-    dev, _ = evaluate(nl.deviation, qc, F0, X, target)
-    return qc, float(np.max(np.linalg.norm(dev[:, rows, 0], axis=1)))
+    return qc, done, float(np.max(miss[done], initial=0.0))
 
 
 def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
     """Quantile of the chi-square law (Wilson-Hilferty): ``k (1 - 2/(9k) + z_p sqrt(2/(9k)))^3``.
 
-    Relative error below 1e-3 for ``k >= 10``; the intervals here use ``k`` of several hundred.
+    Relative error below 1e-3 at the 2.5 % and 97.5 % points for ``k >= 100`` (1e-2 for
+    ``k >= 10``); the intervals here use ``k`` = trials times nu, in the thousands.
     """
     k = np.asarray(dof, dtype=float)
     z = NormalDist().inv_cdf(p)
@@ -363,12 +395,13 @@ def effective_dof(C: np.ndarray) -> np.ndarray:
     """Degrees of freedom ``nu = trace(C)^2 / trace(C^2)`` of ``|e|^2``, ``e ~ N(0, C)``.
 
     ``|e|^2`` has mean ``trace C = rho`` and is approximated by ``rho / nu chi2(nu)``
-    (Satterthwaite); ``C`` of shape (s, r, r).
+    (Satterthwaite); ``C`` of shape (s, r, r). ``nu = 1`` where ``C = 0``.
     """
-    return np.trace(C, axis1=1, axis2=2) ** 2 / np.einsum("sij,sji->s", C, C)
+    square = np.einsum("sij,sji->s", C, C)
+    return np.trace(C, axis1=1, axis2=2) ** 2 / np.where(square > 0, square, 1.0) + (square == 0)
 
 
-def rms_interval(mean_square: np.ndarray, dof: np.ndarray, trials: int,
+def rms_interval(mean_square: np.ndarray, dof: np.ndarray, trials: np.ndarray | int,
                  confidence: float = CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
     """Confidence interval of the RMS error from the mean square of ``trials`` errors (m).
 
@@ -392,6 +425,8 @@ class PlanValidation:
     dof : ndarray, shape (s,): effective degrees of freedom of one squared error.
     identification : how X was identified, and its convergence.
     compensation_residual_m : float, m: largest miss of the target by the identified model.
+    compensation_failed : int
+        (trial, test pose) cases the identified model could not reach; left out of the RMS.
     wall_s : float, s.
     """
 
@@ -403,12 +438,14 @@ class PlanValidation:
     dof: np.ndarray
     identification: Identification
     compensation_residual_m: float
+    compensation_failed: int
     wall_s: float
 
     @property
     def ratio(self) -> np.ndarray:
-        """Empirical over predicted RMS error at each test pose."""
-        return self.empirical_rms_m / self.predicted_rms_m
+        """Empirical over predicted RMS error at each test pose (1 where both are 0)."""
+        return np.divide(self.empirical_rms_m, self.predicted_rms_m,
+                         out=np.ones_like(self.predicted_rms_m), where=self.predicted_rms_m > 0)
 
     @property
     def worst_relative_error(self) -> float:
@@ -427,9 +464,9 @@ class PlanValidation:
         return float(np.max(self.empirical_rms_m) / np.max(self.predicted_rms_m))
 
 
-def plan_matrices(model: CalibrationModel, plan: Plan, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
+def plan_matrices(problem: Problem, plan: Plan) -> tuple[np.ndarray, np.ndarray]:
     """``B_i`` of the plan, shape (m, d, L), and ``B0_j`` at the test poses, shape (s, r, L)."""
-    tp = problem.test_poses
+    model, tp = problem.model, problem.test_poses
     B = np.array([model.B_numeric(q, F) for q, F in zip(plan.Q, plan.F)])
     B0 = np.array([model.B_numeric(q, F, accuracy=True) for q, F in zip(tp.q, tp.F)])
     return B, B0
@@ -437,40 +474,55 @@ def plan_matrices(model: CalibrationModel, plan: Plan, problem: Problem) -> tupl
 
 def simulate_plan(problem: Problem, nl: NonlinearModel, plan: Plan, spreads: ErrorSpreads,
                   trials: int, rng: np.random.Generator) -> PlanValidation:
-    """Simulate ``trials`` calibrations of ``plan`` and compare with ``sqrt(rho)`` (module doc)."""
+    """Simulate ``trials`` calibrations of ``plan`` and compare with ``sqrt(rho)`` (module doc).
+
+    The empirical mean square at test pose j is ``mean_t |e_tj|^2`` (m^2) over the trials whose
+    compensation converged there; its interval uses ``nu_j`` of ``C_j = sigma^2 B0_j M^-1 B0_j^T``.
+    """
     t0 = time.perf_counter()
     model, tp, sigma = problem.model, problem.test_poses, problem.sigma_m
     m, d, s = plan.m, len(model.measured_rows), tp.s
-    B, B0 = plan_matrices(model, plan, problem)
+    B, B0 = plan_matrices(problem, plan)
+    scores = score_plan(B, B0, sigma)
+    if not scores.identifiable:
+        raise DesignError(
+            f"virtual calibration of the {plan.criterion} plan, m = {plan.m}: its information "
+            "matrix M is singular, the parameters cannot be identified; give a solved plan"
+        )
     X_true = draw_true_parameters(model, spreads, trials, rng)
 
-    zeros_m = np.zeros((m, model.L))
-    ref, _ = evaluate(nl.pose, plan.Q, plan.F, zeros_m)
-    ref = ref[:, :, 0]
-    dev = _true_deviation(nl, np.tile(plan.Q, (trials, 1)), np.tile(plan.F, (trials, 1)),
-                          np.repeat(X_true, m, axis=0), np.tile(ref, (trials, 1)), spreads)
-    y = dev[:, list(model.measured_rows)].reshape(trials, m * d)
-    y = y + sigma * rng.standard_normal(y.shape)
+    ref = evaluate(nl.pose, plan.Q, plan.F, np.zeros((m, model.L)))[0][:, :, 0]
+    y = true_deviation(nl.measurement, spreads, np.tile(plan.Q, (trials, 1)),
+                       np.tile(plan.F, (trials, 1)), np.repeat(X_true, m, axis=0), np.tile(ref, (trials, 1)))
+    y = y.reshape(trials, m * d) + sigma * rng.standard_normal((trials, m * d))
     if model.case == "elastostatic":
         X_hat, ident = identify_linear(B.reshape(m * d, model.L), y)
+        X_hat = X_hat / model.column_scale  # B is written for the scaled parameters c * X
     else:
         X_hat, ident = identify_nonlinear(nl, plan.Q, plan.F, ref, y, sigma)
 
-    target, _ = evaluate(nl.pose, tp.q, tp.F, np.zeros((s, model.L)))
-    target = np.tile(target[:, :, 0], (trials, 1))
-    q0, F0 = np.tile(tp.q, (trials, 1)), np.tile(tp.F, (trials, 1))
-    qc, miss = compensate(nl, q0, F0, target, np.repeat(X_hat, s, axis=0))
-    err = _true_deviation(nl, qc, F0, np.repeat(X_true, s, axis=0), target, spreads)
-    err = err[:, list(model.accuracy_rows)].reshape(trials, s, -1)
-    mean_square = np.mean(np.sum(err**2, axis=2), axis=0)
+    target = np.tile(evaluate(nl.pose, tp.q, tp.F, np.zeros((s, model.L)))[0][:, :, 0], (trials, 1))
+    F0 = np.tile(tp.F, (trials, 1))
+    qc, done, miss = compensate(nl, np.tile(tp.q, (trials, 1)), F0, target,
+                                np.repeat(X_hat, s, axis=0), sigma)
+    err = true_deviation(nl.accuracy, spreads, qc, F0, np.repeat(X_true, s, axis=0), target)
+    done = done.reshape(trials, s)
+    count = done.sum(axis=0)
+    if not count.all():
+        j = int(np.argmin(count))
+        raise DesignError(
+            f"virtual calibration of the {plan.criterion} plan, m = {plan.m}: no simulated robot "
+            f"could be compensated at test pose {j} (its target is out of the identified robots' "
+            "reach); reduce the error spreads"
+        )
+    square = np.sum(err.reshape(trials, s, -1) ** 2, axis=2)
+    mean_square = np.sum(np.where(done, square, 0.0), axis=0) / count
 
-    predicted = score_plan(B, B0, sigma).rms_error_m
-    M_inv = np.linalg.inv(information_matrix(B))
-    C = sigma**2 * np.einsum("sil,lk,sjk->sij", B0, M_inv, B0)
+    C = sigma**2 * np.einsum("sil,lk,sjk->sij", B0, np.linalg.inv(information_matrix(B)), B0)
     dof = effective_dof(C)
-    low, high = rms_interval(mean_square, dof, trials)
-    return PlanValidation(plan, predicted, np.sqrt(mean_square), low, high, dof, ident, miss,
-                          time.perf_counter() - t0)
+    low, high = rms_interval(mean_square, dof, count)
+    return PlanValidation(plan, scores.rms_error_m, np.sqrt(mean_square), low, high, dof, ident, miss,
+                          int(done.size - count.sum()), time.perf_counter() - t0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -528,9 +580,9 @@ def plans_from_results(problem: Problem, path: str | Path) -> list[Plan]:
         record = json.loads(path.read_text())
     except FileNotFoundError:
         raise ProblemError(f"--results: no such file {path}; solve first: "
-                           f"python scripts/solve_case.py {problem.path} --out DIR")
+                           f"python scripts/solve_case.py {problem.path} --out DIR") from None
     except json.JSONDecodeError as exc:
-        raise ProblemError(f"--results: {path} is not valid JSON ({exc}); solve the case again")
+        raise ProblemError(f"--results: {path} is not valid JSON ({exc}); solve the case again") from None
     model = problem.model
     wanted = {"calibration.parameters": list(model.parameter_names), "sigma_m": problem.sigma_m}
     found = {"calibration.parameters": record.get("calibration", {}).get("parameters"),
@@ -559,13 +611,14 @@ def plans_from_results(problem: Problem, path: str | Path) -> list[Plan]:
 
 def rankings(validation: Validation) -> dict[int, dict[str, list[str]]]:
     """Per m, the criteria from best to worst by max ``sqrt(rho)`` and by max simulated RMS."""
+    def order(group: list[PlanValidation], field: str) -> list[str]:
+        return [p.plan.criterion for p in sorted(group, key=lambda p: np.max(getattr(p, field)))]
+
     out: dict[int, dict[str, list[str]]] = {}
     for m in sorted({p.plan.m for p in validation.plans}):
         group = [p for p in validation.plans if p.plan.m == m]
-        out[m] = {
-            "by_measure": [p.plan.criterion for p in sorted(group, key=lambda p: np.max(p.predicted_rms_m))],
-            "by_simulation": [p.plan.criterion for p in sorted(group, key=lambda p: np.max(p.empirical_rms_m))],
-        }
+        out[m] = {"by_measure": order(group, "predicted_rms_m"),
+                  "by_simulation": order(group, "empirical_rms_m")}
     return out
 
 
@@ -588,6 +641,7 @@ def plan_record(pv: PlanValidation) -> dict:
         "coverage": pv.coverage,
         "identification": pv.identification.as_dict(),
         "compensation_residual_m": pv.compensation_residual_m,
+        "compensation_failed": pv.compensation_failed,
         "wall_s": pv.wall_s,
     }
 
@@ -614,7 +668,8 @@ def validation_record(validation: Validation, study: list[tuple[float, Validatio
             {"scale": scale, "spreads": v.spreads.as_dict(), "wall_s": v.wall_s,
              "plans": [{"criterion": p.plan.criterion, "m": p.plan.m, "max_ratio": p.max_ratio,
                         "worst_relative_error": p.worst_relative_error,
-                        "non_converged": p.identification.non_converged} for p in v.plans]}
+                        "non_converged": p.identification.non_converged,
+                        "compensation_failed": p.compensation_failed} for p in v.plans]}
             for scale, v in study
         ],
     }
@@ -639,34 +694,41 @@ def linearisation_study(problem: Problem, plans: list[Plan], scales: list[float]
 
 
 def format_report(validation: Validation, study: list[tuple[float, Validation]] = ()) -> str:
-    """Per plan: max predicted and simulated RMS error (mm) with the interval, node agreement."""
-    v = validation
-    pct = round(100 * CONFIDENCE)
+    """Per plan: max predicted and simulated RMS error (mm) with the interval, node agreement;
+    the rankings; the wall time; and the linearisation study when given."""
+    v, sp = validation, validation.spreads
     lines = [
-        f"virtual calibration of {v.problem.name} ({v.problem.model.case}): {v.trials} trials, seed {v.seed}, "
-        f"{v.problem.test_poses.s} test poses; errors: length {v.spreads.length_m * 1e3:g} mm, "
-        f"angle {math.degrees(v.spreads.angle_rad):g} deg, k {v.spreads.k_nominal:g} (log-std {v.spreads.k_log_spread:g})",
-        f"{'criterion':<10} {'m':>3} {'max sqrt(rho)':>14} {'max simulated':>14} {f'{pct}% interval':>18} "
-        f"{'worst node':>11} {'covered':>8}  identification",
+        (f"virtual calibration of {v.problem.name} ({v.problem.model.case}): {v.trials} trials, "
+         f"seed {v.seed}, {v.problem.test_poses.s} test poses; errors: length {sp.length_m * 1e3:g} mm, "
+         f"angle {math.degrees(sp.angle_rad):g} deg, k {sp.k_nominal:g} (log-std {sp.k_log_spread:g})"),
+        (f"{'criterion':<10} {'m':>3} {'max sqrt(rho)':>14} {'max simulated':>14} "
+         f"{f'{round(100 * CONFIDENCE)}% interval':>18} {'worst node':>11} {'covered':>8}  identification"),
     ]
     for p in v.plans:
-        rec = plan_record(p)
-        mx, ident = rec["max"], p.identification
-        conv = "" if not ident.non_converged else f", {ident.non_converged} NOT CONVERGED"
+        mx, ident = plan_record(p)["max"], p.identification
+        notes = "" if not ident.non_converged else f", {ident.non_converged} trials NOT CONVERGED"
+        if p.compensation_failed:
+            notes += f"; {p.compensation_failed} (trial, pose) cases NOT COMPENSATED, left out"
         lines.append(
-            f"{p.plan.criterion:<10} {p.plan.m:>3} {mx['predicted_m'] * 1e3:>11.4f} mm {mx['empirical_m'] * 1e3:>11.4f} mm "
-            f"{mx['ci_low_m'] * 1e3:>8.4f}..{mx['ci_high_m'] * 1e3:.4f} {100 * p.worst_relative_error:>10.2f}% "
-            f"{100 * p.coverage:>7.0f}%  {ident.method}, {ident.iterations} it.{conv}"
+            f"{p.plan.criterion:<10} {p.plan.m:>3} {mx['predicted_m'] * 1e3:>11.4f} mm "
+            f"{mx['empirical_m'] * 1e3:>11.4f} mm {mx['ci_low_m'] * 1e3:>8.4f}..{mx['ci_high_m'] * 1e3:.4f} "
+            f"{100 * p.worst_relative_error:>10.2f}% {100 * p.coverage:>7.0f}%  "
+            f"{ident.method}, {ident.iterations} it.{notes}"
         )
     for m, r in rankings(v).items():
         same = "same" if r["by_measure"] == r["by_simulation"] else "DIFFERENT"
-        lines.append(f"m = {m}: ranking by the measure {r['by_measure']}, by simulation {r['by_simulation']} ({same})")
+        lines.append(f"m = {m}: ranking by the measure {r['by_measure']}, "
+                     f"by simulation {r['by_simulation']} ({same})")
     lines.append(f"wall time {v.wall_s:.2f} s for {len(v.plans)} plans x {v.trials} trials")
     if study:
-        lines.append("linearisation: max simulated / max predicted error when the spreads are scaled")
-        lines.append(f"{'scale':>8}  " + "  ".join(f"{p.plan.criterion + ' m=' + str(p.plan.m):>14}" for p in study[0][1].plans))
+        lines.append("linearisation, every spread times scale: max simulated / max sqrt(rho), "
+                     "worst node |simulated / sqrt(rho) - 1|, (trial, pose) cases not compensated")
+        names = [f"{p.plan.criterion} m={p.plan.m}" for p in study[0][1].plans]
+        lines.append(f"{'scale':>8}" + "".join(f"{n:>20}" for n in names))
         for scale, s in study:
-            lines.append(f"{scale:>8g}  " + "  ".join(f"{p.max_ratio:>14.3f}" for p in s.plans))
+            cells = [f"{p.max_ratio:.3f} {100 * p.worst_relative_error:4.1f}% {p.compensation_failed}"
+                     for p in s.plans]
+            lines.append(f"{scale:>8g}" + "".join(f"{c:>20}" for c in cells))
     return "\n".join(lines)
 
 
@@ -683,17 +745,98 @@ def validation_figure(validation: Validation):
     axes = fig.subplots(1, len(ms), squeeze=False)[0]
     every = max(1, len(x) // 20)
     for ax, m in zip(axes, ms):
-        for p in (p for p in validation.plans if p.plan.m == m):
+        for i, p in enumerate(p for p in validation.plans if p.plan.m == m):
             style = STYLES[p.plan.criterion]
             e = p.empirical_rms_m * 1e3
-            ax.plot(x, p.predicted_rms_m * 1e3, label=f"{LABELS[p.plan.criterion]}: predicted", **style)
+            ax.plot(x, p.predicted_rms_m * 1e3, label=f"{LABELS[p.plan.criterion]}: sqrt(rho)", **style)
             ax.errorbar(x[::every], e[::every],
                         yerr=np.abs(np.vstack([p.ci_low_m, p.ci_high_m]) * 1e3 - e)[:, ::every],
-                        fmt="o", ms=3, capsize=2, color=style["color"], label="simulated")
+                        fmt="o", ms=3, capsize=2, color=style["color"],
+                        label="simulated RMS and interval" if i == 0 else "_nolegend_")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("RMS error after compensation (mm)")
         ax.set_ylim(bottom=0)
-        ax.set_title(f"m = {m}: {validation.trials} virtual calibrations, {round(100 * CONFIDENCE)}% intervals")
+        ax.set_title(f"m = {m}: {validation.trials} virtual calibrations, "
+                     f"{round(100 * CONFIDENCE)}% intervals")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
     return fig
+
+# --------------------------------------------------------------------------- command line
+# casadi-design validate problems/<case>.toml [--results DIR/results.json] [--trials N]
+#     [--seed S] [--out DIR] [--scales 1,10,100]
+# Without --results the plans are solved first (every criterion and m of the problem file).
+# Writes DIR/validation.json and DIR/validation.png / .pdf. Bad input or a failed simulation
+# prints one line and exits with code 2.
+
+def _positive_list(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--scales takes numbers separated by commas, got '{text}'")
+    if any(not v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"--scales takes positive numbers, got '{text}'")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d = ErrorSpreads()
+    parser = argparse.ArgumentParser(prog="casadi-design validate", description=__doc__.splitlines()[0])
+    parser.add_argument("problem", help="problem file (TOML), e.g. problems/paper_planar_2r.toml")
+    parser.add_argument("--results",
+                        help="results.json of solve_case.py for this problem (default: solve now)")
+    parser.add_argument("--trials", type=int, default=2000,
+                        help="simulated calibrations per plan (default 2000)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulation (default 0)")
+    parser.add_argument("--out",
+                        help="folder for validation.json and validation.png/.pdf (created if missing)")
+    parser.add_argument("--length-mm", type=float, default=d.length_m * 1e3,
+                        help=f"std of the translation errors, mm (default {d.length_m * 1e3:g})")
+    parser.add_argument("--angle-deg", type=float, default=math.degrees(d.angle_rad),
+                        help=f"std of the rotation errors, deg (default {math.degrees(d.angle_rad):g})")
+    parser.add_argument("--k", type=float, default=d.k_nominal,
+                        help=f"median true compliance, rad/(N m) or m/N (default {d.k_nominal:g})")
+    parser.add_argument("--k-log-spread", type=float, default=d.k_log_spread,
+                        help=f"std of log k (default {d.k_log_spread:g})")
+    parser.add_argument("--scales", type=_positive_list,
+                        help="also validate with every spread times each scale, e.g. 1,10,100, "
+                             "to see where the linearised prediction breaks down")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    problem = load_problem(args.problem)
+    if args.results:
+        plans, source = plans_from_results(problem, args.results), str(args.results)
+    else:
+        from .solve import solve_design
+
+        designs = [solve_design(problem, c, m) for m in problem.m_values for c in problem.criteria]
+        plans, source = plans_from_designs(designs), "solved by casadi-design validate"
+    spreads = ErrorSpreads(args.length_mm * 1e-3, math.radians(args.angle_deg), args.k, args.k_log_spread)
+    t0 = time.perf_counter()
+    validation = validate(problem, plans, args.trials, args.seed, spreads, source)
+    study = (linearisation_study(problem, plans, args.scales, args.trials, args.seed, spreads, source)
+             if args.scales else [])
+    print(format_report(validation, study))
+    print(f"total simulation time {time.perf_counter() - t0:.2f} s")
+    if args.out:
+        from .plotting import save_figure
+
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_validation(out / "validation.json", validation, study)
+        fig = validation_figure(validation)
+        for suffix in ("png", "pdf"):
+            save_figure(fig, out / f"validation.{suffix}")
+        print(f"wrote {out / 'validation.json'}, {out / 'validation.png'}, {out / 'validation.pdf'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except (ProblemError, DesignError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

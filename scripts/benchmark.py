@@ -1,40 +1,42 @@
-"""Speed of the paper's example: wall time and IPOPT iterations per design, after imports.
+"""Speed of a case: `casadi-design solve` run several times, median wall time (after imports).
 
-    python scripts/benchmark.py [problems/paper_planar_2r.toml] [--repeat 3]
+    python scripts/benchmark.py [problems/paper_planar_2r.toml] [--repeat 3] [--jobs 1] [solve options]
 
-Goal (issue 2): the whole example (test-pose, D, E at m = 1 and 5, multi-start) under 10 s on
-a 2-core machine, against about 100 s for a derivative-free scipy multi-start.
+The first run prints the solve command's table and per-design lines (wall time, IPOPT
+iterations); later runs are silent. Goal (issue 2): the whole example (test-pose, D, E at m = 1
+and 5, multi-start) under 10 s on a 2-core machine, against about 100 s for a derivative-free
+scipy multi-start.
 """
 
 import argparse
+import contextlib
+import io
 import statistics
+import sys
 import time
 
-from casadi_design.nlp import B0_at_test_poses
-from casadi_design.problem import load_problem
-from casadi_design.solve import solve_design
+from casadi_design.cli import main
 
 
-def main() -> None:
+def benchmark(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("problem", nargs="?", default="problems/paper_planar_2r.toml")
     parser.add_argument("--repeat", type=int, default=3, help="runs of the whole case (median reported)")
-    args = parser.parse_args()
+    parser.add_argument("--jobs", default="1", help="worker processes (default 1: serial, comparable)")
+    args, rest = parser.parse_known_args(argv)
     totals = []
     for r in range(args.repeat):
+        out = contextlib.nullcontext() if r == 0 else contextlib.redirect_stdout(io.StringIO())
         t0 = time.perf_counter()
-        problem = load_problem(args.problem)
-        B0 = B0_at_test_poses(problem)
-        designs = [solve_design(problem, c, m, B0) for m in problem.m_values for c in problem.criteria]
+        with out:
+            rc = main(["solve", args.problem, "--jobs", args.jobs, *rest])
         totals.append(time.perf_counter() - t0)
-        if r == 0:
-            for d in designs:
-                print(f"{d.criterion:<10} m = {d.m:<3} {d.wall_s:7.3f} s  {d.iterations:6d} IPOPT iterations "
-                      f"over {len(d.starts)} starts ({d.iterations / len(d.starts):.0f} per start), "
-                      f"max error {d.scores.max_rms_error_m * 1e3:.4f} mm")
-    print(f"whole case (load + {len(designs)} designs): median {statistics.median(totals):.2f} s "
+        if rc:
+            return rc
+    print(f"whole case (load + designs, jobs {args.jobs}): median {statistics.median(totals):.2f} s "
           f"over {args.repeat} runs (min {min(totals):.2f} s, max {max(totals):.2f} s)")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(benchmark())

@@ -69,6 +69,58 @@ def test_script_is_a_thin_wrapper(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text(PAPER.read_text().replace('"E"]', '"Z"]'))
     run = subprocess.run([sys.executable, str(ROOT / "scripts" / "solve_case.py"), str(bad)],
-                         capture_output=True, text=True)
+                         capture_output=True, text=True, check=False)
     assert run.returncode == 2 and "Traceback" not in run.stderr
     assert "[design].criteria: has 'Z'" in run.stderr
+
+
+# --------------------------------------------------------------------------- the command itself
+
+@pytest.mark.parametrize("command, words", [
+    ("solve", ["--m", "--starts", "--jobs", "--dask-scheduler", "--quiet", "--verbose", "--force", "mm"]),
+    ("sweep", ["--m", "1:10", "--log", "--resume", "--no-warm-start", "--jobs", "mm"]),
+    ("evaluate", ["--plan", "q1_deg", "fx_N", "--compare", "mm"]),
+    ("plot", ["--log", "--format", "--m", "mm"]),
+])
+def test_every_subcommand_explains_its_options(command, words, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for w in words:
+        assert w in text, w
+
+
+def test_console_script_is_declared_and_scripts_stay_thin():
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["scripts"] == {"casadi-design": "casadi_design.cli:main"}
+    assert any(d.startswith("tqdm") for d in project["dependencies"])
+    assert project["optional-dependencies"]["dask"] == ["dask[distributed]>=2023.1"]
+    src = (ROOT / "scripts" / "solve_case.py").read_text()
+    assert "from casadi_design.cli import main" in src and len(src.splitlines()) < 12
+
+
+def test_python_dash_m_runs_the_command():
+    run = subprocess.run([sys.executable, "-m", "casadi_design", "sweep", "--help"],
+                         capture_output=True, text=True, cwd=ROOT, check=False)
+    assert run.returncode == 0 and "usage: casadi-design sweep" in run.stdout
+
+
+def test_solve_refuses_a_non_empty_output_folder(tmp_path, capsys):
+    (tmp_path / "keep.txt").write_text("x")
+    assert main(["solve", str(PAPER), "--out", str(tmp_path), "--starts", "1"]) == 2
+    assert capsys.readouterr().err.startswith(f"error: {tmp_path}: folder exists and is not empty; add --force")
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
+
+
+def test_validate_subcommand_runs_the_virtual_calibration(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(PAPER.read_text().replace("sigma_m = 1.0e-4", "sigma_m = 0.0"))
+    assert main(["validate", str(bad)]) == 2
+    assert "[measurement].sigma_m: must be positive" in capsys.readouterr().err
+    assert main(["validate", str(PAPER), "--trials", "50", "--out", str(tmp_path / "v")]) == 0
+    out = capsys.readouterr().out
+    assert "ranking by the measure ['test-pose', 'D', 'E'], by simulation" in out
+    assert (tmp_path / "v" / "validation.json").exists()

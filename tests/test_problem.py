@@ -87,7 +87,7 @@ def test_m_too_small_for_the_parameters():
     raw["calibration"] = {"case": "both", "parameters": ["joint2.tx", "tool.tx"],
                           "wrench_components": ["fx", "fy"]}
     raw["experiments"]["m"] = [1, 5]
-    with pytest.raises(ProblemError, match=r"m = 1 is too small: 4 parameters .* need m >= 2; use m >= 2"):
+    with pytest.raises(ProblemError, match=r"m = 1 is too small: 4 parameters .* with 2 independent measured values per experiment need m >= 2; use m >= 2"):
         build(raw)
 
 

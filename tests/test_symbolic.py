@@ -11,7 +11,9 @@ from casadi_design.robots import (
     make_robot,
     planar_arm,
 )
+from casadi_design.problem import load_problem
 from casadi_design.symbolic import PLACEMENT_ERRORS, parameter_names, symbolic_kinematics
+from tests.conftest import ROOT
 
 TOL = 1e-10
 FD_STEP = 1e-6
@@ -23,6 +25,8 @@ ROBOTS = {
     "ur5": (lambda: load_urdf("example-robot-data:ur_description/urdf/ur5_robot.urdf"), "tool0"),
     "ur10": (lambda: load_urdf("example-robot-data:ur_description/urdf/ur10_robot.urdf"), "tool0"),
     "panda": (lambda: load_urdf("example-robot-data:panda_description/urdf/panda.urdf"), "panda_hand"),
+    "abb_irb6640": (lambda: load_urdf(str(ROOT / "problems/robots/abb_irb6640_180_255.urdf")), "tool0"),
+    "abb_irb6640_dh": (lambda: load_problem(ROOT / "problems/abb_irb6640_machining.toml").robot.model, "tcp"),
 }
 
 

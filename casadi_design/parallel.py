@@ -1,0 +1,232 @@
+"""Run the starts of a multi-start on local processes or on a Dask cluster.
+
+An executor sends each start to a worker as plain data: the problem's parsed TOML (``raw``)
+and file path, the criterion, ``m``, ``B0`` and the start plan ``(Q0, F0)``. The worker
+rebuilds the problem and the design NLP once (cached per process) and runs
+:func:`casadi_design.solve.solve_start`, the same code the serial loop runs, so a start gives
+the same numbers wherever it runs. The seeded start plans are drawn by the caller
+(:func:`casadi_design.solve.solve_design`), never by a worker, so results do not depend on
+the number of workers.
+
+Executors (context managers; ``None`` means serial, in this process):
+
+* :class:`ProcessExecutor` -- ``jobs`` local processes (``spawn``: no fork of a process that
+  already runs CasADi threads);
+* :class:`DaskExecutor` -- a ``dask.distributed`` scheduler (``pip install
+  casadi-design[dask]``). Workers need this package and must see the problem's relative URDF
+  paths from their working folder. Each worker process runs one start at a time; start
+  workers with ``--nthreads 1`` and as many processes as cores.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import multiprocessing
+import os
+import pickle
+import signal
+import threading
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Protocol, Self
+
+import numpy as np
+
+from .measures import Scores
+from .nlp import build_nlp
+from .problem import Problem, build_problem
+from .solve import StartRecord, make_solver, solve_start
+
+#: Problems (and their solvers) kept per worker process.
+CACHE_PROBLEMS = 4
+
+StartResult = tuple[StartRecord, np.ndarray, np.ndarray, Scores]
+Plan = tuple[np.ndarray, np.ndarray]
+
+
+class StartExecutor(Protocol):
+    """Runs the starts of one design and yields their results in the order of ``plans``."""
+
+    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                   plans: Sequence[Plan], verbose: bool) -> Iterator[StartResult]: ...
+
+
+def cpu_count() -> int:
+    """CPUs this process may use (the default of ``--jobs``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class ProblemRef:
+    """What a worker needs to rebuild a problem: its parsed TOML and file path, and a key."""
+
+    raw: dict
+    path: str
+    key: str
+
+    @classmethod
+    def of(cls, problem: Problem) -> ProblemRef:
+        blob = pickle.dumps((problem.raw, problem.path), protocol=4)
+        return cls(problem.raw, problem.path, hashlib.sha256(blob).hexdigest())
+
+
+# Worker-side state. One lock per process: CasADi building and IPOPT (MUMPS) are not safe to
+# run from several threads at once, and Dask may run tasks in threads.
+_LOCK = threading.Lock()
+_PROBLEMS: OrderedDict[str, tuple[Problem, dict]] = OrderedDict()
+
+
+def _cached(ref: ProblemRef) -> tuple[Problem, dict]:
+    if ref.key not in _PROBLEMS:
+        _PROBLEMS[ref.key] = (build_problem(ref.raw, ref.path), {})
+        while len(_PROBLEMS) > CACHE_PROBLEMS:
+            _PROBLEMS.popitem(last=False)
+    _PROBLEMS.move_to_end(ref.key)
+    return _PROBLEMS[ref.key]
+
+
+def run_start(ref: ProblemRef, criterion: str, m: int, B0: np.ndarray, Q0: np.ndarray,
+              F0: np.ndarray, verbose: bool = False) -> StartResult:
+    """One start, in a worker: rebuild (or reuse) the problem and NLP, then solve."""
+    with _LOCK:
+        problem, solvers = _cached(ref)
+        key = (criterion, m, verbose, hashlib.sha256(np.ascontiguousarray(B0).tobytes()).hexdigest())
+        if key not in solvers:
+            nlp = build_nlp(problem, criterion, m, B0)
+            solvers[key] = (nlp, make_solver(problem, nlp, verbose))
+        nlp, solver = solvers[key]
+        return solve_start(problem, nlp, solver, B0, Q0, F0)
+
+
+def _ignore_sigint() -> None:
+    # Ctrl-C reaches every process of the terminal's group: let only the parent react, so it
+    # can keep the finished cases and shut the pool down cleanly.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+#: Thread counts of the BLAS/OpenMP libraries, set to 1 in worker processes unless the user set
+#: them: the parallelism is across starts, and BLAS threads of several processes fighting for
+#: the same cores made a 2-process run no faster than a serial one.
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+class ProcessExecutor:
+    """Starts on ``jobs`` local worker processes (spawned, single-threaded BLAS)."""
+
+    def __init__(self, jobs: int):
+        if jobs < 1:
+            raise ValueError(f"--jobs: expected a positive number of processes, got {jobs}")
+        self.jobs = jobs
+        # Workers are spawned on demand and inherit os.environ then: keep the setting until close.
+        self._saved_env = {k: os.environ.get(k) for k in THREAD_VARIABLES}
+        for k in THREAD_VARIABLES:
+            os.environ.setdefault(k, "1")
+        self._pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_ignore_sigint)
+        # Start the workers now (each imports this package, ~0.5 s) while the caller loads
+        # the problem: one submit spawns one process.
+        for _ in range(jobs):
+            self._pool.submit(int)
+
+    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                   plans: Sequence[Plan], verbose: bool) -> Iterator[StartResult]:
+        ref = ProblemRef.of(problem)
+        futures = [self._pool.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose)
+                   for Q0, F0 in plans]
+        try:
+            for f in futures:
+                yield f.result()
+        finally:
+            for f in futures:
+                f.cancel()
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        for k, v in self._saved_env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class MissingExtraError(ImportError):
+    """An optional dependency is not installed; the message says what to install."""
+
+
+def _import_distributed() -> Any:
+    try:
+        import distributed
+    except ImportError as e:
+        raise MissingExtraError(
+            "--dask-scheduler needs dask.distributed, which is not installed: "
+            "pip install casadi-design[dask]  (or: pip install \"dask[distributed]\")"
+        ) from e
+    return distributed
+
+
+class DaskExecutor:
+    """Starts on a Dask cluster: ``address`` of its scheduler (``tcp://host:8786``) or a
+    ``distributed.Client`` (left open on close when given)."""
+
+    def __init__(self, address: str | Any):
+        distributed = _import_distributed()
+        if isinstance(address, distributed.Client):
+            self.client, self._own = address, False
+        else:
+            self.client, self._own = distributed.Client(address), True
+
+    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                   plans: Sequence[Plan], verbose: bool) -> Iterator[StartResult]:
+        ref = ProblemRef.of(problem)
+        futures = [self.client.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose, pure=False)
+                   for Q0, F0 in plans]
+        try:
+            for f in futures:
+                yield f.result()
+        finally:
+            self.client.cancel([f for f in futures if not f.done()])
+
+    def close(self) -> None:
+        if self._own:
+            self.client.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _Serial:
+    """No executor: :func:`casadi_design.solve.solve_design` runs the starts itself."""
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+
+def make_executor(jobs: int | None = None, dask_scheduler: str | None = None) -> Any:
+    """Context manager giving the executor for ``--jobs`` / ``--dask-scheduler``.
+
+    ``dask_scheduler`` wins over ``jobs``; ``jobs`` None means :func:`cpu_count`; 1 means
+    serial (the context gives None).
+    """
+    if dask_scheduler:
+        return DaskExecutor(dask_scheduler)
+    jobs = cpu_count() if jobs is None else jobs
+    if jobs < 1:
+        raise ValueError(f"--jobs: expected a positive number of processes, got {jobs}")
+    return _Serial() if jobs == 1 else ProcessExecutor(jobs)

@@ -1,0 +1,281 @@
+"""6-axis robots: DH tables, identifiable parameter counts, markers, noise models, loads,
+Cartesian paths with IK, workspace constraints and the two case studies."""
+
+import copy
+import tomllib
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from casadi_design.errors import DesignError, ProblemError
+from casadi_design.identifiability import base_set
+from casadi_design.ik import sample_path
+from casadi_design.measures import information_matrix
+from casadi_design.models import calibration_model
+from casadi_design.problem import build_problem, load_problem
+from casadi_design.robots import (
+    add_tool_frame,
+    frame_jacobian,
+    frame_placement,
+    load_urdf,
+    make_robot,
+    placement_from_xyz_rpy,
+)
+from casadi_design.solve import solve_design
+from casadi_design.symbolic import symbolic_kinematics
+from tests.conftest import ROOT
+
+ABB_URDF = str(ROOT / "problems/robots/abb_irb6640_180_255.urdf")
+UR10_URDF = "example-robot-data:ur_description/urdf/ur10_robot.urdf"
+FD_STEP = 1e-6
+OFF_AXIS_TOOL = [0.05, 0.03, 0.15]  # m, a measured point off the last joint's axis
+MARKERS = np.array([[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]])
+
+
+def _raw(name: str) -> dict:
+    with open(ROOT / "problems" / name, "rb") as fh:
+        return copy.deepcopy(tomllib.load(fh))
+
+
+@pytest.fixture(scope="module")
+def abb_dh():
+    return load_problem(ROOT / "problems/abb_irb6640_machining.toml")
+
+
+def _robot(urdf: str, tool=None):
+    model = load_urdf(urdf)
+    frame = "tool0"
+    if tool is not None:
+        frame = add_tool_frame(model, frame, placement_from_xyz_rpy(tool, [0, 0, 0]))
+    return make_robot(model, frame)
+
+
+def test_dh_table_reproduces_the_urdf(abb_dh):
+    """The datasheet DH table (problem file) and the URDF give the same tool placement."""
+    urdf = make_robot(load_urdf(ABB_URDF), "tool0")
+    tcp = add_tool_frame(urdf.model, "tool0", placement_from_xyz_rpy([0, 0, 0.3], [0, 0, 0]))
+    urdf = make_robot(urdf.model, tcp)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.uniform(abb_dh.robot.q_min, abb_dh.robot.q_max)
+        a, b = frame_placement(abb_dh.robot, q), frame_placement(urdf, q)
+        np.testing.assert_allclose(a.translation, b.translation, atol=1e-12)
+        np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-12)
+    np.testing.assert_allclose(abb_dh.robot.q_min, urdf.q_min, atol=1e-6)
+    # published zero pose: flange at x = 320 + 1142.5 + 200 mm, z = 780 + 1075 + 200 mm
+    np.testing.assert_allclose(frame_placement(make_robot(load_urdf(ABB_URDF), "tool0"), np.zeros(6)).translation,
+                               [1.6625, 0.0, 2.055], atol=1e-12)
+
+
+@pytest.mark.parametrize("urdf", [UR10_URDF, ABB_URDF], ids=["ur10", "abb"])
+@pytest.mark.parametrize(
+    "measured, markers, tool, expected",
+    [
+        (("x", "y", "z"), None, OFF_AXIS_TOOL, 4 * 6 + 3),
+        (("x", "y", "z", "rx", "ry", "rz"), None, None, 4 * 6 + 6),
+        (("x", "y", "z"), MARKERS, None, 4 * 6 + 6),  # 3 non-collinear markers = full pose
+        (("x", "y", "z"), MARKERS[:2], None, 4 * 6 + 5),  # 2 markers: no rotation about their line
+        (("x", "y", "z"), None, None, 4 * 6 + 1),  # point on the axis of joint 6: 2 lost
+    ],
+    ids=["position", "full-pose", "3-markers", "2-markers", "on-axis-point"],
+)
+def test_identifiable_counts_match_theory(urdf, measured, markers, tool, expected):
+    kin = symbolic_kinematics(_robot(urdf, tool))
+    model = calibration_model(kin, "geometric", measured, geometric=kin.parameter_names, markers_m=markers)
+    chosen = base_set(model)
+    assert chosen.rank == expected
+    assert len(chosen.kept) + len(chosen.dropped) == len(kin.parameter_names)
+
+
+def test_counts_with_a_prismatic_joint():
+    """A generic R-R-P-R-R chain: 4R + 2P + 6 = 24 (full pose), 4R + 2P + 3 = 21 (position)."""
+    rng = np.random.default_rng(5)
+    model = pin.Model()
+    parent = 0
+    for k, joint in enumerate([pin.JointModelRZ(), pin.JointModelRY(), pin.JointModelPX(),
+                               pin.JointModelRY(), pin.JointModelRX()]):
+        placement = pin.SE3(pin.rpy.rpyToMatrix(*rng.uniform(-0.5, 0.5, 3)), rng.uniform(-0.3, 0.3, 3))
+        parent = model.addJoint(parent, joint, placement, f"j{k}")
+    model.lowerPositionLimit[:] = -2.0
+    model.upperPositionLimit[:] = 2.0
+    model.addFrame(pin.Frame("tip", parent, pin.SE3(np.eye(3), np.array([0.1, 0.05, 0.2])), pin.FrameType.OP_FRAME))
+    kin = symbolic_kinematics(make_robot(model, "tip"))
+    full = calibration_model(kin, "geometric", ("x", "y", "z", "rx", "ry", "rz"), geometric=kin.parameter_names)
+    pos = calibration_model(kin, "geometric", ("x", "y", "z"), geometric=kin.parameter_names)
+    assert base_set(full).rank == 4 * 4 + 2 * 1 + 6
+    assert base_set(pos).rank == 4 * 4 + 2 * 1 + 3
+
+
+def test_dropped_parameters_are_explained():
+    kin = symbolic_kinematics(_robot(UR10_URDF, OFF_AXIS_TOOL))
+    chosen = base_set(calibration_model(kin, "geometric", ("x", "y", "z"), geometric=kin.parameter_names))
+    reasons = dict(chosen.dropped)
+    assert "base.tz" in reasons or "shoulder_pan_joint.tz" in reasons
+    assert all(r.startswith(("acts as", "no effect")) for r in reasons.values())
+    assert "27 parameters" in chosen.report()
+
+
+def test_marker_rows_against_finite_differences_of_the_nonlinear_fk():
+    """B rows of each marker = d/dPi of (p + R r) at Pi = 0, for every geometric parameter."""
+    robot = _robot(UR10_URDF)
+    kin = symbolic_kinematics(robot)
+    model = calibration_model(kin, "geometric", ("x", "y", "z"), geometric=kin.parameter_names, markers_m=MARKERS)
+    q = np.random.default_rng(2).uniform(-2, 2, 6)
+    B = model.B_numeric(q, np.zeros(0))
+    for k in range(len(kin.parameter_names)):
+        e = np.zeros(len(kin.parameter_names))
+        e[k] = FD_STEP
+        (Rp, pp), (Rm, pm) = ((np.asarray(v) for v in kin.placement(q, s * e)) for s in (1, -1))
+        fd = np.concatenate([((pp.ravel() + Rp @ r) - (pm.ravel() + Rm @ r)) / (2 * FD_STEP) for r in MARKERS])
+        np.testing.assert_allclose(B[:, k], fd, atol=1e-8)
+
+
+def test_load_at_an_offset_point_is_a_force_and_a_moment():
+    """A k = d/d(eps) FK(q + eps diag(k) J^T W), W = (f, (R r) x f): central differences."""
+    robot = _robot(ABB_URDF)
+    kin = symbolic_kinematics(robot)
+    r = np.array([0.25, 0.0, -0.05])
+    model = calibration_model(kin, "elastostatic", ("x", "y", "z"), force=("fx", "fy", "fz"), load_point_m=r)
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        q, f, k = rng.uniform(-1.5, 1.5, 6), rng.normal(0, 500, 3), rng.uniform(0.5, 2, 6)
+        R = frame_placement(robot, q).rotation
+        W = np.r_[f, np.cross(R @ r, f)]
+        dq = k * (frame_jacobian(robot, q).T @ W)
+        h = FD_STEP / np.abs(dq).max()
+        fd = (frame_placement(robot, q + h * dq).translation
+              - frame_placement(robot, q - h * dq).translation) / (2 * h)
+        np.testing.assert_allclose(model.B_numeric(q, f) @ k, fd, rtol=1e-7, atol=1e-9)
+
+
+def test_covariance_gives_weighted_least_squares():
+    """M of the whitened B equals sigma^2 sum B_i^T Sigma^-1 B_i (numpy)."""
+    raw = _raw("ur10_drilling.toml")
+    raw["calibration"]["parameters"] = ["shoulder_pan_joint.offset", "shoulder_lift_joint.offset", "elbow_joint.offset"]
+    raw["experiments"]["m"] = [2]
+    plain = build_problem(copy.deepcopy(raw), "plain.toml")
+    cov = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.5], [0.0, 0.5, 1.0]]) * 1e-9
+    raw["measurement"]["covariance"] = cov.tolist()
+    weighted = build_problem(raw, "weighted.toml")
+    q = np.random.default_rng(1).uniform(-2, 2, (3, 6))
+    Bw = np.array([weighted.model.B_numeric(qi, np.zeros(0)) for qi in q])
+    Bp = np.array([plain.model.B_numeric(qi, np.zeros(0)) for qi in q])
+    c = weighted.model.column_scale / plain.model.column_scale  # both scale their own columns
+    expected = sum(b.T @ np.linalg.inv(cov) @ b for b in Bp) * weighted.sigma_m**2
+    np.testing.assert_allclose(np.diag(c) @ information_matrix(Bw) @ np.diag(c), expected, rtol=1e-9)
+
+
+@pytest.mark.parametrize("kind, points", [
+    ("line", [[0.6, -0.3, 0.1], [0.9, 0.3, 0.1]]),
+    ("polyline", [[0.6, -0.3, 0.1], [0.6, 0.3, 0.1], [0.9, 0.3, 0.2]]),
+    ("arc", [[0.6, -0.3, 0.1], [0.8, 0.0, 0.15], [0.6, 0.3, 0.1]]),
+])
+def test_path_nodes_are_reached_with_the_tool_orientation(kind, points):
+    raw = _raw("ur10_drilling.toml")
+    raw["test_poses"]["path"] = {"kind": kind, "points_m": points, "nodes": 15}
+    p = build_problem(raw, "path.toml")
+    target, _ = sample_path(kind, np.array(points), 15)
+    R = pin.rpy.rpyToMatrix(*np.radians(raw["test_poses"]["tool_rpy_deg"]))
+    for q, x in zip(p.test_poses.q, target):
+        M = frame_placement(p.robot, q)
+        np.testing.assert_allclose(M.translation, x, atol=1e-9)
+        np.testing.assert_allclose(M.rotation, R, atol=1e-9)
+    assert np.max(np.abs(np.diff(p.test_poses.q, axis=0))) < 0.5  # one branch along the path
+    if kind == "arc":
+        a, b, c = np.array(points)
+        np.testing.assert_allclose(target[[0, -1]], [a, c], atol=1e-12)
+        center = np.linalg.lstsq(np.c_[2 * target, np.ones(15)], (target**2).sum(1), rcond=None)[0][:3]
+        radii = np.linalg.norm(target - center, axis=1)
+        assert np.ptp(radii) < 1e-9
+
+
+def test_segment_forces_follow_the_polyline(abb_dh):
+    F = abb_dh.test_poses.F
+    assert F.shape == (21, 3)
+    np.testing.assert_allclose(F[0], [0.0, -400.0, -800.0])
+    np.testing.assert_allclose(F[-1], [-400.0, 0.0, -800.0])
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda r: r["test_poses"].update(path={"kind": "line", "points_m": [[0.6, 0, 0.1], [2.5, 0, 0.1]], "nodes": 5}),
+     r"\[test_poses\].path: node \d at \(.*\) mm is unreachable"),
+    (lambda r: r["robot"].update(frame="flange0"), r"unknown frame 'flange0'"),
+    (lambda r: r["calibration"].update(parameters=["elbow.offset"]), r"unknown parameter 'elbow.offset'"),
+    (lambda r: r["experiments"]["workspace"].update(floor_z_m=2.0), None),
+    (lambda r: r["test_poses"]["path"].update(kind="spline"), r"path\].kind: 'spline'; allowed: line, polyline, arc, points"),
+])
+def test_industrial_input_errors(edit, match):
+    raw = _raw("ur10_drilling.toml")
+    edit(raw)
+    if match is None:  # a floor above the robot: no feasible calibration pose
+        p = build_problem(raw, "ur10.toml")
+        with pytest.raises(DesignError, match=r"leaves no feasible pose"):
+            solve_design(p, "D", 9, starts=1)
+        return
+    with pytest.raises(ProblemError, match=match):
+        build_problem(raw, "ur10.toml")
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d["joints"][0].pop("a_m"), r"row 0: \[robot.dh.joints\]: misses a_m"),
+    (lambda d: d["joints"][1].update(d_m="x"), r"row 1: \[robot.dh.joints\].d_m: expected float"),
+    (lambda d: d.update(convention="craig"), r"convention: 'craig'; allowed: standard, modified"),
+    (lambda d: d.update(joints=[]), r"\[robot.dh\].joints: is empty"),
+    (lambda d: d["joints"][2].update(limits_deg=[1.0]), r"limits_deg: expected finite numbers of shape 2"),
+])
+def test_dh_table_errors(edit, match):
+    raw = _raw("abb_irb6640_machining.toml")
+    edit(raw["robot"]["dh"])
+    with pytest.raises(ProblemError, match=match):
+        build_problem(raw, "abb.toml")
+
+
+def test_hung_load_cannot_identify_joint_1():
+    raw = _raw("abb_irb6640_machining.toml")
+    raw["calibration"]["compliant_joints"].insert(0, "joint_1")
+    with pytest.raises(ProblemError, match=r"k.joint_1 has no effect on them under the calibration load"):
+        build_problem(raw, "abb.toml")
+
+
+def test_markers_count_six_values_per_experiment():
+    raw = _raw("abb_irb6640_machining.toml")
+    raw["experiments"]["m"] = [5]
+    with pytest.raises(ProblemError, match=r"m = 5 is too small: 35 parameters .* with 6 independent measured values"):
+        build_problem(raw, "abb.toml")
+
+
+def test_workspace_constraints_hold_in_a_solved_plan():
+    """Floor under every moving joint origin, tracker sphere and minimum joint distance."""
+    raw = _raw("ur10_drilling.toml")
+    raw["calibration"]["parameters"] = ["shoulder_pan_joint.offset", "shoulder_lift_joint.offset",
+                                        "elbow_joint.offset", "wrist_1_joint.offset"]
+    raw["experiments"]["m"] = [3]
+    raw["experiments"]["workspace"] = {"floor_z_m": 0.3, "sphere_center_m": [1.5, 0.0, 0.5],
+                                       "sphere_radius_m": 1.6, "min_joint_distance_rad": 1.0}
+    p = build_problem(raw, "ws.toml")
+    d = solve_design(p, "test-pose", 3, starts=3)
+    origins = p.model.kinematics.joint_origins
+    moving = np.ptp([np.asarray(origins(q))[2] for q in np.random.default_rng(0).uniform(-2, 2, (5, 6))], axis=0) > 1e-9
+    assert moving.sum() == 4  # UR10: the first two origins stay at the shoulder's height
+    for q in d.Q:
+        z = np.asarray(origins(q))[2, moving]
+        assert z.min() >= 0.3 - 1e-6
+        tcp = np.asarray(p.model.position(q)).ravel()
+        assert tcp[2] >= 0.3 - 1e-6 and np.linalg.norm(tcp - [1.5, 0, 0.5]) <= 1.6 + 1e-6
+    dist = [np.linalg.norm(d.Q[i] - d.Q[j]) for i in range(3) for j in range(i + 1, 3)]
+    assert min(dist) >= 1.0 - 1e-6
+
+
+@pytest.mark.parametrize("case, m", [("ur10_drilling.toml", 9)])
+def test_case_study_test_pose_beats_classical_plans(case, m):
+    """On the case study at its smallest m, the test-pose plan is at least as accurate along
+    the test poses as the D-, A- and E-optimal plans (few starts to stay fast)."""
+    p = load_problem(ROOT / "problems" / case)
+    best = solve_design(p, "test-pose", m, starts=1).scores.max_rms_error_m
+    for c in ("D", "A", "E"):
+        try:
+            other = solve_design(p, c, m, starts=1).scores.max_rms_error_m
+        except DesignError:
+            continue  # no converged start of the classical criterion: nothing to beat
+        assert best <= other * (1 + 1e-6), c

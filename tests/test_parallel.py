@@ -1,0 +1,128 @@
+"""Starts on other processes or a Dask cluster give the serial numbers, bit for bit."""
+
+import sys
+
+import numpy as np
+import pytest
+
+from casadi_design.cli import main
+from casadi_design.parallel import (
+    DaskExecutor,
+    MissingExtraError,
+    ProcessExecutor,
+    make_executor,
+    run_start,
+)
+from casadi_design.solve import solve_design
+from casadi_design.sweep import run_sweep
+from tests.conftest import PAPER
+
+#: Designs compared: a smooth criterion and the PSD-constrained E, at 1 and 3 experiments.
+CASES = [("test-pose", 1), ("E", 3)]
+STARTS = 4
+
+
+@pytest.fixture(scope="module")
+def serial(paper):
+    return {(c, m): solve_design(paper, c, m, starts=STARTS) for c, m in CASES}
+
+
+def _assert_same(a, b):
+    np.testing.assert_array_equal(a.Q, b.Q)
+    np.testing.assert_array_equal(a.F, b.F)
+    np.testing.assert_array_equal(a.scores.rms_error_m, b.scores.rms_error_m)
+    assert a.starts == b.starts and a.status == b.status
+
+
+def test_process_pool_equals_serial(paper, serial):
+    with ProcessExecutor(2) as ex:
+        for (c, m), d in serial.items():
+            _assert_same(solve_design(paper, c, m, starts=STARTS, executor=ex), d)
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["threads", "processes"])
+def test_dask_local_cluster_equals_serial(paper, serial, processes):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=processes,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        ex = DaskExecutor(client)
+        for (c, m), d in serial.items():
+            _assert_same(solve_design(paper, c, m, starts=STARTS, executor=ex), d)
+        ex.close()  # a client given by the caller stays open
+        assert client.status == "running"
+
+
+def test_sweep_on_processes_equals_serial_sweep(paper):
+    args = (paper, ["test-pose", "D"], [1, 2, 3], 2)
+    plain = run_sweep(*args)
+    with ProcessExecutor(2) as ex:
+        pooled = run_sweep(*args, executor=ex)
+    for key, d in plain.designs.items():
+        _assert_same(pooled.designs[key], d)
+    _assert_same(pooled.reference, plain.reference)
+
+
+def test_worker_rebuilds_the_problem_from_its_toml(paper, serial):
+    """What a worker runs, called here with a copy of the problem's data only."""
+    from casadi_design.nlp import B0_at_test_poses
+    from casadi_design.parallel import ProblemRef
+    from casadi_design.solve import random_plan, start_rng
+
+    d = serial["test-pose", 1]
+    Q0, F0 = random_plan(paper, 1, start_rng(paper.solver.seed, "test-pose", 1))
+    ref = ProblemRef.of(paper)
+    rec, _, _, _ = run_start(ProblemRef(dict(ref.raw), ref.path, ref.key), "test-pose", 1,
+                                  B0_at_test_poses(paper), Q0, F0)
+    assert rec == d.starts[0]
+
+
+def test_extra_starts_run_after_the_seeded_ones_and_only_improve(paper):
+    few = solve_design(paper, "test-pose", 5, starts=1)
+    good = solve_design(paper, "test-pose", 5, starts=8)
+    assert good.scores.max_rms_error_m < few.scores.max_rms_error_m  # the test needs a gap
+    both = solve_design(paper, "test-pose", 5, starts=1, initial_plans=[(good.Q.T, good.F.T)])
+    assert both.starts[0] == few.starts[0] and len(both.starts) == 2
+    assert both.scores.max_rms_error_m == pytest.approx(good.scores.max_rms_error_m, rel=1e-6)
+    again = solve_design(paper, "test-pose", 5, starts=8, initial_plans=[(few.Q.T, few.F.T)])
+    assert again.starts[:8] == good.starts
+    if not again.starts[8].value < good.scores.max_rms_error_m:  # the extra start did not win
+        np.testing.assert_array_equal(again.Q, good.Q)
+    assert again.scores.max_rms_error_m <= good.scores.max_rms_error_m
+
+
+def test_initial_plan_of_the_wrong_shape(paper):
+    with pytest.raises(ValueError, match=r"initial plan 0 has Q of shape \(2, 4\).*expected \(2, 5\)"):
+        solve_design(paper, "D", 5, starts=1, initial_plans=[(np.zeros((2, 4)), np.zeros((2, 4)))])
+
+
+def test_executor_choice():
+    with make_executor(1) as ex:
+        assert ex is None
+    with make_executor(2) as ex:
+        assert isinstance(ex, ProcessExecutor) and ex.jobs == 2
+    with pytest.raises(ValueError, match="--jobs: expected a positive number of processes, got 0"):
+        make_executor(0)
+
+
+def test_missing_dask_gives_the_install_hint(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
+    with pytest.raises(MissingExtraError, match=r"pip install casadi-design\[dask\]"):
+        DaskExecutor("tcp://127.0.0.1:8786")
+    assert main(["solve", str(PAPER), "--dask-scheduler", "tcp://127.0.0.1:8786", "--m", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install casadi-design[dask]" in err[0]
+
+
+def test_dask_scheduler_option_of_the_command_equals_a_serial_run(tmp_path):
+    import json
+
+    distributed = pytest.importorskip("distributed")
+    args = ["solve", str(PAPER), "--m", "1", "--criteria", "test-pose,E", "--starts", "3", "--quiet"]
+    assert main([*args, "--jobs", "1", "--out", str(tmp_path / "serial")]) == 0
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        assert main([*args, "--dask-scheduler", cluster.scheduler_address,
+                     "--out", str(tmp_path / "dask")]) == 0
+    a, b = (json.loads((tmp_path / d / "results.json").read_text())["designs"] for d in ("serial", "dask"))
+    for x, y in zip(a, b):
+        assert x["experiments"] == y["experiments"] and x["solver"]["per_start"] == y["solver"]["per_start"]
