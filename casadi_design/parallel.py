@@ -35,9 +35,8 @@ from typing import Any, Protocol, Self
 import numpy as np
 
 from .measures import Scores
-from .nlp import build_nlp
 from .problem import Problem, build_problem
-from .solve import StartRecord, make_solver, solve_start
+from .solve import StartRecord, make_design_solver, solve_start
 
 #: Problems (and their solvers) kept per worker process.
 CACHE_PROBLEMS = 4
@@ -97,10 +96,8 @@ def run_start(ref: ProblemRef, criterion: str, m: int, B0: np.ndarray, Q0: np.nd
         problem, solvers = _cached(ref)
         key = (criterion, m, verbose, hashlib.sha256(np.ascontiguousarray(B0).tobytes()).hexdigest())
         if key not in solvers:
-            nlp = build_nlp(problem, criterion, m, B0)
-            solvers[key] = (nlp, make_solver(problem, nlp, verbose))
-        nlp, solver = solvers[key]
-        return solve_start(problem, nlp, solver, B0, Q0, F0)
+            solvers[key] = make_design_solver(problem, criterion, m, B0, verbose)
+        return solve_start(problem, solvers[key], B0, Q0, F0)
 
 
 def _ignore_sigint() -> None:

@@ -29,6 +29,11 @@ if TYPE_CHECKING:
 CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 #: Largest constraint violation accepted in a returned plan (m, or relative for loads).
 FEASIBILITY_TOL = 1e-6
+#: Criteria whose nearly singular starts are first polished by D-optimality, the threshold on
+#: lambda_min / lambda_max of M that triggers it, and the D iterations then run.
+POLISHED = ("E", "condition")
+POLISH_RCOND = 1e-6
+POLISH_ITERATIONS = 30
 #: Random configurations tried per experiment to satisfy the workspace constraints.
 SAMPLING_TRIES = 2000
 
@@ -161,15 +166,55 @@ def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.F
     return ca.nlpsol(f"design_m{nlp.m}", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
 
 
+@dataclass(frozen=True, eq=False)
+class DesignSolver:
+    """The NLP of one (criterion, m) with its IPOPT solver, and for E and condition a short
+    D-optimality run that first moves nearly singular starts away from M = 0."""
+
+    nlp: DesignNLP
+    solver: ca.Function
+    polish: tuple[DesignNLP, ca.Function] | None
+
+
+def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                       verbose: bool = False) -> DesignSolver:
+    nlp = build_nlp(problem, criterion, m, B0)
+    polish = None
+    if criterion in POLISHED:
+        d_nlp = build_nlp(problem, "D", m, B0)
+        d_solver = ca.nlpsol("polish", "ipopt", {"x": d_nlp.x, "f": d_nlp.f, "g": d_nlp.g},
+                             {"ipopt.max_iter": POLISH_ITERATIONS, "ipopt.print_level": 0, "ipopt.sb": "yes",
+                              "print_time": False, "error_on_fail": False, "show_eval_warnings": False})
+        polish = (d_nlp, d_solver)
+    return DesignSolver(nlp, make_solver(problem, nlp, verbose), polish)
+
+
+def _polished(ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Q0, F0)``, or a few D iterations from it when its M is nearly singular: at a singular
+    M the PSD-factor form of E / condition has a stationary point with s = 0."""
+    if ds.polish is None:
+        return Q0, F0
+    d_nlp, d_solver = ds.polish
+    x0 = d_nlp.start(Q0, F0)
+    lam = np.linalg.eigvalsh(np.asarray(d_nlp.information(x0)))
+    if lam[0] > POLISH_RCOND * lam[-1]:
+        return Q0, F0
+    sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
+    Q, F = (np.asarray(v, dtype=float) for v in d_nlp.plan(sol["x"]))
+    return np.clip(Q, d_nlp.lbx[: Q.shape[0]][:, None], d_nlp.ubx[: Q.shape[0]][:, None]), F
+
+
 def solve_start(
-    problem: Problem, nlp: DesignNLP, solver: ca.Function, B0: np.ndarray, Q0: np.ndarray, F0: np.ndarray
+    problem: Problem, ds: DesignSolver, B0: np.ndarray, Q0: np.ndarray, F0: np.ndarray
 ) -> tuple[StartRecord, np.ndarray, np.ndarray, Scores]:
-    """One IPOPT start of ``solver`` on ``nlp`` from ``Q0`` (n x m, rad), ``F0`` (nF x m, N).
+    """One IPOPT start of the design solver from ``Q0`` (n x m, rad), ``F0`` (nF x m, N).
 
     The unit of work of the multi-start, run here or in worker processes
     (:mod:`casadi_design.parallel`). Returns the start's record, its plan ``Q`` (n x m, rad),
     ``F`` (nF x m, N) and the plan's scores.
     """
+    nlp, solver = ds.nlp, ds.solver
+    Q0, F0 = _polished(ds, Q0, F0)
     sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     stats = solver.stats()
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
@@ -230,9 +275,8 @@ def solve_design(
             )
         plans.append((Q0, F0))
     if executor is None:
-        nlp = build_nlp(problem, criterion, m, B0)
-        solver = make_solver(problem, nlp, verbose)
-        results = (solve_start(problem, nlp, solver, B0, Q0, F0) for Q0, F0 in plans)
+        ds = make_design_solver(problem, criterion, m, B0, verbose)
+        results = (solve_start(problem, ds, B0, Q0, F0) for Q0, F0 in plans)
     else:
         results = executor.map_starts(problem, criterion, m, B0, plans, verbose)
     crit = CRITERIA[criterion]
