@@ -77,9 +77,10 @@ def _say(args: argparse.Namespace, *lines: str) -> None:
 
 
 def _case_line(problem) -> str:
-    return (f"{problem.name}: {problem.model.case} calibration of "
+    line = (f"{problem.name}: {problem.model.case} calibration of "
             f"{', '.join(problem.model.parameter_names)}; {problem.test_poses.s} test poses; "
             f"sigma = {problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
+    return line if problem.base_set is None else line + "\n" + problem.base_set.report()
 
 
 def _fig_m(requested: list[int] | None, available: list[int], preferred: tuple[int, ...]) -> list[int]:

@@ -45,6 +45,9 @@ def sample_path(kind: str, points: np.ndarray, nodes: int) -> tuple[np.ndarray, 
     a, b, c = P
     u, v = b - a, c - a
     w = np.cross(u, v)
+    if not np.linalg.norm(w) > 1e-9 * max(u @ u, v @ v):
+        raise ProblemError("[test_poses].path: the three arc points are collinear; give start, a point on "
+                           "the arc and end that span a circle")
     center = a + (np.cross(w, u) * (v @ v) + np.cross(v, w) * (u @ u)) / (2 * (w @ w))
     e1 = (a - center) / np.linalg.norm(a - center)
     e2 = np.cross(w / np.linalg.norm(w), e1)
@@ -88,7 +91,7 @@ def path_ik(robot: Robot, positions_m: np.ndarray, rotation: np.ndarray, q_seed:
     q, out = np.asarray(q_seed, dtype=float), []
     for j, p in enumerate(positions_m):
         q, err = solve_ik(robot, pin.SE3(rotation, p), q, position_only)
-        if err > IK_ACCEPT:
+        if not err <= IK_ACCEPT:  # also catches NaN
             raise ProblemError(
                 f"[test_poses].path: node {j} at ({', '.join(f'{v * 1e3:.1f}' for v in p)}) mm is "
                 f"unreachable with the given tool orientation (residual {err * 1e3:.3g} mm/mrad after "

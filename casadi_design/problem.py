@@ -399,7 +399,7 @@ def _dh(d: _Reader):
         j = _Reader(f"{d.path}: [robot.dh].joints row {k}", row, "robot.dh.joints")
         missing = sorted(SECTIONS["robot.dh.joints"] - set(row))
         if missing:
-            raise j.error(f"misses {', '.join(missing)}", "every row needs name, type (R or P), theta_offset_deg, d_m, a_m, alpha_deg, limits_deg")
+            raise j.error(f"misses {', '.join(missing)}", "every row needs name, type (R), theta_offset_deg, d_m, a_m, alpha_deg, limits_deg")
         lim = np.radians(j.array("limits_deg", (2,)))
         kind = j.get("type", str)
         if kind != "R":
@@ -418,12 +418,14 @@ def _test_poses(tp: _Reader, robot: Robot, model: CalibrationModel) -> TestPoses
     given = [k for k in ("joints_rad", "points_m", "line_m", "path") if k in tp.table]
     if len(given) != 1:
         raise tp.error(f"has {given or 'none'} of joints_rad, points_m, line_m, path", "give exactly one")
+    only = {"elbow": ("points_m", "line_m"), "tool_rpy_deg": ("path",), "seed_q_deg": ("path",)}
+    for key, kinds in only.items():
+        if key in tp.table and given[0] not in kinds:
+            raise tp.error(f"only applies with {' or '.join(kinds)}, not {given[0]}", "remove it", key)
     segment = None
     if given[0] == "path":
         q, segment = _path(tp, robot)
     elif given[0] == "joints_rad":
-        if "elbow" in tp.table:
-            raise tp.error("only applies to Cartesian test points", "remove it", "elbow")
         q = tp.array("joints_rad", (None, robot.n), hint=f"one row of {robot.n} joint angles (rad) per pose")
     else:
         if given[0] == "points_m":
@@ -614,8 +616,11 @@ def check_identifiable(problem: Problem, exp: _Reader) -> np.ndarray:
     for _ in range(IDENTIFIABILITY_SAMPLES):
         q = rng.uniform(robot.q_min, robot.q_max)
         F_any = rng.normal(size=model.nF)
+        if force is not None:  # loads of the rig's size, so that column scales reflect them
+            F_any *= force.magnitude_N / np.linalg.norm(F_any)
         F = (np.array(force.vector_N) if force and force.mode == "fixed"
-             else np.array(force.direction) if force and force.mode == "direction" else F_any)
+             else force.magnitude_N * np.array(force.direction) if force and force.mode == "direction"
+             else F_any)
         rows.append(model.B_numeric(q, F))
         generic.append(model.B_numeric(q, F_any))
     # an experiment gives at most d independent values (three markers on a rigid tool: 6, not 9)

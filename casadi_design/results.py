@@ -78,7 +78,17 @@ def results_dict(problem: Problem, designs: list[Design]) -> dict:
         "seed": problem.solver.seed,
         "sigma_m": problem.sigma_m,
         "robot": problem.raw["robot"],
-        "calibration": {"case": problem.model.case, "parameters": list(problem.model.parameter_names)},
+        "calibration": {
+            "case": problem.model.case,
+            "parameters": list(problem.model.parameter_names),
+            "column_scale": problem.model.column_scale.tolist(),
+            "base_set": None if problem.base_set is None else {
+                "rank": problem.base_set.rank,
+                "rank_rtol": problem.base_set.rank_rtol,
+                "kept": list(problem.base_set.kept),
+                "dropped": [{"parameter": n, "reason": r} for n, r in problem.base_set.dropped],
+            },
+        },
         "measured_components": problem.raw["measurement"]["components"],
         "units": {"q": "rad", "force": "N (N m for moments)", "errors": "m"},
         "test_poses": [

@@ -179,6 +179,8 @@ def add_tool_frame(model: pin.Model, frame: str, placement: pin.SE3, name: str =
     if not model.existFrame(frame):
         names = [f.name for f in model.frames if f.name != "universe"]
         raise ProblemError(f"[robot].frame: unknown frame '{frame}'; the model has: {', '.join(names)}")
+    if model.existFrame(name):
+        raise ProblemError(f"[robot].tool_xyz_m: the model already has a frame '{name}'; set [robot].frame to it instead")
     parent = model.frames[model.getFrameId(frame)]
     model.addFrame(pin.Frame(name, parent.parentJoint, parent.placement * placement, pin.FrameType.OP_FRAME))
     return name

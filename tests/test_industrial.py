@@ -204,6 +204,9 @@ def test_segment_forces_follow_the_polyline(abb_dh):
     (lambda r: r["calibration"].update(parameters=["elbow.offset"]), r"unknown parameter 'elbow.offset'"),
     (lambda r: r["experiments"]["workspace"].update(floor_z_m=2.0), None),
     (lambda r: r["test_poses"]["path"].update(kind="spline"), r"path\].kind: 'spline'; allowed: line, polyline, arc, points"),
+    (lambda r: r["test_poses"].update(path={"kind": "arc", "points_m": [[0.6, 0, 0.1], [0.7, 0, 0.1], [0.8, 0, 0.1]],
+                                            "nodes": 5}), r"the three arc points are collinear"),
+    (lambda r: r["test_poses"].update(elbow="up"), r"\[test_poses\].elbow: only applies with points_m or line_m, not path"),
 ])
 def test_industrial_input_errors(edit, match):
     raw = _raw("ur10_drilling.toml")

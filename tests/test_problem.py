@@ -114,7 +114,7 @@ def test_geometric_case_rejects_loads_and_elbow_with_joints():
     del raw["test_poses"]["force_N"]
     del raw["test_poses"]["line_m"]
     raw["test_poses"]["joints_rad"] = [[0.1, 1.0]]
-    with pytest.raises(ProblemError, match=r"\[test_poses\].elbow: only applies to Cartesian"):
+    with pytest.raises(ProblemError, match=r"\[test_poses\].elbow: only applies with points_m or line_m, not joints_rad"):
         build(raw)
 
 
