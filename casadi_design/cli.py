@@ -179,7 +179,6 @@ def _sweep(args: argparse.Namespace) -> int:
         check_m_values,
         format_sweep_table,
         load_partial,
-        minimum_m,
         partial_record,
         run_sweep,
         sweep_key,
@@ -189,7 +188,7 @@ def _sweep(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     problem = load_problem(args.problem)
     criteria = args.criteria or list(problem.criteria)
-    ms = args.m or list(range(minimum_m(problem), max(problem.m_values) + 1))
+    ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
     check_criteria(problem, criteria)
     check_m_values(problem, ms)
     starts = args.starts or problem.solver.starts

@@ -156,6 +156,8 @@ class Problem:
     criteria: tuple[str, ...]
     solver: SolverSettings = field(default_factory=SolverSettings)
     base_set: BaseSet | None = None
+    #: fewest experiments that can identify X: ceil(L / d), d the independent values per experiment
+    m_min: int = 1
 
 
 class _Reader:
@@ -316,7 +318,8 @@ def _build(raw: dict, path: str) -> Problem:
     solver = _solver(top.sub("solver"))
     problem = Problem(name, path, raw, robot, model, sigma, test_poses, m_values, force,
                       workspace, criteria, solver, chosen)
-    S = check_identifiable(problem, exp)
+    S, m_min = check_identifiable(problem, exp)
+    problem = replace(problem, m_min=m_min)
     if scaling == "none":
         return problem
     # parameters in units that give every column of B unit RMS over random poses (Khalil)
@@ -600,13 +603,14 @@ def _check_ipopt_options(s: _Reader, settings: SolverSettings) -> None:
 
 
 
-def check_identifiable(problem: Problem, exp: _Reader) -> np.ndarray:
+def check_identifiable(problem: Problem, exp: _Reader) -> tuple[np.ndarray, int]:
     """Fail early when X cannot be identified: too few experiments or a rank-deficient model.
 
     Stacks B over ``IDENTIFIABILITY_SAMPLES`` random configurations with the calibration
     loads (random directions where free), scales its columns by their norms under random
     loads and requires every singular value above
-    ``IDENTIFIABILITY_RTOL`` times the largest. Returns the stacked (unscaled) B.
+    ``IDENTIFIABILITY_RTOL`` times the largest. Returns the stacked (unscaled) B and the
+    smallest m.
     """
     model = problem.model
     L = model.L
@@ -653,4 +657,4 @@ def check_identifiable(problem: Problem, exp: _Reader) -> np.ndarray:
             f"{', '.join(problem.raw['measurement']['components'])} measurements: {what} "
             f"(rank {int(np.sum(~null))} of {L}); remove {'it' if len(involved) == 1 else 'one of them'}"
         )
-    return S
+    return S, m_min

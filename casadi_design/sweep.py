@@ -63,18 +63,12 @@ def parse_m_values(text: str) -> list[int]:
     return sorted(set(values))
 
 
-def minimum_m(problem: Problem) -> int:
-    """Fewest experiments that can identify X: ``ceil(L / d)`` (d measured components each)."""
-    return -(-problem.model.L // len(problem.model.measured_rows))
-
-
 def check_m_values(problem: Problem, m_values: Iterable[int]) -> None:
-    small = [m for m in m_values if m < minimum_m(problem)]
+    small = [m for m in m_values if m < problem.m_min]
     if small:
         raise ProblemError(
-            f"{problem.path}: --m {small[0]} is too small: {problem.model.L} parameters with "
-            f"{len(problem.model.measured_rows)} measured components per experiment need "
-            f"m >= {minimum_m(problem)}; start the range at {minimum_m(problem)}")
+            f"{problem.path}: --m {small[0]} is too small: {problem.model.L} parameters need "
+            f"m >= {problem.m_min} experiments; start the range at {problem.m_min}")
 
 
 def check_criteria(problem: Problem, criteria: Iterable[str]) -> None:
@@ -118,7 +112,7 @@ class Sweep:
     ----------
     designs : {(criterion, m): Design}
     seeded_starts : seeded starts per design; a design with more starts had a warm start (last).
-    reference : the best test-pose design at ``minimum_m``, for the "repeat" line (None when
+    reference : the best test-pose design at ``problem.m_min``, for the "repeat" line (None when
         the sweep has no test-pose design there and none was solved).
     """
 
@@ -183,7 +177,7 @@ def run_sweep(
             designs[c, m] = d
             if on_design is not None:
                 on_design(d)
-    m_ref = minimum_m(problem)
+    m_ref = problem.m_min
     reference = designs.get(("test-pose", m_ref))
     if reference is None:
         reference = solve_design(problem, "test-pose", m_ref, B0, starts=n_seeded, verbose=verbose,
@@ -198,7 +192,7 @@ def sweep_total_starts(problem: Problem, criteria: Iterable[str], m_values: Iter
     criteria, ms = tuple(criteria), sorted(set(m_values))
     n = (starts or problem.solver.starts)
     total = len(criteria) * (len(ms) * n + (len(ms) - 1 if warm_start else 0))
-    if not ("test-pose" in criteria and minimum_m(problem) in ms):
+    if not ("test-pose" in criteria and problem.m_min in ms):
         total += n
     return total
 
