@@ -2,7 +2,8 @@
 
 Each design (criterion, m) is solved from ``starts`` random feasible plans drawn from a
 generator seeded by ``(seed, m, criterion)``, so a design is reproducible on its own (a sweep
-gives the same plan as a single solve). Every start is recorded; the best converged,
+runs the same seeded starts as a single solve; its extra warm start can only improve on them).
+Every start is recorded; the best converged,
 feasible start wins, judged by the criterion's own numeric score. A start that IPOPT does not
 solve is a status, not an exception.
 """
