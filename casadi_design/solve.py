@@ -190,7 +190,7 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     return DesignSolver(nlp, make_solver(problem, nlp, verbose), polish)
 
 
-def _polished(ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(Q0, F0)``, or a few D iterations from it when its M is nearly singular: at a singular
     M the PSD-factor form of E / condition has a stationary point with s = 0."""
     if ds.polish is None:
@@ -202,7 +202,7 @@ def _polished(ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray) -> tuple[np.ndar
         return Q0, F0
     sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
     Q, F = (np.asarray(v, dtype=float) for v in d_nlp.plan(sol["x"]))
-    return np.clip(Q, d_nlp.lbx[: Q.shape[0]][:, None], d_nlp.ubx[: Q.shape[0]][:, None]), F
+    return np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None]), F
 
 
 def solve_start(
@@ -215,7 +215,7 @@ def solve_start(
     ``F`` (nF x m, N) and the plan's scores.
     """
     nlp, solver = ds.nlp, ds.solver
-    Q0, F0 = _polished(ds, Q0, F0)
+    Q0, F0 = _polished(problem, ds, Q0, F0)
     sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     stats = solver.stats()
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
