@@ -1,11 +1,11 @@
-"""casadi_design: optimal robot calibration experiments for the accuracy needed at test poses.
+"""casadi_design: optimal design of robot calibration experiments with test-pose measures.
 
-Flow: problem file -> robot model -> symbolic kinematics -> calibration model (B) ->
-measures -> NLP -> multi-start solve -> results -> plots / CLI.
+Read a problem file, build it, solve its designs: see ``casadi_design.cli`` and the README.
 """
 
+from .build import Problem, build_problem, load_problem
 from .errors import DesignError, ProblemError
-from .problem import Problem, load_problem
+from .problem import ProblemSpec, read_problem
 
-__all__ = ["DesignError", "Problem", "ProblemError", "load_problem"]
+__all__ = ["DesignError", "Problem", "ProblemError", "ProblemSpec", "build_problem", "load_problem", "read_problem"]
 __version__ = "0.1.0"

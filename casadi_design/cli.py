@@ -17,10 +17,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import threading
 import time
 from functools import partial
 from pathlib import Path
 
+from . import interrupt
 from .errors import DesignError, ProblemError
 from .parallel import MissingExtraError, cpu_count
 from .results import OutputError, write_atomic
@@ -69,6 +71,17 @@ def _where(args: argparse.Namespace) -> str:
         return f"on the Dask cluster at {args.dask_scheduler}"
     jobs = args.jobs or cpu_count()
     return "in this process" if jobs == 1 else f"on {jobs} processes"
+
+
+def _load(path: str, check_solver: bool = True):
+    """Read and build a problem file; with ``check_solver``, also try its IPOPT options."""
+    from .build import load_problem
+    from .solve import check_ipopt_options
+
+    problem = load_problem(path)
+    if check_solver:
+        check_ipopt_options(problem)
+    return problem
 
 
 def _say(args: argparse.Namespace, *lines: str) -> None:
@@ -121,20 +134,19 @@ def _solve(args: argparse.Namespace) -> int:
     from .export import report_markdown
     from .nlp import B0_at_test_poses
     from .plotting import fig1
-    from .problem import load_problem
     from .progress import progress_bar
     from .results import format_solver_lines, format_table, prepare_out, write_results
     from .solve import solve_design
     from .sweep import check_criteria, check_m_values
 
     t0 = time.perf_counter()
+    out = prepare_out(args.out, args.force) if args.out is not None else None
     with _executor(args) as executor:  # first: worker processes start while the problem loads
-        problem = load_problem(args.problem)
+        problem = _load(args.problem)
         m_values = args.m or sorted(problem.m_values)
         criteria = args.criteria or list(problem.criteria)
         check_criteria(problem, criteria)
         check_m_values(problem, m_values)
-        out = prepare_out(Path(args.out), args.force) if args.out else None
         fig_m = _fig_m(args.fig_m, m_values, problem.m_values)
         starts = args.starts or problem.solver.starts
         B0 = B0_at_test_poses(problem)
@@ -171,7 +183,6 @@ def _solve(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- sweep
 
 def _sweep(args: argparse.Namespace) -> int:
-    from .problem import load_problem
     from .progress import progress_bar
     from .results import prepare_out
     from .sweep import (
@@ -186,16 +197,16 @@ def _sweep(args: argparse.Namespace) -> int:
     )
 
     t0 = time.perf_counter()
-    problem = load_problem(args.problem)
+    if args.resume and args.out is None:
+        raise OutputError("--resume needs the --out folder of the interrupted sweep; add --out DIR")
+    out = prepare_out(args.out, args.force, args.resume) if args.out is not None else None
+    problem = _load(args.problem)
     criteria = args.criteria or list(problem.criteria)
     ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
     check_criteria(problem, criteria)
     check_m_values(problem, ms)
     starts = args.starts or problem.solver.starts
     warm = not args.no_warm_start
-    if args.resume and not args.out:
-        raise OutputError("--resume needs the --out folder of the interrupted sweep")
-    out = prepare_out(Path(args.out), args.force, args.resume) if args.out else None
     fig_m = _fig_m(args.fig_m, ms, problem.m_values)
     key = sweep_key(problem, criteria, ms, starts, warm)
     done = load_partial(out, key) if args.resume else {}
@@ -300,13 +311,14 @@ MEASURE_ROWS = (
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from .export import plan_violations, read_plan_csv
+    from .export import read_plan_csv
     from .nlp import B0_at_test_poses
-    from .problem import load_problem
     from .results import design_from_record, prepare_out, read_json, write_json
+    from .rules import plan_violations
     from .solve import plan_scores
 
-    problem = load_problem(args.problem)
+    out = prepare_out(args.out, args.force) if args.out is not None else None
+    problem = _load(args.problem, check_solver=False)
     Q, F = read_plan_csv(problem, args.plan)
     m = Q.shape[1]
     others = []
@@ -319,7 +331,6 @@ def _evaluate(args: argparse.Namespace) -> int:
         if not others:
             raise OutputError(f"{record['_path']}: no design with m = {m} experiments (the plan's "
                               f"rows); solve or sweep that m first")
-    out = prepare_out(Path(args.out), args.force) if args.out else None
     scores = plan_scores(problem, Q, F, B0_at_test_poses(problem))
     violations = plan_violations(problem, Q, F)
     print(_case_line(problem))
@@ -427,7 +438,7 @@ def _compute(p: argparse.ArgumentParser, out_help: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="casadi-design", formatter_class=argparse.RawDescriptionHelpFormatter,
         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1],
         epilog="Units: lengths and errors in mm for people (tables, CSV plans), SI (m, rad, N) "
@@ -508,14 +519,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class ArgumentError(ValueError):
+    """A command-line option is wrong (raised instead of argparse's usage block)."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with errors as one line ``error: <command>: <what>; <what to do>``."""
+
+    def error(self, message: str) -> None:
+        raise ArgumentError(f"{self.prog}: {message}; see {self.prog} --help")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["validate"]:
-        return _validate(argv[1:])
-    args = build_parser().parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        interrupt.install()
     try:
+        if argv[:1] == ["validate"]:
+            return _validate(argv[1:])
+        args = build_parser().parse_args(argv)
         return args.run(args)
-    except (ProblemError, DesignError, OutputError, MissingExtraError) as exc:
+    except (ArgumentError, ProblemError, DesignError, OutputError, MissingExtraError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:

@@ -11,8 +11,8 @@ information matrix is ``M = sum_i B_i^T B_i = S^T S`` and ``cov(X) = sigma^2 M^-
 * observability indices: O1 = (s_1...s_L)^(1/L) / sqrt(m), O2 = s_L / s_1, O3 = s_L,
   O4 = s_L^2 / s_1, O5 = 1 / sum(1 / s_l).
 
-These numpy functions are the twins of the symbolic objectives in :mod:`casadi_design.nlp`;
-tests check that both agree.
+These numpy functions are the twins of the symbolic objectives of
+:data:`casadi_design.criteria.CRITERIA`; tests check that both agree.
 """
 
 from __future__ import annotations
@@ -21,39 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .criteria import CRITERIA
+
 #: Relative eigenvalue threshold below which M counts as singular.
 SINGULAR_RTOL = 1e-12
-
-
-@dataclass(frozen=True)
-class Criterion:
-    """One design criterion.
-
-    Attributes
-    ----------
-    name : the name used in problem files and results.
-    sense : "min" or "max", the better direction of ``score``.
-    score : the field of :class:`Scores` that holds its value.
-    label : description for people, with units.
-    """
-
-    name: str
-    sense: str
-    score: str
-    label: str
-
-
-CRITERIA: dict[str, Criterion] = {
-    c.name: c
-    for c in (
-        Criterion("test-pose", "min", "max_rms_error_m", "max over test poses of sqrt(rho) (m)"),
-        Criterion("D", "max", "log_det_M", "log det M (D-optimality)"),
-        Criterion("A", "min", "trace_M_inv", "trace M^-1 (A-optimality)"),
-        Criterion("E", "max", "s_min", "smallest singular value s_L (E-optimality, SVD approach)"),
-        Criterion("T", "max", "trace_M", "trace M (T-optimality)"),
-        Criterion("condition", "min", "condition", "condition number s_1/s_L"),
-    )
-}
 
 
 @dataclass(frozen=True)
@@ -107,16 +78,16 @@ def rho_at_test_poses(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray
     return sigma**2 * np.einsum("sij,sij->s", Y, Y)
 
 
-def observability_indices(s: np.ndarray, m: int) -> dict[str, float]:
-    """O1..O5 from the singular values ``s`` (descending) of the stacked S of m experiments."""
-    L = len(s)
+def observability_indices(sv: np.ndarray, m: int) -> dict[str, float]:
+    """O1..O5 from the singular values ``sv`` (descending) of the stacked S of m experiments."""
+    L = len(sv)
     with np.errstate(divide="ignore", invalid="ignore"):
         return {
-            "O1": float(np.exp(np.mean(np.log(s))) / np.sqrt(m)),
-            "O2": float(s[-1] / s[0]),
-            "O3": float(s[-1]),
-            "O4": float(s[-1] ** 2 / s[0]),
-            "O5": float(1.0 / np.sum(1.0 / s)) if s[-1] > 0 else 0.0,
+            "O1": float(np.exp(np.mean(np.log(sv))) / np.sqrt(m)),
+            "O2": float(sv[-1] / sv[0]),
+            "O3": float(sv[-1]),
+            "O4": float(sv[-1] ** 2 / sv[0]),
+            "O5": float(1.0 / np.sum(1.0 / sv)) if sv[-1] > 0 else 0.0,
         } if L else {}
 
 
@@ -135,13 +106,13 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
     B = np.asarray(B, dtype=float)
     M = information_matrix(B)
     lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
-    s = np.sqrt(lam)
+    sv = np.sqrt(lam)
     identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
     if identifiable:
         rho = rho_at_test_poses(M, B0, sigma)
         log_det = float(np.sum(np.log(lam)))
         trace_inv = float(np.sum(1.0 / lam))
-        condition = float(s[0] / s[-1])
+        condition = float(sv[0] / sv[-1])
     else:
         rho = np.full(np.shape(B0)[0], np.inf)
         log_det, trace_inv, condition = -np.inf, np.inf, np.inf
@@ -151,9 +122,9 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
         max_rms_error_m=float(np.max(rms)),
         log_det_M=log_det,
         trace_M_inv=trace_inv,
-        s_min=float(s[-1]),
+        s_min=float(sv[-1]),
         trace_M=float(np.trace(M)),
         condition=condition,
-        observability=observability_indices(s, B.shape[0]),
+        observability=observability_indices(sv, B.shape[0]),
         identifiable=identifiable,
     )

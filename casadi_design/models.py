@@ -1,17 +1,23 @@
-"""Calibration models: the transformation matrix B(q, F) of dp = B X (paper eq. 7, Table 1).
+"""Calibration models: the measurement y(q, F, X) and its Jacobian B(q, F) (paper eq. 7, Table 1).
+
+One nonlinear measurement model, written once: the robot with parameters ``X`` (geometric
+errors ``Pi`` in m and rad, joint compliances ``k``) under the wrench of load ``F`` deflects
+by the fixed point ``dq = diag(k) J(q + dq, Pi)^T W``; the measured values are the positions
+of the markers and the orientation of the measured frame, as deviations from a reference pose,
+whitened by the noise model. Everything else derives from it:
 
 =================  ==============================  ========================
-case               B                               X
+case               B = dy/dX at X = 0              X
 =================  ==============================  ========================
 geometric (i)      J_Pi(q)                         Pi (selected errors)
-elastostatic (ii)  A(q, F)                         k (joint compliances)
+elastostatic (ii)  A(q, F) = [J_n J_n^T W]         k (joint compliances)
 both (iii)         [J_Pi(q), A(q, F)]              (Pi, k)
 =================  ==============================  ========================
 
-``A(q, F) = [J_1 J_1^T W, ..., J_n J_n^T W]`` with ``J_n`` column n of the 6 x n Jacobian and
-``W`` the 6-D wrench (N, N m) at the frame origin, world-aligned: the deflection
-``J diag(k) J^T W`` is linear in the compliances ``k`` (rad / (N m) or m / N). Only the rows
-of the measured (or, at a test pose, the required) components of the displacement enter B.
+``W`` is the 6-D wrench (N, N m) at the frame origin, world-aligned; a calibration load acting
+at ``load_point_m`` adds the moment ``(R r) x f``. The design (``B``), the test poses (``B0``,
+machining wrench at the frame origin), the virtual calibration (simulate, identify,
+compensate) and the checks of a plan all call these functions.
 """
 
 from __future__ import annotations
@@ -22,11 +28,14 @@ import casadi as ca
 import numpy as np
 
 from .errors import ProblemError
-from .symbolic import TWIST_ROWS, SymbolicKinematics
+from .problem import CASES, TWIST_ROWS, WRENCH_ROWS
+from .symbolic import SymbolicKinematics, twist_jacobian
 
-CASES = ("geometric", "elastostatic", "both")
-#: Components of a wrench, in the order of the rows of J.
-WRENCH_ROWS = ("fx", "fy", "fz", "mx", "my", "mz")
+#: Fixed-point iterations of the joint deflection ``dq = diag(k) J(q + dq)^T W``: the update
+#: shrinks by ~``k |W| reach`` per iteration, so 5 reach 1e-9 rad up to ``k |W| reach`` ~ 0.01
+#: (k = 1e-4 rad/(N m) under 100 N at 1 m: 100 times a stiff industrial joint). At X = 0 the
+#: derivative of the fixed point is exact after one iteration, which B uses.
+DEFLECTION_ITERATIONS = 5
 
 
 def row_indices(names: tuple[str, ...] | list[str], allowed: tuple[str, ...], field: str) -> tuple[int, ...]:
@@ -41,7 +50,12 @@ def row_indices(names: tuple[str, ...] | list[str], allowed: tuple[str, ...], fi
 
 @dataclass(frozen=True, eq=False)
 class CalibrationModel:
-    """The linear identification model of a calibration case.
+    """The measurement model of a calibration case and its linearisation.
+
+    Inputs of the functions: ``q`` (n, rad or m), ``F`` (nF, N or N m), ``X`` (L, the physical
+    parameters: m, rad, rad/(N m) or m/N) and ``ref`` (12: column-major rotation and position,
+    m, of a reference pose, as given by ``pose``). ``step`` is the last update of the
+    deflection fixed point (rad or m).
 
     Attributes
     ----------
@@ -50,23 +64,32 @@ class CalibrationModel:
         Names of X: the selected geometric errors, then ``k.<joint>`` for each compliant joint.
     force_rows : tuple of int
         Wrench components that ``F`` holds (indices into ``WRENCH_ROWS``); empty when no force
-        enters B (geometric case).
+        enters the model (geometric case).
     markers_m : ndarray, shape (k, 3)
         Measured points in the measured frame (m); the frame origin by default.
     column_scale : ndarray, shape (L,)
-        ``c``: B is written for the scaled parameters ``c * X`` (column k of B divided by
-        ``c_k``); ones unless the problem asks for column scaling. The test-pose measure does
+        ``c``: B is written for the scaled parameters ``c * X`` (column l of dy/dX divided by
+        ``c_l``); ones unless the problem asks for column scaling. The test-pose measure does
         not depend on it; D-optimal plans neither; A, E, T and condition do.
+    pose : casadi.Function
+        ``(q, F, X) -> ref``: the pose of the measured frame of robot X deflected by the
+        calibration load F.
+    measurement : casadi.Function
+        ``(q, F, X, ref) -> (y, step)``: the d measured values of robot X under calibration
+        load F, as whitened deviations from ``ref`` (``sigma * Sigma^-1/2`` times marker
+        positions, then orientation rows), so that the noise of y is ``sigma`` per value.
+    accuracy : casadi.Function
+        ``(q, F, X, ref) -> (e, step)``: the r required deviation rows of the frame origin of
+        robot X under machining wrench F (at the origin) from ``ref``.
     B : casadi.Function
-        ``(q, F) -> B``: measured rows of one experiment (d x L), whitened by the noise model
-        so that ``M = sum B^T B`` is ``sigma^2`` times the weighted-least-squares information.
+        ``(q, F) -> B``: ``dy/dX`` at ``X = 0``, ``ref = pose(q, F, 0)``, columns scaled
+        (d x L): ``M = sum B^T B`` is ``sigma^2`` times the weighted-least-squares information.
     B0 : casadi.Function
-        ``(q, F) -> B0``, the rows whose accuracy is required at test poses (at the frame
-        origin, machining wrench applied there).
+        ``(q, F) -> B0``: ``de/dX`` at ``X = 0`` likewise (r x L).
     position : casadi.Function
         ``q -> p``, nominal position (m) of the measured frame's origin.
     points : casadi.Function
-        ``q -> P``, 3 x k nominal positions (m) of the measured points (workspace constraints).
+        ``q -> P``, 3 x k nominal positions (m) of the measured points.
     """
 
     kinematics: SymbolicKinematics
@@ -77,6 +100,9 @@ class CalibrationModel:
     force_rows: tuple[int, ...]
     markers_m: np.ndarray
     column_scale: np.ndarray
+    pose: ca.Function
+    measurement: ca.Function
+    accuracy: ca.Function
     B: ca.Function
     B0: ca.Function
     position: ca.Function
@@ -101,38 +127,24 @@ class CalibrationModel:
         return len(self.force_rows)
 
     def B_numeric(self, q: np.ndarray, F: np.ndarray, accuracy: bool = False) -> np.ndarray:
+        """``B(q, F)`` (d x L), or ``B0(q, F)`` (r x L) when ``accuracy``, as an array."""
         fn = self.B0 if accuracy else self.B
         return np.asarray(fn(np.asarray(q, float), np.asarray(F, float)), dtype=float).reshape(
             fn.size1_out(0), self.L
         )
 
-
-def elastostatic_matrix(J: ca.SX, W: ca.SX, joints: tuple[int, ...]) -> ca.SX:
-    """``A = [J_n J_n^T W]``: 6 x len(joints) deflection twist per unit compliance of ``joints``."""
-    return ca.horzcat(*[J[:, n] * ca.dot(J[:, n], W) for n in joints])
-
-
-def _skew(c: ca.SX) -> ca.SX:
-    return ca.vertcat(
-        ca.horzcat(0, -c[2], c[1]), ca.horzcat(c[2], 0, -c[0]), ca.horzcat(-c[1], c[0], 0)
-    )
+    def B_stack(self, Q: np.ndarray, F: np.ndarray, accuracy: bool = False) -> np.ndarray:
+        """``B`` (or ``B0``) of N configurations at once: ``Q`` (N, n), ``F`` (N, nF) ->
+        (N, d, L)."""
+        fn = self.B0 if accuracy else self.B
+        Q, F = np.atleast_2d(np.asarray(Q, float)), np.asarray(F, float).reshape(len(Q), self.nF)
+        out = np.asarray(fn.map(len(Q))(Q.T, F.T), dtype=float)
+        return out.reshape(fn.size1_out(0), len(Q), self.L).transpose(1, 0, 2)
 
 
-def measurement_map(R: ca.SX, rows: tuple[int, ...], markers: np.ndarray) -> ca.SX:
-    """Map G from the frame's small displacement twist (dp, dtheta) to the measured values.
-
-    Position rows of each marker ``r`` (frame coordinates): ``dp - [R r]x dtheta``; then the
-    orientation rows once. ``rows`` index x, y, z, rx, ry, rz.
-    """
-    pos = [r for r in rows if r < 3]
-    blocks = []
-    for r in markers:
-        c = R @ ca.DM(r)
-        blocks.append(ca.horzcat(ca.SX.eye(3), -_skew(c))[pos, :])
-    rot = [r - 3 for r in rows if r >= 3]
-    if rot:
-        blocks.append(ca.horzcat(ca.SX.zeros(3, 3), ca.SX.eye(3))[rot, :])
-    return ca.vertcat(*blocks)
+def _skew_vee(A: ca.SX) -> ca.SX:
+    """``vee((A - A^T) / 2)``: the small rotation (rad) of ``A = R R_ref^T`` near the identity."""
+    return ca.vertcat(A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1]) / 2
 
 
 def calibration_model(
@@ -148,7 +160,7 @@ def calibration_model(
     whitening: np.ndarray | None = None,
     column_scale: np.ndarray | None = None,
 ) -> CalibrationModel:
-    """Build B(q, F) for a calibration case.
+    """Build the measurement model of a calibration case (see :class:`CalibrationModel`).
 
     Parameters
     ----------
@@ -163,11 +175,10 @@ def calibration_model(
     markers_m : ndarray, shape (k, 3), m
         Measured points in the measured frame (default: its origin).
     load_point_m : ndarray, shape (3,), m
-        Where the calibration force acts, in the measured frame (default: its origin); an
-        offset adds the moment ``(R r) x f``.
+        Where the calibration force acts, in the measured frame (default: its origin).
     whitening : ndarray, shape (d, d)
         ``sigma * Sigma^-1/2`` for a measurement covariance ``Sigma`` and reference ``sigma``
-        (default identity): B is pre-multiplied by it (weighted least squares).
+        (default identity).
     column_scale : ndarray, shape (L,)
         Scales of the parameters (see :class:`CalibrationModel`); ones by default.
     """
@@ -193,7 +204,7 @@ def calibration_model(
                     f"and <joint> in {', '.join(robot.joints)}"
                 )
         if len(set(geometric)) != len(geometric):
-            raise ProblemError(f"[calibration].parameters: repeated names in {list(geometric)}")
+            raise ProblemError(f"[calibration].parameters: repeated names in {list(geometric)}; list each once")
         geo_idx = [kinematics.parameter_names.index(g) for g in geometric]
         names += list(geometric)
     comp_idx: list[int] = []
@@ -214,37 +225,75 @@ def calibration_model(
         comp_idx = [robot.joints.index(j) for j in compliant]
         names += [f"k.{j}" for j in compliant]
         f_rows = row_indices(tuple(force), WRENCH_ROWS, "[calibration].wrench_components")
+    d = len([r for r in m_rows if r < 3]) * len(markers) + len([r for r in m_rows if r >= 3])
+    if whitening is not None and np.shape(whitening) != (d, d):
+        raise ProblemError(
+            f"[measurement]: the noise model is {np.shape(whitening)} but each experiment "
+            f"measures {d} values; give one sigma or covariance row per value"
+        )
+    Wh = ca.DM.eye(d) if whitening is None else ca.DM(np.asarray(whitening, dtype=float))
+    lever = np.zeros(3) if load_point_m is None else np.asarray(load_point_m, dtype=float)
 
     q = ca.SX.sym("q", robot.n)
     F = ca.SX.sym("F", len(f_rows))
-    R, p = kinematics.placement(q, ca.DM.zeros(len(kinematics.parameter_names)))
-    W0 = ca.SX.zeros(6)
+    X = ca.SX.sym("X", len(names))
+    ref = ca.SX.sym("ref", 12)
+    Pi = ca.SX.zeros(len(kinematics.parameter_names))
+    for i, g in enumerate(geo_idx):
+        Pi[g] = X[i]
+    k = ca.SX.zeros(robot.n)
+    for i, j in enumerate(comp_idx):
+        k[j] = X[len(geo_idx) + i]
+    wrench = ca.SX.zeros(6)
     for i, r in enumerate(f_rows):
-        W0[r] = F[i]
-    lever = R @ ca.DM(np.zeros(3) if load_point_m is None else np.asarray(load_point_m, dtype=float))
-    W = ca.vertcat(W0[:3], W0[3:] + ca.cross(lever, W0[:3]))
-    J = kinematics.jacobian(q)
-    J_Pi = kinematics.error_jacobian(q)
+        wrench[r] = F[i]
+    qs, Pis = ca.SX.sym("qs", robot.n), ca.SX.sym("Pis", Pi.numel())
+    jacobian = ca.Function("J", [qs, Pis], [twist_jacobian(*kinematics.placement(qs, Pis), qs)])
 
-    def twist_matrix(W: ca.SX) -> ca.SX:
-        blocks = []
-        if geo_idx:
-            blocks.append(J_Pi[:, geo_idx])
+    def deflected(W: ca.SX, iterations: int) -> tuple[ca.SX, ca.SX, ca.SX]:
+        """Pose (R, p) of robot X deflected by W and the last fixed-point update."""
+        dq, step = ca.SX.zeros(robot.n), ca.SX(0)
         if comp_idx:
-            blocks.append(elastostatic_matrix(J, W, tuple(comp_idx)))
-        return ca.horzcat(*blocks)
+            for _ in range(iterations):
+                new = k * (jacobian(q + dq, Pi).T @ W)
+                dq, step = new, ca.mmax(ca.fabs(new - dq))
+        R, p = kinematics.placement(q + dq, Pi)
+        return R, p, step
 
-    G = measurement_map(R, m_rows, markers)
-    if whitening is not None:
-        if np.shape(whitening) != (G.shape[0], G.shape[0]):
-            raise ProblemError(
-                f"[measurement]: the noise model is {np.shape(whitening)} but each experiment "
-                f"measures {G.shape[0]} values; give one sigma or covariance row per value"
-            )
-        G = ca.DM(whitening) @ G
-    G0 = measurement_map(R, a_rows, np.zeros((1, 3)))
+    def deviation(R: ca.SX, p: ca.SX, rows: tuple[int, ...], points: np.ndarray) -> ca.SX:
+        """Position rows of each point (frame coordinates), then orientation rows, from ref."""
+        R_ref, p_ref = ca.reshape(ref[0:9], 3, 3), ref[9:12]
+        pos = [r for r in rows if r < 3]
+        out = [((p + R @ ca.DM(c)) - (p_ref + R_ref @ ca.DM(c)))[pos] for c in points] if pos else []
+        rot = [r - 3 for r in rows if r >= 3]
+        if rot:
+            out.append(_skew_vee(R @ R_ref.T)[rot])
+        return ca.vertcat(*out)
+
+    R0, p0 = kinematics.placement(q, Pi)
+    W_cal = ca.vertcat(wrench[:3], wrench[3:] + ca.cross(R0 @ ca.DM(lever), wrench[:3]))
+
+    def measured_values(iterations: int) -> tuple[ca.SX, ca.SX, ca.SX]:
+        R, p, step = deflected(W_cal, iterations)
+        return Wh @ deviation(R, p, m_rows, markers), step, ca.vertcat(ca.vec(R), p)
+
+    def required_values(iterations: int) -> tuple[ca.SX, ca.SX]:
+        R, p, step = deflected(wrench, iterations)
+        return deviation(R, p, a_rows, np.zeros((1, 3))), step
+
+    y, y_step, y_pose = measured_values(DEFLECTION_ITERATIONS)
+    e, e_step = required_values(DEFLECTION_ITERATIONS)
     c = np.ones(len(names)) if column_scale is None else np.asarray(column_scale, dtype=float)
     Cinv = ca.DM(np.diag(1.0 / c))
+    # linearisation at X = 0 about the nominal pose: one deflection iteration is exact there
+    X0 = ca.DM.zeros(X.numel())
+    ref0 = ca.substitute(ca.vertcat(ca.vec(R0), p0), X, X0)
+
+    def linearised(expr: ca.SX) -> ca.SX:
+        J = ca.substitute(ca.substitute(ca.jacobian(expr, X), ref, ref0), X, X0)
+        return ca.cse(J @ Cinv)
+
+    args, arg_names = [q, F, X, ref], ["q", "F", "X", "ref"]
     return CalibrationModel(
         kinematics=kinematics,
         case=case,
@@ -254,8 +303,12 @@ def calibration_model(
         force_rows=f_rows,
         markers_m=markers,
         column_scale=c,
-        B=ca.Function("B", [q, F], [G @ twist_matrix(W) @ Cinv], ["q", "F"], ["B"]),
-        B0=ca.Function("B0", [q, F], [G0 @ twist_matrix(W0) @ Cinv], ["q", "F"], ["B0"]),
-        position=ca.Function("p", [q], [p], ["q"], ["p"]),
-        points=ca.Function("points", [q], [p + R @ ca.DM(markers.T)], ["q"], ["P"]),
+        pose=ca.Function("pose", [q, F, X], [y_pose], arg_names[:3], ["ref"]),
+        measurement=ca.Function("y", args, [y, y_step], arg_names, ["y", "step"]),
+        accuracy=ca.Function("e", args, [e, e_step], arg_names, ["e", "step"]),
+        B=ca.Function("B", [q, F], [linearised(measured_values(1)[0])], ["q", "F"], ["B"]),
+        B0=ca.Function("B0", [q, F], [linearised(required_values(1)[0])], ["q", "F"], ["B0"]),
+        position=ca.Function("p", [q], [ref0[9:12]], ["q"], ["p"]),
+        points=ca.Function("points", [q], [ref0[9:12] + ca.reshape(ref0[0:9], 3, 3) @ ca.DM(markers.T)],
+                           ["q"], ["P"]),
     )

@@ -1,8 +1,8 @@
 """Run the starts of a multi-start on local processes or on a Dask cluster.
 
-An executor sends each start to a worker as plain data: the problem's parsed TOML (``raw``)
-and file path, the criterion, ``m``, ``B0`` and the start plan ``(Q0, F0)``. The worker
-rebuilds the problem and the design NLP once (cached per process) and runs
+An executor sends each start to a worker as plain data: the problem's checked data
+(:class:`~casadi_design.problem.ProblemSpec`), the criterion, ``m``, ``B0`` and the start plan
+``(Q0, F0)``. The worker builds the problem and the design NLP once (cached per process) and runs
 :func:`casadi_design.solve.solve_start`, the same code the serial loop runs, so a start gives
 the same numbers wherever it runs. The seeded start plans are drawn by the caller
 (:func:`casadi_design.solve.solve_design`), never by a worker, so results do not depend on
@@ -23,7 +23,6 @@ from __future__ import annotations
 import hashlib
 import multiprocessing
 import os
-import pickle
 import signal
 import threading
 from collections import OrderedDict
@@ -34,10 +33,14 @@ from typing import Any, Protocol, Self
 
 import numpy as np
 
+from .build import Problem, build_problem
+from .errors import DesignError
 from .measures import Scores
-from .problem import Problem, build_problem
+from .problem import ProblemSpec, spec_digest_blob
 from .solve import StartRecord, make_design_solver, solve_start
 
+#: Seconds to wait for a Dask scheduler before giving up.
+DASK_CONNECT_TIMEOUT_S = 5.0
 #: Problems (and their solvers) kept per worker process.
 CACHE_PROBLEMS = 4
 
@@ -62,16 +65,14 @@ def cpu_count() -> int:
 
 @dataclass(frozen=True)
 class ProblemRef:
-    """What a worker needs to rebuild a problem: its parsed TOML and file path, and a key."""
+    """What a worker needs to build a problem: its checked plain data, and a key."""
 
-    raw: dict
-    path: str
+    spec: ProblemSpec
     key: str
 
     @classmethod
     def of(cls, problem: Problem) -> ProblemRef:
-        blob = pickle.dumps((problem.raw, problem.path), protocol=4)
-        return cls(problem.raw, problem.path, hashlib.sha256(blob).hexdigest())
+        return cls(problem.spec, hashlib.sha256(spec_digest_blob(problem.spec)).hexdigest())
 
 
 # Worker-side state. One lock per process: CasADi building and IPOPT (MUMPS) are not safe to
@@ -82,7 +83,7 @@ _PROBLEMS: OrderedDict[str, tuple[Problem, dict]] = OrderedDict()
 
 def _cached(ref: ProblemRef) -> tuple[Problem, dict]:
     if ref.key not in _PROBLEMS:
-        _PROBLEMS[ref.key] = (build_problem(ref.raw, ref.path), {})
+        _PROBLEMS[ref.key] = (build_problem(ref.spec), {})
         while len(_PROBLEMS) > CACHE_PROBLEMS:
             _PROBLEMS.popitem(last=False)
     _PROBLEMS.move_to_end(ref.key)
@@ -142,8 +143,13 @@ class ProcessExecutor:
             for f in futures:
                 f.cancel()
 
-    def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+    def close(self, interrupted: bool = False) -> None:
+        """Shut the pool down; after Ctrl-C, end the workers at once (their starts are lost
+        anyway) instead of waiting for the starts they run."""
+        if interrupted:
+            for proc in list(getattr(self._pool, "_processes", {}).values()):
+                proc.terminate()
+        self._pool.shutdown(wait=not interrupted, cancel_futures=True)
         for k, v in self._saved_env.items():
             if v is None:
                 os.environ.pop(k, None)
@@ -153,8 +159,8 @@ class ProcessExecutor:
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type | None, *exc: object) -> None:
+        self.close(interrupted=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
 
 class MissingExtraError(ImportError):
@@ -181,7 +187,15 @@ class DaskExecutor:
         if isinstance(address, distributed.Client):
             self.client, self._own = address, False
         else:
-            self.client, self._own = distributed.Client(address), True
+            try:
+                self.client = distributed.Client(address, timeout=DASK_CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError, ValueError, TypeError) as exc:
+                reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise DesignError(
+                    f"--dask-scheduler {address}: no Dask scheduler answered within "
+                    f"{DASK_CONNECT_TIMEOUT_S:g} s ({reason}); check the address (tcp://host:8786) "
+                    "or start one with `dask scheduler`") from None
+            self._own = True
 
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
                    plans: Sequence[Plan], verbose: bool) -> Iterator[StartResult]:

@@ -13,23 +13,12 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter, NullLocator
 
+from .criteria import CRITERIA
 from .results import write_atomic
 from .solve import Design
 
 if TYPE_CHECKING:
     from .sweep import Sweep
-
-STYLES = {
-    "test-pose": {"color": "tab:red", "ls": "-", "lw": 2.0},
-    "D": {"color": "tab:blue", "ls": "--", "lw": 1.5},
-    "A": {"color": "tab:green", "ls": "-.", "lw": 1.5},
-    "E": {"color": "tab:purple", "ls": ":", "lw": 2.0},
-    "T": {"color": "tab:brown", "ls": (0, (5, 1, 1, 1)), "lw": 1.5},
-    "condition": {"color": "tab:gray", "ls": (0, (3, 1)), "lw": 1.5},
-}
-LABELS = {"test-pose": "Test-pose approach", "D": "D-optimality", "A": "A-optimality",
-          "E": "SVD approach (E-optimality)", "T": "T-optimality", "condition": "Condition number"}
-
 
 def path_coordinate(position_m: np.ndarray) -> tuple[np.ndarray, str]:
     """Abscissa of the test poses (mm): the Cartesian coordinate that varies most, when it is
@@ -59,7 +48,8 @@ class Band:
 
     @classmethod
     def of(cls, design: Design) -> Band:
-        return cls(LABELS[design.criterion], STYLES[design.criterion], design.scores.rms_error_m)
+        crit = CRITERIA[design.criterion]
+        return cls(crit.legend, crit.style, design.scores.rms_error_m)
 
 
 def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], xlabel: str) -> None:
@@ -112,8 +102,8 @@ def draw_max_error_vs_m(ax: Axes, sweep: Sweep, log: bool = False) -> None:
     ms = np.array(sweep.m_values)
     for c in sweep.criteria:
         e = np.array([sweep.designs[c, m].scores.max_rms_error_m for m in ms]) * 1e3
-        style = {**STYLES[c], "ls": "-" if c == "test-pose" else STYLES[c]["ls"]}
-        ax.plot(ms, e, marker="o", ms=4, label=LABELS[c], **style)
+        style = {**CRITERIA[c].style, "ls": "-" if c == "test-pose" else CRITERIA[c].style["ls"]}
+        ax.plot(ms, e, marker="o", ms=4, label=CRITERIA[c].legend, **style)
     if sweep.reference is not None:
         m_ref = sweep.reference.m
         mm = np.linspace(max(m_ref, ms.min()), ms.max(), 200) if len(ms) > 1 else ms

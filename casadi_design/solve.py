@@ -18,21 +18,21 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from .errors import DesignError
-from .measures import CRITERIA, Scores, score_plan
-from .nlp import B0_at_test_poses, DesignNLP, build_nlp, pose_constraints
-from .problem import Problem
+from . import interrupt
+from .build import Problem
+from .criteria import CRITERIA
+from .errors import DesignError, ProblemError
+from .measures import Scores, score_plan
+from .nlp import B0_at_test_poses, DesignNLP, build_nlp
+from .rules import plan_violations, pose_constraints
 
 if TYPE_CHECKING:
     from .parallel import StartExecutor
 
 #: IPOPT return statuses accepted as converged.
 CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-#: Largest constraint violation accepted in a returned plan (m, or relative for loads).
-FEASIBILITY_TOL = 1e-6
-#: Criteria whose nearly singular starts are first polished by D-optimality, the threshold on
-#: lambda_min / lambda_max of M that triggers it, and the D iterations then run.
-POLISHED = ("E", "condition")
+#: For criteria marked ``polished``: the threshold on lambda_min / lambda_max of M below which
+#: a start first gets a few D-optimal iterations, and their number.
 POLISH_RCOND = 1e-6
 POLISH_ITERATIONS = 30
 #: Random configurations tried per experiment to satisfy the workspace constraints.
@@ -89,26 +89,18 @@ class Design:
 
 def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
     """The generator of a design's starts: depends on ``seed``, ``criterion`` and ``m`` only."""
-    return np.random.default_rng([seed, m, list(CRITERIA).index(criterion)])
-
-
-def workspace_violation(problem: Problem, q: np.ndarray) -> float:
-    """Largest violation (m) of the workspace constraints by configuration ``q``."""
-    g_fn, lb, ub = pose_constraints(problem)
-    if not lb.size:
-        return 0.0
-    g = np.asarray(g_fn(q)).ravel()
-    return float(np.max(np.r_[lb - g, g - ub, 0.0]))
+    return np.random.default_rng([seed, m, CRITERIA[criterion].seed_id])
 
 
 def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """A random feasible plan: ``Q`` (n x m, rad) within the limits and workspace, ``F`` (nF x m, N)."""
     robot, model, force = problem.robot, problem.model, problem.force
+    rules = pose_constraints(problem)
     Q = np.empty((robot.n, m))
     for i in range(m):
         for _ in range(SAMPLING_TRIES):
             q = rng.uniform(robot.q_min, robot.q_max)
-            if workspace_violation(problem, q) <= 0:
+            if not np.any(rules.violation(q) > 0):
                 break
         else:
             raise DesignError(
@@ -127,28 +119,9 @@ def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.
     return Q, force.magnitude_N * d / np.linalg.norm(d, axis=0)
 
 
-def _feasible(problem: Problem, Q: np.ndarray, F: np.ndarray) -> bool:
-    robot, force = problem.robot, problem.force
-    if np.any(Q < robot.q_min[:, None] - FEASIBILITY_TOL) or np.any(Q > robot.q_max[:, None] + FEASIBILITY_TOL):
-        return False
-    if F.size and force.mode != "fixed":
-        ratio = np.linalg.norm(F, axis=0) / force.magnitude_N
-        if np.any(ratio > 1 + FEASIBILITY_TOL) or force.mode == "equal" and np.any(ratio < 1 - FEASIBILITY_TOL):
-            return False
-        off_axis = F - np.outer(force.direction, np.array(force.direction) @ F) if force.direction else 0.0
-        if np.any(np.abs(off_axis) > FEASIBILITY_TOL * force.magnitude_N):
-            return False
-    dmin = problem.workspace.min_joint_distance_rad
-    m = Q.shape[1]
-    if any(np.linalg.norm(Q[:, i] - Q[:, j]) < dmin - FEASIBILITY_TOL for i in range(m) for j in range(i + 1, m)):
-        return False
-    return all(workspace_violation(problem, q) <= FEASIBILITY_TOL for q in Q.T)
-
-
 def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) -> Scores:
     """Scores of a plan given as ``Q`` (n x m, rad) and ``F`` (nF x m, N)."""
-    B = np.array([problem.model.B_numeric(q, f) for q, f in zip(Q.T, F.T)])
-    return score_plan(B, B0, problem.sigma_m)
+    return score_plan(problem.model.B_stack(Q.T, F.T), B0, problem.sigma_m)
 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.Function:
@@ -167,6 +140,25 @@ def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.F
     return ca.nlpsol(f"design_m{nlp.m}", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
 
 
+def check_ipopt_options(problem: Problem) -> None:
+    """Try the [solver.ipopt] options on a one-variable NLP, so a bad option fails before solving."""
+    options = problem.solver.ipopt
+    if not options:
+        return
+    x = ca.SX.sym("x")
+    opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "error_on_fail": False,
+            **{f"ipopt.{k}": v for k, v in options}}
+    try:
+        solver = ca.nlpsol("check", "ipopt", {"x": x, "f": x**2}, opts)
+        solver(x0=1.0)
+        status = solver.stats()["return_status"]
+    except RuntimeError as exc:
+        status = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
+    if status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded"):
+        raise ProblemError(f"{problem.path}: [solver].ipopt: IPOPT rejected the options {dict(options)} "
+                           f"({status}); check the names and values against the IPOPT options reference")
+
+
 @dataclass(frozen=True, eq=False)
 class DesignSolver:
     """The NLP of one (criterion, m) with its IPOPT solver, and for E and condition a short
@@ -181,7 +173,7 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
                        verbose: bool = False) -> DesignSolver:
     nlp = build_nlp(problem, criterion, m, B0)
     polish = None
-    if criterion in POLISHED:
+    if CRITERIA[criterion].polished:
         d_nlp = build_nlp(problem, "D", m, B0)
         d_solver = ca.nlpsol("polish", "ipopt", {"x": d_nlp.x, "f": d_nlp.f, "g": d_nlp.g},
                              {"ipopt.max_iter": POLISH_ITERATIONS, "ipopt.print_level": 0, "ipopt.sb": "yes",
@@ -201,6 +193,7 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
     if lam[0] > POLISH_RCOND * lam[-1]:
         return Q0, F0
     sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
+    interrupt.check()
     Q, F = (np.asarray(v, dtype=float) for v in d_nlp.plan(sol["x"]))
     return np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None]), F
 
@@ -217,6 +210,7 @@ def solve_start(
     nlp, solver = ds.nlp, ds.solver
     Q0, F0 = _polished(problem, ds, Q0, F0)
     sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    interrupt.check()  # IPOPT reports Ctrl-C as a failed start: stop instead
     stats = solver.stats()
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
     Q = np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None])
@@ -226,7 +220,7 @@ def solve_start(
         iterations=int(stats.get("iter_count", 0)),
         value=scores.value(nlp.criterion),
         max_rms_error_m=scores.max_rms_error_m,
-        feasible=_feasible(problem, Q, F) and scores.identifiable,
+        feasible=not plan_violations(problem, Q, F) and scores.identifiable,
     )
     return rec, Q, F, scores
 
@@ -281,13 +275,12 @@ def solve_design(
     else:
         results = executor.map_starts(problem, criterion, m, B0, plans, verbose)
     crit = CRITERIA[criterion]
-    sign = 1.0 if crit.sense == "min" else -1.0
     records, best = [], None
     for rec, Q, F, scores in results:
         if progress is not None:
             progress(1)
         records.append(rec)
-        if rec.converged and (best is None or sign * rec.value < sign * best[0].value):
+        if rec.converged and (best is None or crit.better(rec.value, best[0].value)):
             best = (rec, Q, F, scores)
     if best is None:
         counts: dict[str, int] = {}

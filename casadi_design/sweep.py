@@ -28,9 +28,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import ProblemError
-from .measures import CRITERIA
+from .criteria import CRITERIA
 from .nlp import B0_at_test_poses
-from .problem import Problem
+from .build import Problem
+from .problem import spec_digest_blob
 from .solve import Design, StartRecord, random_plan, solve_design
 
 if TYPE_CHECKING:
@@ -79,7 +80,7 @@ def check_criteria(problem: Problem, criteria: Iterable[str]) -> None:
 
 def warm_start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
     """Generator of the experiments added to the previous plan; not the seeded starts' one."""
-    return np.random.default_rng([seed, m, list(CRITERIA).index(criterion), WARM_STREAM])
+    return np.random.default_rng([seed, m, CRITERIA[criterion].seed_id, WARM_STREAM])
 
 
 def warm_start_plan(problem: Problem, previous: Design, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -96,10 +97,10 @@ def warm_start_plan(problem: Problem, previous: Design, m: int) -> tuple[np.ndar
 
 def best_seeded(design: Design, seeded: int) -> StartRecord | None:
     """The record that wins among the first ``seeded`` starts (the rule of solve_design)."""
-    sign = 1.0 if CRITERIA[design.criterion].sense == "min" else -1.0
+    crit = CRITERIA[design.criterion]
     best = None
     for rec in design.starts[:seeded]:
-        if rec.converged and (best is None or sign * rec.value < sign * best.value):
+        if rec.converged and (best is None or crit.better(rec.value, best.value)):
             best = rec
     return best
 
@@ -271,9 +272,8 @@ PARTIAL_NAME = "sweep.partial.json"
 
 
 def problem_digest(problem: Problem) -> str:
-    """SHA-256 of the problem's parsed TOML: a resumed sweep must be of the same problem."""
-    blob = json.dumps(problem.raw, sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()
+    """SHA-256 of the problem's checked data: a resumed sweep must be of the same problem."""
+    return hashlib.sha256(spec_digest_blob(problem.spec)).hexdigest()
 
 
 def sweep_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int], starts: int,

@@ -47,6 +47,9 @@ class SymbolicKinematics:
         (dp, dtheta), same rows as ``jacobian``, with respect to ``Pi`` at ``Pi = 0``.
     joint_origins : casadi.Function
         ``q -> P``: 3 x n nominal positions (m) of the chain's joint origins.
+    frame_origins : casadi.Function
+        ``q -> P``: 3 x K nominal positions (m) of the distinct origins of every frame carried
+        by a joint of the chain (link, joint, flange and tool frames), the measured frame last.
     """
 
     robot: Robot
@@ -55,6 +58,7 @@ class SymbolicKinematics:
     jacobian: ca.Function
     error_jacobian: ca.Function
     joint_origins: ca.Function
+    frame_origins: ca.Function
 
 
 def _rot(axis: np.ndarray, angle: ca.SX) -> ca.SX:
@@ -111,7 +115,7 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
     q = ca.SX.sym("q", robot.n)
     Pi = ca.SX.sym("Pi", len(names))
     R, p = _error_placement(Pi[0:6])
-    origins = []
+    origins, carried = [], []
     for k, jid in enumerate(robot.joint_ids):
         base = 6 + 7 * k
         M = model.jointPlacements[jid]
@@ -124,11 +128,13 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
             R = R @ _rot(axis, qk)
         else:
             p = p + R @ (ca.SX(axis) * qk)
+        carried += _carried_frames(model, jid, R, p, exclude=robot.frame_id)
     fMt = model.frames[robot.frame_id].placement
     R, p = _compose(R, p, ca.SX(fMt.rotation), ca.SX(fMt.translation))
     R, p = _compose(R, p, *_error_placement(Pi[-6:]))
 
     zero = ca.DM.zeros(len(names))
+    frames = ca.substitute(ca.horzcat(*carried, p), Pi, zero)
     J = ca.substitute(twist_jacobian(R, p, q), Pi, zero)
     J_Pi = ca.substitute(twist_jacobian(R, p, Pi), Pi, zero)
     return SymbolicKinematics(
@@ -138,4 +144,16 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
         jacobian=ca.Function("J", [q], [J], ["q"], ["J"]),
         error_jacobian=ca.Function("J_Pi", [q], [J_Pi], ["q"], ["J_Pi"]),
         joint_origins=ca.Function("origins", [q], [ca.substitute(ca.horzcat(*origins), Pi, zero)], ["q"], ["P"]),
+        frame_origins=ca.Function("frame_origins", [q], [frames], ["q"], ["P"]),
     )
+
+
+def _carried_frames(model: pin.Model, jid: int, R: ca.SX, p: ca.SX, exclude: int) -> list[ca.SX]:
+    """Origins (world, m) of the frames whose parent is joint ``jid`` at placement ``(R, p)``,
+    one per distinct position in the joint frame (the joint's own origin included)."""
+    offsets: dict[tuple, np.ndarray] = {(0.0, 0.0, 0.0): np.zeros(3)}
+    for fid, frame in enumerate(model.frames):
+        if frame.parentJoint == jid and fid != exclude:
+            t = np.asarray(frame.placement.translation, dtype=float)
+            offsets.setdefault(tuple(np.round(t, 9)), t)
+    return [p + R @ ca.DM(t) for t in offsets.values()]
