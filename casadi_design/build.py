@@ -273,7 +273,7 @@ def check_identifiable(spec: ProblemSpec, model: CalibrationModel) -> tuple[np.n
         )
     # an experiment gives at most d independent values (three markers on a rigid tool: 6, not 9)
     d = max(np.linalg.matrix_rank(B, tol=1e-10 * np.abs(B).max()) if np.abs(B).max() > 0 else 0 for B in rows)
-    m_min = -(-L // d)
+    m_min = int(-(-L // d))
     small = [m for m in spec.m_values if m < m_min]
     if small:
         raise ProblemError(

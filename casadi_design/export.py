@@ -26,7 +26,7 @@ import numpy as np
 
 from .errors import ProblemError
 from .models import WRENCH_ROWS
-from .problem import Problem
+from .build import Problem
 from .results import write_atomic
 from .solve import Design
 
@@ -86,26 +86,90 @@ def write_table_csv(path: Path, columns: tuple[str, ...] | list[str], rows: list
     write_atomic(Path(path), csv_text(list(columns), [[r[c] for c in columns] for r in rows]).encode())
 
 
+#: Largest plan file read, bytes, and most experiments (rows) in a plan.
+_MAX_PLAN_BYTES = 10 * 2**20
+_MAX_PLAN_ROWS = 100_000
+
+
+def _plan_text(path: str) -> str:
+    """The text of the plan file ``path``: UTF-8, a leading byte-order mark (Excel) dropped.
+
+    Folders, devices, pipes, binary or non-UTF-8 content and files over ``_MAX_PLAN_BYTES``
+    are refused (one-line :class:`ProblemError`) before they are read whole.
+    """
+    if not path:
+        raise ProblemError("the plan file name is empty; give the CSV file")
+    file = Path(path)
+    try:
+        st = file.stat()
+        if file.is_dir():
+            raise ProblemError(f"{path}: is a folder, not a plan file; give the CSV file")
+        if not file.is_file():
+            raise ProblemError(f"{path}: is not a regular file (a device or a pipe); give the "
+                               "CSV file")
+        data = b""
+        if st.st_size <= _MAX_PLAN_BYTES:
+            with open(file, "rb") as fh:
+                data = fh.read(_MAX_PLAN_BYTES + 1)  # + 1: the file may have grown since
+    except FileNotFoundError:
+        raise ProblemError(f"{path}: no such plan file") from None
+    except OSError as exc:
+        raise ProblemError(f"{path}: cannot be read ({exc.strerror}); check the path and its "
+                           "permissions") from None
+    size = max(st.st_size, len(data))
+    if size > _MAX_PLAN_BYTES:
+        raise ProblemError(f"{path}: is {size / 2**20:.1f} MB; a plan has at most {_MAX_PLAN_ROWS} "
+                           f"experiments ({_MAX_PLAN_BYTES // 2**20} MB); give a smaller plan")
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):  # UTF-16 byte-order marks
+        raise ProblemError(f"{path}: is UTF-16 text (Excel 'Unicode Text'), not UTF-8; save it as "
+                           "'CSV UTF-8 (comma delimited)'")
+    if b"\0" in data:
+        raise ProblemError(f"{path}: is a binary file (it holds NUL bytes), not UTF-8 CSV text; "
+                           "give the plan CSV file")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ProblemError(f"{path}: is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+                           f"{exc.start}); save it as 'CSV UTF-8 (comma delimited)'") from None
+
+
+def _csv_cells(line: str) -> list[str]:
+    """The cells of one CSV line, blanks around them stripped."""
+    return [c.strip() for c in next(csv.reader([line]))]
+
+
 def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     """A plan from a CSV file: ``Q`` shape (n, m), rad (m); ``F`` shape (nF, m), N (N m).
+
+    UTF-8 text, with or without a byte-order mark. Trailing empty cells (as Excel writes
+    them) are dropped, and so are lines of empty cells and lines starting with ``#``. Row
+    numbers in messages are lines of the file (1-based).
 
     Raises
     ------
     ProblemError
-        Missing or unknown columns, non-numbers, disagreeing unit columns (one line each).
+        Not a UTF-8 text file, more than 100000 rows (10 MB), ';' separators, rows of another
+        length than the header, missing or unknown columns, non-numbers or non-finite numbers,
+        disagreeing unit columns (one line each).
     """
     path = str(path)
-    try:
-        with open(path, newline="") as fh:
-            lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
-    except FileNotFoundError:
-        raise ProblemError(f"{path}: no such plan file") from None
-    reader = csv.reader(lines)
-    try:
-        header = [h.strip() for h in next(reader)]
-    except StopIteration:
-        raise ProblemError(f"{path}: empty plan file; give a header row and one row per experiment") from None
-    rows = [r for r in reader]
+    lines = [(i, ln) for i, ln in enumerate(_plan_text(path).splitlines(), start=1)
+             if ln.strip(" \t,") and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise ProblemError(f"{path}: empty plan file; give a header row and one row per experiment")
+    (_, head), body = lines[0], lines[1:]
+    if ";" in head:
+        decimal = " and ',' as decimal point" if any("," in ln for _, ln in body) else ""
+        raise ProblemError(f"{path}: uses ';' to separate columns{decimal} (Excel in a "
+                           "comma-decimal locale); save it with ',' separators and '.' decimal "
+                           "points")
+    if len(body) > _MAX_PLAN_ROWS:
+        raise ProblemError(f"{path}: has {len(body)} rows; a plan has at most {_MAX_PLAN_ROWS} "
+                           "experiments; give a smaller plan")
+    header = _csv_cells(head)
+    while header and not header[-1]:
+        header.pop()
+    rows = [(i, _csv_cells(ln)) for i, ln in body]
     if not rows:
         raise ProblemError(f"{path}: no experiments below the header; give one row per experiment")
     robot = problem.robot
@@ -117,6 +181,9 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
             columns[f"{name}_{people}"] = (k, scale)
     forces = force_columns(problem)
     allowed = set(columns) | set(forces) | {"experiment", *POSITION_COLUMNS}
+    if "" in header:
+        raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
+                           "name it or delete the column")
     unknown = [h for h in header if h not in allowed]
     if unknown:
         si, people, _ = joint_units(problem, 0)
@@ -124,18 +191,30 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
             f"{path}: unknown column '{unknown[0]}'; allowed: q1_{people} or q1_{si} ... "
             f"q{robot.n}_<unit> (or joint names {', '.join(robot.joints)} with the unit suffix)"
             + (f", {', '.join(forces)}" if forces else "") + ", experiment, x_mm, y_mm, z_mm")
-    if len(set(header)) != len(header):
-        raise ProblemError(f"{path}: repeated column names in {header}")
+    repeated = next((h for h in header if header.count(h) > 1), None)
+    if repeated:
+        raise ProblemError(f"{path}: column '{repeated}' is given {header.count(repeated)} times; "
+                           "give each column once")
+    for i, cells in rows:
+        if len(cells) > len(header) and not any(cells[len(header):]):
+            del cells[len(header):]  # trailing empty cells
+        if len(cells) != len(header):
+            raise ProblemError(f"{path}: row {i} has {len(cells)} cells, the header has "
+                               f"{len(header)}; give one value per column in every row (a decimal "
+                               "comma splits a number in two: use '.')")
 
     def number(r: int, c: int) -> float:
+        line, cell = rows[r][0], rows[r][1][c]
+        where = f"{path}: row {line}, column '{header[c]}'"
         try:
-            v = float(rows[r][c])
-        except (ValueError, IndexError):
-            got = rows[r][c] if c < len(rows[r]) else "nothing"
-            raise ProblemError(f"{path}: row {r + 2}, column '{header[c]}': expected a number, "
-                               f"got '{got}'") from None
+            v = float(cell) if cell else math.nan
+        except ValueError:
+            raise ProblemError(f"{where}: expected a number, got '{cell}'; give a number with a "
+                               "'.' decimal point in every cell") from None
         if not math.isfinite(v):
-            raise ProblemError(f"{path}: row {r + 2}, column '{header[c]}': not finite ({v})")
+            got = f"'{cell}'" if cell else "an empty cell"
+            raise ProblemError(f"{where}: not a finite number, got {got}; give a finite number in "
+                               "every cell")
         return v
 
     m = len(rows)
@@ -168,39 +247,6 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
     return Q, F
 
 
-#: Relative tolerance on the load magnitude of a plan written by hand (rounded components).
-LOAD_RTOL = 1e-3
-
-
-def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]:
-    """What a plan (``Q`` n x m rad, ``F`` nF x m N) breaks among the problem's constraints.
-
-    Joint limits and workspace to ``solve.FEASIBILITY_TOL`` (rad, m); loads to ``LOAD_RTOL``.
-    """
-    from .solve import FEASIBILITY_TOL, workspace_violation
-
-    robot, out = problem.robot, []
-    for i, q in enumerate(np.asarray(Q).T):
-        for k, j in enumerate(robot.joints):
-            if not robot.q_min[k] - FEASIBILITY_TOL <= q[k] <= robot.q_max[k] + FEASIBILITY_TOL:
-                out.append(f"experiment {i + 1}: {j} = {q[k]:.6g} outside [{robot.q_min[k]:.6g}, "
-                           f"{robot.q_max[k]:.6g}]")
-        v = workspace_violation(problem, np.asarray(problem.model.position(q), dtype=float).ravel())
-        if v > FEASIBILITY_TOL:
-            out.append(f"experiment {i + 1}: measured point {v * 1e3:.3g} mm outside the workspace")
-    force = problem.force
-    if force is not None and np.size(F):
-        for i, f in enumerate(np.asarray(F).T):
-            norm = float(np.linalg.norm(f))
-            if force.mode == "fixed" and not np.allclose(f, force.vector_N, rtol=LOAD_RTOL):
-                out.append(f"experiment {i + 1}: load {f.tolist()} is not the fixed {list(force.vector_N)}")
-            elif force.mode != "fixed" and norm > force.magnitude_N * (1 + LOAD_RTOL):
-                out.append(f"experiment {i + 1}: |F| = {norm:.6g} above {force.magnitude_N:g}")
-            elif force.mode == "equal" and norm < force.magnitude_N * (1 - LOAD_RTOL):
-                out.append(f"experiment {i + 1}: |F| = {norm:.6g}, the problem applies {force.magnitude_N:g}")
-    return out
-
-
 def _md_table(header: list[str], rows: list[list[str]]) -> str:
     def line(cells: list[str]) -> str:
         return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
@@ -224,7 +270,7 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
 
     ``table`` is a preformatted text table (mm); ``figures`` are (caption, relative file).
     """
-    raw, model, tp = problem.raw, problem.model, problem.test_poses
+    model, tp = problem.model, problem.test_poses
     force = problem.force
     load = ("none (geometric case)" if force is None else
             f"{force.mode}, |F| = {force.magnitude_N:g} N" if force.mode != "fixed" else
@@ -233,14 +279,14 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
     lines = [
         f"# {title}: {problem.name}",
         "",
-        str(raw.get("description", "")),
+        problem.spec.description,
         "",
         _md_table(["", ""], [
             ["problem file", f"`{problem.path}`"],
             ["robot", (f"{problem.robot.name}, {problem.robot.n} joints "
                        f"({', '.join(problem.robot.joints)}), measured frame `{problem.robot.frame}`")],
             ["identified", f"{model.case}: {', '.join(model.parameter_names)}"],
-            ["measured", f"{', '.join(raw['measurement']['components'])}, sigma = {problem.sigma_m * 1e3:g} mm"],
+            ["measured", f"{', '.join(problem.spec.measurement.components)}, sigma = {problem.sigma_m * 1e3:g} mm"],
             ["test poses", (f"{tp.s} poses, from ({', '.join(f'{v:.0f}' for v in x[0])}) to "
                             f"({', '.join(f'{v:.0f}' for v in x[-1])}) mm")],
             ["calibration load", load],

@@ -139,7 +139,9 @@ class CalibrationModel:
         fn = self.B0 if accuracy else self.B
         Q, F = np.atleast_2d(np.asarray(Q, float)), np.asarray(F, float).reshape(len(Q), self.nF)
         out = np.asarray(fn.map(len(Q))(Q.T, F.T), dtype=float)
-        return out.reshape(fn.size1_out(0), len(Q), self.L).transpose(1, 0, 2)
+        # contiguous: sums over it (e.g. the NLP's scale) then add in the same order in every
+        # process, whether the array was computed here or unpickled
+        return np.ascontiguousarray(out.reshape(fn.size1_out(0), len(Q), self.L).transpose(1, 0, 2))
 
 
 def _skew_vee(A: ca.SX) -> ca.SX:
@@ -291,7 +293,7 @@ def calibration_model(
 
     def linearised(expr: ca.SX) -> ca.SX:
         J = ca.substitute(ca.substitute(ca.jacobian(expr, X), ref, ref0), X, X0)
-        return ca.cse(J @ Cinv)
+        return J @ Cinv
 
     args, arg_names = [q, F, X, ref], ["q", "F", "X", "ref"]
     return CalibrationModel(

@@ -296,16 +296,19 @@ class _Reader:
         return value
 
     def names(self, key: str, allowed: tuple[str, ...] | None = None, default: Any = ...,
-              hint: str = "") -> tuple[str, ...]:
+              hint: str = "", noun: str = "names") -> tuple[str, ...]:
         """A list of distinct strings (among ``allowed`` when given)."""
         value = self.get(key, list, default, hint)
         if value is default and default is not ...:
             return value
         if not all(isinstance(v, str) for v in value):
             raise self.error(f"expected a list of names, got {value!r}", hint or "write names in quotes", key)
-        if not value or len(set(value)) != len(value) or allowed and any(v not in allowed for v in value):
-            what = f"distinct entries of {', '.join(allowed)}" if allowed else "distinct names"
-            raise self.error(f"has {value}", f"allowed: {what}", key)
+        unknown = [v for v in value if allowed and v not in allowed]
+        if unknown:
+            raise self.error(f"has '{unknown[0]}'", f"allowed: {', '.join(allowed)}", key)
+        if not value or len(set(value)) != len(value):
+            what = f"distinct entries of {', '.join(allowed)}" if allowed else f"distinct {noun}"
+            raise self.error(f"has {value}", f"list {what}", key)
         return tuple(value)
 
     def array(self, key: str, shape: tuple, default: Any = ..., hint: str = "") -> np.ndarray | Any:
@@ -536,7 +539,8 @@ def _calibration(cal: _Reader) -> CalibrationSpec:
             parameters = cal.names("parameters", hint="e.g. [\"joint1.offset\", \"tool.tx\"]")
     return CalibrationSpec(
         case, parameters,
-        cal.names("compliant_joints", default=None, hint="joint names, e.g. [\"joint1\", \"joint2\"]") if elastic else None,
+        cal.names("compliant_joints", default=None, hint="joint names, e.g. [\"joint1\", \"joint2\"]",
+                  noun="joints") if elastic else None,
         cal.names("wrench_components", WRENCH_ROWS, hint="the wrench components of F, e.g. [\"fx\", \"fy\"]") if elastic else (),
     )
 

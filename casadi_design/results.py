@@ -14,13 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .measures import CRITERIA, Scores
-from .problem import Problem
+from .build import Problem
+from .criteria import CRITERIA
+from .measures import Scores
 from .solve import Design, StartRecord
-
-#: Relative tolerance within which two starts count as reaching the same optimum.
-SAME_OPTIMUM_RTOL = 1e-6
-
 
 def optimum_spread(design: Design) -> dict:
     """Test-pose errors (m) of every converged start that reached the design's optimum.
@@ -28,12 +25,9 @@ def optimum_spread(design: Design) -> dict:
     Optimal plans need not be unique; when the criterion is not the test-pose measure,
     equally optimal plans may give different accuracy. ``min``/``max`` over those starts.
     """
+    crit = CRITERIA[design.criterion]
     best = design.scores.value(design.criterion)
-    tied = [
-        s.max_rms_error_m
-        for s in design.starts
-        if s.converged and abs(s.value - best) <= SAME_OPTIMUM_RTOL * max(abs(best), 1.0)
-    ]
+    tied = [s.max_rms_error_m for s in design.starts if s.converged and crit.same_optimum(s.value, best)]
     return {"starts_at_optimum": len(tied), "min_max_rms_error_m": min(tied), "max_max_rms_error_m": max(tied)}
 
 
@@ -77,7 +71,7 @@ def results_dict(problem: Problem, designs: list[Design]) -> dict:
         "problem_file": problem.path,
         "seed": problem.solver.seed,
         "sigma_m": problem.sigma_m,
-        "robot": problem.raw["robot"],
+        "robot": dataclasses.asdict(problem.spec.robot),
         "calibration": {
             "case": problem.model.case,
             "parameters": list(problem.model.parameter_names),
@@ -89,7 +83,7 @@ def results_dict(problem: Problem, designs: list[Design]) -> dict:
                 "dropped": [{"parameter": n, "reason": r} for n, r in problem.base_set.dropped],
             },
         },
-        "measured_components": problem.raw["measurement"]["components"],
+        "measured_components": list(problem.spec.measurement.components),
         "units": {"q": "rad", "force": "N (N m for moments)", "errors": "m"},
         "test_poses": [
             {"q_rad": q.tolist(), "force": f.tolist(), "position_m": p.tolist()}
@@ -119,23 +113,199 @@ def design_from_record(record: dict) -> Design:
     )
 
 
-def read_json(path: Path) -> dict:
-    """A results.json / sweep.json file, or the one inside a folder (sweep.json first)."""
-    path = Path(path)
-    if path.is_dir():
-        found = [path / n for n in ("sweep.json", "results.json") if (path / n).is_file()]
-        if not found:
-            raise OutputError(f"{path}: no sweep.json or results.json in this folder; "
-                              "give the file written by `casadi-design solve` or `sweep`")
-        path = found[0]
+#: What to do with a results file that cannot be read back.
+_RESULTS_HINT = "give a results file written by casadi-design solve or sweep"
+
+
+#: Numeric fields of a design's ``scores`` (finite: a design's plan is identifiable).
+_SCORE_NUMBERS = ("max_rms_error_m", "log_det_M", "trace_M_inv", "s_min", "trace_M", "condition")
+#: The keys of one start in ``solver.per_start``: the fields of :class:`StartRecord`.
+_START_KEYS = tuple(f.name for f in dataclasses.fields(StartRecord))
+
+
+class _Malformed(Exception):
+    """What is wrong at one place of a results record, e.g. ``designs[3].m: expected ...``."""
+
+
+def _shown(value: object) -> str:
+    """A JSON value as a message shows it: scalars as written, containers by their kind."""
+    if isinstance(value, dict):
+        return "an object"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    text = json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _need(ok: bool, where: str, expected: str, value: object) -> None:
+    if not ok:
+        raise _Malformed(f"{where}: expected {expected}, got {_shown(value)}")
+
+
+def _is_number(value: object, finite: bool = True) -> bool:
+    """A JSON number (not a boolean, not a string); ``finite``: not NaN or +-Infinity either."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
     try:
-        record = json.loads(path.read_text())
+        return not finite or bool(np.isfinite(float(value)))
+    except OverflowError:  # an integer beyond the float range
+        return False
+
+
+def _int(value: object, where: str, minimum: int) -> None:
+    _need(isinstance(value, int) and not isinstance(value, bool) and value >= minimum, where,
+          f"an integer >= {minimum}", value)
+
+
+def _object(value: object, where: str, keys: tuple[str, ...]) -> dict:
+    """``value`` as an object that has ``keys``."""
+    _need(isinstance(value, dict), where, "an object", value)
+    missing = [k for k in keys if k not in value]
+    if missing:
+        raise _Malformed(f"{where}: missing key '{missing[0]}'")
+    return value
+
+
+def _numbers(value: object, where: str, sizes: dict[str, tuple[int, str]], kind: str) -> None:
+    """A list of finite numbers, as long as the first list of its ``kind`` (``sizes``: kind ->
+    length and where it was set). Only force lists may be empty (a geometric case has no load).
+    """
+    _need(isinstance(value, list) and (value or kind == "force"), where,
+          "a non-empty list of numbers", value)
+    for i, v in enumerate(value):
+        _need(_is_number(v), f"{where}[{i}]", "a finite number", v)
+    n, like = sizes.setdefault(kind, (len(value), f"as {where}"))
+    _need(len(value) == n, where, f"{n} numbers ({like})", value)
+
+
+def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> None:
+    """Raise :class:`_Malformed` unless ``d`` is a record :func:`design_from_record` reads."""
+    d = _object(d, where, ("criterion", "m", "experiments", "rms_error_m", "scores", "solver"))
+    _need(isinstance(d["criterion"], str) and d["criterion"] in CRITERIA, f"{where}.criterion",
+          f"one of {', '.join(CRITERIA)}", d["criterion"])
+    _int(d["m"], f"{where}.m", 1)
+    exps = d["experiments"]
+    _need(isinstance(exps, list) and len(exps) == d["m"], f"{where}.experiments",
+          f"a list of m = {d['m']} experiments", exps)
+    for i, e in enumerate(exps):
+        e = _object(e, f"{where}.experiments[{i}]", ("q_rad", "force"))
+        _numbers(e["q_rad"], f"{where}.experiments[{i}].q_rad", sizes, "q_rad")
+        _numbers(e["force"], f"{where}.experiments[{i}].force", sizes, "force")
+    _numbers(d["rms_error_m"], f"{where}.rms_error_m", sizes, "test poses")
+    scores = _object(d["scores"], f"{where}.scores",
+                     _SCORE_NUMBERS + ("observability", "identifiable"))
+    for k in _SCORE_NUMBERS:
+        _need(_is_number(scores[k]), f"{where}.scores.{k}", "a finite number", scores[k])
+    obs = scores["observability"]
+    _need(isinstance(obs, dict), f"{where}.scores.observability", "an object", obs)
+    for k, v in obs.items():
+        _need(_is_number(v), f"{where}.scores.observability.{k}", "a finite number", v)
+    _need(isinstance(scores["identifiable"], bool), f"{where}.scores.identifiable", "true or false",
+          scores["identifiable"])
+    solver = _object(d["solver"], f"{where}.solver", ("status", "per_start", "wall_s", "seed"))
+    _need(isinstance(solver["status"], str), f"{where}.solver.status", "a string", solver["status"])
+    _need(_is_number(solver["wall_s"]) and solver["wall_s"] >= 0, f"{where}.solver.wall_s",
+          "a number of seconds >= 0", solver["wall_s"])
+    _int(solver["seed"], f"{where}.solver.seed", 0)
+    starts = solver["per_start"]
+    _need(isinstance(starts, list) and starts, f"{where}.solver.per_start", "a non-empty list",
+          starts)
+    for i, s in enumerate(starts):
+        at = f"{where}.solver.per_start[{i}]"
+        s = _object(s, at, _START_KEYS)
+        extra = [k for k in s if k not in _START_KEYS]
+        if extra:
+            raise _Malformed(f"{at}: unexpected key '{extra[0]}'")
+        _need(isinstance(s["status"], str), f"{at}.status", "a string", s["status"])
+        _int(s["iterations"], f"{at}.iterations", 0)
+        for k in ("value", "max_rms_error_m"):  # +-Infinity or NaN for a start that failed
+            _need(_is_number(s[k], finite=False), f"{at}.{k}", "a number", s[k])
+        _need(isinstance(s["feasible"], bool), f"{at}.feasible", "true or false", s["feasible"])
+
+
+def _check_results(record: object) -> None:
+    """Raise :class:`_Malformed` unless ``record`` is a results or sweep record that
+    :func:`design_from_record`, ``plot`` and ``evaluate --compare`` can use."""
+    if not isinstance(record, dict):
+        raise _Malformed(f"holds {_shown(record)}, not a results record (a JSON object)")
+    missing = [k for k in ("problem", "test_poses", "designs") if k not in record]
+    if missing:
+        raise _Malformed(f"has no '{missing[0]}'")
+    _need(isinstance(record["problem"], str), "problem", "a string", record["problem"])
+    sizes: dict[str, tuple[int, str]] = {}
+    poses = record["test_poses"]
+    _need(isinstance(poses, list) and poses, "test_poses", "a non-empty list", poses)
+    for i, t in enumerate(poses):
+        _numbers(_object(t, f"test_poses[{i}]", ("position_m",))["position_m"],
+                 f"test_poses[{i}].position_m", sizes, "position_m")
+    sizes["test poses"] = (len(poses), "one per test pose")
+    designs = record["designs"]
+    _need(isinstance(designs, list) and designs, "designs", "a non-empty list", designs)
+    for i, d in enumerate(designs):
+        _check_design(d, f"designs[{i}]", sizes)
+    if "sweep" not in record:
+        return
+    sweep = _object(record["sweep"], "sweep",
+                    ("m", "criteria", "seeded_starts", "warm_start", "reference"))
+    _need(isinstance(sweep["m"], list) and sweep["m"], "sweep.m", "a non-empty list", sweep["m"])
+    for i, m in enumerate(sweep["m"]):
+        _int(m, f"sweep.m[{i}]", 1)
+    _need(isinstance(sweep["criteria"], list) and sweep["criteria"], "sweep.criteria",
+          "a non-empty list", sweep["criteria"])
+    for i, c in enumerate(sweep["criteria"]):
+        _need(isinstance(c, str) and c in CRITERIA, f"sweep.criteria[{i}]",
+              f"one of {', '.join(CRITERIA)}", c)
+    _int(sweep["seeded_starts"], "sweep.seeded_starts", 1)
+    _need(isinstance(sweep["warm_start"], bool), "sweep.warm_start", "true or false",
+          sweep["warm_start"])
+    if sweep["reference"] is not None:
+        _check_design(sweep["reference"], "sweep.reference", sizes)
+    solved = {(d["criterion"], d["m"]) for d in designs}
+    grid = ((c, m) for m in sweep["m"] for c in sweep["criteria"])
+    lost = next((cm for cm in grid if cm not in solved), None)
+    if lost:
+        raise _Malformed(f"designs: no design for criterion {lost[0]}, m = {lost[1]} of the sweep")
+
+
+def read_json(path: Path | str) -> dict:
+    """A results.json / sweep.json file, or the one inside a folder (sweep.json first).
+
+    The record is checked (:func:`_check_results`) before it is returned, so its designs can
+    be given to :func:`design_from_record`; ``record["_path"]`` is the file read.
+
+    Raises
+    ------
+    OutputError
+        No such file, not UTF-8 JSON, or a record of another shape (one line, naming the field).
+    """
+    path = Path(path)
+    try:
+        if path.is_dir():
+            found = [path / n for n in ("sweep.json", "results.json") if (path / n).is_file()]
+            if not found:
+                raise OutputError(f"{path}: no sweep.json or results.json in this folder; "
+                                  "give the file written by `casadi-design solve` or `sweep`")
+            path = found[0]
+        if path.exists() and not path.is_file():
+            raise OutputError(f"{path}: is not a regular file (a device or a pipe); "
+                              f"{_RESULTS_HINT}")
+        record = json.loads(path.read_bytes().decode("utf-8-sig"))
     except FileNotFoundError:
-        raise OutputError(f"{path}: no such results file") from None
+        raise OutputError(f"{path}: no such results file; check the path") from None
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot be read ({exc.strerror}); check the path and its "
+                          "permissions") from None
+    except UnicodeDecodeError as exc:
+        raise OutputError(f"{path}: is not UTF-8 text (byte at offset {exc.start}), so not a "
+                          f"results file; {_RESULTS_HINT}") from None
     except json.JSONDecodeError as exc:
         raise OutputError(f"{path}: not valid JSON ({exc}); give a results.json or sweep.json") from None
-    if not isinstance(record, dict) or "designs" not in record:
-        raise OutputError(f"{path}: has no 'designs'; give a results.json or sweep.json")
+    except RecursionError:
+        raise OutputError(f"{path}: JSON nested too deeply; {_RESULTS_HINT}") from None
+    try:
+        _check_results(record)
+    except _Malformed as exc:
+        raise OutputError(f"{path}: {exc}; {_RESULTS_HINT}") from None
     record["_path"] = str(path)
     return record
 
@@ -144,17 +314,45 @@ class OutputError(ValueError):
     """An output folder or file cannot be written (or read back) as asked."""
 
 
-def prepare_out(out: Path, force: bool = False, resume: bool = False) -> Path:
-    """Check that ``out`` may be written: missing, empty, or ``force``/``resume`` given.
+def prepare_out(out: Path | str, force: bool = False, resume: bool = False) -> Path:
+    """Check, before anything is solved, that the output folder ``out`` may be written.
 
-    Nothing is created here, so an error later leaves no folder behind.
+    ``out`` may be missing (its parent folder must exist: it is not created), empty, or hold
+    files when ``force`` (overwrite them) or ``resume`` is given; ``resume`` needs the
+    ``sweep.partial.json`` or ``sweep.json`` of an earlier sweep in it. Nothing is created
+    here, so an error later leaves no folder behind.
+
+    Raises
+    ------
+    OutputError
+        Empty name, missing or not writable parent, not a folder, not empty, nothing to resume
+        (one line each).
     """
+    from .sweep import PARTIAL_NAME
+
+    if not str(out).strip():  # checked on the string: Path("") is "."
+        raise OutputError("--out is empty; give a folder name")
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{out}: exists and is not a folder; choose another --out")
-    if out.is_dir() and any(out.iterdir()) and not (force or resume):
-        raise OutputError(f"{out}: folder exists and is not empty; add --force to overwrite "
-                          "its files (or choose another --out)")
+    try:
+        if out.exists() and not out.is_dir():
+            raise OutputError(f"{out}: exists and is not a folder; choose another --out")
+        if not out.exists() and not out.parent.is_dir():
+            what = "is not a folder" if out.parent.exists() else "does not exist"
+            raise OutputError(f"{out}: its parent folder {out.parent} {what}; create it first or "
+                              "choose another --out")
+        folder = out if out.exists() else out.parent
+        if not os.access(folder, os.W_OK | os.X_OK | (os.R_OK if folder == out else 0)):
+            raise OutputError(f"{out}: no permission to write in {folder}; choose another --out "
+                              "or change the folder's permissions")
+        if out.is_dir() and any(out.iterdir()) and not (force or resume):
+            raise OutputError(f"{out}: folder exists and is not empty; add --force to overwrite "
+                              "its files (or choose another --out)")
+        if resume and not any((out / n).is_file() for n in (PARTIAL_NAME, "sweep.json")):
+            raise OutputError(f"{out}: nothing to resume (no {PARTIAL_NAME} or sweep.json); run "
+                              "without --resume")
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot be checked ({exc.strerror}); choose another "
+                          "--out") from None
     return out
 
 
@@ -163,13 +361,25 @@ def write_json(path: Path, record: dict) -> None:
     write_atomic(path, (json.dumps(record, indent=2) + "\n").encode())
 
 
+def _umask() -> int:
+    """The process's umask (read by setting it and setting it back: process-global)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename (never half-written)."""
+    """Write ``data`` to ``path`` through a temporary file and a rename (never half-written).
+
+    The file gets the mode a plain ``open(path, "wb")`` gives a new file, ``0o666`` less the
+    umask (the temporary file of :func:`tempfile.mkstemp` is ``0o600``).
+    """
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

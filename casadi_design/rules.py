@@ -91,7 +91,8 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
     F : ndarray, shape (nF, m), N (N m)
     """
     robot, force, ws = problem.robot, problem.force, problem.workspace
-    Q, F = np.asarray(Q, dtype=float), np.asarray(F, dtype=float).reshape(problem.model.nF, -1)
+    Q = np.asarray(Q, dtype=float)
+    F = np.asarray(F, dtype=float).reshape(problem.model.nF, Q.shape[1])
     out = []
     for i, q in enumerate(Q.T):
         for k, j in enumerate(robot.joints):

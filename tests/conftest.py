@@ -8,20 +8,28 @@ from pathlib import Path
 
 import pytest
 
-from casadi_design.problem import build_problem, load_problem
+from casadi_design.build import build_problem, load_problem
+from casadi_design.problem import parse_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "problems" / "paper_planar_2r.toml"
+PROBLEM_FILES = sorted((ROOT / "problems").glob("*.toml"))
+
+
+def read_raw(path: Path) -> dict:
+    """A problem file as a fresh, editable dict."""
+    with open(path, "rb") as fh:
+        return copy.deepcopy(tomllib.load(fh))
 
 
 def paper_raw() -> dict:
     """The paper's problem file as a fresh, editable dict."""
-    with open(PAPER, "rb") as fh:
-        return copy.deepcopy(tomllib.load(fh))
+    return read_raw(PAPER)
 
 
-def build(raw: dict):
-    return build_problem(raw, "test.toml")
+def build(raw: dict, path: str = "test.toml"):
+    """Read (check) and build a problem from a dict, as if it were the file ``path``."""
+    return build_problem(parse_problem(raw, path))
 
 
 @pytest.fixture(scope="session")

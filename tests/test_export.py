@@ -7,7 +7,8 @@ import pytest
 
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
-from casadi_design.export import plan_table, plan_violations, read_plan_csv, write_plan_csv
+from casadi_design.export import plan_table, read_plan_csv, write_plan_csv
+from casadi_design.rules import plan_violations
 from casadi_design.nlp import B0_at_test_poses
 from casadi_design.solve import plan_scores, solve_design
 from tests.conftest import PAPER, build, paper_raw

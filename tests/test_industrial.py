@@ -13,7 +13,8 @@ from casadi_design.identifiability import base_set
 from casadi_design.ik import sample_path
 from casadi_design.measures import information_matrix
 from casadi_design.models import calibration_model
-from casadi_design.problem import build_problem, load_problem
+from casadi_design.build import load_problem
+from tests.conftest import build
 from casadi_design.robots import (
     add_tool_frame,
     frame_jacobian,
@@ -154,10 +155,10 @@ def test_covariance_gives_weighted_least_squares():
     raw = _raw("ur10_drilling.toml")
     raw["calibration"]["parameters"] = ["shoulder_pan_joint.offset", "shoulder_lift_joint.offset", "elbow_joint.offset"]
     raw["experiments"]["m"] = [2]
-    plain = build_problem(copy.deepcopy(raw), "plain.toml")
+    plain = build(copy.deepcopy(raw), "plain.toml")
     cov = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.5], [0.0, 0.5, 1.0]]) * 1e-9
     raw["measurement"]["covariance"] = cov.tolist()
-    weighted = build_problem(raw, "weighted.toml")
+    weighted = build(raw, "weighted.toml")
     q = np.random.default_rng(1).uniform(-2, 2, (3, 6))
     Bw = np.array([weighted.model.B_numeric(qi, np.zeros(0)) for qi in q])
     Bp = np.array([plain.model.B_numeric(qi, np.zeros(0)) for qi in q])
@@ -174,7 +175,7 @@ def test_covariance_gives_weighted_least_squares():
 def test_path_nodes_are_reached_with_the_tool_orientation(kind, points):
     raw = _raw("ur10_drilling.toml")
     raw["test_poses"]["path"] = {"kind": kind, "points_m": points, "nodes": 15}
-    p = build_problem(raw, "path.toml")
+    p = build(raw, "path.toml")
     target, _ = sample_path(kind, np.array(points), 15)
     R = pin.rpy.rpyToMatrix(*np.radians(raw["test_poses"]["tool_rpy_deg"]))
     for q, x in zip(p.test_poses.q, target):
@@ -212,12 +213,12 @@ def test_industrial_input_errors(edit, match):
     raw = _raw("ur10_drilling.toml")
     edit(raw)
     if match is None:  # a floor above the robot: no feasible calibration pose
-        p = build_problem(raw, "ur10.toml")
+        p = build(raw, "ur10.toml")
         with pytest.raises(DesignError, match=r"leaves no feasible pose"):
             solve_design(p, "D", 9, starts=1)
         return
     with pytest.raises(ProblemError, match=match):
-        build_problem(raw, "ur10.toml")
+        build(raw, "ur10.toml")
 
 
 @pytest.mark.parametrize("edit, match", [
@@ -231,21 +232,21 @@ def test_dh_table_errors(edit, match):
     raw = _raw("abb_irb6640_machining.toml")
     edit(raw["robot"]["dh"])
     with pytest.raises(ProblemError, match=match):
-        build_problem(raw, "abb.toml")
+        build(raw, "abb.toml")
 
 
 def test_hung_load_cannot_identify_joint_1():
     raw = _raw("abb_irb6640_machining.toml")
     raw["calibration"]["compliant_joints"].insert(0, "joint_1")
     with pytest.raises(ProblemError, match=r"k.joint_1 has no effect on them under the calibration load"):
-        build_problem(raw, "abb.toml")
+        build(raw, "abb.toml")
 
 
 def test_markers_count_six_values_per_experiment():
     raw = _raw("abb_irb6640_machining.toml")
     raw["experiments"]["m"] = [5]
     with pytest.raises(ProblemError, match=r"m = 5 is too small: 35 parameters .* with 6 independent measured values"):
-        build_problem(raw, "abb.toml")
+        build(raw, "abb.toml")
 
 
 def test_workspace_constraints_hold_in_a_solved_plan():
@@ -256,7 +257,7 @@ def test_workspace_constraints_hold_in_a_solved_plan():
     raw["experiments"]["m"] = [3]
     raw["experiments"]["workspace"] = {"floor_z_m": 0.3, "sphere_center_m": [1.5, 0.0, 0.5],
                                        "sphere_radius_m": 1.6, "min_joint_distance_rad": 1.0}
-    p = build_problem(raw, "ws.toml")
+    p = build(raw, "ws.toml")
     d = solve_design(p, "test-pose", 3, starts=3)
     origins = p.model.kinematics.joint_origins
     moving = np.ptp([np.asarray(origins(q))[2] for q in np.random.default_rng(0).uniform(-2, 2, (5, 6))], axis=0) > 1e-9

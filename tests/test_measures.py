@@ -6,8 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from casadi_design.measures import CRITERIA, information_matrix, score_plan, rho_at_test_poses
-from casadi_design.nlp import OBJECTIVES, build_nlp, B0_at_test_poses
+from casadi_design.criteria import CRITERIA
+from casadi_design.measures import information_matrix, score_plan, rho_at_test_poses
+from casadi_design.nlp import build_nlp, B0_at_test_poses
 from casadi_design.solve import random_plan, solve_design
 from tests.conftest import build, paper_raw
 
@@ -19,8 +20,20 @@ def _random_plan_B(paper, m, seed):
     return Q, F, np.array([paper.model.B_numeric(q, f) for q, f in zip(Q.T, F.T)])
 
 
-def test_criteria_tables_agree():
-    assert set(CRITERIA) == set(OBJECTIVES)
+def test_one_criterion_registry():
+    """The problem reader's names are the registry's, and seed ids are distinct and fixed."""
+    from casadi_design.problem import CRITERION_NAMES
+
+    assert tuple(CRITERIA) == CRITERION_NAMES
+    assert [c.seed_id for c in CRITERIA.values()] == list(range(len(CRITERIA)))
+
+
+def test_same_optimum_is_relative():
+    """Two UR10 test-pose optima 0.01965 and 0.02015 mm are different optima (2.5 %)."""
+    tp, D = CRITERIA["test-pose"], CRITERIA["D"]
+    assert not tp.same_optimum(0.02015e-3, 0.01965e-3)
+    assert tp.same_optimum(0.01965e-3 * (1 + 1e-7), 0.01965e-3)
+    assert D.same_optimum(-40.0 + 1e-7, -40.0) and not D.same_optimum(-40.0 + 1e-3, -40.0)
 
 
 def test_M_symmetric_psd_and_rho_formula(paper):

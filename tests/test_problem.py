@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from casadi_design.errors import DesignError, ProblemError
-from casadi_design.problem import load_problem
+from casadi_design.build import load_problem
 from casadi_design.solve import solve_design
 from tests.conftest import ROOT, build, paper_raw
 
@@ -72,7 +72,6 @@ def _edit(path: str, value):
         ("experiments.force", {"mode": "fixed", "vector_N": [0.0, 0.0]}, r"vector_N: is zero"),
         ("experiments.workspace", {"half_spaces": [{"normal": [0, 1, 0], "offset_m": "x"}]}, r"half_spaces\].offset_m: expected float"),
         ("experiments.workspace", {"half_spaces": [{"normal": [0, 1], "offset_m": 0.0}]}, r"half_spaces\].normal: expected finite numbers of shape 3"),
-        ("solver.ipopt", {"no_such_option": 3}, r"\[solver\].ipopt: IPOPT rejected the options"),
         ("solver.tol", -1.0, r"\[solver\].tol: must be positive"),
         ("test_poses.joints_rad", [[0.1, 0.2]], r"give exactly one"),
     ],
@@ -80,6 +79,14 @@ def _edit(path: str, value):
 def test_bad_input_messages(path, value, match):
     with pytest.raises(ProblemError, match=match):
         build(_edit(path, value))
+
+
+def test_bad_ipopt_option_is_refused_before_solving():
+    from casadi_design.solve import check_ipopt_options
+
+    problem = build(_edit("solver.ipopt", {"no_such_option": 3}))
+    with pytest.raises(ProblemError, match=r"test.toml: \[solver\].ipopt: IPOPT rejected the options"):
+        check_ipopt_options(problem)
 
 
 def test_m_too_small_for_the_parameters():

@@ -11,7 +11,7 @@ import pytest
 import casadi_design.sweep as sweep_module
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
-from casadi_design.problem import load_problem
+from casadi_design.build import load_problem
 from casadi_design.sweep import parse_m_values, sweep_from_record, sweep_rows
 from tests.conftest import PAPER, ROOT
 

@@ -11,7 +11,7 @@ from casadi_design.robots import (
     make_robot,
     planar_arm,
 )
-from casadi_design.problem import load_problem
+from casadi_design.build import load_problem
 from casadi_design.symbolic import PLACEMENT_ERRORS, parameter_names, symbolic_kinematics
 from tests.conftest import ROOT
 
