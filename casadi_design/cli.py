@@ -58,6 +58,19 @@ def _names(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
+#: Figure formats ``plot --format`` writes.
+FIGURE_FORMATS = ("png", "pdf", "svg")
+
+
+def _formats(text: str) -> list[str]:
+    formats = _names(text)
+    unknown = [f for f in formats if f not in FIGURE_FORMATS]
+    if unknown or not formats:
+        raise argparse.ArgumentTypeError(f"unknown figure format '{unknown[0] if unknown else text}'; "
+                                         f"allowed: {', '.join(FIGURE_FORMATS)}")
+    return formats
+
+
 # --------------------------------------------------------------------------- shared steps
 
 def _executor(args: argparse.Namespace):
@@ -359,10 +372,16 @@ def _evaluate(args: argparse.Namespace) -> int:
             "max_rms_error_m": scores.max_rms_error_m, **scores.as_dict(),
             "violations": violations,
         })
-        bands = [Band(f"Your plan ({Path(args.plan).name})", USER_STYLE, scores.rms_error_m), *others]
-        _write_figures(out, "evaluation", bands_figure(problem.test_poses.position_m, bands,
-                                                         f"{m} calibration experiment{'s' if m > 1 else ''}"))
-        _say(args, f"wrote {out / 'evaluation.json'}, {out / 'evaluation.png'}, {out / 'evaluation.pdf'}")
+        # a singular plan has no finite error band: draw the others, or no figure at all
+        bands = ([Band(f"Your plan ({Path(args.plan).name})", USER_STYLE, scores.rms_error_m)]
+                 if scores.identifiable else []) + others
+        files = [out / "evaluation.json"]
+        if bands:
+            _write_figures(out, "evaluation", bands_figure(problem.test_poses.position_m, bands,
+                                                             f"{m} calibration experiment{'s' if m > 1 else ''}"))
+            files += [out / "evaluation.png", out / "evaluation.pdf"]
+        _say(args, "wrote " + ", ".join(map(str, files))
+             + ("" if scores.identifiable else " (no error band of your plan: M is singular)"))
     return 0
 
 
@@ -375,9 +394,11 @@ def _plot(args: argparse.Namespace) -> int:
     from .results import design_from_record, read_json
     from .sweep import sweep_from_record
 
+    if args.out is not None and not args.out.strip():
+        raise OutputError("--out is empty; give a folder name (or leave --out out to write beside the results)")
     record = read_json(Path(args.results))
     src = Path(record["_path"])
-    out = Path(args.out) if args.out else src.parent
+    out = Path(args.out) if args.out is not None else src.parent
     designs = [design_from_record(d) for d in record["designs"]]
     available = sorted({d.m for d in designs})
     figures = {"fig1": fig1(np.array([t["position_m"] for t in record["test_poses"]]), designs,
@@ -507,7 +528,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--m", type=_m_values, metavar="LIST",
                       help="m of the fig1 panels, e.g. 1,5 (default: the first and last m)")
     plot.add_argument("--log", action="store_true", help="logarithmic axes in sweep_max_error")
-    plot.add_argument("--format", type=_names, default=["png", "pdf"], metavar="LIST",
+    plot.add_argument("--format", type=_formats, default=["png", "pdf"], metavar="LIST",
                       help="file formats, comma separated: png, pdf, svg (default: png,pdf)")
     plot.add_argument("--force", action="store_true", help="overwrite figures that exist")
     _common(plot)

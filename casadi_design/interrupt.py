@@ -2,14 +2,19 @@
 
 CasADi checks for Ctrl-C between IPOPT iterations, runs Python's handler, and then reports the
 start as failed (a ``KeyboardInterruptException`` warning) instead of raising. The command line
-installs :func:`install`: the handler records the signal before raising, and :func:`check`,
-called after every solver call, turns the recorded signal back into ``KeyboardInterrupt``.
+installs :func:`install`: the handler records the signal before raising, and every solver
+call runs inside :func:`solver_call`, which turns the recorded signal back into
+``KeyboardInterrupt`` (and drops CasADi's warning about it).
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import signal
+import sys
 import threading
+from collections.abc import Iterator
 
 _HIT = threading.Event()
 
@@ -25,12 +30,18 @@ def install() -> None:
     signal.signal(signal.SIGINT, _handler)
 
 
-def check() -> None:
-    """Raise ``KeyboardInterrupt`` if Ctrl-C was pressed since :func:`install`."""
-    if _HIT.is_set():
-        raise KeyboardInterrupt
+@contextlib.contextmanager
+def solver_call() -> Iterator[None]:
+    """Run a CasADi solver call; raise ``KeyboardInterrupt`` after it if Ctrl-C was pressed.
 
-
-def interrupted() -> bool:
-    """Whether Ctrl-C was pressed since :func:`install`."""
-    return _HIT.is_set()
+    What CasADi writes to ``sys.stderr`` meanwhile is passed on, unless the call was
+    interrupted (then it is CasADi's ``KeyboardInterruptException`` warning).
+    """
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(said):
+            yield
+    finally:
+        if _HIT.is_set():
+            raise KeyboardInterrupt
+        sys.stderr.write(said.getvalue())

@@ -253,8 +253,9 @@ class _Reader:
             raise self.error(f"unknown key '{unknown[0]}'", f"allowed: {', '.join(sorted(allowed))}")
 
     def where(self, key: str | None = None) -> str:
-        sec = f"[{self.section}]" if self.section else "top level"
-        return f"{self.path}: {sec}" + (f".{key}" if key else "")
+        if not self.section:
+            return f"{self.path}: {key or 'top level'}"
+        return f"{self.path}: [{self.section}]" + (f".{key}" if key else "")
 
     def error(self, what: str, hint: str, key: str | None = None) -> ProblemError:
         return ProblemError(f"{self.where(key)}: {what}; {hint or 'fix it'}")

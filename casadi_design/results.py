@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -107,7 +108,8 @@ def design_from_record(record: dict) -> Design:
         F=np.array([e["force"] for e in exps], dtype=float).reshape(m, len(exps[0]["force"])),
         scores=scores,
         status=solver["status"],
-        starts=tuple(StartRecord(**s) for s in solver["per_start"]),
+        starts=tuple(StartRecord(**{k: math.nan if v is None else v for k, v in s.items()})
+                     for s in solver["per_start"]),
         wall_s=solver["wall_s"],
         seed=solver["seed"],
     )
@@ -218,8 +220,8 @@ def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> N
             raise _Malformed(f"{at}: unexpected key '{extra[0]}'")
         _need(isinstance(s["status"], str), f"{at}.status", "a string", s["status"])
         _int(s["iterations"], f"{at}.iterations", 0)
-        for k in ("value", "max_rms_error_m"):  # +-Infinity or NaN for a start that failed
-            _need(_is_number(s[k], finite=False), f"{at}.{k}", "a number", s[k])
+        for k in ("value", "max_rms_error_m"):  # null (or +-Infinity, NaN) for a start that failed
+            _need(s[k] is None or _is_number(s[k], finite=False), f"{at}.{k}", "a number or null", s[k])
         _need(isinstance(s["feasible"], bool), f"{at}.feasible", "true or false", s["feasible"])
 
 
@@ -356,9 +358,23 @@ def prepare_out(out: Path | str, force: bool = False, resume: bool = False) -> P
     return out
 
 
+def json_ready(value: object) -> object:
+    """``value`` with every non-finite float (a singular plan's error, a failed start) as None,
+    so that the file is standard JSON (``null``), readable by any tool."""
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
 def write_json(path: Path, record: dict) -> None:
-    """``record`` as indented JSON, atomically."""
-    write_atomic(path, (json.dumps(record, indent=2) + "\n").encode())
+    """``record`` as indented standard JSON (non-finite numbers as ``null``), atomically."""
+    write_atomic(path, (json.dumps(json_ready(record), indent=2, allow_nan=False) + "\n").encode())
 
 
 def _umask() -> int:
@@ -388,7 +404,7 @@ def write_atomic(path: Path, data: bytes) -> None:
 
 def write_results(path: Path, problem: Problem, designs: list[Design]) -> dict:
     record = results_dict(problem, designs)
-    write_atomic(path, (json.dumps(record, indent=2) + "\n").encode())
+    write_json(path, record)
     return record
 
 

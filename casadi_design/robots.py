@@ -7,7 +7,13 @@ variables ``q``, in that order, rad for revolute and m for prismatic joints).
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -214,10 +220,50 @@ def load_urdf(path: str | Path) -> pin.Model:
     file = example_robot_data_dir() / text[len(prefix) :] if text.startswith(prefix) else Path(text)
     if not file.is_file():
         raise ProblemError(f"[robot].urdf: file {file} does not exist; give a URDF path")
-    try:
-        return pin.buildModelFromUrdf(str(file))
-    except (RuntimeError, ValueError) as exc:
-        raise ProblemError(f"[robot].urdf: Pinocchio cannot read {file} ({exc}); check the URDF") from None
+    with _captured_stderr() as said:
+        try:
+            model = pin.buildModelFromUrdf(str(file))
+        except (RuntimeError, ValueError) as exc:
+            model, error = None, str(exc).strip()
+    if model is None:
+        # the URDF parser prints its reason on the C++ stderr before raising a vaguer error
+        said_lines = [re.sub(r"^Error:\s*|\s*at line \d+ in \S+$", "", ln.strip()) for ln in said()]
+        reason = "; ".join(ln for ln in said_lines if ln) or error
+        raise ProblemError(f"[robot].urdf: Pinocchio cannot read {file} ({reason}); fix the URDF")
+    return model
+
+
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[Callable[[], list[str]]]:
+    """Capture what C++ code writes to file descriptor 2 (not only Python's ``sys.stderr``)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    lines: list[str] = []
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield lambda: lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            lines += tmp.read().decode("utf-8", "replace").splitlines()
+
+
+def joint_kind_for_people(shortname: str) -> str:
+    """``JointModelRUBZ`` -> "a continuous joint (revolute without limits, about z)" and so on."""
+    axis = shortname[-1].lower() if shortname[-1] in "XYZ" else ""
+    about = f", about {axis}" if axis else ""
+    kinds = {"JointModelRUB": "a continuous joint (revolute without limits{})",
+             "JointModelFreeFlyer": "a floating joint (6 degrees of freedom){}",
+             "JointModelSpherical": "a spherical joint (3 degrees of freedom){}",
+             "JointModelPlanar": "a planar joint (3 degrees of freedom){}",
+             "JointModelTranslation": "a translation joint (3 degrees of freedom){}",
+             "JointModelHelical": "a helical joint{}"}
+    for prefix, text in kinds.items():
+        if shortname.startswith(prefix):
+            return text.format(about)
+    return f"a joint of type {shortname.removeprefix('JointModel')}"
 
 
 def make_robot(
@@ -239,13 +285,19 @@ def make_robot(
     parent = model.frames[model.getFrameId(frame)].parentJoint
     chain = [j for j in model.supports[parent] if j != 0]
     for jid in chain:
-        kind = model.joints[jid].shortname()
+        joint = model.joints[jid]
+        kind = joint.shortname()
         if kind not in SUPPORTED_JOINTS:
             raise ProblemError(
-                f"[robot]: joint '{model.names[jid]}' is a {kind}; supported: "
-                + ", ".join(SUPPORTED_JOINTS)
-                + " (declare continuous URDF joints as revolute with limits)"
+                f"[robot]: joint '{model.names[jid]}' is {joint_kind_for_people(kind)}; the chain to "
+                f"'{frame}' may hold revolute and prismatic joints with limits only; declare it "
+                "revolute (or prismatic) with <limit lower=... upper=...> in the URDF"
             )
+        if kind.endswith("Unaligned"):
+            axis = np.asarray(joint.extract().axis, dtype=float)
+            if not (np.all(np.isfinite(axis)) and np.linalg.norm(axis) > 0):
+                raise ProblemError(f"[robot]: joint '{model.names[jid]}' has the axis {axis.tolist()} of zero "
+                                   "length; give its <axis xyz=...> a non-zero direction in the URDF")
     joints = tuple(model.names[j] for j in chain)
     idx = [model.joints[j].idx_q for j in chain]
     q_min = np.array(model.lowerPositionLimit[idx], dtype=float)

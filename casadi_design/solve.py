@@ -192,8 +192,8 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
     lam = np.linalg.eigvalsh(np.asarray(d_nlp.information(x0)))
     if lam[0] > POLISH_RCOND * lam[-1]:
         return Q0, F0
-    sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
-    interrupt.check()
+    with interrupt.solver_call():
+        sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
     Q, F = (np.asarray(v, dtype=float) for v in d_nlp.plan(sol["x"]))
     return np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None]), F
 
@@ -209,8 +209,8 @@ def solve_start(
     """
     nlp, solver = ds.nlp, ds.solver
     Q0, F0 = _polished(problem, ds, Q0, F0)
-    sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
-    interrupt.check()  # IPOPT reports Ctrl-C as a failed start: stop instead
+    with interrupt.solver_call():  # IPOPT reports Ctrl-C as a failed start: stop instead
+        sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     stats = solver.stats()
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
     Q = np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None])
@@ -275,18 +275,19 @@ def solve_design(
     else:
         results = executor.map_starts(problem, criterion, m, B0, plans, verbose)
     crit = CRITERIA[criterion]
-    records, best = [], None
+    records, best, why = [], None, []
     for rec, Q, F, scores in results:
         if progress is not None:
             progress(1)
         records.append(rec)
+        why.append("" if rec.feasible else " (singular M: the plan does not identify every parameter)"
+                   if not scores.identifiable else " (the plan breaks a rule of the problem)")
         if rec.converged and (best is None or crit.better(rec.value, best[0].value)):
             best = (rec, Q, F, scores)
     if best is None:
         counts: dict[str, int] = {}
-        for r in records:
-            key = r.status if r.feasible else f"{r.status} (infeasible plan)"
-            counts[key] = counts.get(key, 0) + 1
+        for r, reason in zip(records, why):
+            counts[r.status + reason] = counts.get(r.status + reason, 0) + 1
         raise DesignError(
             f"{problem.path}: criterion {criterion}, m = {m}: none of {len(records)} starts converged "
             f"to a feasible plan (IPOPT: {', '.join(f'{k} x {v}' for k, v in counts.items())}); "

@@ -114,7 +114,7 @@ class Sweep:
     designs : {(criterion, m): Design}
     seeded_starts : seeded starts per design; a design with more starts had a warm start (last).
     reference : the best test-pose design at ``problem.m_min``, for the "repeat" line (None when
-        the sweep has no test-pose design there and none was solved).
+        the sweep has no test-pose criterion).
     """
 
     m_values: tuple[int, ...]
@@ -180,7 +180,7 @@ def run_sweep(
                 on_design(d)
     m_ref = problem.m_min
     reference = designs.get(("test-pose", m_ref))
-    if reference is None:
+    if reference is None and "test-pose" in criteria:
         reference = solve_design(problem, "test-pose", m_ref, B0, starts=n_seeded, verbose=verbose,
                                  executor=executor, progress=progress)
     return Sweep(ms, criteria, {k: designs[k] for k in ((c, m) for m in ms for c in criteria)},
@@ -193,7 +193,7 @@ def sweep_total_starts(problem: Problem, criteria: Iterable[str], m_values: Iter
     criteria, ms = tuple(criteria), sorted(set(m_values))
     n = (starts or problem.solver.starts)
     total = len(criteria) * (len(ms) * n + (len(ms) - 1 if warm_start else 0))
-    if not ("test-pose" in criteria and problem.m_min in ms):
+    if "test-pose" in criteria and problem.m_min not in ms:
         total += n
     return total
 
@@ -303,20 +303,24 @@ def load_partial(out: Path, key: dict) -> dict[tuple[str, int], Design]:
         path = Path(out) / name
         if not path.is_file():
             continue
+        damaged = OutputError(f"{path}: not a sweep saved by casadi-design, or damaged; use --force "
+                              "to start over")
         try:
-            record = json.loads(path.read_text())
+            record = json.loads(path.read_bytes().decode("utf-8"))
             saved = record[where] if where == "key" else record["sweep"]["key"]
-        except (json.JSONDecodeError, KeyError, TypeError):
-            raise OutputError(f"{path}: not a sweep saved by casadi-design; use --force to start "
-                              "over") from None
-        diff = [k for k in key if saved.get(k) != key[k]]
+            diff = [k for k in key if saved.get(k) != key[k]]
+        except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError):
+            raise damaged from None
         if diff:
             k = diff[0]
             what = "the problem file changed" if k == "problem_sha256" else (
                 f"{k} was {saved.get(k)}, now {key[k]}")
             raise OutputError(f"{path}: saved with other settings ({what}); resume with the same "
                               "problem and options, or use --force to start over")
-        return {(d["criterion"], d["m"]): design_from_record(d) for d in record["designs"]}
+        try:
+            return {(d["criterion"], d["m"]): design_from_record(d) for d in record["designs"]}
+        except (KeyError, TypeError, ValueError, AttributeError):
+            raise damaged from None
     return {}
 
 

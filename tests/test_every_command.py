@@ -1,0 +1,41 @@
+"""Every subcommand on every file in problems/, with tiny settings: no traceback anywhere.
+
+The industrial problems use the D criterion (its NLP solves in a few seconds there) and the
+smallest m; the sweep runs a range that does not start at the smallest m.
+"""
+
+import json
+
+import pytest
+
+from casadi_design.build import load_problem
+from casadi_design.cli import main
+from tests.conftest import PROBLEM_FILES
+
+#: Criterion of the tiny runs: cheap on every problem.
+CRITERION = "D"
+
+
+@pytest.mark.parametrize("path", PROBLEM_FILES, ids=lambda p: p.stem)
+def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
+    problem = load_problem(path)
+    m = problem.m_min
+    tiny = ["--starts", "1", "--jobs", "1", "--criteria", CRITERION, "--quiet"]
+    solved, swept = tmp_path / "solve", tmp_path / "sweep"
+
+    assert main(["solve", str(path), "--m", str(m), *tiny, "--out", str(solved)]) == 0
+    assert main(["sweep", str(path), "--m", f"{m + 1}:{m + 1}", *tiny, "--out", str(swept)]) == 0
+    plan = solved / "plans" / f"{CRITERION}_m{m}.csv"
+    assert main(["evaluate", str(path), "--plan", str(plan), "--quiet"]) == 0
+    assert main(["evaluate", str(path), "--plan", str(plan), "--compare", str(solved),
+                 "--out", str(tmp_path / "evaluate"), "--quiet"]) == 0
+    assert main(["validate", str(path), "--results", str(solved / "results.json"), "--trials", "4",
+                 "--out", str(tmp_path / "validate")]) == 0
+    assert main(["plot", str(swept), "--out", str(tmp_path / "figures"), "--format", "png"]) == 0
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err and "error" not in err
+
+    evaluation = json.loads((tmp_path / "evaluate" / "evaluation.json").read_text())
+    assert evaluation["violations"] == []  # an optimal plan obeys every rule of its problem
+    assert (tmp_path / "figures" / "sweep_max_error.png").stat().st_size > 0
+    assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == 4
