@@ -191,19 +191,28 @@ def record(paper):
 
 
 def _results_file(tmp_path, record, name="results.json"):
-    path = tmp_path / name
-    write_json(path, record)
-    return path
+    """``record`` written as other tools may write it: NaN and Infinity as JSON's extensions."""
+    return _write(tmp_path / name, json.dumps(record))
 
 
 def test_results_file_reads_back_with_infinite_values_of_failed_starts(tmp_path, record):
     path = _results_file(tmp_path, record)
-    assert "Infinity" in path.read_text()  # the failed start, as json writes it
+    assert "Infinity" in path.read_text()  # the failed start, as Python's json writes it
     got = read_json(path)
     assert got["_path"] == str(path)
     d = design_from_record(got["designs"][1])
     assert d.criterion == "test-pose" and d.Q.shape == (2, 2) and d.starts[1].value == float("inf")
     assert read_json(tmp_path)["_path"] == str(path)  # the folder holding it
+
+
+def test_our_results_files_are_standard_json_with_null_for_failed_starts(tmp_path, record):
+    path = tmp_path / "results.json"
+    write_json(path, record)
+    text = path.read_text()
+    assert "Infinity" not in text and "NaN" not in text and "null" in text
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+    d = design_from_record(read_json(path)["designs"][1])
+    assert d.starts[1].status == "Restoration_Failed" and np.isnan(d.starts[1].value)
 
 
 def test_sweep_record_with_nan_in_its_table_reads_back(tmp_path, record):
