@@ -86,12 +86,33 @@ def _where(args: argparse.Namespace) -> str:
     return "in this process" if jobs == 1 else f"on {jobs} processes"
 
 
-def _load(path: str, check_solver: bool = True):
-    """Read and build a problem file; with ``check_solver``, also try its IPOPT options."""
-    from .build import load_problem
+def _ipopt_option(text: str) -> tuple[str, int | float | str]:
+    """``KEY=VALUE`` of ``--ipopt``: the value as an int, a float or a string."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip() or not value.strip():
+        raise argparse.ArgumentTypeError(f"--ipopt takes KEY=VALUE (e.g. max_cpu_time=60), got '{text}'")
+    for kind in (int, float):
+        try:
+            return key.strip(), kind(value)
+        except ValueError:
+            pass
+    return key.strip(), value.strip()
+
+
+def _load(args: argparse.Namespace, check_solver: bool = True):
+    """Read and build the problem file of ``args``, with the ``--ipopt`` options over its
+    [solver.ipopt]; with ``check_solver``, also try the IPOPT options."""
+    from dataclasses import replace
+
+    from .build import build_problem
+    from .problem import read_problem
     from .solve import check_ipopt_options
 
-    problem = load_problem(path)
+    spec = read_problem(args.problem)
+    if getattr(args, "ipopt", None):
+        options = {**dict(spec.solver.ipopt), **dict(args.ipopt)}
+        spec = replace(spec, solver=replace(spec.solver, ipopt=tuple(sorted(options.items()))))
+    problem = build_problem(spec)
     if check_solver:
         check_ipopt_options(problem)
     return problem
@@ -155,7 +176,7 @@ def _solve(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = prepare_out(args.out, args.force) if args.out is not None else None
     with _executor(args) as executor:  # first: worker processes start while the problem loads
-        problem = _load(args.problem)
+        problem = _load(args)
         m_values = args.m or sorted(problem.m_values)
         criteria = args.criteria or list(problem.criteria)
         check_criteria(problem, criteria)
@@ -213,7 +234,7 @@ def _sweep(args: argparse.Namespace) -> int:
     if args.resume and args.out is None:
         raise OutputError("--resume needs the --out folder of the interrupted sweep; add --out DIR")
     out = prepare_out(args.out, args.force, args.resume) if args.out is not None else None
-    problem = _load(args.problem)
+    problem = _load(args)
     criteria = args.criteria or list(problem.criteria)
     ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
     check_criteria(problem, criteria)
@@ -331,7 +352,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from .solve import plan_scores
 
     out = prepare_out(args.out, args.force) if args.out is not None else None
-    problem = _load(args.problem, check_solver=False)
+    problem = _load(args, check_solver=False)
     Q, F = read_plan_csv(problem, args.plan)
     m = Q.shape[1]
     others = []
@@ -440,6 +461,9 @@ def _compute(p: argparse.ArgumentParser, out_help: str) -> None:
     p.add_argument("--out", metavar="DIR", help=out_help)
     p.add_argument("--force", action="store_true",
                    help="write into --out even if it exists and is not empty (overwrites our files)")
+    p.add_argument("--ipopt", type=_ipopt_option, action="append", metavar="KEY=VALUE",
+                   help="an IPOPT option over [solver.ipopt] of the problem, e.g. --ipopt "
+                        "hessian_approximation=limited-memory (quick trials on large cases); repeatable")
     p.add_argument("--criteria", type=_names, metavar="LIST",
                    help="criteria, comma separated, among test-pose, D, A, E, T, condition "
                         "(default: [design].criteria of the problem)")

@@ -65,7 +65,7 @@ def test_ctrl_c_of_solve_exits_130_at_once(tmp_path):
          "--out", str(tmp_path / "solve"), "--quiet"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    time.sleep(4.0)  # imports, load, then IPOPT starts
+    time.sleep(3.0)  # imports, load, then IPOPT starts
     assert proc.poll() is None
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=WAIT_EXIT_S)
