@@ -4,7 +4,7 @@
     casadi-design sweep    problems/<case>.toml --m 1:10 --out DIR   accuracy vs m per criterion
     casadi-design evaluate problems/<case>.toml --plan plan.csv      score your own plan
     casadi-design plot     DIR/sweep.json                       redraw the figures
-    casadi-design validate ...                                  (casadi_design.validate)
+    casadi-design validate problems/<case>.toml --results DIR   simulate the calibration
 
 Errors in the input or a design that cannot be produced print one line ``error: ...`` and exit
 with code 2; files are written only once the work they describe is done (a sweep also keeps
@@ -440,11 +440,11 @@ def _plot(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- validate
 
-def _validate(argv: list[str]) -> int:
-    """``casadi-design validate ...``: the command line of :mod:`casadi_design.validate`."""
-    from .validate import main as validate_main
+def _validate(args: argparse.Namespace) -> int:
+    """``casadi-design validate``: the virtual calibration (:mod:`casadi_design.virtual`)."""
+    from .virtual import run
 
-    return validate_main(argv)
+    return run(args)
 
 
 # --------------------------------------------------------------------------- parser
@@ -558,9 +558,11 @@ def build_parser() -> argparse.ArgumentParser:
     _common(plot)
     plot.set_defaults(run=_plot)
 
-    sub.add_parser("validate", add_help=False,
-                   help="check the predicted accuracy by simulating the whole calibration: "
-                        "casadi-design validate --help")
+    from .virtual import DESCRIPTION, HELP, add_arguments
+
+    val = sub.add_parser("validate", help=HELP, description=DESCRIPTION)
+    add_arguments(val)
+    val.set_defaults(run=_validate)
     return parser
 
 
@@ -580,8 +582,6 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         interrupt.install()
     try:
-        if argv[:1] == ["validate"]:
-            return _validate(argv[1:])
         args = build_parser().parse_args(argv)
         return args.run(args)
     except (ArgumentError, ProblemError, DesignError, OutputError, MissingExtraError) as exc:

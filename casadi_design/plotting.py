@@ -142,3 +142,33 @@ def save_figure(fig: Figure, path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format=Path(path).suffix[1:], dpi=150)
     write_atomic(Path(path), buf.getvalue())
+
+
+def validation_figure(validation) -> Figure:
+    """Predicted ``sqrt(rho)`` (lines) and simulated RMS error with its interval (markers), mm,
+    along the test poses of a virtual calibration (a :class:`casadi_design.virtual.Validation`):
+    one panel per m."""
+    from .virtual.statistics import CONFIDENCE
+
+    x, xlabel = path_coordinate(validation.problem.test_poses.position_m)
+    ms = sorted({p.plan.m for p in validation.plans})
+    fig = Figure(figsize=(5.5 * len(ms), 4.5), layout="constrained")
+    axes = fig.subplots(1, len(ms), squeeze=False)[0]
+    every = max(1, len(x) // 20)
+    for ax, m in zip(axes, ms):
+        for i, p in enumerate(p for p in validation.plans if p.plan.m == m):
+            crit = CRITERIA[p.plan.criterion]
+            e = p.empirical_rms_m * 1e3
+            ax.plot(x, p.predicted_rms_m * 1e3, label=f"{crit.legend}: sqrt(rho)", **crit.style)
+            ax.errorbar(x[::every], e[::every],
+                        yerr=np.abs(np.vstack([p.ci_low_m, p.ci_high_m]) * 1e3 - e)[:, ::every],
+                        fmt="o", ms=3, capsize=2, color=crit.style["color"],
+                        label="simulated RMS and interval" if i == 0 else "_nolegend_")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("RMS error after compensation (mm)")
+        ax.set_ylim(bottom=0)
+        ax.set_title(f"m = {m}: {validation.trials} virtual calibrations, "
+                     f"{round(100 * CONFIDENCE)}% intervals")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    return fig
