@@ -35,3 +35,12 @@ def build(raw: dict, path: str = "test.toml"):
 @pytest.fixture(scope="session")
 def paper():
     return load_problem(PAPER)
+
+
+@pytest.fixture(scope="session")
+def paper_solved(paper):
+    """The paper's six designs (Table 4: test-pose, D, E at m = 1, 5), solved once for the suite
+    with the problem's own settings: ``{(criterion, m): Design}``."""
+    from casadi_design.solve import solve_design
+
+    return {(c, m): solve_design(paper, c, m) for m in paper.m_values for c in paper.criteria}

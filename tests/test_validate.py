@@ -53,8 +53,8 @@ def cli(argv):
 
 
 @pytest.fixture(scope="module")
-def paper_designs(paper):
-    return solve_all(paper)
+def paper_designs(paper_solved):
+    return list(paper_solved.values())
 
 
 @pytest.fixture(scope="module")
