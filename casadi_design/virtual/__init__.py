@@ -427,6 +427,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--results", metavar="JSON",
                         help="results.json (or sweep.json) of casadi-design solve (sweep) for this "
                              "problem (default: solve every criterion and m of the problem now)")
+    parser.add_argument("--starts", type=int, metavar="N",
+                        help="seeded IPOPT starts per design when solving first (default: "
+                             "[solver].starts of the problem)")
     parser.add_argument("--trials", type=int, default=2000, metavar="N",
                         help="simulated calibrations per plan (default 2000)")
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the simulation (default 0)")
@@ -456,16 +459,15 @@ def run(args: argparse.Namespace) -> int:
         is simulated or written).
     """
     from ..build import load_problem
-    from ..results import OutputError
+    from ..results import prepare_out
 
     _check_trials(args.trials)
+    if args.starts is not None and args.starts < 1:
+        raise ProblemError(f"--starts {args.starts}: give a positive number of IPOPT starts")
     spreads = ErrorSpreads(args.length_mm * 1e-3, math.radians(args.angle_deg), args.k,
                            args.k_log_spread)
-    out = None if args.out is None else Path(args.out)
-    if out is not None and not str(args.out).strip():
-        raise OutputError("--out is empty; give a folder name")
-    if out is not None and out.exists() and not out.is_dir():
-        raise OutputError(f"{out}: exists and is not a folder; choose another --out")
+    # our files in --out are replaced (as `plot` does); its other files are left alone
+    out = None if args.out is None else prepare_out(args.out, force=True)
     problem = load_problem(args.problem)
     if args.results:
         plans, source = plans_from_results(problem, args.results), str(args.results)
@@ -473,7 +475,8 @@ def run(args: argparse.Namespace) -> int:
         from ..solve import check_ipopt_options, solve_design
 
         check_ipopt_options(problem)
-        designs = [solve_design(problem, c, m) for m in problem.m_values for c in problem.criteria]
+        designs = [solve_design(problem, c, m, starts=args.starts)
+                   for m in problem.m_values for c in problem.criteria]
         plans, source = plans_from_designs(designs), "solved by casadi-design validate"
     t0 = time.perf_counter()
     validation = validate(problem, plans, args.trials, args.seed, spreads, source)
