@@ -327,19 +327,19 @@ def _write_sweep(out: Path, problem, sweep, fig_m: list[int], log: bool, starts:
 
 # --------------------------------------------------------------------------- evaluate
 
-def _observability(k: str, s) -> float:
-    return s.observability.get(k, math.nan)
+def _observability(k: str, scores) -> float:
+    return scores.observability.get(k, math.nan)
 
 
 #: Rows of the evaluate table: label, Scores -> value, format.
 MEASURE_ROWS = (
-    ("max over test poses of sqrt(rho), mm", lambda s: s.max_rms_error_m * 1e3, ".4f"),
-    ("mean over test poses of sqrt(rho), mm", lambda s: float(s.rms_error_m.mean()) * 1e3, ".4f"),
-    ("D: log det M", lambda s: s.log_det_M, ".6g"),
-    ("A: trace M^-1", lambda s: s.trace_M_inv, ".6g"),
-    ("E: smallest singular value s_L", lambda s: s.s_min, ".6g"),
-    ("T: trace M", lambda s: s.trace_M, ".6g"),
-    ("condition number s_1/s_L", lambda s: s.condition, ".6g"),
+    ("max over test poses of sqrt(rho), mm", lambda sc: sc.max_rms_error_m * 1e3, ".4f"),
+    ("mean over test poses of sqrt(rho), mm", lambda sc: float(sc.rms_error_m.mean()) * 1e3, ".4f"),
+    ("D: log det M", lambda sc: sc.log_det_M, ".6g"),
+    ("A: trace M^-1", lambda sc: sc.trace_M_inv, ".6g"),
+    ("E: smallest singular value s_L", lambda sc: sc.s_min, ".6g"),
+    ("T: trace M", lambda sc: sc.trace_M, ".6g"),
+    ("condition number s_1/s_L", lambda sc: sc.condition, ".6g"),
     *((k, partial(_observability, k), ".6g") for k in ("O1", "O2", "O3", "O4", "O5")),
 )
 
@@ -375,7 +375,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     print(f"{'measure (SI units of B unless stated)':<{width}}" + "".join(f"{n:>16}" for n in names))
     print("-" * (width + 16 * len(names)))
     for label, get, fmt in MEASURE_ROWS:
-        print(f"{label:<{width}}" + "".join(f"{get(s):>16{fmt}}" for s in [scores] + [d.scores for d in others]))
+        print(f"{label:<{width}}" + "".join(f"{get(sc):>16{fmt}}" for sc in [scores] + [d.scores for d in others]))
     if violations:
         print(f"the plan breaks {len(violations)} constraint(s) of the problem:")
         for v in violations:

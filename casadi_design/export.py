@@ -232,7 +232,7 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
                 f"{path}: the columns {', '.join(header[c] for c, _ in given)} of joint {j} "
                 f"disagree by {spread:.3g} (rad or m); give one of them or fix the values")
         # the SI column when given (exact), else the people's unit converted
-        Q[k] = values[next((i for i, (_, s) in enumerate(given) if s == 1.0), 0)]
+        Q[k] = values[next((i for i, (_, scale) in enumerate(given) if scale == 1.0), 0)]
     nF = problem.model.nF
     if nF == 0:
         return Q, np.zeros((0, m))

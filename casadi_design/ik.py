@@ -37,10 +37,10 @@ def sample_path(kind: str, points: np.ndarray, nodes: int) -> tuple[np.ndarray, 
         return P, np.arange(len(P))
     if kind in ("line", "polyline"):
         seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
-        s = np.linspace(0.0, seg.sum(), nodes)
+        arc = np.linspace(0.0, seg.sum(), nodes)
         edges = np.r_[0.0, np.cumsum(seg)]
-        k = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, len(seg) - 1)
-        t = (s - edges[k]) / seg[k]
+        k = np.clip(np.searchsorted(edges, arc, side="right") - 1, 0, len(seg) - 1)
+        t = (arc - edges[k]) / seg[k]
         return P[k] + t[:, None] * (P[k + 1] - P[k]), k
     a, b, c = P
     u, v = b - a, c - a

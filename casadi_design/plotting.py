@@ -28,8 +28,8 @@ def path_coordinate(position_m: np.ndarray) -> tuple[np.ndarray, str]:
     d = np.diff(p[:, k])
     if p.shape[0] > 1 and (np.all(d > 0) or np.all(d < 0)):
         return p[:, k], f"{'xyz'[k]} (mm)"
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
-    return s, "arc length along the test poses (mm)"
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+    return arc, "arc length along the test poses (mm)"
 
 
 #: Style of a plan given by the user (``casadi-design evaluate``).

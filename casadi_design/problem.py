@@ -732,21 +732,21 @@ def _workspace(w: _Reader | None) -> Workspace:
     )
 
 
-def _solver(s: _Reader | None) -> SolverSettings:
-    if s is None:
+def _solver(table: _Reader | None) -> SolverSettings:
+    if table is None:
         return SolverSettings()
     d = SolverSettings()
-    ipopt = s.sub("ipopt")
+    ipopt = table.sub("ipopt")
     options = tuple(sorted(ipopt.table.items())) if ipopt else ()
     for key, value in options:
         if not isinstance(value, (int, float, str)) or isinstance(value, float) and not math.isfinite(value):
             raise ipopt.error(f"expected a number or a string, got {_short(value)}",
                               "see the IPOPT options reference", key)
     return SolverSettings(
-        starts=s.integer("starts", d.starts, "the number of IPOPT starts", low=1, high=100_000),
-        seed=s.integer("seed", d.seed, "a non-negative integer", low=0, high=2**63 - 1),
-        max_iter=s.integer("max_iter", d.max_iter, "IPOPT iterations per start", low=0, high=10**9),
-        tol=s.number("tol", d.tol, "IPOPT's tolerance, e.g. 1e-10", positive=True),
+        starts=table.integer("starts", d.starts, "the number of IPOPT starts", low=1, high=100_000),
+        seed=table.integer("seed", d.seed, "a non-negative integer", low=0, high=2**63 - 1),
+        max_iter=table.integer("max_iter", d.max_iter, "IPOPT iterations per start", low=0, high=10**9),
+        tol=table.number("tol", d.tol, "IPOPT's tolerance, e.g. 1e-10", positive=True),
         ipopt=options,
     )
 

@@ -28,13 +28,13 @@ def optimum_spread(design: Design) -> dict:
     """
     crit = CRITERIA[design.criterion]
     best = design.scores.value(design.criterion)
-    tied = [s.max_rms_error_m for s in design.starts if s.converged and crit.same_optimum(s.value, best)]
+    tied = [st.max_rms_error_m for st in design.starts if st.converged and crit.same_optimum(st.value, best)]
     return {"starts_at_optimum": len(tied), "min_max_rms_error_m": min(tied), "max_max_rms_error_m": max(tied)}
 
 
 def design_record(design: Design) -> dict:
     """One design as plain data (SI units)."""
-    values = [s.value for s in design.starts if s.converged]
+    values = [st.value for st in design.starts if st.converged]
     return {
         "criterion": design.criterion,
         "m": design.m,
@@ -56,9 +56,9 @@ def design_record(design: Design) -> dict:
                                  "worst": max(values) if CRITERIA[design.criterion].sense == "min" else min(values),
                                  "median": float(np.median(values))},
             "per_start": [
-                {"status": s.status, "iterations": s.iterations, "value": s.value,
-                 "max_rms_error_m": s.max_rms_error_m, "feasible": s.feasible}
-                for s in design.starts
+                {"status": st.status, "iterations": st.iterations, "value": st.value,
+                 "max_rms_error_m": st.max_rms_error_m, "feasible": st.feasible}
+                for st in design.starts
             ],
         },
     }
@@ -108,8 +108,8 @@ def design_from_record(record: dict) -> Design:
         F=np.array([e["force"] for e in exps], dtype=float).reshape(m, len(exps[0]["force"])),
         scores=scores,
         status=solver["status"],
-        starts=tuple(StartRecord(**{k: math.nan if v is None else v for k, v in s.items()})
-                     for s in solver["per_start"]),
+        starts=tuple(StartRecord(**{k: math.nan if v is None else v for k, v in st.items()})
+                     for st in solver["per_start"]),
         wall_s=solver["wall_s"],
         seed=solver["seed"],
     )

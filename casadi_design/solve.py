@@ -80,11 +80,11 @@ class Design:
 
     @property
     def converged_starts(self) -> int:
-        return sum(s.converged for s in self.starts)
+        return sum(st.converged for st in self.starts)
 
     @property
     def iterations(self) -> int:
-        return sum(s.iterations for s in self.starts)
+        return sum(st.iterations for st in self.starts)
 
 
 def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
@@ -126,17 +126,17 @@ def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.Function:
     """IPOPT on the NLP, with the problem's solver settings (raw options passed through)."""
-    s = problem.solver
+    settings = problem.solver
     opts = {
-        "ipopt.max_iter": s.max_iter,
-        "ipopt.tol": s.tol,
+        "ipopt.max_iter": settings.max_iter,
+        "ipopt.tol": settings.tol,
         "ipopt.print_level": 5 if verbose else 0,
         "ipopt.sb": "yes",
         "print_time": verbose,
         "error_on_fail": False,
         "show_eval_warnings": verbose,
     }
-    opts.update({f"ipopt.{k}": v for k, v in s.ipopt})
+    opts.update({f"ipopt.{k}": v for k, v in settings.ipopt})
     return ca.nlpsol(f"design_m{nlp.m}", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
 
 
@@ -184,7 +184,7 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
 
 def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(Q0, F0)``, or a few D iterations from it when its M is nearly singular: at a singular
-    M the PSD-factor form of E / condition has a stationary point with s = 0."""
+    M the PSD-factor form of E / condition has a stationary point with lam = 0."""
     if ds.polish is None:
         return Q0, F0
     d_nlp, d_solver = ds.polish

@@ -216,20 +216,20 @@ def sweep_rows(sweep: Sweep) -> list[dict]:
 
     rows = []
     for (c, m), d in sweep.designs.items():
-        s = d.scores
+        scores = d.scores
         seeded = best_seeded(d, sweep.seeded_starts)
         rows.append({
             "criterion": c,
             "m": m,
-            "max_error_mm": s.max_rms_error_m * 1e3,
+            "max_error_mm": scores.max_rms_error_m * 1e3,
             "repeat_best_single_pose_mm": sweep.repeat_reference_m(m) * 1e3,
-            "log_det_M": s.log_det_M,
-            "trace_M_inv": s.trace_M_inv,
-            "s_min": s.s_min,
-            "trace_M": s.trace_M,
-            "condition": s.condition,
-            **{k: s.observability.get(k, math.nan) for k in ("O1", "O2", "O3", "O4", "O5")},
-            "identifiable": s.identifiable,
+            "log_det_M": scores.log_det_M,
+            "trace_M_inv": scores.trace_M_inv,
+            "s_min": scores.s_min,
+            "trace_M": scores.trace_M,
+            "condition": scores.condition,
+            **{k: scores.observability.get(k, math.nan) for k in ("O1", "O2", "O3", "O4", "O5")},
+            "identifiable": scores.identifiable,
             "status": d.status,
             "starts": len(d.starts),
             "converged": d.converged_starts,
@@ -349,8 +349,8 @@ def sweep_from_record(record: dict) -> Sweep:
     """The :class:`Sweep` of a ``sweep.json`` record (for redrawing its figures)."""
     from .results import design_from_record
 
-    s = record["sweep"]
+    saved = record["sweep"]
     designs = {(d["criterion"], d["m"]): design_from_record(d) for d in record["designs"]}
-    reference = None if s["reference"] is None else design_from_record(s["reference"])
-    return Sweep(tuple(s["m"]), tuple(s["criteria"]), designs, s["seeded_starts"], s["warm_start"],
+    reference = None if saved["reference"] is None else design_from_record(saved["reference"])
+    return Sweep(tuple(saved["m"]), tuple(saved["criteria"]), designs, saved["seeded_starts"], saved["warm_start"],
                  reference)

@@ -250,7 +250,7 @@ def linearisation_study(problem: Problem, plans: list[Plan], scales: list[float]
     The ratio of simulated to predicted error stays near 1 while the true robots are close to
     the nominal one (B evaluated at ``X = 0`` still describes them) and drifts as they move away.
     """
-    return [(s, validate(problem, plans, trials, seed, spreads.scaled(s), source)) for s in scales]
+    return [(scale, validate(problem, plans, trials, seed, spreads.scaled(scale), source)) for scale in scales]
 
 
 # --------------------------------------------------------------------------- plans
