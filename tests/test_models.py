@@ -3,10 +3,12 @@
 import numpy as np
 import pytest
 
+from casadi_design.build import load_problem
 from casadi_design.errors import ProblemError
 from casadi_design.models import calibration_model
 from casadi_design.robots import frame_jacobian, frame_placement, load_urdf, make_robot, planar_arm
 from casadi_design.symbolic import symbolic_kinematics
+from tests.conftest import PROBLEM_FILES
 
 FD_STEP = 1e-6
 FD_TOL = 1e-8
@@ -101,3 +103,54 @@ def test_accuracy_rows_can_differ_from_measured_rows(ur10):
 def test_model_errors(planar, kwargs, match):
     with pytest.raises(ProblemError, match=match):
         calibration_model(planar[1], **kwargs)
+
+
+def _skew(c):
+    return np.array([[0, -c[2], c[1]], [c[2], 0, -c[0]], [-c[1], c[0], 0]])
+
+
+def _B_by_the_analytic_formula(problem, q, F, accuracy):
+    """The linear model as it was written before the measurement model existed (the oracle):
+    ``Wh G [J_Pi, A(q, W)] C^-1`` with G the marker map and ``A = [J_n J_n^T W]``."""
+    model = problem.model
+    kin, robot = model.kinematics, problem.robot
+    R, _ = (np.asarray(v, dtype=float) for v in kin.placement(q, np.zeros(len(kin.parameter_names))))
+    J = np.asarray(kin.jacobian(q), dtype=float)
+    J_Pi = np.asarray(kin.error_jacobian(q), dtype=float)
+    wrench = np.zeros(6)
+    wrench[list(model.force_rows)] = F
+    if not accuracy and problem.force is not None:
+        wrench[3:] += np.cross(R @ np.array(problem.force.load_point_m), wrench[:3])
+    cols = []
+    for name in model.parameter_names:
+        if name.startswith("k."):
+            j = robot.joints.index(name[2:])
+            cols.append(J[:, j] * (J[:, j] @ wrench))
+        else:
+            cols.append(J_Pi[:, kin.parameter_names.index(name)])
+    T = np.array(cols).T
+    rows = model.accuracy_rows if accuracy else model.measured_rows
+    markers = np.zeros((1, 3)) if accuracy else model.markers_m
+    pos, rot = [r for r in rows if r < 3], [r - 3 for r in rows if r >= 3]
+    G = [np.hstack([np.eye(3), -_skew(R @ r)])[pos] for r in markers] if pos else []
+    G += [np.hstack([np.zeros((3, 3)), np.eye(3)])[rot]] if rot else []
+    G = np.vstack(G)
+    spec = problem.spec.measurement
+    if not accuracy and spec.whitening is not None:
+        G = np.array(spec.whitening) @ G
+    return G @ T / model.column_scale
+
+
+@pytest.mark.parametrize("path", PROBLEM_FILES, ids=lambda p: p.stem)
+def test_B_is_the_jacobian_of_the_measurement_model_on_every_problem(path):
+    """B = dy/dX at X = 0 equals the analytic linear model (markers, load-point moment, whitening,
+    column scaling), at random configurations and loads, for the measured and required rows."""
+    problem = load_problem(path)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        q = rng.uniform(problem.robot.q_min, problem.robot.q_max)
+        F = 100.0 * rng.normal(size=problem.model.nF)
+        for accuracy in (False, True):
+            expected = _B_by_the_analytic_formula(problem, q, F, accuracy)
+            got = problem.model.B_numeric(q, F, accuracy)
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
