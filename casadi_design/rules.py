@@ -70,8 +70,8 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
                          f"{name}: out of the tracker's range"))
     if ws.floor_z_m is not None:
         # frames fixed to the base (not moving with q) are where the robot stands: not constrained
-        frames = model.kinematics.frame_origins(q)
-        named = ([(frames[:, k], f"frame origin {k + 1} of the arm") for k in range(frames.shape[1] - 1)]
+        frames, names = model.kinematics.frame_origins(q), model.kinematics.frame_names
+        named = ([(frames[:, k], f"frame '{names[k]}'") for k in range(frames.shape[1] - 1)]
                  + [(frames[:, -1], f"measured frame '{robot.frame}'")]
                  + [(P[:, j], f"measured point {j + 1}") for j in range(P.shape[1])])
         rows += [(p[2], ws.floor_z_m, np.inf, f"{name}: below the floor")

@@ -50,6 +50,8 @@ class SymbolicKinematics:
     frame_origins : casadi.Function
         ``q -> P``: 3 x K nominal positions (m) of the distinct origins of every frame carried
         by a joint of the chain (link, joint, flange and tool frames), the measured frame last.
+    frame_names : tuple of str
+        A name for each column of ``frame_origins`` (a frame at that origin).
     """
 
     robot: Robot
@@ -59,6 +61,7 @@ class SymbolicKinematics:
     error_jacobian: ca.Function
     joint_origins: ca.Function
     frame_origins: ca.Function
+    frame_names: tuple[str, ...]
 
 
 def _rot(axis: np.ndarray, angle: ca.SX) -> ca.SX:
@@ -115,7 +118,7 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
     q = ca.SX.sym("q", robot.n)
     Pi = ca.SX.sym("Pi", len(names))
     R, p = _error_placement(Pi[0:6])
-    origins, carried = [], []
+    origins, carried, carried_names = [], [], []
     for k, jid in enumerate(robot.joint_ids):
         base = 6 + 7 * k
         M = model.jointPlacements[jid]
@@ -128,7 +131,9 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
             R = R @ _rot(axis, qk)
         else:
             p = p + R @ (ca.SX(axis) * qk)
-        carried += _carried_frames(model, jid, R, p, exclude=robot.frame_id)
+        points, point_names = _carried_frames(model, jid, R, p, exclude=robot.frame_id)
+        carried += points
+        carried_names += point_names
     fMt = model.frames[robot.frame_id].placement
     R, p = _compose(R, p, ca.SX(fMt.rotation), ca.SX(fMt.translation))
     R, p = _compose(R, p, *_error_placement(Pi[-6:]))
@@ -145,15 +150,22 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
         error_jacobian=ca.Function("J_Pi", [q], [J_Pi], ["q"], ["J_Pi"]),
         joint_origins=ca.Function("origins", [q], [ca.substitute(ca.horzcat(*origins), Pi, zero)], ["q"], ["P"]),
         frame_origins=ca.Function("frame_origins", [q], [frames], ["q"], ["P"]),
+        frame_names=tuple(carried_names) + (robot.frame,),
     )
 
 
-def _carried_frames(model: pin.Model, jid: int, R: ca.SX, p: ca.SX, exclude: int) -> list[ca.SX]:
+def _carried_frames(model: pin.Model, jid: int, R: ca.SX, p: ca.SX,
+                    exclude: int) -> tuple[list[ca.SX], list[str]]:
     """Origins (world, m) of the frames whose parent is joint ``jid`` at placement ``(R, p)``,
-    one per distinct position in the joint frame (the joint's own origin included)."""
-    offsets: dict[tuple, np.ndarray] = {(0.0, 0.0, 0.0): np.zeros(3)}
+    one per distinct position in the joint frame (the joint's own origin included), and a
+    name for each."""
+    # name a position after its most telling frame: an operational frame (tool0), then a link
+    rank = {pin.FrameType.OP_FRAME: 0, pin.FrameType.BODY: 1}
+    offsets: dict[tuple, tuple[np.ndarray, str, int]] = {(0.0, 0.0, 0.0): (np.zeros(3), model.names[jid], 2)}
     for fid, frame in enumerate(model.frames):
         if frame.parentJoint == jid and fid != exclude:
             t = np.asarray(frame.placement.translation, dtype=float)
-            offsets.setdefault(tuple(np.round(t, 9)), t)
-    return [p + R @ ca.DM(t) for t in offsets.values()]
+            key, r = tuple(np.round(t, 9)), rank.get(frame.type, 3)
+            if key not in offsets or r < offsets[key][2]:
+                offsets[key] = (t, frame.name, r)
+    return [p + R @ ca.DM(t) for t, _, _ in offsets.values()], [name for _, name, _ in offsets.values()]
