@@ -1,42 +1,123 @@
-"""Speed of a case: `casadi-design solve` run several times, median wall time (after imports).
+"""Speed and memory of the design NLPs: one table, and benchmark.json.
 
-    python scripts/benchmark.py [problems/paper_planar_2r.toml] [--repeat 3] [--jobs 1] [solve options]
+    python scripts/benchmark.py [--cases paper,ur10,abb] [--criteria test-pose,D] [--starts 4]
+                                [--compare-with DIR] [--out benchmark.json]
 
-The first run prints the solve command's table and per-design lines (wall time, IPOPT
-iterations); later runs are silent. Goal (issue 2): the whole example (test-pose, D, E at m = 1
-and 5, multi-start) under 10 s on a 2-core machine, against about 100 s for a derivative-free
-scipy multi-start.
+Each (case, criterion, m) runs in a fresh process (so its peak memory is its own): build the
+design solver, then the seeded starts of `casadi-design solve` one after the other. Printed per
+design: build time (s), time per start (s), IPOPT iterations, ms per iteration, peak memory
+(MB, the child's maximum resident set), best criterion value and best max error (mm).
+
+``--compare-with DIR`` runs the same designs with the package found in DIR (another checkout,
+e.g. a worktree of an older commit) and adds the old/new ratios of time per start and memory.
+Figures are for the machine at hand; compare ratios, not absolutes.
 """
 
+from __future__ import annotations
+
 import argparse
-import contextlib
-import io
-import statistics
+import json
+import os
+import resource
+import subprocess
 import sys
 import time
+from pathlib import Path
 
-from casadi_design.cli import main
+ROOT = Path(__file__).resolve().parents[1]
+CASES = {
+    "paper": ("problems/paper_planar_2r.toml", (1, 5)),
+    "ur10": ("problems/ur10_drilling.toml", (9, 12)),
+    "abb": ("problems/abb_irb6640_machining.toml", (6, 8)),
+}
 
 
-def benchmark(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("problem", nargs="?", default="problems/paper_planar_2r.toml")
-    parser.add_argument("--repeat", type=int, default=3, help="runs of the whole case (median reported)")
-    parser.add_argument("--jobs", default="1", help="worker processes (default 1: serial, comparable)")
-    args, rest = parser.parse_known_args(argv)
-    totals = []
-    for r in range(args.repeat):
-        out = contextlib.nullcontext() if r == 0 else contextlib.redirect_stdout(io.StringIO())
+def run_one(problem_file: str, criterion: str, m: int, starts: int) -> dict:
+    """In the child: build the design solver and run the seeded starts; plain figures."""
+    from casadi_design.build import load_problem
+    from casadi_design.criteria import CRITERIA
+    from casadi_design.nlp import B0_at_test_poses
+    from casadi_design.solve import make_design_solver, random_plan, solve_start, start_rng
+
+    problem = load_problem(problem_file)
+    B0 = B0_at_test_poses(problem)
+    rng = start_rng(problem.solver.seed, criterion, m)
+    plans = [random_plan(problem, m, rng) for _ in range(starts)]
+    t0 = time.perf_counter()
+    solver = make_design_solver(problem, criterion, m, B0)
+    build_s = time.perf_counter() - t0
+    records, times = [], []
+    for Q0, F0 in plans:
         t0 = time.perf_counter()
-        with out:
-            rc = main(["solve", args.problem, "--jobs", args.jobs, *rest])
-        totals.append(time.perf_counter() - t0)
-        if rc:
-            return rc
-    print(f"whole case (load + designs, jobs {args.jobs}): median {statistics.median(totals):.2f} s "
-          f"over {args.repeat} runs (min {min(totals):.2f} s, max {max(totals):.2f} s)")
+        rec, _, _, _ = solve_start(problem, solver, B0, Q0, F0)
+        times.append(time.perf_counter() - t0)
+        records.append(rec)
+    ok = [r for r in records if r.converged] or records
+    sense = {"min": 1.0, "max": -1.0}
+    best = min(ok, key=lambda r: sense[CRITERIA[criterion].sense] * r.value)
+    iterations = sum(r.iterations for r in records)
+    return {"build_s": build_s, "start_s": times, "iterations": [r.iterations for r in records],
+            "ms_per_iteration": 1e3 * sum(times) / max(iterations, 1),
+            "converged": sum(r.converged for r in records), "best_value": best.value,
+            "best_max_error_mm": best.max_rms_error_m * 1e3,
+            "values": [r.value for r in records],
+            "peak_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def child(package_dir: Path, problem_file: str, criterion: str, m: int, starts: int) -> dict:
+    """Run one design in a fresh process with the package of ``package_dir`` (its own peak memory)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # the package first on sys.path, before an installed (editable) copy; this script's helpers after
+    code = ("import json, sys; sys.path[:0] = [%r, %r]; from benchmark import run_one; "
+            "print(json.dumps(run_one(%r, %r, %d, %d)))"
+            % (str(package_dir), str(ROOT / "scripts"), str(ROOT / problem_file), criterion, m, starts))
+    proc = subprocess.run([sys.executable, "-c", code], cwd=package_dir, env=env, capture_output=True, text=True)
+    if proc.returncode:
+        return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", default="paper,ur10,abb", help=f"among {', '.join(CASES)}")
+    parser.add_argument("--criteria", default="test-pose,D,A,E,condition")
+    parser.add_argument("--m", help="numbers of experiments, e.g. 9,12 (default: per case)")
+    parser.add_argument("--starts", type=int, default=4, help="seeded starts per design (default 4)")
+    parser.add_argument("--compare-with", metavar="DIR", help="another checkout to compare with")
+    parser.add_argument("--out", default="benchmark.json", help="JSON file of all figures")
+    args = parser.parse_args(argv)
+    rows = []
+    head = (f"{'case':<6}{'criterion':<11}{'m':>3}{'build s':>9}{'s/start':>9}{'iter':>7}"
+            f"{'ms/iter':>9}{'peak MB':>9}{'best mm':>9}" + (f"{'old/new time':>14}{'old/new MB':>12}" if args.compare_with else ""))
+    print(head)
+    print("-" * len(head))
+    for case in args.cases.split(","):
+        problem_file, ms = CASES[case]
+        for m in ([int(v) for v in args.m.split(",")] if args.m else ms):
+            for criterion in args.criteria.split(","):
+                new = child(ROOT, problem_file, criterion, m, args.starts)
+                old = child(Path(args.compare_with), problem_file, criterion, m, args.starts) if args.compare_with else None
+                rows.append({"case": case, "criterion": criterion, "m": m, "starts": args.starts,
+                             "new": new, "old": old})
+                if "error" in new:
+                    print(f"{case:<6}{criterion:<11}{m:>3}  failed: {new['error']}")
+                    continue
+                per_start = sum(new["start_s"]) / len(new["start_s"])
+                line = (f"{case:<6}{criterion:<11}{m:>3}{new['build_s']:>9.2f}{per_start:>9.2f}"
+                        f"{sum(new['iterations']):>7d}{new['ms_per_iteration']:>9.2f}{new['peak_MB']:>9.0f}"
+                        f"{new['best_max_error_mm']:>9.4f}")
+                if old and "error" not in old:
+                    old_per_start = (old["build_s"] + sum(old["start_s"])) / len(old["start_s"])
+                    new_per_start = (new["build_s"] + sum(new["start_s"])) / len(new["start_s"])
+                    line += f"{old_per_start / new_per_start:>14.1f}{old['peak_MB'] / new['peak_MB']:>12.1f}"
+                elif old:
+                    line += f"{'old failed':>14}"
+                print(line, flush=True)
+    Path(args.out).write_text(json.dumps({"units": {"build_s": "s", "start_s": "s", "peak_MB": "MB",
+                                                    "best_max_error_mm": "mm"}, "rows": rows}, indent=2) + "\n")
+    print(f"wrote {args.out}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(benchmark())
+    sys.exit(main())
