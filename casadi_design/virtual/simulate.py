@@ -12,6 +12,7 @@ Every trial runs at once: :func:`evaluate` maps a CasADi function over N stacked
 from __future__ import annotations
 
 import functools
+import os
 import math
 from dataclasses import dataclass, replace
 
@@ -87,9 +88,14 @@ class Plan:
 CHUNK = 8192
 
 
+#: Threads of the mapped evaluations: every core (the cases are independent, so the results do
+#: not depend on it).
+THREADS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 @functools.lru_cache(maxsize=128)
 def _mapped(fn: ca.Function, N: int) -> ca.Function:
-    return fn.map(N)
+    return fn.map(N, "thread", THREADS) if THREADS > 1 else fn.map(N)
 
 
 def evaluate(fn: ca.Function, *rows: np.ndarray) -> list[np.ndarray]:
