@@ -112,7 +112,7 @@ def _plan_text(path: str) -> str:
             with open(file, "rb") as fh:
                 data = fh.read(_MAX_PLAN_BYTES + 1)  # + 1: the file may have grown since
     except FileNotFoundError:
-        raise ProblemError(f"{path}: no such plan file") from None
+        raise ProblemError(f"{path}: no such plan file; check the path") from None
     except OSError as exc:
         raise ProblemError(f"{path}: cannot be read ({exc.strerror}); check the path and its "
                            "permissions") from None

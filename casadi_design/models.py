@@ -195,8 +195,8 @@ def calibration_model(
     if case in ("geometric", "both"):
         if not geometric:
             raise ProblemError(
-                f"[calibration].parameters: case '{case}' needs the geometric errors to identify, "
-                f"e.g. {list(kinematics.parameter_names[6:9])}"
+                f"[calibration].parameters: case '{case}' needs the geometric errors to identify; "
+                f"list them, e.g. {list(kinematics.parameter_names[6:9])}, or give \"identifiable\""
             )
         for g in geometric:
             if g not in kinematics.parameter_names:

@@ -310,7 +310,8 @@ def make_robot(
             )
         lo, hi = (float(b) for b in bounds)
         if not lo < hi:
-            raise ProblemError(f"[robot.joint_limits_rad].{jname}: lower {lo} must be below upper {hi}")
+            raise ProblemError(f"[robot.joint_limits_rad].{jname}: lower {lo} must be below upper {hi}; "
+                               "give [lower, upper]")
         k = joints.index(jname)
         q_min[k], q_max[k] = lo, hi
     bad = [j for j, lo, hi in zip(joints, q_min, q_max) if not (np.isfinite(lo) and np.isfinite(hi))]
