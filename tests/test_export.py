@@ -133,7 +133,7 @@ def test_bad_plan_files(paper, tmp_path, text, match):
 
 def test_bad_plan_file_is_one_line_through_the_command(tmp_path, capsys):
     assert main(["evaluate", str(PAPER), "--plan", str(tmp_path / "none.csv")]) == 2
-    assert capsys.readouterr().err.strip() == f"error: {tmp_path / 'none.csv'}: no such plan file"
+    assert capsys.readouterr().err.strip() == f"error: {tmp_path / 'none.csv'}: no such plan file; check the path"
 
 
 def test_fixed_load_plans_need_no_force_columns(tmp_path):
