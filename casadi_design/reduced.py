@@ -15,14 +15,14 @@ for a, b of experiment i (0 for variables of two experiments).
 
 The criterion's part ``phi(M)`` of the Lagrangian and its derivatives:
 
-=========  ==========================================  ================  =======
-criterion  phi(M)                                      Gbar = dphi/dM    kappa
-=========  ==========================================  ================  =======
-test-pose  sum_j mu_j rho_j = tr(P N), P = sum mu_j H_j  -N P N            2
-A          sigma_f tr(N)                               -sigma_f N N      2
-D          -sigma_f log det M                          -sigma_f N        1
-T          -sigma_f tr(M)                              -sigma_f I        0
-=========  ==========================================  ================  =======
+=========  ================================================  ================  =====
+criterion  phi(M)                                            Gbar = dphi/dM    kappa
+=========  ================================================  ================  =====
+test-pose  sum_j mu_j rho_j = tr(P N),  P = sum_j mu_j H_j   -N P N            2
+A          sigma_f tr(N)                                     -sigma_f N N      2
+D          -sigma_f log det M                                -sigma_f N        1
+T          -sigma_f tr(M)                                    -sigma_f I        0
+=========  ================================================  ================  =====
 
 with ``rho_j = tr(H_j N)``, ``H_j = c B0_j^T B0_j`` the test-pose rows ``rho_j - t <= 0`` (mu_j
 their multipliers, sigma_f the objective's), and
@@ -31,8 +31,10 @@ their multipliers, sigma_f the objective's), and
 
 (For ``tr(P N)``: ``d2 = 2 tr(G dM_a N dM_b) - tr(G d2M_ab)``, ``G = N P N``; for
 ``-log det M``: ``d2 = tr(N dM_a N dM_b) - tr(N d2M_ab)``.) The Jacobian of the test-pose rows
-is ``J[j, a] = -tr(N H_j N dM_a)`` and ``-1`` for t. Since M couples all experiments, the
-Hessian is dense over the plan variables; the rules add per-experiment and pairwise blocks.
+is ``J[j, a] = -tr(N H_j N dM_a)`` and ``-1`` for t. Since ``N = M^-1`` couples all
+experiments, the Hessian is dense over the plan variables (block-diagonal for T, kappa = 0);
+the rules add per-experiment and pairwise blocks. Units: q in rad (m for prismatic joints), v
+and the scaled M without units.
 
 IPOPT gets f, g, the gradient, the Jacobian and the upper triangle of the Hessian of the
 Lagrangian through :class:`NumericFunction` callbacks; the quantities of the last point are
