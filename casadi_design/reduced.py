@@ -47,10 +47,11 @@ import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dpotrf, dtrtri
 
 from .build import Problem
 from .rules import load_variables, pose_constraints
@@ -95,8 +96,8 @@ class NumericFunction(ca.Callback):
         return True
 
     def eval_buffer(self, arg, res) -> int:
-        # CasADi owns the buffers (and passes None for absent ones): copy the inputs
-        args = [np.zeros(sp.nnz()) if a is None else np.array(np.frombuffer(a, dtype=float))
+        # views of CasADi's buffers, valid during the call (None: an absent input or output)
+        args = [np.zeros(sp.nnz()) if a is None else np.frombuffer(a, dtype=float)
                 for a, (_, sp) in zip(arg, self._inputs)]
         for r, value in zip(res, self._evaluate(*args)):
             if r is not None:
@@ -114,8 +115,9 @@ class BufferedFunction:
     call: Callable[[], None]
     args: tuple[np.ndarray, ...]
     res: tuple[np.ndarray, ...]
-    #: column-major positions of each output's nonzeros in its dense matrix
+    #: column-major positions of each output's nonzeros in its dense matrix, and its shape
     positions: tuple[np.ndarray, ...]
+    shapes: tuple[tuple[int, int], ...]
 
     @classmethod
     def of(cls, fn: ca.Function) -> BufferedFunction:
@@ -132,7 +134,8 @@ class BufferedFunction:
             sp = fn.sparsity_out(i)
             positions.append(np.array(sp.row(), dtype=int) + sp.size1() * np.repeat(
                 np.arange(sp.size2()), np.diff(sp.colind())))
-        return cls(fn, buffer, call, args, res, tuple(positions))
+        return cls(fn, buffer, call, args, res, tuple(positions),
+                   tuple(tuple(fn.size_out(i)) for i in range(fn.n_out())))
 
     def __call__(self, *inputs: np.ndarray) -> list[np.ndarray]:
         """The outputs (copies) as dense arrays of their shape."""
@@ -140,11 +143,13 @@ class BufferedFunction:
             a[:] = np.ravel(x, order="F")
         self.call()
         out = []
-        for i, (r, pos) in enumerate(zip(self.res, self.positions)):
-            shape = self.fn.size_out(i)
-            dense = np.zeros(shape[0] * shape[1])
-            dense[pos] = r
-            out.append(dense.reshape(shape, order="F"))
+        for r, pos, shape in zip(self.res, self.positions, self.shapes):
+            if len(pos) == shape[0] * shape[1]:
+                out.append(r.reshape(shape, order="F").copy())
+            else:
+                dense = np.zeros(shape[0] * shape[1])
+                dense[pos] = r
+                out.append(dense.reshape(shape, order="F"))
         return out
 
 
@@ -197,7 +202,8 @@ def experiment_functions(problem: Problem) -> ExperimentFunctions:
     return ExperimentFunctions(
         n, loads.nv, c.numel(),
         ca.Function("B", [z], [B, c], ["z"], ["B", "c"], cse),
-        ca.Function("dB", [z], [ca.jacobian(ca.vec(B), z), ca.jacobian(c, z)], ["z"], ["dB", "dc"], cse),
+        ca.Function("dB", [z], [ca.jacobian(ca.vec(B), z), ca.jacobian(c, z)], ["z"], ["dB", "dc"],
+                    cse),
         ca.Function("d2B", [z, W, lam], [second], ["z", "W", "lam"], ["d2"], cse),
         ca.Function("pair", [u], [d], ["u"], ["d"]),
         ca.Function("dpair", [u], [ca.jacobian(d, u)], ["u"], ["dd"]),
@@ -218,6 +224,7 @@ class ReducedNLP:
     pair_rows : ndarray, shape (P,): their index in g.
     n_rows : number of criterion rows (s for test-pose, 0 otherwise), first in g.
     nx, ng : sizes of x and g.
+    last : the quantities of the last x: ``[x bytes, _Values, _Slopes or None]``.
     """
 
     criterion: str
@@ -246,6 +253,13 @@ class ReducedNLP:
         return {k: BufferedFunction.of(fn) for k, fn in out.items()}
 
     @cached_property
+    def pair_cols(self) -> np.ndarray:
+        """Index in x of ``(q_a, q_b)`` of each pair, shape (P, 2n)."""
+        n = self.fns.n
+        return np.concatenate([self.cols[self.pairs[:, 0], :n], self.cols[self.pairs[:, 1], :n]],
+                              axis=1)
+
+    @cached_property
     def jacobian_pattern(self) -> np.ndarray:
         """Structural nonzeros of dg/dx (ng x nx, bool)."""
         J = np.zeros((self.ng, self.nx), dtype=bool)
@@ -270,36 +284,74 @@ class ReducedNLP:
         return np.triu(H)
 
     @cached_property
-    def pair_cols(self) -> np.ndarray:
-        """Index in x of ``(q_a, q_b)`` of each pair, shape (P, 2n)."""
-        n = self.fns.n
-        return np.concatenate([self.cols[self.pairs[:, 0], :n], self.cols[self.pairs[:, 1], :n]],
-                              axis=1)
+    def jacobian_nonzeros(self) -> np.ndarray:
+        """Positions in the row-major dense dg/dx (ng x nx) of its nonzeros, in CasADi's
+        (column-major) order."""
+        k = np.flatnonzero(self.jacobian_pattern.T.ravel())
+        return k % self.ng * self.nx + k // self.ng
 
-    def at(self, x: np.ndarray) -> _Point:
-        """The quantities at x (those of the last call when x is the same)."""
-        if self.last and np.array_equal(self.last[0].x, x):
-            return self.last[0]
-        point = _Point(self, np.array(x, dtype=float))
-        self.last[:] = [point]
-        return point
+    @cached_property
+    def plan_order(self) -> np.ndarray:
+        """Position of each x in the plan order ``(experiment i, variable a of z_i)``, -1 for t."""
+        order = np.full(self.nx, -1)
+        order[self.cols.ravel()] = np.arange(self.cols.size)
+        return order
+
+    @cached_property
+    def hessian_nonzeros(self) -> np.ndarray:
+        """Positions in the row-major Hessian in plan order (V x V, V = m p) of the nonzeros of
+        the Hessian of x, in CasADi's (column-major) order."""
+        cols, rows = np.nonzero(self.hessian_pattern.T)
+        return self.plan_order[rows] * self.cols.size + self.plan_order[cols]
+
+    @cached_property
+    def block_positions(self) -> np.ndarray:
+        """Positions of the experiments' (p x p) blocks in the row-major (V x V) Hessian in plan
+        order, shape (m, p, p)."""
+        V, p = self.cols.size, self.fns.p
+        k = np.arange(self.m)[:, None, None] * p
+        return (k + np.arange(p)[:, None]) * V + k + np.arange(p)
+
+    @cached_property
+    def pair_positions(self) -> np.ndarray:
+        """Positions of each pair's ``(q_a, q_b)`` (2n x 2n) block in the row-major (V x V)
+        Hessian in plan order, shape (P, 2n, 2n)."""
+        order = self.plan_order[self.pair_cols]
+        return order[:, :, None] * self.cols.size + order[:, None, :]
+
+    def _at(self, x: np.ndarray) -> list:
+        x = np.asarray(x, dtype=float)
+        key = x.tobytes()
+        if not self.last or self.last[0] != key:
+            self.last[:] = [key, _values(self, x.copy()), None]
+        return self.last
+
+    def at(self, x: np.ndarray) -> _Values:
+        """The values at x (those of the last call when x is the same)."""
+        return self._at(x)[1]
+
+    def slopes(self, x: np.ndarray) -> _Slopes:
+        """The first derivatives at x (those of the last call when x is the same)."""
+        last = self._at(x)
+        if last[2] is None:
+            last[2] = _slopes(self, last[1])
+        return last[2]
 
     def f_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pt = self.at(x)
-        return np.array([pt.f]), pt.g
+        v = self.at(x)
+        return np.array([v.f]), v.g
 
     def grad_f(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pt = self.at(x)
-        return np.array([pt.f]), pt.grad_f
+        return np.array([self.at(x).f]), self.slopes(x).grad_f
 
     def jac_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pt = self.at(x)
-        return pt.g, pt.jac_g.T[self.jacobian_pattern.T]
+        return self.at(x).g, self.slopes(x).jac_g.ravel()[self.jacobian_nonzeros]
 
     def hess_lag(self, x: np.ndarray, lam_f: float, lam_g: np.ndarray) -> np.ndarray:
         """The upper triangle (column-major nonzeros) of the Hessian of the Lagrangian
         ``lam_f d2f/dx2 + sum_k lam_g[k] d2g_k/dx2``."""
-        return self.at(x).hess_lag(float(lam_f), lam_g).T[self.hessian_pattern.T]
+        H = _plan_hessian(self, self.at(x), self.slopes(x), float(lam_f), lam_g)
+        return H.ravel()[self.hessian_nonzeros]
 
     def functions(self) -> tuple[ca.Function, dict]:
         """The NLP ``(x, p) -> (f, g)`` and the nlpsol options with its derivative functions."""
@@ -326,172 +378,134 @@ class ReducedNLP:
         return oracle, options
 
 
-@dataclass(frozen=True, eq=False)
-class _Point:
-    """Every quantity of a :class:`ReducedNLP` at one x, computed when first needed."""
+class _Values(NamedTuple):
+    """f, g and what they are made of at one x.
 
-    nlp: ReducedNLP
+    Z : (p, m) the experiments' variables; B : (m, d, L) unscaled; M : (L, L) scaled;
+    Cinv : ``C^-1`` for ``M = C C^T`` (C lower triangular), None when M is not positive definite.
+    """
+
     x: np.ndarray
+    Z: np.ndarray
+    B: np.ndarray
+    M: np.ndarray
+    Cinv: np.ndarray | None
+    f: float
+    g: np.ndarray
 
-    @cached_property
-    def Z(self) -> np.ndarray:
-        """The experiments' variables, shape (p, m)."""
-        return self.x[self.nlp.cols.T]
 
-    @cached_property
-    def _values(self) -> tuple[np.ndarray, np.ndarray]:
-        B, c = self.nlp.mapped["values"](self.Z)
-        return B.reshape(len(B), self.nlp.m, -1).transpose(1, 0, 2), c.T
+class _Slopes(NamedTuple):
+    """First derivatives at one x: dB (m, p, d, L) unscaled, dM (m p, L, L) in the order of
+    ``cols``, ``N = M^-1``, ``Y_j = N H_j N`` (s, L, L; test-pose) or ``G_f = df/dM`` (D, A,
+    T), and the gradient of f and the dense Jacobian of g."""
 
-    @property
-    def B(self) -> np.ndarray:
-        """Unscaled B_i, shape (m, d, L)."""
-        return self._values[0]
+    dB: np.ndarray
+    dM: np.ndarray
+    N: np.ndarray
+    Y: np.ndarray | None
+    G_f: np.ndarray | None
+    grad_f: np.ndarray
+    jac_g: np.ndarray
 
-    @cached_property
-    def M(self) -> np.ndarray:
-        return self.nlp.scale * np.einsum("ikl,ikn->ln", self.B, self.B)
 
-    @cached_property
-    def C(self) -> np.ndarray | None:
-        """``C`` of ``M = C C^T`` (lower triangular); None when M is not positive definite."""
-        try:
-            return np.linalg.cholesky(self.M)
-        except np.linalg.LinAlgError:
-            return None
+def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
+    m, c = nlp.m, nlp.scale
+    Z = x[nlp.cols.T]
+    B, rules = nlp.mapped["values"](Z)
+    d, L = B.shape[0], B.shape[1] // m
+    B = B.reshape(d, m, L).transpose(1, 0, 2)
+    S = B.reshape(m * d, L)
+    M = c * (S.T @ S)
+    C, info = dpotrf(M, lower=1, clean=1)
+    Cinv = dtrtri(C, lower=1)[0] if info == 0 else None
+    g = np.empty(nlp.ng)
+    crit = nlp.criterion
+    if Cinv is None:
+        f = np.nan
+        g[: nlp.n_rows] = np.nan
+    elif crit == "test-pose":
+        f = float(x[-1])
+        s, r = nlp.B0s.shape[:2]
+        K = nlp.B0s.reshape(s * r, L) @ Cinv.T
+        g[: nlp.n_rows] = np.sum((K * K).reshape(s, r * L), axis=1) - x[-1]
+    elif crit == "D":
+        f = float(-2 * np.sum(np.log(np.diag(C))))
+    elif crit == "A":
+        f = float(np.sum(Cinv * Cinv))
+    else:
+        f = float(-np.trace(M))
+    g[nlp.rule_rows] = rules.T
+    if len(nlp.pairs):
+        g[nlp.pair_rows] = nlp.mapped["pair"](x[nlp.pair_cols.T])[0].ravel()
+    return _Values(x, Z, B, M, Cinv, f, g)
 
-    @cached_property
-    def Cinv(self) -> np.ndarray:
-        return solve_triangular(self.C, np.eye(len(self.C)), lower=True)
 
-    @cached_property
-    def N(self) -> np.ndarray:
-        return self.Cinv.T @ self.Cinv
+def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
+    m, p, c = nlp.m, nlp.fns.p, nlp.scale
+    (d, L), crit = v.B.shape[1:], nlp.criterion
+    dB, dc = nlp.mapped["first"](v.Z)
+    dB = dB.reshape(L, d, m, p).transpose(2, 3, 1, 0)
+    grad, J = np.zeros(nlp.nx), np.zeros((nlp.ng, nlp.nx))
+    J[nlp.rule_rows[:, :, None], nlp.cols[:, None, :]] = dc.reshape(-1, m, p).transpose(1, 0, 2)
+    if len(nlp.pairs):
+        P, n2 = nlp.pair_cols.shape
+        J[nlp.pair_rows[:, None], nlp.pair_cols] = nlp.mapped["pair_first"](
+            v.x[nlp.pair_cols.T])[0].reshape(P, n2)
+    if crit == "test-pose":
+        grad[-1] = 1.0
+        J[: nlp.n_rows, -1] = -1.0
+    if v.Cinv is None:
+        grad[: nlp.cols.size] = np.nan
+        J[: nlp.n_rows] = np.nan
+        nan = np.full((m * p, L, L), np.nan)
+        return _Slopes(dB, nan, nan[0], None, None, grad, J)
+    N = v.Cinv.T @ v.Cinv
+    T = c * (dB.transpose(0, 1, 3, 2) @ v.B[:, None])  # dB_a^T B_i, (m, p, L, L)
+    dM = (T + T.transpose(0, 1, 3, 2)).reshape(m * p, L * L)
+    cols = nlp.cols.ravel()
+    Y = G_f = None
+    if crit == "test-pose":
+        E = nlp.B0s @ N
+        Y = E.transpose(0, 2, 1) @ E
+        J[: nlp.n_rows, cols] = -Y.reshape(-1, L * L) @ dM.T
+    else:
+        G_f = -N if crit == "D" else -N @ N if crit == "A" else -np.eye(L)
+        grad[cols] = dM @ G_f.ravel()
+    return _Slopes(dB, dM.reshape(m * p, L, L), N, Y, G_f, grad, J)
 
-    @cached_property
-    def f(self) -> float:
-        if self.C is None:
-            return np.nan
-        crit = self.nlp.criterion
-        if crit == "test-pose":
-            return float(self.x[-1])
-        if crit == "D":
-            return float(-2 * np.sum(np.log(np.diag(self.C))))
-        if crit == "A":
-            return float(np.sum(self.Cinv**2))
-        return float(-np.trace(self.M))
 
-    @cached_property
-    def g(self) -> np.ndarray:
-        nlp = self.nlp
-        g = np.empty(nlp.ng)
-        if nlp.n_rows:
-            if self.C is None:
-                g[: nlp.n_rows] = np.nan
-            else:
-                K = nlp.B0s @ self.Cinv.T
-                g[: nlp.n_rows] = np.einsum("jrl,jrl->j", K, K) - self.x[-1]
-        g[nlp.rule_rows] = self._values[1]
-        if len(nlp.pairs):
-            g[nlp.pair_rows] = nlp.mapped["pair"](self.x[nlp.pair_cols.T])[0].ravel()
-        return g
-
-    @cached_property
-    def _first(self) -> tuple[np.ndarray, np.ndarray]:
-        dB, dc = self.nlp.mapped["first"](self.Z)
-        m, (d, L), p = self.nlp.m, self.B.shape[1:], self.nlp.fns.p
-        return dB.reshape(L, d, m, p).transpose(2, 3, 1, 0), dc.reshape(-1, m, p).transpose(1, 0, 2)
-
-    @property
-    def dB(self) -> np.ndarray:
-        """``dB_i / dz_i[a]``, unscaled, shape (m, p, d, L)."""
-        return self._first[0]
-
-    @cached_property
-    def dM(self) -> np.ndarray:
-        """``dM / dz_i[a]`` of every variable of the plan in the order of ``cols``: (m p, L, L)."""
-        T = self.nlp.scale * np.einsum("iakl,ikn->ialn", self.dB, self.B)
-        L = T.shape[-1]
-        return (T + T.transpose(0, 1, 3, 2)).reshape(-1, L, L)
-
-    @cached_property
-    def Y(self) -> np.ndarray:
-        """``N H_j N`` of every test pose, shape (s, L, L)."""
-        E = self.nlp.B0s @ self.N
-        return np.einsum("jrk,jrl->jkl", E, E)
-
-    @cached_property
-    def G_f(self) -> np.ndarray:
-        """``df/dM`` (L x L) of D, A and T."""
-        crit, L = self.nlp.criterion, len(self.M)
-        if crit == "D":
-            return -self.N
-        return -self.N @ self.N if crit == "A" else -np.eye(L)
-
-    @cached_property
-    def grad_f(self) -> np.ndarray:
-        nlp = self.nlp
-        grad = np.zeros(nlp.nx)
-        if nlp.criterion == "test-pose":
-            grad[-1] = 1.0
-        elif self.C is None:
-            grad[:] = np.nan
-        else:
-            grad[nlp.cols.ravel()] = self.dM.reshape(len(self.dM), -1) @ self.G_f.ravel()
-        return grad
-
-    @cached_property
-    def jac_g(self) -> np.ndarray:
-        """dg/dx, dense (ng x nx)."""
-        nlp = self.nlp
-        J = np.zeros((nlp.ng, nlp.nx))
-        if nlp.n_rows:
-            if self.C is None:
-                J[: nlp.n_rows] = np.nan
-            else:
-                L = len(self.M)
-                dM = self.dM.reshape(-1, L * L)
-                J[: nlp.n_rows, nlp.cols.ravel()] = -self.Y.reshape(-1, L * L) @ dM.T
-            J[: nlp.n_rows, -1] = -1.0
-        J[nlp.rule_rows[:, :, None], nlp.cols[:, None, :]] = self._first[1]
-        if len(nlp.pairs):
-            P, n2 = nlp.pair_cols.shape
-            dd = nlp.mapped["pair_first"](self.x[nlp.pair_cols.T])[0].reshape(P, n2)
-            J[nlp.pair_rows[:, None], nlp.pair_cols] = dd
-        return J
-
-    def hess_lag(self, lam_f: float, lam_g: np.ndarray) -> np.ndarray:
-        """``lam_f d2f/dx2 + sum_k lam_g[k] d2g_k/dx2``, dense (nx x nx)."""
-        nlp = self.nlp
-        H = np.zeros((nlp.nx, nlp.nx))
-        lam_c = lam_g[nlp.rule_rows]
-        if self.C is None:
-            H[:] = np.nan
-            return H
-        if nlp.criterion == "test-pose":
-            Gbar = -np.einsum("j,jkl->kl", lam_g[: nlp.n_rows], self.Y)
-        else:
-            Gbar = lam_f * self.G_f
-        kappa, c, dM, L = CURVATURE[nlp.criterion], nlp.scale, self.dM, len(self.M)
-        cols = nlp.cols.ravel()
-        if kappa:
-            T = (-Gbar) @ dM @ self.N
-            H[np.ix_(cols, cols)] = kappa * (T.reshape(-1, L * L) @ dM.reshape(-1, L * L).T)
-        # tr(Gbar d2M_ab) = c (2 <B Gbar, d2B_ab> + 2 <dB_a Gbar, dB_b>), with the rules' rows
-        W = 2 * c * (self.B @ Gbar)
-        W = W.transpose(1, 0, 2).reshape(W.shape[1], -1)
-        d2 = nlp.mapped["second"](self.Z, W, lam_c.T)[0]
-        p = nlp.fns.p
-        blocks = d2.reshape(p, nlp.m, p).transpose(1, 0, 2)
-        blocks += 2 * c * np.einsum("iakl,ibkl->iab", self.dB @ Gbar, self.dB)
-        H[nlp.cols[:, :, None], nlp.cols[:, None, :]] += blocks
-        if len(nlp.pairs):
-            P, n2 = nlp.pair_cols.shape
-            mu = lam_g[nlp.pair_rows][None, :]
-            d2p = nlp.mapped["pair_second"](self.x[nlp.pair_cols.T], mu)[0]
-            np.add.at(H, (nlp.pair_cols[:, :, None], nlp.pair_cols[:, None, :]),
-                      d2p.reshape(n2, P, n2).transpose(1, 0, 2))
-        return H
+def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
+                  lam_g: np.ndarray) -> np.ndarray:
+    """``lam_f d2f/dx2 + sum_k lam_g[k] d2g_k/dx2`` over the plan variables in plan order
+    (V x V); t enters f and g linearly."""
+    m, p, c = nlp.m, nlp.fns.p, nlp.scale
+    V, L = m * p, len(v.M)
+    if v.Cinv is None:
+        return np.full((V, V), np.nan)
+    if nlp.criterion == "test-pose":
+        Gbar = -(lam_g[: nlp.n_rows] @ sl.Y.reshape(-1, L * L)).reshape(L, L)
+    else:
+        Gbar = lam_f * sl.G_f
+    kappa = CURVATURE[nlp.criterion]
+    if kappa:  # kappa tr(-Gbar dM_a N dM_b), every pair of plan variables
+        T = (-Gbar) @ sl.dM @ sl.N
+        H = kappa * (T.reshape(V, L * L) @ sl.dM.reshape(V, L * L).T)
+    else:
+        H = np.zeros((V, V))
+    # tr(Gbar d2M_ab) = c (2 <B Gbar, d2B_ab> + 2 <dB_a Gbar, dB_b>), and the rules' rows
+    W = (2 * c) * (v.B @ Gbar)
+    d = W.shape[1]
+    d2 = nlp.mapped["second"](v.Z, W.transpose(1, 0, 2).reshape(d, -1), lam_g[nlp.rule_rows].T)[0]
+    blocks = d2.reshape(p, m, p).transpose(1, 0, 2)
+    dBG = (sl.dB @ Gbar).reshape(m, p, d * L)
+    blocks += (2 * c) * (dBG @ sl.dB.reshape(m, p, d * L).transpose(0, 2, 1))
+    flat = H.ravel()
+    flat[nlp.block_positions] += blocks
+    if len(nlp.pairs):
+        P, n2 = nlp.pair_cols.shape
+        d2p = nlp.mapped["pair_second"](v.x[nlp.pair_cols.T], lam_g[nlp.pair_rows][None, :])[0]
+        np.add.at(flat, nlp.pair_positions, d2p.reshape(n2, P, n2).transpose(1, 0, 2))
+    return H
 
 
 def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,

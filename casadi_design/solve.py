@@ -11,6 +11,7 @@ solve is a status, not an exception.
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -18,7 +19,7 @@ from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from . import interrupt
 from .build import Problem
@@ -161,13 +162,19 @@ def check_ipopt_options(problem: Problem) -> None:
                            f"({status}); check the names and values against the IPOPT options reference")
 
 
+@functools.cache
+def _blas() -> ThreadpoolController:
+    """The BLAS libraries loaded in this process (found once: a search costs ~2 ms)."""
+    return ThreadpoolController()
+
+
 @contextlib.contextmanager
 def ipopt_call() -> Iterator[None]:
     """Run an IPOPT solve: Ctrl-C stops it (:func:`casadi_design.interrupt.solver_call`), and BLAS
     runs on one thread. The reduced-space derivatives multiply small matrices (L x L): BLAS
     threads cost more than they give there (10x slower on a busy 2-core machine), and the
     rounding, hence a start's outcome, would depend on the thread count (and so on ``--jobs``)."""
-    with interrupt.solver_call(), threadpool_limits(limits=1, user_api="blas"):
+    with interrupt.solver_call(), _blas().limit(limits=1, user_api="blas"):
         yield
 
 

@@ -182,6 +182,7 @@ def test_ipopt_iterates_equal_the_symbolic_formulations(paper, criterion):
         runs = []
         for formulation in (nlp, sym):
             solver = formulation.solver("s", {"ipopt.print_level": 0, "print_time": False, "error_on_fail": False,
+                                              "ipopt.tol": paper.solver.tol,
                                               "ipopt.max_iter": 10 if criterion == "T" else 3000})
             with ipopt_call():
                 sol = solver(x0=x0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
