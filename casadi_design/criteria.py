@@ -7,17 +7,17 @@ For a plan with information matrix ``M = sum_i B_i^T B_i`` (``cov(X) = sigma^2 M
   maximise ``s_L``, the smallest singular value of the stacked B; T: maximise ``trace M``;
   condition: minimise ``s_1 / s_L``.
 
-Each entry holds the criterion's symbolic NLP objective (CasADi, of the scaled ``M`` and
-``B0``), the field of :class:`casadi_design.measures.Scores` that holds its numeric value,
-its labels and line style, and a fixed seed id: adding a criterion never changes the starts of
-another.
+Each entry holds the field of :class:`casadi_design.measures.Scores` that holds its numeric
+value, its labels and line style, a fixed seed id (adding a criterion never changes the starts
+of another) and, for E and condition, the symbolic NLP objective (CasADi, of the scaled ``M``
+and ``B0``).
 
-The test-pose objective is the epigraph form ``min t`` s.t. ``trace(B0_j M^-1 B0_j^T) <= t``
-with ``M^-1`` through the Cholesky factor ``M = R^T R``: ``trace(B0 M^-1 B0^T) = |R^-T B0^T|_F^2``.
-E and condition are non-smooth in the plan (a repeated eigenvalue at the optimum); they are
-posed with semidefinite constraints written as Cholesky-factor equalities: ``M - lam I = C C^T``
-(C lower triangular, free) holds iff ``M - lam I`` is positive semidefinite, so ``max lam`` gives
-``lam = lambda_min(M)``.
+test-pose, D, A and T are smooth in M: their NLP is the reduced-space one of
+:mod:`casadi_design.reduced` (test-pose as the epigraph ``min t`` s.t.
+``trace(B0_j M^-1 B0_j^T) <= t``). E and condition are non-smooth in the plan (a repeated
+eigenvalue at the optimum); they are posed with semidefinite constraints written as
+Cholesky-factor equalities: ``M - lam I = C C^T`` (C lower triangular, free) holds iff
+``M - lam I`` is positive semidefinite, so ``max lam`` gives ``lam = lambda_min(M)``.
 """
 
 from __future__ import annotations
@@ -59,7 +59,8 @@ class Criterion:
     label : description for tables, with units.
     legend : name in figure legends.
     style : matplotlib line style of its curves.
-    objective : ``(M, B0) -> Objective``, M the (scaled) information matrix, B0 (s, r, L).
+    objective : ``(M, B0) -> Objective``, M the (scaled) information matrix, B0 (s, r, L), of
+        the lifted NLP; None for the criteria of the reduced-space NLP (:mod:`casadi_design.reduced`).
     seed_id : third entry of the seed of its starts (fixed forever).
     polished : nearly singular starts first get a few D-optimal iterations (see solve.py).
     log_value : the value is a logarithm (same optimum: absolute tolerance on it).
@@ -71,7 +72,7 @@ class Criterion:
     label: str
     legend: str
     style: dict
-    objective: Callable[[ca.SX, np.ndarray], Objective]
+    objective: Callable[[ca.SX, np.ndarray], Objective] | None
     seed_id: int
     polished: bool = False
     log_value: bool = False
@@ -113,43 +114,6 @@ def _psd_factor(name: str, S: ca.SX) -> tuple[ca.SX, ca.SX, Callable[[np.ndarray
     return c, _lower(S - C @ C.T), init
 
 
-def _no_aux(f: ca.SX) -> Objective:
-    empty = np.zeros(0)
-    return Objective(f, ca.SX(0, 1), empty, empty, ca.SX(0, 1), empty, empty, lambda M0: empty)
-
-
-def test_pose_objective(M: ca.SX, B0: np.ndarray) -> Objective:
-    """``min t`` s.t. ``trace(B0_j M^-1 B0_j^T) <= t`` for the s test poses."""
-    s, r, L = B0.shape
-    R = ca.chol(M)
-    Y = ca.solve(R.T, ca.DM(B0.transpose(2, 0, 1).reshape(L, s * r)))
-    trace = ca.sum1(ca.reshape(ca.sum1(Y**2), r, s)).T
-    t = ca.SX.sym("t")
-
-    def init(M0: np.ndarray) -> np.ndarray:
-        Z = np.linalg.solve(np.linalg.cholesky(M0), B0.transpose(2, 0, 1).reshape(L, s * r))
-        return np.array([1.01 * np.max(np.sum(Z**2, axis=0).reshape(s, r).sum(axis=1))])
-
-    return Objective(t, t, np.array([0.0]), np.array([np.inf]), trace - t,
-                     np.full(s, -np.inf), np.zeros(s), init)
-
-
-def d_objective(M: ca.SX, B0: np.ndarray) -> Objective:
-    """``min -log det M = -2 sum log diag(chol M)``."""
-    return _no_aux(-2 * ca.sum1(ca.log(ca.diag(ca.chol(M)))))
-
-
-def a_objective(M: ca.SX, B0: np.ndarray) -> Objective:
-    """``min trace M^-1 = |R^-T|_F^2``."""
-    Rinv_T = ca.solve(ca.chol(M).T, ca.DM.eye(M.shape[0]))
-    return _no_aux(ca.sumsqr(Rinv_T))
-
-
-def t_objective(M: ca.SX, B0: np.ndarray) -> Objective:
-    """``min -trace M``."""
-    return _no_aux(-ca.trace(M))
-
-
 def e_objective(M: ca.SX, B0: np.ndarray) -> Objective:
     """``max lam`` s.t. ``M - lam I = C C^T``: lam = lambda_min(M) = s_L^2."""
     L = M.shape[0]
@@ -187,16 +151,16 @@ CRITERIA: dict[str, Criterion] = {
     c.name: c
     for c in (
         Criterion("test-pose", "min", "max_rms_error_m", "max over test poses of sqrt(rho) (m)",
-                  "Test-pose approach", {"color": "tab:red", "ls": "-", "lw": 2.0}, test_pose_objective, 0),
+                  "Test-pose approach", {"color": "tab:red", "ls": "-", "lw": 2.0}, None, 0),
         Criterion("D", "max", "log_det_M", "log det M (D-optimality)", "D-optimality",
-                  {"color": "tab:blue", "ls": "--", "lw": 1.5}, d_objective, 1, log_value=True),
+                  {"color": "tab:blue", "ls": "--", "lw": 1.5}, None, 1, log_value=True),
         Criterion("A", "min", "trace_M_inv", "trace M^-1 (A-optimality)", "A-optimality",
-                  {"color": "tab:green", "ls": "-.", "lw": 1.5}, a_objective, 2),
+                  {"color": "tab:green", "ls": "-.", "lw": 1.5}, None, 2),
         Criterion("E", "max", "s_min", "smallest singular value s_L (E-optimality, SVD approach)",
                   "SVD approach (E-optimality)", {"color": "tab:purple", "ls": ":", "lw": 2.0},
                   e_objective, 3, polished=True),
         Criterion("T", "max", "trace_M", "trace M (T-optimality)", "T-optimality",
-                  {"color": "tab:brown", "ls": (0, (5, 1, 1, 1)), "lw": 1.5}, t_objective, 4),
+                  {"color": "tab:brown", "ls": (0, (5, 1, 1, 1)), "lw": 1.5}, None, 4),
         Criterion("condition", "min", "condition", "condition number s_1/s_L", "Condition number",
                   {"color": "tab:gray", "ls": (0, (3, 1)), "lw": 1.5}, condition_objective, 5, polished=True),
     )

@@ -11,8 +11,8 @@ information matrix is ``M = sum_i B_i^T B_i = S^T S`` and ``cov(X) = sigma^2 M^-
 * observability indices: O1 = (s_1...s_L)^(1/L) / sqrt(m), O2 = s_L / s_1, O3 = s_L,
   O4 = s_L^2 / s_1, O5 = 1 / sum(1 / s_l).
 
-These numpy functions are the twins of the symbolic objectives of
-:data:`casadi_design.criteria.CRITERIA`; tests check that both agree.
+These numpy functions are the twins of the NLP objectives of :mod:`casadi_design.nlp`; tests
+check that both agree.
 """
 
 from __future__ import annotations

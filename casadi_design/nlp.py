@@ -1,54 +1,78 @@
 """The design NLP: choose the plan ``{(q_i, F_i)}, i = 1..m`` that optimises a criterion.
 
-Decision variables: ``Q`` (n x m, rad), the normalised loads ``Fbar = F / |F|_max`` (nF x m; a
-1 x m magnitude ``a`` for a load of fixed direction; absent for fixed loads and geometric
-cases), and the criterion's own auxiliary variables (:mod:`casadi_design.criteria`). The
-test-pose criterion is the min-max of the paper (eq. 15) in epigraph form:
+Decision variables: ``Q`` (n x m, rad), the load variables ``V`` (nv x m, see
+:class:`~casadi_design.rules.LoadVariables`: ``Fbar = F / |F|_max``, a magnitude ``a`` for a
+load of fixed direction, none for fixed loads and geometric cases), and the criterion's own
+auxiliary variables ``w``: ``x = (vec Q, vec V, w)``. The test-pose criterion is the min-max of
+the paper (eq. 15) in epigraph form:
 
     minimise t  subject to  trace(B0_j M^-1 B0_j^T) <= t,  j = 1..s
 
 (``rho_j = sigma^2`` times the left side, so sigma does not change the plan).
 
-Constraints, the rules of :mod:`casadi_design.rules`: joint limits (bounds), loads
-(``|Fbar_i| = 1`` or ``<= 1``, ``0 <= a_i <= 1``), the workspace rows of every experiment
-(:func:`~casadi_design.rules.pose_constraints`) and the joint distance between experiments.
+Constraint rows, in this order: the criterion's rows, the loads (``|Fbar_i|^2 = 1`` or
+``<= 1``), the workspace rows of every experiment
+(:func:`~casadi_design.rules.pose_constraints`) and the joint distance of every pair of
+experiments; joint limits and load magnitudes are bounds of x.
+
+Two formulations of the same NLP, one per criterion:
+
+* test-pose, D, A, T: reduced space (:mod:`casadi_design.reduced`), IPOPT's variables are x
+  only, values and exact derivatives by numeric linear algebra;
+* E, condition: lifted, with Cholesky-factor PSD variables (:mod:`casadi_design.criteria`),
+  one symbolic CasADi graph with its exact Hessian.
+
+Both give IPOPT the information matrix scaled to O(1) per experiment, ``scale M``, and ``B0``
+scaled by ``sqrt(scale)``: a constant factor leaves every criterion's optimal plans and
+``trace(B0 M^-1 B0^T)`` unchanged and keeps IPOPT's steps well scaled.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 
 from .build import Problem
-from .criteria import CRITERIA
-from .rules import pose_constraints
+from .criteria import CRITERIA, Objective
+from .reduced import reduced_nlp
+from .rules import LoadVariables, load_variables, pose_constraints
 
 
 @dataclass(frozen=True, eq=False)
 class DesignNLP:
-    """The NLP of one (criterion, m), ready for ``casadi.nlpsol``.
+    """The NLP of one (criterion, m), ready for IPOPT.
 
-    ``plan(x) -> (Q, F)`` gives the joint values (n x m, rad) and loads (nF x m, N).
-    ``start(Q, F) -> x0`` completes a start point with the auxiliary variables.
-    ``scale`` is the constant factor of M inside the NLP (``information`` returns ``scale M``).
+    Attributes
+    ----------
+    scale : the constant factor of M inside the NLP (``information(x)`` returns ``scale M``).
+    oracle : ``(x, p) -> (f, g)`` with ``p`` empty, the NLP as ``casadi.nlpsol`` takes it.
+    plan : ``x -> (Q, F)``, joint values (n x m, rad) and loads (nF x m, N).
+    information : ``x -> scale M`` (L x L).
+    start : ``(Q, F) -> x0``, a plan completed with the auxiliary variables.
+    options : ``nlpsol`` options of the formulation: its own derivative functions.
     """
 
     criterion: str
     m: int
     scale: float
-    x: ca.SX
-    f: ca.SX
-    g: ca.SX
+    oracle: ca.Function
     lbx: np.ndarray
     ubx: np.ndarray
     lbg: np.ndarray
     ubg: np.ndarray
-    plan: ca.Function
-    information: ca.Function
+    plan: Callable
+    information: Callable
     start: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    options: dict = field(default_factory=dict)
+
+    def solver(self, name: str, opts: dict) -> ca.Function:
+        """IPOPT on this NLP with the options ``opts``."""
+        solver = ca.nlpsol(name, "ipopt", self.oracle, {**opts, **self.options})
+        solver.design_nlp = self  # keeps the Python callbacks alive as long as the solver
+        return solver
 
 
 def B0_at_test_poses(problem: Problem) -> np.ndarray:
@@ -57,69 +81,109 @@ def B0_at_test_poses(problem: Problem) -> np.ndarray:
     return problem.model.B_stack(tp.q, tp.F, accuracy=True)
 
 
+def information_scale(L: int, B0: np.ndarray) -> float:
+    """The factor of M (and of ``B0^T B0``) inside the NLP: ``L / mean_j |B0_j|_F^2``."""
+    return L / max(np.einsum("sij,sij->", B0, B0) / B0.shape[0], np.finfo(float).tiny)
+
+
 def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = None) -> DesignNLP:
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem)."""
-    model, robot, force = problem.model, problem.robot, problem.force
     B0 = B0_at_test_poses(problem) if B0 is None else B0
-    n, nF = robot.n, model.nF
-    Q = ca.SX.sym("Q", n, m)
-    free_force = nF > 0 and force is not None and force.mode != "fixed"
-    if free_force and force.mode == "direction":
-        Fbar = ca.SX.sym("a", 1, m)  # F = a |F|max u, 0 <= a <= 1
-        F = force.magnitude_N * ca.DM(force.direction) @ Fbar
-    elif free_force:
-        Fbar = ca.SX.sym("Fbar", nF, m)
-        F = force.magnitude_N * Fbar
-    else:
-        Fbar = ca.SX(0, 1)
-        F = ca.repmat(ca.DM(force.vector_N if force else np.zeros(0)), 1, m) if nF else ca.SX(0, m)
-    # M (and B0) enter the NLP scaled to O(1) per experiment: a constant factor leaves every
-    # criterion's optimal plans and trace(B0 M^-1 B0^T) unchanged and keeps IPOPT's steps
-    # well scaled.
-    scale = model.L / max(np.einsum("sij,sij->", B0, B0) / B0.shape[0], np.finfo(float).tiny)
+    objective = CRITERIA[criterion].objective
+    if objective is None:
+        return _reduced_space_nlp(problem, criterion, m, B0)
+    return lifted_nlp(problem, criterion, objective, m, B0)
+
+
+def _plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of ``(vec Q, vec V)``: joint limits (rad, m) and the load variables."""
+    robot = problem.robot
+    return (np.concatenate([np.tile(robot.q_min, m), np.full(loads.nv * m, loads.lower)]),
+            np.concatenate([np.tile(robot.q_max, m), np.ones(loads.nv * m)]))
+
+
+def _rule_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment, joint distance
+    of each pair ``i < j`` (squared, rad^2)."""
+    rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad
+    n_norm = m if loads.norm_lb is not None else 0
+    n_pairs = m * (m - 1) // 2 if dmin > 0 else 0
+    lb = np.concatenate([np.full(n_norm, loads.norm_lb or 0.0), np.tile(rules.lb, m),
+                         np.full(n_pairs, dmin**2)])
+    ub = np.concatenate([np.ones(n_norm), np.tile(rules.ub, m), np.full(n_pairs, np.inf)])
+    return lb, ub
+
+
+def _reduced_space_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray) -> DesignNLP:
+    """The NLP of test-pose, D, A or T in the reduced space (:mod:`casadi_design.reduced`)."""
+    n, loads = problem.robot.n, load_variables(problem)
+    scale = information_scale(problem.model.L, B0)
+    nlp = reduced_nlp(problem, criterion, m, B0, scale)
+    oracle, options = nlp.functions()
+    lbx, ubx = _plan_bounds(problem, m, loads)
+    lbg, ubg = _rule_bounds(problem, m, loads)
+    if criterion == "test-pose":  # t >= 0; rho_j - t <= 0
+        lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
+        s = nlp.n_rows
+        lbg, ubg = np.concatenate([np.full(s, -np.inf), lbg]), np.concatenate([np.zeros(s), ubg])
+    n_plan = (n + loads.nv) * m
+
+    def plan(x) -> tuple[np.ndarray, np.ndarray]:
+        x = np.asarray(x, dtype=float).ravel()
+        return x[: n * m].reshape(m, n).T, loads.loads(x[n * m: n_plan].reshape(m, loads.nv).T)
+
+    def information(x) -> np.ndarray:
+        return nlp.at(np.asarray(x, dtype=float).ravel()).M
+
+    def start(Q0: np.ndarray, F0: np.ndarray) -> np.ndarray:
+        x0 = np.concatenate([np.asarray(Q0).ravel(order="F"),
+                             loads.variables(F0).ravel(order="F"), np.zeros(nlp.nx - n_plan)])
+        if criterion == "test-pose":  # t0 = 1.01 max_j rho_j, strictly feasible
+            x0[-1] = 1.01 * np.max(nlp.at(x0).g[: nlp.n_rows])
+        return x0
+
+    return DesignNLP(criterion, m, scale, oracle, lbx, ubx, lbg, ubg, plan, information, start, options)
+
+
+def lifted_nlp(problem: Problem, criterion: str,
+               objective: Callable[[ca.SX, np.ndarray], Objective], m: int,
+               B0: np.ndarray) -> DesignNLP:
+    """The NLP as one symbolic CasADi graph of ``M = scale sum_i B_i^T B_i`` and ``objective``
+    (its exact Hessian from CasADi)."""
+    model, robot = problem.model, problem.robot
+    loads = load_variables(problem)
+    Q = ca.SX.sym("Q", robot.n, m)
+    V = ca.SX.sym("V", loads.nv, m)
+    F = loads.loads(V)
+    scale = information_scale(model.L, B0)
     M = ca.SX.zeros(model.L, model.L)
     for i in range(m):
         Bi = model.B(Q[:, i], F[:, i])
         M += scale * (Bi.T @ Bi)
-    obj = CRITERIA[criterion].objective(M, np.sqrt(scale) * B0)
+    obj = objective(M, np.sqrt(scale) * B0)
 
-    g, lbg, ubg = [obj.g], [obj.lbg], [obj.ubg]
-    if free_force and force.mode != "direction":
-        norms = ca.sum1(Fbar**2).T
-        g.append(norms)
-        lbg.append(np.ones(m) if force.mode == "equal" else np.zeros(m))
-        ubg.append(np.ones(m))
     rules = pose_constraints(problem)
-    for i in range(m):
-        g.append(rules.g(Q[:, i]))
-        lbg.append(rules.lb)
-        ubg.append(rules.ub)
-    dmin = problem.workspace.min_joint_distance_rad
-    if dmin > 0:
-        pairs = [ca.sumsqr(Q[:, i] - Q[:, j]) for i in range(m) for j in range(i + 1, m)]
-        g.append(ca.vertcat(*pairs) if pairs else ca.SX(0, 1))
-        lbg.append(np.full(len(pairs), dmin**2))
-        ubg.append(np.full(len(pairs), np.inf))
+    g = [obj.g, ca.sum1(V**2).T if loads.norm_lb is not None else ca.SX(0, 1)]
+    g += [rules.g(Q[:, i]) for i in range(m)]
+    if problem.workspace.min_joint_distance_rad > 0:
+        g += [ca.sumsqr(Q[:, i] - Q[:, j]) for i in range(m) for j in range(i + 1, m)]
+    lb_rules, ub_rules = _rule_bounds(problem, m, loads)
+    lb_plan, ub_plan = _plan_bounds(problem, m, loads)
 
-    qv, fv = ca.vec(Q), ca.vec(Fbar)
-    x = ca.vertcat(qv, fv, obj.w)
-    f_lb = 0.0 if free_force and force.mode == "direction" else -1.0
-    lbx = np.concatenate([np.tile(robot.q_min, m), np.full(fv.numel(), f_lb), obj.lbw])
-    ubx = np.concatenate([np.tile(robot.q_max, m), np.ones(fv.numel()), obj.ubw])
+    x = ca.vertcat(ca.vec(Q), ca.vec(V), obj.w)
+    oracle = ca.Function("nlp", [x, ca.SX(0, 1)], [obj.f, ca.vertcat(*g)], ["x", "p"],
+                         ["f", "g"])
     plan = ca.Function("plan", [x], [Q, F], ["x"], ["Q", "F"])
     information = ca.Function("M", [x], [M], ["x"], ["M"])
-    n_plan = qv.numel() + fv.numel()
+    n_aux = obj.w.numel()
 
     def start(Q0: np.ndarray, F0: np.ndarray) -> np.ndarray:
-        if not free_force:
-            Fbar0 = np.zeros(0)
-        elif force.mode == "direction":
-            Fbar0 = np.array(force.direction) @ F0 / force.magnitude_N
-        else:
-            Fbar0 = (F0 / force.magnitude_N).ravel(order="F")
-        x_plan = np.concatenate([np.asarray(Q0).ravel(order="F"), Fbar0])
-        M0 = np.asarray(information(np.concatenate([x_plan, np.zeros(x.numel() - n_plan)])))
+        x_plan = np.concatenate([np.asarray(Q0).ravel(order="F"),
+                                 loads.variables(F0).ravel(order="F")])
+        M0 = np.asarray(information(np.concatenate([x_plan, np.zeros(n_aux)])))
         return np.concatenate([x_plan, obj.init(M0)])
 
-    return DesignNLP(criterion, m, scale, x, obj.f, ca.vertcat(*g), lbx, ubx,
-                     np.concatenate(lbg), np.concatenate(ubg), plan, information, start)
+    return DesignNLP(criterion, m, scale, oracle,
+                     np.concatenate([lb_plan, obj.lbw]), np.concatenate([ub_plan, obj.ubw]),
+                     np.concatenate([obj.lbg, lb_rules]), np.concatenate([obj.ubg, ub_rules]),
+                     plan, information, start)

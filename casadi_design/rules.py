@@ -82,6 +82,52 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
                            np.array([r[2] for r in rows], dtype=float), tuple(r[3] for r in rows))
 
 
+@dataclass(frozen=True, eq=False)
+class LoadVariables:
+    """The calibration loads as NLP variables: ``nv`` values ``v_i`` per experiment.
+
+    ``F_i = magnitude_N U v_i + fixed_N`` (N, N m) with ``U`` (nF x nv) the identity for a free
+    direction ("equal", "bound": ``v = F / F_max``, with the rows ``norm_lb <= |v_i|^2 <= 1``),
+    the unit direction u for "direction" (``v = a``), and no variables (nv = 0) for a fixed load
+    or a case without loads. Bounds of each ``v`` entry: ``lower <= v <= 1``.
+    """
+
+    U: np.ndarray
+    magnitude_N: float
+    fixed_N: np.ndarray
+    lower: float
+    norm_lb: float | None
+
+    @property
+    def nv(self) -> int:
+        return self.U.shape[1]
+
+    def loads(self, V):
+        """``F`` (nF x m, N) of the variables ``V`` (nv x m; numpy or CasADi)."""
+        m = V.shape[1]
+        if isinstance(V, np.ndarray):
+            return self.magnitude_N * (self.U @ V) + self.fixed_N[:, None]
+        return self.magnitude_N * (ca.DM(self.U) @ V) + ca.repmat(ca.DM(self.fixed_N), 1, m)
+
+    def variables(self, F: np.ndarray) -> np.ndarray:
+        """``V`` (nv x m) of loads ``F`` (nF x m, N) that satisfy the rule."""
+        F = np.asarray(F, dtype=float)
+        return self.U.T @ F.reshape(self.U.shape[0], F.shape[-1]) / self.magnitude_N
+
+
+def load_variables(problem: Problem) -> LoadVariables:
+    """The load variables of the problem's calibration load (see :class:`LoadVariables`)."""
+    nF, force = problem.model.nF, problem.force
+    if nF == 0 or force is None or force.mode == "fixed":
+        fixed = np.array(force.vector_N if nF and force is not None else np.zeros(nF), dtype=float)
+        return LoadVariables(np.zeros((nF, 0)), 1.0, fixed, -1.0, None)
+    if force.mode == "direction":
+        return LoadVariables(np.array(force.direction, dtype=float)[:, None], force.magnitude_N,
+                             np.zeros(nF), 0.0, None)
+    return LoadVariables(np.eye(nF), force.magnitude_N, np.zeros(nF), -1.0,
+                         1.0 if force.mode == "equal" else 0.0)
+
+
 def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]:
     """Every rule the plan breaks, one line each (empty: the plan is feasible).
 

@@ -10,13 +10,16 @@ solve is a status, not an exception.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from . import interrupt
 from .build import Problem
@@ -137,7 +140,7 @@ def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.F
         "show_eval_warnings": verbose,
     }
     opts.update({f"ipopt.{k}": v for k, v in settings.ipopt})
-    return ca.nlpsol(f"design_m{nlp.m}", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
+    return nlp.solver(f"design_m{nlp.m}", opts)
 
 
 def check_ipopt_options(problem: Problem) -> None:
@@ -159,6 +162,22 @@ def check_ipopt_options(problem: Problem) -> None:
                            f"({status}); check the names and values against the IPOPT options reference")
 
 
+@functools.cache
+def _blas() -> ThreadpoolController:
+    """The BLAS libraries loaded in this process (found once: a search costs ~2 ms)."""
+    return ThreadpoolController()
+
+
+@contextlib.contextmanager
+def ipopt_call() -> Iterator[None]:
+    """Run an IPOPT solve: Ctrl-C stops it (:func:`casadi_design.interrupt.solver_call`), and BLAS
+    runs on one thread. The reduced-space derivatives multiply small matrices (L x L): BLAS
+    threads cost more than they give there (10x slower on a busy 2-core machine), and the
+    rounding, hence a start's outcome, would depend on the thread count (and so on ``--jobs``)."""
+    with interrupt.solver_call(), _blas().limit(limits=1, user_api="blas"):
+        yield
+
+
 @dataclass(frozen=True, eq=False)
 class DesignSolver:
     """The NLP of one (criterion, m) with its IPOPT solver, and for E and condition a short
@@ -175,9 +194,9 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     polish = None
     if CRITERIA[criterion].polished:
         d_nlp = build_nlp(problem, "D", m, B0)
-        d_solver = ca.nlpsol("polish", "ipopt", {"x": d_nlp.x, "f": d_nlp.f, "g": d_nlp.g},
-                             {"ipopt.max_iter": POLISH_ITERATIONS, "ipopt.print_level": 0, "ipopt.sb": "yes",
-                              "print_time": False, "error_on_fail": False, "show_eval_warnings": False})
+        d_solver = d_nlp.solver("polish", {"ipopt.max_iter": POLISH_ITERATIONS, "ipopt.print_level": 0,
+                                           "ipopt.sb": "yes", "print_time": False, "error_on_fail": False,
+                                           "show_eval_warnings": False})
         polish = (d_nlp, d_solver)
     return DesignSolver(nlp, make_solver(problem, nlp, verbose), polish)
 
@@ -192,7 +211,7 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
     lam = np.linalg.eigvalsh(np.asarray(d_nlp.information(x0)))
     if lam[0] > POLISH_RCOND * lam[-1]:
         return Q0, F0
-    with interrupt.solver_call():
+    with ipopt_call():
         sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
     Q, F = (np.asarray(v, dtype=float) for v in d_nlp.plan(sol["x"]))
     return np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None]), F
@@ -209,7 +228,7 @@ def solve_start(
     """
     nlp, solver = ds.nlp, ds.solver
     Q0, F0 = _polished(problem, ds, Q0, F0)
-    with interrupt.solver_call():  # IPOPT reports Ctrl-C as a failed start: stop instead
+    with ipopt_call():  # IPOPT reports Ctrl-C as a failed start: stop instead
         sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     stats = solver.stats()
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))

@@ -1,0 +1,533 @@
+"""The reduced-space NLP of the smooth criteria (test-pose, D, A, T): numeric derivatives.
+
+IPOPT's variables are the plan and the test-pose bound only, ``x = (vec Q, vec V, t)`` in the
+layout of :mod:`casadi_design.nlp`. Experiment i enters through its ``p = n + nv`` variables
+``z_i = (q_i, v_i)`` and ``B_i = B(q_i, F(v_i))``; the criterion through the scaled information
+matrix ``M = c sum_i B_i^T B_i`` (c: the NLP's ``scale``) and ``N = M^-1``. Small CasADi
+functions of ONE experiment, mapped over the m experiments, give ``B``, ``dB/dz`` and the
+weighted second derivative ``sum_kl W_kl d2B_kl/dz2`` (and the rows of the rules with their
+derivatives); the rest is matrix calculus in numpy. For a variable a of experiment i,
+
+    dM_a = c (dB_a^T B_i + B_i^T dB_a),
+    d2M_ab = c (d2B_ab^T B_i + B_i^T d2B_ab + dB_a^T dB_b + dB_b^T dB_a)
+
+for a, b of experiment i (0 for variables of two experiments).
+
+The criterion's part ``phi(M)`` of the Lagrangian and its derivatives:
+
+=========  ================================================  ================  =====
+criterion  phi(M)                                            Gbar = dphi/dM    kappa
+=========  ================================================  ================  =====
+test-pose  sum_j mu_j rho_j = tr(P N),  P = sum_j mu_j H_j   -N P N            2
+A          sigma_f tr(N)                                     -sigma_f N N      2
+D          -sigma_f log det M                                -sigma_f N        1
+T          -sigma_f tr(M)                                    -sigma_f I        0
+=========  ================================================  ================  =====
+
+with ``rho_j = tr(H_j N)``, ``H_j = c B0_j^T B0_j`` the test-pose rows ``rho_j - t <= 0`` (mu_j
+their multipliers, sigma_f the objective's), and
+
+    d phi = tr(Gbar dM_a),   d2 phi[a, b] = kappa tr(-Gbar dM_a N dM_b) + tr(Gbar d2M_ab).
+
+(For ``tr(P N)``: ``d2 = 2 tr(G dM_a N dM_b) - tr(G d2M_ab)``, ``G = N P N``; for
+``-log det M``: ``d2 = tr(N dM_a N dM_b) - tr(N d2M_ab)``.) The Jacobian of the test-pose rows
+is ``J[j, a] = -tr(N H_j N dM_a)`` and ``-1`` for t. Since ``N = M^-1`` couples all
+experiments, the Hessian is dense over the plan variables (block-diagonal for T, kappa = 0);
+the rules add per-experiment and pairwise blocks. Units: q in rad (m for prismatic joints), v
+and the scaled M without units.
+
+IPOPT gets f, g, the gradient, the Jacobian and the upper triangle of the Hessian of the
+Lagrangian through :class:`NumericFunction` callbacks; the quantities of the last point are
+kept, so f, g and their derivatives at one x cost one evaluation each.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import NamedTuple
+
+import casadi as ca
+import numpy as np
+from scipy.linalg.lapack import dpotrf, dtrtri
+
+from .build import Problem
+from .rules import load_variables, pose_constraints
+
+#: kappa of each criterion of the reduced space (see the module docstring).
+CURVATURE = {"test-pose": 2.0, "D": 1.0, "A": 2.0, "T": 0.0}
+
+
+class NumericFunction(ca.Callback):
+    """A CasADi function evaluated in Python on the nonzeros of its inputs and outputs.
+
+    ``evaluate(*inputs) -> outputs``: 1-D arrays of the structural nonzeros (column-major), as
+    declared by ``inputs`` and ``outputs`` (lists of ``(name, sparsity)``). The caller keeps the
+    object alive as long as any CasADi function calls it.
+    """
+
+    def __init__(self, name: str, inputs: list[tuple[str, ca.Sparsity]],
+                 outputs: list[tuple[str, ca.Sparsity]], evaluate: Callable):
+        ca.Callback.__init__(self)
+        self._inputs, self._outputs, self._evaluate = inputs, outputs, evaluate
+        self.construct(name, {})
+
+    def get_n_in(self) -> int:
+        return len(self._inputs)
+
+    def get_n_out(self) -> int:
+        return len(self._outputs)
+
+    def get_name_in(self, i: int) -> str:
+        return self._inputs[i][0]
+
+    def get_name_out(self, i: int) -> str:
+        return self._outputs[i][0]
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return self._inputs[i][1]
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return self._outputs[i][1]
+
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg, res) -> int:
+        # views of CasADi's buffers, valid during the call (None: an absent input or output)
+        args = [np.zeros(sp.nnz()) if a is None else np.frombuffer(a, dtype=float)
+                for a, (_, sp) in zip(arg, self._inputs)]
+        for r, value in zip(res, self._evaluate(*args)):
+            if r is not None:
+                np.frombuffer(r, dtype=float)[:] = value
+        return 0
+
+
+@dataclass(frozen=True, eq=False)
+class BufferedFunction:
+    """A CasADi function called through its buffers (``Function.buffer``): dense numpy inputs
+    in, dense numpy outputs out, without the conversions of ``DM``. Not reentrant."""
+
+    fn: ca.Function
+    buffer: object
+    call: Callable[[], None]
+    args: tuple[np.ndarray, ...]
+    res: tuple[np.ndarray, ...]
+    #: column-major positions of each output's nonzeros in its dense matrix, and its shape
+    positions: tuple[np.ndarray, ...]
+    shapes: tuple[tuple[int, int], ...]
+
+    @classmethod
+    def of(cls, fn: ca.Function) -> BufferedFunction:
+        buffer, call = fn.buffer()
+        args = tuple(np.zeros(fn.nnz_in(i)) for i in range(fn.n_in()))
+        res = tuple(np.zeros(fn.nnz_out(i)) for i in range(fn.n_out()))
+        for i, a in enumerate(args):
+            assert fn.sparsity_in(i).is_dense()
+            buffer.set_arg(i, memoryview(a))
+        for i, r in enumerate(res):
+            buffer.set_res(i, memoryview(r))
+        positions = []
+        for i in range(fn.n_out()):
+            sp = fn.sparsity_out(i)
+            positions.append(np.array(sp.row(), dtype=int) + sp.size1() * np.repeat(
+                np.arange(sp.size2()), np.diff(sp.colind())))
+        return cls(fn, buffer, call, args, res, tuple(positions),
+                   tuple(tuple(fn.size_out(i)) for i in range(fn.n_out())))
+
+    def __call__(self, *inputs: np.ndarray) -> list[np.ndarray]:
+        """The outputs (copies) as dense arrays of their shape."""
+        for a, x in zip(self.args, inputs):
+            a[:] = np.ravel(x, order="F")
+        self.call()
+        out = []
+        for r, pos, shape in zip(self.res, self.positions, self.shapes):
+            if len(pos) == shape[0] * shape[1]:
+                out.append(r.reshape(shape, order="F").copy())
+            else:
+                dense = np.zeros(shape[0] * shape[1])
+                dense[pos] = r
+                out.append(dense.reshape(shape, order="F"))
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class ExperimentFunctions:
+    """CasADi functions of one experiment's variables ``z = (q, v)`` (p = n + nv).
+
+    ``c(z)`` are the experiment's rule rows: ``|v|^2`` when the load direction is free, then the
+    workspace rows :func:`~casadi_design.rules.pose_constraints` of q (m).
+
+    Attributes
+    ----------
+    values : ``z -> (B, c)``, B (d x L) unscaled.
+    first : ``z -> (d vec(B) / dz (d L x p), dc/dz (nc x p))``.
+    second : ``(z, W, lam) -> d2/dz2 (sum_kl W_kl B_kl + lam . c)`` (p x p), W (d x L), lam (nc).
+    pair : ``u -> |q_a - q_b|^2`` (rad^2) for ``u = (q_a, q_b)``; ``pair_first``: its gradient
+        (1 x 2n); ``pair_second``: ``(u, lam) -> lam`` times its Hessian (2n x 2n).
+    """
+
+    n: int
+    nv: int
+    nc: int
+    values: ca.Function
+    first: ca.Function
+    second: ca.Function
+    pair: ca.Function
+    pair_first: ca.Function
+    pair_second: ca.Function
+
+    @property
+    def p(self) -> int:
+        return self.n + self.nv
+
+
+@functools.cache
+def experiment_functions(problem: Problem) -> ExperimentFunctions:
+    """The functions of one experiment of ``problem`` (built once per problem)."""
+    model, loads, rules = problem.model, load_variables(problem), pose_constraints(problem)
+    n = model.n
+    q, v = ca.SX.sym("q", n), ca.SX.sym("v", loads.nv)
+    z = ca.vertcat(q, v)
+    B = model.B(q, loads.loads(v))
+    c = ca.vertcat(*([ca.sumsqr(v)] if loads.norm_lb is not None else []), rules.g(q))
+    W, lam = ca.SX.sym("W", *B.shape), ca.SX.sym("lam", c.numel())
+    second = ca.hessian(ca.dot(W, B) + ca.dot(lam, c), z)[0]
+    qa, qb, mu = ca.SX.sym("qa", n), ca.SX.sym("qb", n), ca.SX.sym("mu")
+    u = ca.vertcat(qa, qb)
+    d = ca.sumsqr(qa - qb)
+    cse = {"cse": True}  # common subexpressions of the kinematics: 10-35 % fewer operations
+    return ExperimentFunctions(
+        n, loads.nv, c.numel(),
+        ca.Function("B", [z], [B, c], ["z"], ["B", "c"], cse),
+        ca.Function("dB", [z], [ca.jacobian(ca.vec(B), z), ca.jacobian(c, z)], ["z"], ["dB", "dc"],
+                    cse),
+        ca.Function("d2B", [z, W, lam], [second], ["z", "W", "lam"], ["d2"], cse),
+        ca.Function("pair", [u], [d], ["u"], ["d"]),
+        ca.Function("dpair", [u], [ca.jacobian(d, u)], ["u"], ["dd"]),
+        ca.Function("d2pair", [u, mu], [ca.hessian(mu * d, u)[0]], ["u", "mu"], ["d2"]),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class ReducedNLP:
+    """The numeric NLP of one (criterion, m): f, g and their exact derivatives at any x.
+
+    Attributes
+    ----------
+    B0s : ndarray, shape (s, r, L): ``sqrt(scale) B0``.
+    cols : ndarray, shape (m, p): index in x of each experiment's variables z_i.
+    rule_rows : ndarray, shape (m, nc): index in g of each experiment's rule rows.
+    pairs : ndarray, shape (P, 2): the experiments (a < b) of each joint-distance row.
+    pair_rows : ndarray, shape (P,): their index in g.
+    n_rows : number of criterion rows (s for test-pose, 0 otherwise), first in g.
+    nx, ng : sizes of x and g.
+    last : the quantities of the last x: ``[x bytes, _Values, _Slopes or None]``.
+    """
+
+    criterion: str
+    m: int
+    scale: float
+    fns: ExperimentFunctions
+    B0s: np.ndarray
+    cols: np.ndarray
+    rule_rows: np.ndarray
+    pairs: np.ndarray
+    pair_rows: np.ndarray
+    n_rows: int
+    nx: int
+    ng: int
+    last: list = field(default_factory=list)
+
+    @cached_property
+    def mapped(self) -> dict[str, BufferedFunction]:
+        """The functions of :class:`ExperimentFunctions` mapped over the experiments (pairs)."""
+        f, P = self.fns, len(self.pairs)
+        out = {"values": f.values.map(self.m), "first": f.first.map(self.m),
+               "second": f.second.map(self.m)}
+        if P:
+            out.update(pair=f.pair.map(P), pair_first=f.pair_first.map(P),
+                       pair_second=f.pair_second.map(P))
+        return {k: BufferedFunction.of(fn) for k, fn in out.items()}
+
+    @cached_property
+    def pair_cols(self) -> np.ndarray:
+        """Index in x of ``(q_a, q_b)`` of each pair, shape (P, 2n)."""
+        n = self.fns.n
+        return np.concatenate([self.cols[self.pairs[:, 0], :n], self.cols[self.pairs[:, 1], :n]],
+                              axis=1)
+
+    @cached_property
+    def jacobian_pattern(self) -> np.ndarray:
+        """Structural nonzeros of dg/dx (ng x nx, bool)."""
+        J = np.zeros((self.ng, self.nx), dtype=bool)
+        J[: self.n_rows, : self.cols.size] = True
+        J[: self.n_rows, self.nx - 1] = self.n_rows > 0
+        dc = np.array(ca.DM(self.fns.first.sparsity_out(1), 1.0), dtype=bool)
+        J[self.rule_rows[:, :, None], self.cols[:, None, :]] = dc
+        J[self.pair_rows[:, None], self.pair_cols] = True
+        return J
+
+    @cached_property
+    def hessian_pattern(self) -> np.ndarray:
+        """Structural nonzeros of the upper triangle of the Hessian of the Lagrangian (nx x nx,
+        bool): dense over the plan variables where M^-1 couples every experiment (kappa > 0);
+        for T, the blocks of each experiment and of each pair."""
+        H = np.zeros((self.nx, self.nx), dtype=bool)
+        if CURVATURE[self.criterion]:
+            H[np.ix_(self.cols.ravel(), self.cols.ravel())] = True
+        else:
+            H[self.cols[:, :, None], self.cols[:, None, :]] = True
+            H[self.pair_cols[:, :, None], self.pair_cols[:, None, :]] = True
+        return np.triu(H)
+
+    @cached_property
+    def jacobian_nonzeros(self) -> np.ndarray:
+        """Positions in the row-major dense dg/dx (ng x nx) of its nonzeros, in CasADi's
+        (column-major) order."""
+        k = np.flatnonzero(self.jacobian_pattern.T.ravel())
+        return k % self.ng * self.nx + k // self.ng
+
+    @cached_property
+    def plan_order(self) -> np.ndarray:
+        """Position of each x in the plan order ``(experiment i, variable a of z_i)``, -1 for t."""
+        order = np.full(self.nx, -1)
+        order[self.cols.ravel()] = np.arange(self.cols.size)
+        return order
+
+    @cached_property
+    def hessian_nonzeros(self) -> np.ndarray:
+        """Positions in the row-major Hessian in plan order (V x V, V = m p) of the nonzeros of
+        the Hessian of x, in CasADi's (column-major) order."""
+        cols, rows = np.nonzero(self.hessian_pattern.T)
+        return self.plan_order[rows] * self.cols.size + self.plan_order[cols]
+
+    @cached_property
+    def block_positions(self) -> np.ndarray:
+        """Positions of the experiments' (p x p) blocks in the row-major (V x V) Hessian in plan
+        order, shape (m, p, p)."""
+        V, p = self.cols.size, self.fns.p
+        k = np.arange(self.m)[:, None, None] * p
+        return (k + np.arange(p)[:, None]) * V + k + np.arange(p)
+
+    @cached_property
+    def pair_positions(self) -> np.ndarray:
+        """Positions of each pair's ``(q_a, q_b)`` (2n x 2n) block in the row-major (V x V)
+        Hessian in plan order, shape (P, 2n, 2n)."""
+        order = self.plan_order[self.pair_cols]
+        return order[:, :, None] * self.cols.size + order[:, None, :]
+
+    def _at(self, x: np.ndarray) -> list:
+        x = np.asarray(x, dtype=float)
+        key = x.tobytes()
+        if not self.last or self.last[0] != key:
+            self.last[:] = [key, _values(self, x.copy()), None]
+        return self.last
+
+    def at(self, x: np.ndarray) -> _Values:
+        """The values at x (those of the last call when x is the same)."""
+        return self._at(x)[1]
+
+    def slopes(self, x: np.ndarray) -> _Slopes:
+        """The first derivatives at x (those of the last call when x is the same)."""
+        last = self._at(x)
+        if last[2] is None:
+            last[2] = _slopes(self, last[1])
+        return last[2]
+
+    def f_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v = self.at(x)
+        return np.array([v.f]), v.g
+
+    def grad_f(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([self.at(x).f]), self.slopes(x).grad_f
+
+    def jac_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.at(x).g, self.slopes(x).jac_g.ravel()[self.jacobian_nonzeros]
+
+    def hess_lag(self, x: np.ndarray, lam_f: float, lam_g: np.ndarray) -> np.ndarray:
+        """The upper triangle (column-major nonzeros) of the Hessian of the Lagrangian
+        ``lam_f d2f/dx2 + sum_k lam_g[k] d2g_k/dx2``."""
+        H = _plan_hessian(self, self.at(x), self.slopes(x), float(lam_f), lam_g)
+        return H.ravel()[self.hessian_nonzeros]
+
+    def functions(self) -> tuple[ca.Function, dict]:
+        """The NLP ``(x, p) -> (f, g)`` and the nlpsol options with its derivative functions."""
+        dense = ca.Sparsity.dense
+
+        def pattern(mask: np.ndarray) -> ca.Sparsity:
+            rows, cols = np.nonzero(mask)
+            return ca.Sparsity.triplet(*mask.shape, rows.tolist(), cols.tolist())
+
+        x_p = [("x", dense(self.nx, 1)), ("p", dense(0, 1))]
+        f, g = ("f", dense(1, 1)), ("g", dense(self.ng, 1))
+        oracle = NumericFunction("nlp", x_p, [f, g], lambda x, p: self.f_g(x))
+        options = {
+            "grad_f": NumericFunction("grad_f", x_p, [f, ("grad_f_x", dense(self.nx, 1))],
+                                      lambda x, p: self.grad_f(x)),
+            "jac_g": NumericFunction("jac_g", x_p, [g, ("jac_g_x", pattern(self.jacobian_pattern))],
+                                     lambda x, p: self.jac_g(x)),
+            "hess_lag": NumericFunction(
+                "hess_lag", x_p + [("lam_f", dense(1, 1)), ("lam_g", dense(self.ng, 1))],
+                [("triu_hess_gamma_x_x", pattern(self.hessian_pattern))],
+                lambda x, p, lam_f, lam_g: [self.hess_lag(x, lam_f[0], lam_g)]),
+            "no_nlp_grad": True,  # the multipliers' gradient would differentiate the callbacks
+        }
+        return oracle, options
+
+
+class _Values(NamedTuple):
+    """f, g and what they are made of at one x.
+
+    Z : (p, m) the experiments' variables; B : (m, d, L) unscaled; M : (L, L) scaled;
+    Cinv : ``C^-1`` for ``M = C C^T`` (C lower triangular), None when M is not positive definite.
+    """
+
+    x: np.ndarray
+    Z: np.ndarray
+    B: np.ndarray
+    M: np.ndarray
+    Cinv: np.ndarray | None
+    f: float
+    g: np.ndarray
+
+
+class _Slopes(NamedTuple):
+    """First derivatives at one x: dB (m, p, d, L) unscaled, dM (m p, L, L) in the order of
+    ``cols``, ``N = M^-1``, ``Y_j = N H_j N`` (s, L, L; test-pose) or ``G_f = df/dM`` (D, A,
+    T), and the gradient of f and the dense Jacobian of g."""
+
+    dB: np.ndarray
+    dM: np.ndarray
+    N: np.ndarray
+    Y: np.ndarray | None
+    G_f: np.ndarray | None
+    grad_f: np.ndarray
+    jac_g: np.ndarray
+
+
+def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
+    m, c = nlp.m, nlp.scale
+    Z = x[nlp.cols.T]
+    B, rules = nlp.mapped["values"](Z)
+    d, L = B.shape[0], B.shape[1] // m
+    B = B.reshape(d, m, L).transpose(1, 0, 2)
+    S = B.reshape(m * d, L)
+    M = c * (S.T @ S)
+    C, info = dpotrf(M, lower=1, clean=1)
+    Cinv = dtrtri(C, lower=1)[0] if info == 0 else None
+    g = np.empty(nlp.ng)
+    crit = nlp.criterion
+    if Cinv is None:
+        f = np.nan
+        g[: nlp.n_rows] = np.nan
+    elif crit == "test-pose":
+        f = float(x[-1])
+        s, r = nlp.B0s.shape[:2]
+        K = nlp.B0s.reshape(s * r, L) @ Cinv.T
+        g[: nlp.n_rows] = np.sum((K * K).reshape(s, r * L), axis=1) - x[-1]
+    elif crit == "D":
+        f = float(-2 * np.sum(np.log(np.diag(C))))
+    elif crit == "A":
+        f = float(np.sum(Cinv * Cinv))
+    else:
+        f = float(-np.trace(M))
+    g[nlp.rule_rows] = rules.T
+    if len(nlp.pairs):
+        g[nlp.pair_rows] = nlp.mapped["pair"](x[nlp.pair_cols.T])[0].ravel()
+    return _Values(x, Z, B, M, Cinv, f, g)
+
+
+def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
+    m, p, c = nlp.m, nlp.fns.p, nlp.scale
+    (d, L), crit = v.B.shape[1:], nlp.criterion
+    dB, dc = nlp.mapped["first"](v.Z)
+    dB = dB.reshape(L, d, m, p).transpose(2, 3, 1, 0)
+    grad, J = np.zeros(nlp.nx), np.zeros((nlp.ng, nlp.nx))
+    J[nlp.rule_rows[:, :, None], nlp.cols[:, None, :]] = dc.reshape(-1, m, p).transpose(1, 0, 2)
+    if len(nlp.pairs):
+        P, n2 = nlp.pair_cols.shape
+        J[nlp.pair_rows[:, None], nlp.pair_cols] = nlp.mapped["pair_first"](
+            v.x[nlp.pair_cols.T])[0].reshape(P, n2)
+    if crit == "test-pose":
+        grad[-1] = 1.0
+        J[: nlp.n_rows, -1] = -1.0
+    if v.Cinv is None:
+        grad[: nlp.cols.size] = np.nan
+        J[: nlp.n_rows] = np.nan
+        nan = np.full((m * p, L, L), np.nan)
+        return _Slopes(dB, nan, nan[0], None, None, grad, J)
+    N = v.Cinv.T @ v.Cinv
+    T = c * (dB.transpose(0, 1, 3, 2) @ v.B[:, None])  # dB_a^T B_i, (m, p, L, L)
+    dM = (T + T.transpose(0, 1, 3, 2)).reshape(m * p, L * L)
+    cols = nlp.cols.ravel()
+    Y = G_f = None
+    if crit == "test-pose":
+        E = nlp.B0s @ N
+        Y = E.transpose(0, 2, 1) @ E
+        J[: nlp.n_rows, cols] = -Y.reshape(-1, L * L) @ dM.T
+    else:
+        G_f = -N if crit == "D" else -N @ N if crit == "A" else -np.eye(L)
+        grad[cols] = dM @ G_f.ravel()
+    return _Slopes(dB, dM.reshape(m * p, L, L), N, Y, G_f, grad, J)
+
+
+def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
+                  lam_g: np.ndarray) -> np.ndarray:
+    """``lam_f d2f/dx2 + sum_k lam_g[k] d2g_k/dx2`` over the plan variables in plan order
+    (V x V); t enters f and g linearly."""
+    m, p, c = nlp.m, nlp.fns.p, nlp.scale
+    V, L = m * p, len(v.M)
+    if v.Cinv is None:
+        return np.full((V, V), np.nan)
+    if nlp.criterion == "test-pose":
+        Gbar = -(lam_g[: nlp.n_rows] @ sl.Y.reshape(-1, L * L)).reshape(L, L)
+    else:
+        Gbar = lam_f * sl.G_f
+    kappa = CURVATURE[nlp.criterion]
+    if kappa:  # kappa tr(-Gbar dM_a N dM_b), every pair of plan variables
+        T = (-Gbar) @ sl.dM @ sl.N
+        H = kappa * (T.reshape(V, L * L) @ sl.dM.reshape(V, L * L).T)
+    else:
+        H = np.zeros((V, V))
+    # tr(Gbar d2M_ab) = c (2 <B Gbar, d2B_ab> + 2 <dB_a Gbar, dB_b>), and the rules' rows
+    W = (2 * c) * (v.B @ Gbar)
+    d = W.shape[1]
+    d2 = nlp.mapped["second"](v.Z, W.transpose(1, 0, 2).reshape(d, -1), lam_g[nlp.rule_rows].T)[0]
+    blocks = d2.reshape(p, m, p).transpose(1, 0, 2)
+    dBG = (sl.dB @ Gbar).reshape(m, p, d * L)
+    blocks += (2 * c) * (dBG @ sl.dB.reshape(m, p, d * L).transpose(0, 2, 1))
+    flat = H.ravel()
+    flat[nlp.block_positions] += blocks
+    if len(nlp.pairs):
+        P, n2 = nlp.pair_cols.shape
+        d2p = nlp.mapped["pair_second"](v.x[nlp.pair_cols.T], lam_g[nlp.pair_rows][None, :])[0]
+        np.add.at(flat, nlp.pair_positions, d2p.reshape(n2, P, n2).transpose(1, 0, 2))
+    return H
+
+
+def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                scale: float) -> ReducedNLP:
+    """The reduced-space NLP of ``criterion`` (a key of :data:`CURVATURE`) for m experiments.
+
+    x = (vec Q, vec V, t for test-pose); g = (test-pose rows, load rows, workspace rows of
+    each experiment, joint-distance rows of each pair a < b), as in :mod:`casadi_design.nlp`.
+    """
+    fns = experiment_functions(problem)
+    n, nv = fns.n, fns.nv
+    n_rows = B0.shape[0] if criterion == "test-pose" else 0
+    idx = np.arange(m)[:, None]
+    cols = np.concatenate([idx * n + np.arange(n), n * m + idx * nv + np.arange(nv)], axis=1)
+    has_norm = int(load_variables(problem).norm_lb is not None)
+    n_ws = fns.nc - has_norm
+    rule_rows = np.concatenate([n_rows + idx + np.zeros((1, has_norm), dtype=int),
+                                n_rows + has_norm * m + idx * n_ws + np.arange(n_ws)], axis=1)
+    distance = problem.workspace.min_joint_distance_rad > 0
+    pairs = np.array([(a, b) for a in range(m) for b in range(a + 1, m) if distance], dtype=int)
+    first_pair = n_rows + fns.nc * m
+    nx = (n + nv) * m + (criterion == "test-pose")
+    return ReducedNLP(criterion, m, scale, fns, np.sqrt(scale) * B0, cols, rule_rows,
+                      pairs.reshape(-1, 2), first_pair + np.arange(len(pairs)), n_rows, nx,
+                      first_pair + len(pairs))

@@ -1,0 +1,217 @@
+"""The reduced-space NLP of test-pose, D, A and T: values, gradient, Jacobian and Hessian of the
+Lagrangian against finite differences and against the symbolic formulation (one CasADi graph of
+M with CasADi's exact derivatives, tests/symbolic_oracle.py), on the paper's case, its load and
+constraint variants and the UR10 drilling case; and the same IPOPT iterates as the symbolic NLP."""
+
+import gc
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from casadi_design.build import load_problem
+from casadi_design.nlp import build_nlp
+from casadi_design.solve import CONVERGED, ipopt_call, make_solver, random_plan
+from tests.conftest import ROOT, build, paper_raw
+from tests.symbolic_oracle import symbolic_nlp
+
+CRITERIA = ("test-pose", "D", "A", "T")
+#: Agreement with the symbolic formulation (relative to the largest entry): rounding only.
+SYMBOLIC_RTOL = 1e-9
+#: Agreement with central finite differences (relative to the largest entry).
+FD_RTOL = 2e-6
+
+
+def _variant(**edits):
+    raw = paper_raw()
+    for key, value in edits.items():
+        table, field = key.split("__")
+        raw["experiments"].setdefault(table, {})[field] = value
+    return build(raw)
+
+
+def _cases():
+    """name -> (problem factory, m)"""
+    return {
+        "paper": (lambda: load_problem(ROOT / "problems" / "paper_planar_2r.toml"), 3),
+        # |F| <= F_max, pairwise joint distance and a half-space: every kind of rule row
+        "paper-bound-distance": (lambda: _variant(force__mode="bound", workspace__min_joint_distance_rad=0.3,
+                                                  workspace__half_spaces=[{"normal": [0.0, 1.0, 0.0],
+                                                                           "offset_m": -0.5}]), 3),
+        "paper-direction": (lambda: _variant(force__direction=[0.6, 0.8], force__mode="direction"), 3),
+        "paper-fixed": (lambda: _fixed_load_paper(), 3),
+        "geometric": (lambda: load_problem(ROOT / "problems" / "planar_2r_geometric.toml"), 3),
+        "ur10": (lambda: load_problem(ROOT / "problems" / "ur10_drilling.toml"), 9),
+    }
+
+
+def _fixed_load_paper():
+    raw = paper_raw()
+    raw["experiments"]["force"] = {"mode": "fixed", "vector_N": [30.0, -80.0]}
+    return build(raw)
+
+
+_PROBLEMS: dict = {}
+
+
+def _problem(name):
+    if name not in _PROBLEMS:
+        _PROBLEMS[name] = _cases()[name][0]()
+    return _PROBLEMS[name]
+
+
+def _point(problem, nlp, seed):
+    """A random feasible plan, t above its max rho_j, and random multipliers."""
+    rng = np.random.default_rng(seed)
+    Q, F = random_plan(problem, nlp.m, rng)
+    x = np.asarray(nlp.start(Q, F), dtype=float).ravel()
+    lam_f = rng.uniform(0.5, 2.0)
+    lam_g = rng.normal(size=nlp.lbg.size)
+    return x, lam_f, lam_g
+
+
+def _first_order(nlp, x):
+    """f, g, grad f and dense dg/dx of the reduced NLP, through its CasADi functions."""
+    f, g = (np.asarray(v, dtype=float).ravel() for v in nlp.oracle(x, []))
+    grad = np.asarray(nlp.options["grad_f"](x, [])[1], dtype=float).ravel()
+    J = np.asarray(ca.densify(nlp.options["jac_g"](x, [])[1]), dtype=float).reshape(g.size, x.size)
+    return f[0], g, grad, J
+
+
+def _reduced(nlp, x, lam_f, lam_g):
+    """:func:`_first_order` and the full Hessian of the Lagrangian."""
+    H = np.asarray(ca.densify(nlp.options["hess_lag"](x, [], lam_f, lam_g)), dtype=float)
+    assert np.all(np.tril(H, -1) == 0), "IPOPT takes the upper triangle"
+    return (*_first_order(nlp, x), np.triu(H) + np.triu(H, 1).T)
+
+
+def _close(a, b, rtol):
+    scale = max(np.max(np.abs(b), initial=0.0), 1e-300)
+    np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize("case", ["paper", "paper-bound-distance", "paper-direction", "paper-fixed", "geometric"])
+def test_derivatives_equal_the_symbolic_formulation(case, criterion):
+    problem, m = _problem(case), _cases()[case][1]
+    nlp, sym = build_nlp(problem, criterion, m), symbolic_nlp(problem, criterion, m)
+    for bound in ("lbx", "ubx", "lbg", "ubg"):
+        np.testing.assert_array_equal(getattr(nlp, bound), getattr(sym, bound))
+    assert nlp.scale == sym.scale
+    x, lam_f, lam_g = _point(problem, nlp, seed=1)
+    np.testing.assert_allclose(np.asarray(sym.start(*nlp.plan(x))).ravel(), x, rtol=1e-12)
+    xs = ca.SX.sym("x", x.size)
+    fs, gs = sym.oracle(xs, [])
+    lagrangian = lam_f * fs + ca.dot(ca.DM(lam_g), gs)
+    oracle = ca.Function("oracle", [xs], [fs, gs, ca.gradient(fs, xs), ca.densify(ca.jacobian(gs, xs)),
+                                          ca.densify(ca.hessian(lagrangian, xs)[0])])
+    expected = [np.asarray(v, dtype=float) for v in oracle(x)]
+    for got, want in zip(_reduced(nlp, x, lam_f, lam_g), expected):
+        _close(np.reshape(got, want.shape), want, SYMBOLIC_RTOL)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize("case", ["paper-bound-distance", "paper-direction", "ur10"])
+def test_derivatives_equal_finite_differences(case, criterion):
+    problem, m = _problem(case), _cases()[case][1]
+    nlp = build_nlp(problem, criterion, m)
+    x, lam_f, lam_g = _point(problem, nlp, seed=2)
+    f, g, grad, J, H = _reduced(nlp, x, lam_f, lam_g)
+    step = 1e-6 * np.maximum(1.0, np.abs(x))
+    fd_grad, fd_J, fd_H = np.empty_like(grad), np.empty_like(J), np.empty_like(H)
+    for k in range(x.size):
+        e = np.zeros(x.size)
+        e[k] = step[k]
+        plus, minus = _first_order(nlp, x + e), _first_order(nlp, x - e)
+        fd_grad[k] = (plus[0] - minus[0]) / (2 * step[k])
+        fd_J[:, k] = (plus[1] - minus[1]) / (2 * step[k])
+        grad_lag = [lam_f * r[2] + r[3].T @ lam_g for r in (plus, minus)]
+        fd_H[:, k] = (grad_lag[0] - grad_lag[1]) / (2 * step[k])
+    _close(grad, fd_grad, FD_RTOL)
+    _close(J, fd_J, FD_RTOL)
+    _close(H, fd_H, FD_RTOL)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_ur10_derivatives_equal_the_symbolic_formulation(criterion):
+    """The UR10 (L = 27, m = 9): f, g, gradient and Jacobian from CasADi's graph, the Hessian
+    through CasADi's Hessian-vector products in random directions (the full symbolic Hessian takes
+    ~15 s and 1.3 GB to build; see the slow test below)."""
+    problem = _problem("ur10")
+    nlp, sym = build_nlp(problem, criterion, 9), symbolic_nlp(problem, criterion, 9)
+    x, lam_f, lam_g = _point(problem, nlp, seed=3)
+    f, g, grad, J, H = _reduced(nlp, x, lam_f, lam_g)
+    xs, v = ca.SX.sym("x", x.size), ca.SX.sym("v", x.size)
+    fs, gs = sym.oracle(xs, [])
+    grad_lag = ca.gradient(lam_f * fs + ca.dot(ca.DM(lam_g), gs), xs)
+    oracle = ca.Function("oracle", [xs, v], [fs, gs, ca.gradient(fs, xs), ca.densify(ca.jacobian(gs, xs)),
+                                             ca.jtimes(grad_lag, xs, v)])
+    V = np.random.default_rng(4).normal(size=(x.size, 3))
+    for k in range(V.shape[1]):
+        want = [np.asarray(w, dtype=float) for w in oracle(x, V[:, k])]
+        for got, expected in zip((f, g, grad, J, H @ V[:, k]), want):
+            _close(np.reshape(got, expected.shape), expected, SYMBOLIC_RTOL)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_ur10_full_hessian_equals_the_symbolic_one(criterion):
+    problem = _problem("ur10")
+    nlp, sym = build_nlp(problem, criterion, 9), symbolic_nlp(problem, criterion, 9)
+    x, lam_f, lam_g = _point(problem, nlp, seed=5)
+    xs = ca.SX.sym("x", x.size)
+    fs, gs = sym.oracle(xs, [])
+    H = ca.Function("H", [xs], [ca.densify(ca.hessian(lam_f * fs + ca.dot(ca.DM(lam_g), gs), xs)[0])])
+    _close(_reduced(nlp, x, lam_f, lam_g)[4], np.asarray(H(x), dtype=float), SYMBOLIC_RTOL)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_ipopt_iterates_equal_the_symbolic_formulations(paper, criterion):
+    """Same x0, bounds and rows: IPOPT takes the same steps on both formulations, until
+    rounding decides. D, A and T agree to rounding for at least 10 iterations (D for 33 of 40).
+    The test-pose KKT systems (61 rows, many nearly active) amplify rounding: moving x0 by one
+    ulp changes the symbolic formulation's own iterates by 1e-12 after one step and its
+    iteration count (44 instead of 38); the two formulations agree to 1e-8 for 3 iterations.
+    Then the same optimum value for test-pose, D and A (the optimal test-pose plans are a
+    continuum); T, from a near-stationary point, goes to different stationary points after a
+    near-tie in the line search (iteration 14)."""
+    nlp, sym = build_nlp(paper, criterion, 5), symbolic_nlp(paper, criterion, 5)
+    rng = np.random.default_rng(6)
+    for _ in range(3):
+        x0 = nlp.start(*random_plan(paper, 5, rng))
+        runs = []
+        for formulation in (nlp, sym):
+            solver = formulation.solver("s", {"ipopt.print_level": 0, "print_time": False, "error_on_fail": False,
+                                              "ipopt.tol": paper.solver.tol,
+                                              "ipopt.max_iter": 10 if criterion == "T" else 3000})
+            with ipopt_call():
+                sol = solver(x0=x0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+            runs.append((solver.stats()["return_status"], np.array(solver.stats()["iterations"]["obj"]),
+                         float(sol["f"])))
+        (status, obj, f), (status_s, obj_s, f_s) = runs
+        agree, rtol = (3, 1e-8) if criterion == "test-pose" else (10, 1e-12)
+        np.testing.assert_allclose(obj[:agree], obj_s[:agree], rtol=rtol)
+        if criterion != "T":
+            assert status == status_s == "Solve_Succeeded"
+            assert f == pytest.approx(f_s, rel=1e-9)
+
+
+def test_solver_keeps_its_callbacks_alive(paper):
+    """The Python callbacks live as long as the solver, not only as long as the NLP object."""
+    nlp = build_nlp(paper, "test-pose", 2)
+    args = dict(x0=nlp.start(*random_plan(paper, 2, np.random.default_rng(0))),
+                lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+    solver = make_solver(paper, nlp)
+    del nlp
+    gc.collect()
+    solver(**args)
+    assert solver.stats()["return_status"] in CONVERGED
+
+
+def test_singular_information_is_an_invalid_number_not_an_exception(paper):
+    """At a plan that does not identify X (M singular) the values are NaN: IPOPT shortens its
+    step there, and a start from such a plan ends with IPOPT's status, not a Python error."""
+    nlp = build_nlp(paper, "test-pose", 1)
+    x = nlp.start(np.zeros((2, 1)), np.array([[100.0], [0.0]]))
+    f, g = (np.asarray(v).ravel() for v in nlp.oracle(x, []))
+    assert np.isnan(g[0]) and np.isnan(x[-1])
