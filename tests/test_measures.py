@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from casadi_design.criteria import CRITERIA
@@ -103,11 +103,12 @@ def test_log_det_scales_with_L_log_c(paper):
     assert b.log_det_M - a.log_det_M == pytest.approx(2 * np.log(c), rel=REL)
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30, deadline=None, derandomize=True)
 @given(st.lists(st.floats(-3, 3), min_size=4, max_size=4), st.integers(0, 1000))
 def test_test_pose_measure_invariant_under_reparametrisation(paper, t, seed):
     """X -> T X (B -> B T^-1) leaves rho unchanged; E changes; log det shifts by -2 log|det T|."""
     T = np.array(t).reshape(2, 2) + 4 * np.eye(2)
+    assume(np.linalg.cond(T) < 100)  # a nearly singular T loses the digits the tolerances ask for
     _, _, B = _random_plan_B(paper, 2, seed)
     B0 = B0_at_test_poses(paper)
     Ti = np.linalg.inv(T)
