@@ -143,10 +143,9 @@ def _fig_m(requested: list[int] | None, available: list[int], preferred: tuple[i
 
 
 def _write_figures(out: Path, stem: str, fig, formats: tuple[str, ...] = ("png", "pdf")) -> list[str]:
-    from .plotting import save_figure
+    from .plotting import save_figures
 
-    for suffix in formats:
-        save_figure(fig, out / f"{stem}.{suffix}")
+    save_figures(fig, [out / f"{stem}.{suffix}" for suffix in formats])
     return [f"{stem}.{suffix}" for suffix in formats]
 
 
@@ -411,7 +410,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _plot(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .plotting import fig1, save_figure, sweep_figure
+    from .plotting import fig1, save_figures, sweep_figure
     from .results import design_from_record, read_json
     from .sweep import sweep_from_record
 
@@ -432,8 +431,7 @@ def _plot(args: argparse.Namespace) -> int:
         raise OutputError(f"{existing[0]}: exists; add --force to overwrite it (or choose another --out)")
     out.mkdir(parents=True, exist_ok=True)
     for stem, fig in figures.items():
-        for fmt in args.format:
-            save_figure(fig, out / f"{stem}.{fmt}")
+        save_figures(fig, [out / f"{stem}.{fmt}" for fmt in args.format])
     _say(args, "wrote " + ", ".join(str(t) for t in targets))
     return 0
 

@@ -27,7 +27,7 @@ import signal
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import InvalidStateError, ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol, Self
 
@@ -146,10 +146,20 @@ class ProcessExecutor:
     def close(self, interrupted: bool = False) -> None:
         """Shut the pool down; after Ctrl-C, end the workers at once (their starts are lost
         anyway) instead of waiting for the starts they run."""
-        if interrupted:
-            for proc in list(getattr(self._pool, "_processes", {}).values()):
-                proc.terminate()
-        self._pool.shutdown(wait=not interrupted, cancel_futures=True)
+        if not interrupted:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        else:
+            # the pool's manager thread then finds its workers gone and fails to mark the
+            # cancelled futures (InvalidStateError, printed as a traceback): expected, hidden
+            hook = threading.excepthook
+            threading.excepthook = lambda args: (None if issubclass(args.exc_type, InvalidStateError)
+                                                 else hook(args))
+            try:
+                for proc in list(getattr(self._pool, "_processes", {}).values()):
+                    proc.terminate()
+                self._pool.shutdown(wait=True, cancel_futures=True)
+            finally:
+                threading.excepthook = hook
         for k, v in self._saved_env.items():
             if v is None:
                 os.environ.pop(k, None)

@@ -137,11 +137,18 @@ def sweep_figure(sweep: Sweep, log: bool = False) -> Figure:
     return fig
 
 
-def save_figure(fig: Figure, path: Path) -> None:
-    """Save atomically in the format of the file's suffix (png, pdf, svg)."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format=Path(path).suffix[1:], dpi=150)
-    write_atomic(Path(path), buf.getvalue())
+def save_figures(fig: Figure, paths: list[Path]) -> None:
+    """Save atomically in the format of each file's suffix (png, pdf, svg).
+
+    The layout is computed for the first file and kept for the others (constrained layout
+    takes most of the time of a save, and gives the same result every time).
+    """
+    for k, path in enumerate(paths):
+        if k == 1:
+            fig.set_layout_engine("none")
+        buf = io.BytesIO()
+        fig.savefig(buf, format=Path(path).suffix[1:], dpi=150)
+        write_atomic(Path(path), buf.getvalue())
 
 
 def validation_figure(validation) -> Figure:

@@ -9,14 +9,12 @@ import time
 
 import pytest
 
-from casadi_design.build import load_problem
-from casadi_design.sweep import run_sweep
 from tests.conftest import PAPER, ROOT
 
 #: Seconds to wait for the first finished design, then for the process to end after Ctrl-C.
 WAIT_FIRST_DESIGN_S = 60.0
 WAIT_EXIT_S = 10.0
-SWEEP = ["--m", "1:2", "--criteria", "test-pose,D", "--starts", "15", "--no-warm-start"]
+SWEEP = ["--m", "1:3", "--criteria", "test-pose,D", "--starts", "15", "--no-warm-start"]
 
 
 def _sweep(out, jobs: int, *extra: str) -> subprocess.Popen:
@@ -27,7 +25,7 @@ def _sweep(out, jobs: int, *extra: str) -> subprocess.Popen:
 
 
 @pytest.mark.parametrize("jobs", [1, 2])
-def test_ctrl_c_during_ipopt_exits_130_and_resume_gives_the_same_numbers(tmp_path, jobs):
+def test_ctrl_c_during_ipopt_exits_130_keeps_finished_designs_and_resumes(tmp_path, jobs):
     out = tmp_path / "sweep"
     proc = _sweep(out, jobs)
     partial = out / "sweep.partial.json"
@@ -35,7 +33,7 @@ def test_ctrl_c_during_ipopt_exits_130_and_resume_gives_the_same_numbers(tmp_pat
     while not partial.exists() and proc.poll() is None and time.monotonic() - t0 < WAIT_FIRST_DESIGN_S:
         time.sleep(0.02)
     assert proc.poll() is None, "the sweep ended before it could be interrupted"
-    time.sleep(0.3)  # inside the next design's starts: IPOPT is running
+    time.sleep(0.15)  # inside the next design's starts: IPOPT is running
     sent = time.monotonic()
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=WAIT_EXIT_S)
@@ -44,30 +42,25 @@ def test_ctrl_c_during_ipopt_exits_130_and_resume_gives_the_same_numbers(tmp_pat
     assert "Traceback" not in err and "KeyboardInterruptException" not in err
     assert "interrupted:" in err and "--resume" in err
     kept = json.loads(partial.read_text())["designs"]
-    assert 1 <= len(kept) < 4
+    assert 1 <= len(kept) < 6
     if jobs > 1:
         return  # resuming does not depend on how the interrupted run ran its starts
-
+    # resuming reproduces the uninterrupted numbers: test_sweep.py checks it design by design
     resumed = _sweep(out, jobs, "--resume")
     _, err = resumed.communicate(timeout=120)
     assert resumed.returncode == 0, err
-    record = json.loads((out / "sweep.json").read_text())
-    problem = load_problem(PAPER)
-    expected = run_sweep(problem, ["test-pose", "D"], [1, 2], 15, warm_start=False)
-    got = {(d["criterion"], d["m"]): d for d in record["designs"]}
-    for key, design in expected.designs.items():
-        assert got[key]["max_rms_error_m"] == design.scores.max_rms_error_m
-        assert got[key]["experiments"] == [{"q_rad": q.tolist(), "force": f.tolist()}
-                                           for q, f in zip(design.Q, design.F)]
+    got = {(d["criterion"], d["m"]) for d in json.loads((out / "sweep.json").read_text())["designs"]}
+    assert got == {(c, m) for c in ("test-pose", "D") for m in (1, 2, 3)}
 
 
+@pytest.mark.slow  # the sweep tests above already send Ctrl-C during IPOPT, with 1 and 2 processes
 def test_ctrl_c_of_solve_exits_130_at_once(tmp_path):
     proc = subprocess.Popen(
         [sys.executable, "-m", "casadi_design", "solve", str(PAPER), "--starts", "400", "--jobs", "1",
          "--out", str(tmp_path / "solve"), "--quiet"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    time.sleep(3.0)  # imports, load, then IPOPT starts
+    time.sleep(2.5)  # imports, load, then IPOPT starts
     assert proc.poll() is None
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=WAIT_EXIT_S)

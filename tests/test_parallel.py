@@ -41,7 +41,8 @@ def test_process_pool_equals_serial(paper, serial):
             _assert_same(solve_design(paper, c, m, starts=STARTS, executor=ex), d)
 
 
-@pytest.mark.parametrize("processes", [False, True], ids=["threads", "processes"])
+@pytest.mark.parametrize("processes", [pytest.param(False, marks=pytest.mark.slow), True],
+                         ids=["threads", "processes"])
 def test_dask_local_cluster_equals_serial(paper, serial, processes):
     distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=processes,

@@ -240,6 +240,7 @@ def test_geometric_case_agrees_within_10_percent_at_every_node(geometric, geomet
         assert p.identification.non_converged == 0 and p.compensation_failed == 0
 
 
+@pytest.mark.slow  # a study (spreads x1 and x400, 300 trials each): the README's breakdown figures
 def test_linearisation_breaks_down_for_large_errors(geometric, geometric_plans):
     """Spreads x 400 (20 cm, 20 deg): the identified arms cannot reach part of the line and the
     simulated error departs from sqrt(rho) by more than 10 %; at x 1 neither happens."""

@@ -485,12 +485,11 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(validation, study))
     print(f"total simulation time {time.perf_counter() - t0:.2f} s")
     if out is not None:
-        from ..plotting import save_figure, validation_figure
+        from ..plotting import save_figures, validation_figure
 
         out.mkdir(parents=True, exist_ok=True)
         write_validation(out / "validation.json", validation, study)
         fig = validation_figure(validation)
-        for suffix in ("png", "pdf"):
-            save_figure(fig, out / f"validation.{suffix}")
+        save_figures(fig, [out / f"validation.{suffix}" for suffix in ("png", "pdf")])
         print(f"wrote {out / 'validation.json'}, {out / 'validation.png'}, {out / 'validation.pdf'}")
     return 0
