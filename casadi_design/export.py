@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ProblemError
-from .models import WRENCH_ROWS
 from .build import Problem
+from .errors import ProblemError
+from .problem import WRENCH_ROWS
 from .results import write_atomic
 from .solve import Design
 

@@ -139,13 +139,12 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
     robot, force, ws = problem.robot, problem.force, problem.workspace
     Q = np.asarray(Q, dtype=float)
     F = np.asarray(F, dtype=float).reshape(problem.model.nF, Q.shape[1])
-    out = []
+    out, rules = [], pose_constraints(problem)
     for i, q in enumerate(Q.T):
         for k, j in enumerate(robot.joints):
             if not robot.q_min[k] - FEASIBILITY_TOL <= q[k] <= robot.q_max[k] + FEASIBILITY_TOL:
                 out.append(f"experiment {i + 1}: {j} = {q[k]:.6g} outside [{robot.q_min[k]:.6g}, "
                            f"{robot.q_max[k]:.6g}]")
-        rules = pose_constraints(problem)
         for v, label in zip(rules.violation(q), rules.labels):
             if v > FEASIBILITY_TOL:
                 out.append(f"experiment {i + 1}: {label} by {v * 1e3:.3g} mm")

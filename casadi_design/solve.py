@@ -127,18 +127,17 @@ def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) 
     return score_plan(problem.model.B_stack(Q.T, F.T), B0, problem.sigma_m)
 
 
+#: nlpsol options of a silent IPOPT whose failures are statuses, not exceptions.
+QUIET = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False, "error_on_fail": False,
+         "show_eval_warnings": False}
+
+
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.Function:
     """IPOPT on the NLP, with the problem's solver settings (raw options passed through)."""
     settings = problem.solver
-    opts = {
-        "ipopt.max_iter": settings.max_iter,
-        "ipopt.tol": settings.tol,
-        "ipopt.print_level": 5 if verbose else 0,
-        "ipopt.sb": "yes",
-        "print_time": verbose,
-        "error_on_fail": False,
-        "show_eval_warnings": verbose,
-    }
+    opts = {**QUIET, "ipopt.max_iter": settings.max_iter, "ipopt.tol": settings.tol}
+    if verbose:
+        opts.update({"ipopt.print_level": 5, "print_time": True, "show_eval_warnings": True})
     opts.update({f"ipopt.{k}": v for k, v in settings.ipopt})
     return nlp.solver(f"design_m{nlp.m}", opts)
 
@@ -149,8 +148,7 @@ def check_ipopt_options(problem: Problem) -> None:
     if not options:
         return
     x = ca.SX.sym("x")
-    opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "error_on_fail": False,
-            **{f"ipopt.{k}": v for k, v in options}}
+    opts = {**QUIET, **{f"ipopt.{k}": v for k, v in options}}
     try:
         solver = ca.nlpsol("check", "ipopt", {"x": x, "f": x**2}, opts)
         solver(x0=1.0)
@@ -194,9 +192,7 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     polish = None
     if CRITERIA[criterion].polished:
         d_nlp = build_nlp(problem, "D", m, B0)
-        d_solver = d_nlp.solver("polish", {"ipopt.max_iter": POLISH_ITERATIONS, "ipopt.print_level": 0,
-                                           "ipopt.sb": "yes", "print_time": False, "error_on_fail": False,
-                                           "show_eval_warnings": False})
+        d_solver = d_nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
         polish = (d_nlp, d_solver)
     return DesignSolver(nlp, make_solver(problem, nlp, verbose), polish)
 

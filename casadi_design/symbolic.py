@@ -21,8 +21,6 @@ import pinocchio as pin
 
 from .robots import Robot
 
-#: Rows of a twist / wrench in the order used everywhere (linear first, world-aligned axes).
-TWIST_ROWS = ("x", "y", "z", "rx", "ry", "rz")
 #: The six components of a small placement error.
 PLACEMENT_ERRORS = ("tx", "ty", "tz", "rx", "ry", "rz")
 

@@ -12,7 +12,6 @@ Every trial runs at once: :func:`evaluate` maps a CasADi function over N stacked
 from __future__ import annotations
 
 import functools
-import os
 import math
 from dataclasses import dataclass, replace
 
@@ -21,6 +20,7 @@ import numpy as np
 
 from ..errors import DesignError, ProblemError
 from ..models import DEFLECTION_ITERATIONS, CalibrationModel
+from ..parallel import cpu_count
 
 #: Largest last fixed-point update of the joint deflection (rad, or m for prismatic joints)
 #: accepted for a true robot.
@@ -90,7 +90,7 @@ CHUNK = 8192
 
 #: Threads of the mapped evaluations: every core (the cases are independent, so the results do
 #: not depend on it).
-THREADS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+THREADS = cpu_count()
 
 
 @functools.lru_cache(maxsize=128)
