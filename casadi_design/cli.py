@@ -23,6 +23,7 @@ from functools import partial
 from pathlib import Path
 
 from . import interrupt
+from .criteria import CRITERIA
 from .errors import DesignError, ProblemError
 from .parallel import MissingExtraError, cpu_count
 from .results import OutputError, write_atomic
@@ -463,7 +464,7 @@ def _compute(p: argparse.ArgumentParser, out_help: str) -> None:
                    help="an IPOPT option over [solver.ipopt] of the problem, e.g. --ipopt "
                         "hessian_approximation=limited-memory (quick trials on large cases); repeatable")
     p.add_argument("--criteria", type=_names, metavar="LIST",
-                   help="criteria, comma separated, among test-pose, D, A, E, T, condition "
+                   help=f"criteria, comma separated, among {', '.join(CRITERIA)} "
                         "(default: [design].criteria of the problem)")
     p.add_argument("--starts", type=_positive_int("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
