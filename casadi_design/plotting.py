@@ -106,22 +106,23 @@ def draw_max_error_vs_m(ax: Axes, sweep: Sweep, log: bool = False) -> None:
         ax.plot(ms, e, marker="o", ms=4, label=CRITERIA[c].legend, **style)
     if sweep.reference is not None:
         m_ref = sweep.reference.m
-        mm = np.linspace(max(m_ref, ms.min()), ms.max(), 200) if len(ms) > 1 else ms
+        mm = np.linspace(min(m_ref, ms.min()), ms.max(), 200)  # from the plan it repeats
         label = (r"Best single pose repeated m times ($e_1/\sqrt{m}$)" if m_ref == 1 else
                  f"Best {m_ref}-pose plan repeated ($e_{{{m_ref}}}\\sqrt{{{m_ref}/m}}$)")
         ax.plot(mm, [sweep.repeat_reference_m(v) * 1e3 for v in mm], **REPEAT_STYLE, label=label)
+    ticks = sorted(set(ms.tolist()) | ({sweep.reference.m} if sweep.reference is not None else set()))
     if log:
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xticks(ms, [str(m) for m in ms])
+        ax.set_xticks(ticks, [str(m) for m in ticks])
         ax.xaxis.set_minor_locator(NullLocator())
         ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
         ax.yaxis.set_minor_locator(LogLocator(subs=np.arange(1.0, 10.0)))
         ax.yaxis.set_minor_formatter(NullFormatter())
     else:
-        ax.set_xticks(ms)
-        ax.set_ylim(bottom=0)
+        ax.set_xticks(ticks)
+        ax.set_ylim(0, 1.05 * ax.get_ylim()[1])  # room above the highest point
     ax.set_xlabel("number of calibration experiments m")
     ax.set_ylabel(r"max over test poses of $\sqrt{\rho}$ (mm)")
     ax.grid(alpha=0.3, which="both")
@@ -177,5 +178,5 @@ def validation_figure(validation) -> Figure:
         ax.set_title(f"m = {m}: {validation.trials} virtual calibrations, "
                      f"{round(100 * CONFIDENCE)}% intervals")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        ax.legend(fontsize=7, loc="best")
     return fig
