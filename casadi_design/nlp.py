@@ -3,7 +3,7 @@
 Decision variables: ``Q`` (n x m, rad), the load variables ``V`` (nv x m, see
 :class:`~casadi_design.rules.LoadVariables`: ``Fbar = F / |F|_max``, a magnitude ``a`` for a
 load of fixed direction, none for fixed loads and geometric cases), and the criterion's own
-auxiliary variables ``w``: ``x = (vec Q, vec V, w)``. The test-pose criterion is the min-max of
+bound ``t`` of the test-pose criterion: ``x = (vec Q, vec V, t)``. The test-pose criterion is the min-max of
 the paper (eq. 15) in epigraph form:
 
     minimise t  subject to  trace(B0_j M^-1 B0_j^T) <= t,  j = 1..s
@@ -15,16 +15,12 @@ Constraint rows, in this order: the criterion's rows, the loads (``|Fbar_i|^2 = 
 (:func:`~casadi_design.rules.pose_constraints`) and the joint distance of every pair of
 experiments; joint limits and load magnitudes are bounds of x.
 
-Two formulations of the same NLP, one per criterion:
-
-* test-pose, D, A, T: reduced space (:mod:`casadi_design.reduced`), IPOPT's variables are x
-  only, values and exact derivatives by numeric linear algebra;
-* E, condition: lifted, with Cholesky-factor PSD variables (:mod:`casadi_design.criteria`),
-  one symbolic CasADi graph with its exact Hessian.
-
-Both give IPOPT the information matrix scaled to O(1) per experiment, ``scale M``, and ``B0``
-scaled by ``sqrt(scale)``: a constant factor leaves every criterion's optimal plans and
-``trace(B0 M^-1 B0^T)`` unchanged and keeps IPOPT's steps well scaled.
+The NLP is posed in the reduced space (:mod:`casadi_design.reduced`): IPOPT's variables are x
+only, values and exact derivatives come from numeric linear algebra; E and condition through
+their smooth surrogates of power r. IPOPT sees the information matrix scaled to O(1) per
+experiment, ``scale M``, and ``B0`` scaled by ``sqrt(scale)``: a constant factor leaves every
+criterion's optimal plans and ``trace(B0 M^-1 B0^T)`` unchanged and keeps IPOPT's steps well
+scaled.
 """
 
 from __future__ import annotations
@@ -36,7 +32,6 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem
-from .criteria import CRITERIA, Objective
 from .reduced import reduced_nlp
 from .rules import LoadVariables, load_variables, pose_constraints
 
@@ -86,39 +81,14 @@ def information_scale(L: int, B0: np.ndarray) -> float:
     return L / max(np.einsum("sij,sij->", B0, B0) / B0.shape[0], np.finfo(float).tiny)
 
 
-def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = None) -> DesignNLP:
-    """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem)."""
+def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = None,
+              power: float = 0.0) -> DesignNLP:
+    """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem);
+    ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``)."""
     B0 = B0_at_test_poses(problem) if B0 is None else B0
-    objective = CRITERIA[criterion].objective
-    if objective is None:
-        return _reduced_space_nlp(problem, criterion, m, B0)
-    return lifted_nlp(problem, criterion, objective, m, B0)
-
-
-def _plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of ``(vec Q, vec V)``: joint limits (rad, m) and the load variables."""
-    robot = problem.robot
-    return (np.concatenate([np.tile(robot.q_min, m), np.full(loads.nv * m, loads.lower)]),
-            np.concatenate([np.tile(robot.q_max, m), np.ones(loads.nv * m)]))
-
-
-def _rule_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment, joint distance
-    of each pair ``i < j`` (squared, rad^2)."""
-    rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad
-    n_norm = m if loads.norm_lb is not None else 0
-    n_pairs = m * (m - 1) // 2 if dmin > 0 else 0
-    lb = np.concatenate([np.full(n_norm, loads.norm_lb or 0.0), np.tile(rules.lb, m),
-                         np.full(n_pairs, dmin**2)])
-    ub = np.concatenate([np.ones(n_norm), np.tile(rules.ub, m), np.full(n_pairs, np.inf)])
-    return lb, ub
-
-
-def _reduced_space_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray) -> DesignNLP:
-    """The NLP of test-pose, D, A or T in the reduced space (:mod:`casadi_design.reduced`)."""
     n, loads = problem.robot.n, load_variables(problem)
     scale = information_scale(problem.model.L, B0)
-    nlp = reduced_nlp(problem, criterion, m, B0, scale)
+    nlp = reduced_nlp(problem, criterion, m, B0, scale, power)
     oracle, options = nlp.functions()
     lbx, ubx = _plan_bounds(problem, m, loads)
     lbg, ubg = _rule_bounds(problem, m, loads)
@@ -145,45 +115,20 @@ def _reduced_space_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray)
     return DesignNLP(criterion, m, scale, oracle, lbx, ubx, lbg, ubg, plan, information, start, options)
 
 
-def lifted_nlp(problem: Problem, criterion: str,
-               objective: Callable[[ca.SX, np.ndarray], Objective], m: int,
-               B0: np.ndarray) -> DesignNLP:
-    """The NLP as one symbolic CasADi graph of ``M = scale sum_i B_i^T B_i`` and ``objective``
-    (its exact Hessian from CasADi)."""
-    model, robot = problem.model, problem.robot
-    loads = load_variables(problem)
-    Q = ca.SX.sym("Q", robot.n, m)
-    V = ca.SX.sym("V", loads.nv, m)
-    F = loads.loads(V)
-    scale = information_scale(model.L, B0)
-    M = ca.SX.zeros(model.L, model.L)
-    for i in range(m):
-        Bi = model.B(Q[:, i], F[:, i])
-        M += scale * (Bi.T @ Bi)
-    obj = objective(M, np.sqrt(scale) * B0)
+def _plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of ``(vec Q, vec V)``: joint limits (rad, m) and the load variables."""
+    robot = problem.robot
+    return (np.concatenate([np.tile(robot.q_min, m), np.full(loads.nv * m, loads.lower)]),
+            np.concatenate([np.tile(robot.q_max, m), np.ones(loads.nv * m)]))
 
-    rules = pose_constraints(problem)
-    g = [obj.g, ca.sum1(V**2).T if loads.norm_lb is not None else ca.SX(0, 1)]
-    g += [rules.g(Q[:, i]) for i in range(m)]
-    if problem.workspace.min_joint_distance_rad > 0:
-        g += [ca.sumsqr(Q[:, i] - Q[:, j]) for i in range(m) for j in range(i + 1, m)]
-    lb_rules, ub_rules = _rule_bounds(problem, m, loads)
-    lb_plan, ub_plan = _plan_bounds(problem, m, loads)
 
-    x = ca.vertcat(ca.vec(Q), ca.vec(V), obj.w)
-    oracle = ca.Function("nlp", [x, ca.SX(0, 1)], [obj.f, ca.vertcat(*g)], ["x", "p"],
-                         ["f", "g"])
-    plan = ca.Function("plan", [x], [Q, F], ["x"], ["Q", "F"])
-    information = ca.Function("M", [x], [M], ["x"], ["M"])
-    n_aux = obj.w.numel()
-
-    def start(Q0: np.ndarray, F0: np.ndarray) -> np.ndarray:
-        x_plan = np.concatenate([np.asarray(Q0).ravel(order="F"),
-                                 loads.variables(F0).ravel(order="F")])
-        M0 = np.asarray(information(np.concatenate([x_plan, np.zeros(n_aux)])))
-        return np.concatenate([x_plan, obj.init(M0)])
-
-    return DesignNLP(criterion, m, scale, oracle,
-                     np.concatenate([lb_plan, obj.lbw]), np.concatenate([ub_plan, obj.ubw]),
-                     np.concatenate([obj.lbg, lb_rules]), np.concatenate([obj.ubg, ub_rules]),
-                     plan, information, start)
+def _rule_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment, joint distance
+    of each pair ``i < j`` (squared, rad^2)."""
+    rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad
+    n_norm = m if loads.norm_lb is not None else 0
+    n_pairs = m * (m - 1) // 2 if dmin > 0 else 0
+    lb = np.concatenate([np.full(n_norm, loads.norm_lb or 0.0), np.tile(rules.lb, m),
+                         np.full(n_pairs, dmin**2)])
+    ub = np.concatenate([np.ones(n_norm), np.tile(rules.ub, m), np.full(n_pairs, np.inf)])
+    return lb, ub

@@ -1,4 +1,4 @@
-"""The reduced-space NLP of the smooth criteria (test-pose, D, A, T): numeric derivatives.
+"""The reduced-space NLP of every criterion: numeric derivatives.
 
 IPOPT's variables are the plan and the test-pose bound only, ``x = (vec Q, vec V, t)`` in the
 layout of :mod:`casadi_design.nlp`. Experiment i enters through its ``p = n + nv`` variables
@@ -23,6 +23,23 @@ A          sigma_f tr(N)                                     -sigma_f N N      2
 D          -sigma_f log det M                                -sigma_f N        1
 T          -sigma_f tr(M)                                    -sigma_f I        0
 =========  ================================================  ================  =====
+
+E and condition, whose criteria (``lambda_min``, ``lambda_max / lambda_min``) are not smooth
+where eigenvalues repeat, use smooth spectral surrogates of the eigenvalues ``lambda_i`` of M,
+the log power means
+
+    l_p(M) = (1/p) log( (1/L) sum_i lambda_i^p ),   l_{-r} -> log lambda_min,  l_r -> log lambda_max
+
+as r -> infinity (``log lambda_min <= l_{-r} <= log lambda_min + log(L)/r``; Kiefer's phi_p
+criteria): ``phi = -sigma_f l_{-r}`` for E and ``sigma_f (l_r - l_{-r})`` for condition, solved
+for a rising sequence of r (:data:`casadi_design.criteria.Criterion.powers`). With
+``M = U diag(lambda) U^T``, ``w_i = lambda_i^p / sum_k lambda_k^p`` and ``b_i = w_i / lambda_i``:
+
+    dl_p = tr(U diag(b) U^T dM),
+    d2l_p[E1, E2] = sum_ij Gamma_ij E1~_ij E2~_ij - p (b . diag E1~)(b . diag E2~),
+
+with ``E~ = U^T E U`` and ``Gamma_ij = (b_i - b_j) / (lambda_i - lambda_j)`` (``(p - 1) b_i /
+lambda_i`` for equal eigenvalues; Daleckii-Krein), which replaces the kappa term above.
 
 with ``rho_j = tr(H_j N)``, ``H_j = c B0_j^T B0_j`` the test-pose rows ``rho_j - t <= 0`` (mu_j
 their multipliers, sigma_f the objective's), and
@@ -58,6 +75,56 @@ from .rules import load_variables, pose_constraints
 
 #: kappa of each criterion of the reduced space (see the module docstring).
 CURVATURE = {"test-pose": 2.0, "D": 1.0, "A": 2.0, "T": 0.0}
+#: The spectral criteria as ``(c_k, s_k)``: ``phi = sum_k c_k l_{s_k r}`` (module docstring).
+SPECTRAL = {"E": ((-1.0, -1.0),), "condition": ((1.0, 1.0), (-1.0, -1.0))}
+
+
+class Spectrum(NamedTuple):
+    """A spectral surrogate ``phi(M) = sum_k c_k l_{p_k}(M)`` at one M and its derivatives:
+    ``grad = dphi/dM`` (L x L), ``Gamma`` (L x L) and ``R`` (L x L) such that
+    ``d2phi[E1, E2] = sum_ij Gamma_ij E1~_ij E2~_ij + diag(E1~) . R diag(E2~)``,
+    ``E~ = U^T E U``."""
+
+    value: float
+    U: np.ndarray
+    grad: np.ndarray
+    Gamma: np.ndarray
+    R: np.ndarray
+
+
+def log_power_mean(lam: np.ndarray, p: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """``l_p = (1/p) log(mean lambda^p)`` of positive ``lam`` (p != 0), its gradient ``b`` with
+    respect to the eigenvalues and the divided differences ``Gamma`` of ``b`` (see the module
+    docstring), computed without overflow for any p."""
+    loglam = np.log(lam)
+    z = p * loglam
+    e = np.exp(z - z.max())
+    S = e.sum()
+    value = float((z.max() + np.log(S / len(lam))) / p)
+    b = e / S / lam
+    # Gamma_ij = (b_j / lam_j) expm1((p - 1) delta) / expm1(delta), delta = log(lam_i / lam_j),
+    # taken from the side where (p - 1) delta <= 0 (no overflow; Gamma is symmetric)
+    delta = loglam[:, None] - loglam[None, :]
+    x = (p - 1) * delta
+    base = (b / lam)[None, :]
+    with np.errstate(all="ignore"):  # the branch np.where does not take may overflow
+        A = np.where(delta == 0, (p - 1) * base, base * np.expm1(x) / np.expm1(delta))
+    return value, b, np.where(x <= 0, A, A.T)
+
+
+def spectrum(M: np.ndarray, criterion: str, r: float) -> Spectrum:
+    """The surrogate of ``criterion`` (a key of :data:`SPECTRAL`) at positive definite M."""
+    lam, U = np.linalg.eigh(M)
+    value, b_sum = 0.0, np.zeros(len(lam))
+    Gamma, R = np.zeros((len(lam),) * 2), np.zeros((len(lam),) * 2)
+    for c, sign in SPECTRAL[criterion]:
+        p = sign * r
+        v, b, G = log_power_mean(lam, p)
+        value += c * v
+        b_sum += c * b
+        Gamma += c * G
+        R -= (c * p) * np.outer(b, b)
+    return Spectrum(value, U, (U * b_sum) @ U.T, Gamma, R)
 
 
 class NumericFunction(ca.Callback):
@@ -224,6 +291,7 @@ class ReducedNLP:
     pair_rows : ndarray, shape (P,): their index in g.
     n_rows : number of criterion rows (s for test-pose, 0 otherwise), first in g.
     nx, ng : sizes of x and g.
+    power : r of the spectral surrogates of E and condition (module docstring); 0 otherwise.
     last : the quantities of the last x: ``[x bytes, _Values, _Slopes or None]``.
     """
 
@@ -239,6 +307,7 @@ class ReducedNLP:
     n_rows: int
     nx: int
     ng: int
+    power: float = 0.0
     last: list = field(default_factory=list)
 
     @cached_property
@@ -276,7 +345,7 @@ class ReducedNLP:
         bool): dense over the plan variables where M^-1 couples every experiment (kappa > 0);
         for T, the blocks of each experiment and of each pair."""
         H = np.zeros((self.nx, self.nx), dtype=bool)
-        if CURVATURE[self.criterion]:
+        if self.criterion in SPECTRAL or CURVATURE[self.criterion]:
             H[np.ix_(self.cols.ravel(), self.cols.ravel())] = True
         else:
             H[self.cols[:, :, None], self.cols[:, None, :]] = True
@@ -383,6 +452,7 @@ class _Values(NamedTuple):
 
     Z : (p, m) the experiments' variables; B : (m, d, L) unscaled; M : (L, L) scaled;
     Cinv : ``C^-1`` for ``M = C C^T`` (C lower triangular), None when M is not positive definite.
+    spectrum : the surrogate of E or condition at M, else None.
     """
 
     x: np.ndarray
@@ -390,14 +460,15 @@ class _Values(NamedTuple):
     B: np.ndarray
     M: np.ndarray
     Cinv: np.ndarray | None
+    spectrum: Spectrum | None
     f: float
     g: np.ndarray
 
 
 class _Slopes(NamedTuple):
     """First derivatives at one x: dB (m, p, d, L) unscaled, dM (m p, L, L) in the order of
-    ``cols``, ``N = M^-1``, ``Y_j = N H_j N`` (s, L, L; test-pose) or ``G_f = df/dM`` (D, A,
-    T), and the gradient of f and the dense Jacobian of g."""
+    ``cols``, ``N = M^-1``, ``Y_j = N H_j N`` (s, L, L; test-pose) or ``G_f = df/dM`` (the
+    other criteria), and the gradient of f and the dense Jacobian of g."""
 
     dB: np.ndarray
     dM: np.ndarray
@@ -419,10 +490,13 @@ def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
     C, info = dpotrf(M, lower=1, clean=1)
     Cinv = dtrtri(C, lower=1)[0] if info == 0 else None
     g = np.empty(nlp.ng)
-    crit = nlp.criterion
+    crit, spec = nlp.criterion, None
     if Cinv is None:
         f = np.nan
         g[: nlp.n_rows] = np.nan
+    elif crit in SPECTRAL:
+        spec = spectrum(M, crit, nlp.power)
+        f = spec.value
     elif crit == "test-pose":
         f = float(x[-1])
         s, r = nlp.B0s.shape[:2]
@@ -437,7 +511,7 @@ def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
     g[nlp.rule_rows] = rules.T
     if len(nlp.pairs):
         g[nlp.pair_rows] = nlp.mapped["pair"](x[nlp.pair_cols.T])[0].ravel()
-    return _Values(x, Z, B, M, Cinv, f, g)
+    return _Values(x, Z, B, M, Cinv, spec, f, g)
 
 
 def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
@@ -469,7 +543,8 @@ def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
         Y = E.transpose(0, 2, 1) @ E
         J[: nlp.n_rows, cols] = -Y.reshape(-1, L * L) @ dM.T
     else:
-        G_f = -N if crit == "D" else -N @ N if crit == "A" else -np.eye(L)
+        G_f = (v.spectrum.grad if v.spectrum is not None else -N if crit == "D"
+               else -N @ N if crit == "A" else -np.eye(L))
         grad[cols] = dM @ G_f.ravel()
     return _Slopes(dB, dM.reshape(m * p, L, L), N, Y, G_f, grad, J)
 
@@ -486,8 +561,14 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
         Gbar = -(lam_g[: nlp.n_rows] @ sl.Y.reshape(-1, L * L)).reshape(L, L)
     else:
         Gbar = lam_f * sl.G_f
-    kappa = CURVATURE[nlp.criterion]
-    if kappa:  # kappa tr(-Gbar dM_a N dM_b), every pair of plan variables
+    kappa = CURVATURE.get(nlp.criterion, 0.0)
+    if v.spectrum is not None:  # lam_f d2phi[dM_a, dM_b], every pair of plan variables
+        sp = v.spectrum
+        E = sp.U.T @ sl.dM @ sp.U
+        diag = np.diagonal(E, axis1=1, axis2=2)
+        H = lam_f * ((E * sp.Gamma).reshape(V, L * L) @ E.reshape(V, L * L).T
+                     + diag @ sp.R @ diag.T)
+    elif kappa:  # kappa tr(-Gbar dM_a N dM_b), every pair of plan variables
         T = (-Gbar) @ sl.dM @ sl.N
         H = kappa * (T.reshape(V, L * L) @ sl.dM.reshape(V, L * L).T)
     else:
@@ -509,8 +590,9 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
 
 
 def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                scale: float) -> ReducedNLP:
-    """The reduced-space NLP of ``criterion`` (a key of :data:`CURVATURE`) for m experiments.
+                scale: float, power: float = 0.0) -> ReducedNLP:
+    """The reduced-space NLP of ``criterion`` for m experiments (``power``: r of E and
+    condition).
 
     x = (vec Q, vec V, t for test-pose); g = (test-pose rows, load rows, workspace rows of
     each experiment, joint-distance rows of each pair a < b), as in :mod:`casadi_design.nlp`.
@@ -530,4 +612,4 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     nx = (n + nv) * m + (criterion == "test-pose")
     return ReducedNLP(criterion, m, scale, fns, np.sqrt(scale) * B0, cols, rule_rows,
                       pairs.reshape(-1, 2), first_pair + np.arange(len(pairs)), n_rows, nx,
-                      first_pair + len(pairs))
+                      first_pair + len(pairs), power)

@@ -132,10 +132,17 @@ QUIET = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False, "error_
          "show_eval_warnings": False}
 
 
-def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False) -> ca.Function:
-    """IPOPT on the NLP, with the problem's solver settings (raw options passed through)."""
+#: nlpsol options of a run that continues from the primal and dual point of the previous one.
+WARM_START = {"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-6}
+
+
+def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False,
+                warm: bool = False) -> ca.Function:
+    """IPOPT on the NLP, with the problem's solver settings (raw options passed through);
+    ``warm``: it starts from the multipliers it is given (:data:`WARM_START`)."""
     settings = problem.solver
-    opts = {**QUIET, "ipopt.max_iter": settings.max_iter, "ipopt.tol": settings.tol}
+    opts = {**QUIET, "ipopt.max_iter": settings.max_iter, "ipopt.tol": settings.tol,
+            **(WARM_START if warm else {})}
     if verbose:
         opts.update({"ipopt.print_level": 5, "print_time": True, "show_eval_warnings": True})
     opts.update({f"ipopt.{k}": v for k, v in settings.ipopt})
@@ -178,23 +185,27 @@ def ipopt_call() -> Iterator[None]:
 
 @dataclass(frozen=True, eq=False)
 class DesignSolver:
-    """The NLP of one (criterion, m) with its IPOPT solver, and for E and condition a short
+    """The NLP of one (criterion, m) with its IPOPT solver: one stage, or for E and condition
+    one per power r of their surrogate (each run starts where the last stopped), after a short
     D-optimality run that first moves nearly singular starts away from M = 0."""
 
-    nlp: DesignNLP
-    solver: ca.Function
+    stages: tuple[tuple[DesignNLP, ca.Function], ...]
     polish: tuple[DesignNLP, ca.Function] | None
 
 
 def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
                        verbose: bool = False) -> DesignSolver:
-    nlp = build_nlp(problem, criterion, m, B0)
+    crit = CRITERIA[criterion]
+    stages = []
+    for k, power in enumerate(crit.powers or (0.0,)):
+        nlp = build_nlp(problem, criterion, m, B0, power)
+        stages.append((nlp, make_solver(problem, nlp, verbose, warm=k > 0)))
     polish = None
-    if CRITERIA[criterion].polished:
+    if crit.polished:
         d_nlp = build_nlp(problem, "D", m, B0)
         d_solver = d_nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
         polish = (d_nlp, d_solver)
-    return DesignSolver(nlp, make_solver(problem, nlp, verbose), polish)
+    return DesignSolver(tuple(stages), polish)
 
 
 def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -222,17 +233,20 @@ def solve_start(
     (:mod:`casadi_design.parallel`). Returns the start's record, its plan ``Q`` (n x m, rad),
     ``F`` (nF x m, N) and the plan's scores.
     """
-    nlp, solver = ds.nlp, ds.solver
     Q0, F0 = _polished(problem, ds, Q0, F0)
-    with ipopt_call():  # IPOPT reports Ctrl-C as a failed start: stop instead
-        sol = solver(x0=nlp.start(Q0, F0), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
-    stats = solver.stats()
-    Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
+    x, iterations, duals = ds.stages[0][0].start(Q0, F0), 0, {}
+    for nlp, solver in ds.stages:
+        with ipopt_call():  # IPOPT reports Ctrl-C as a failed start: stop instead
+            sol = solver(x0=x, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg, **duals)
+        x, duals = sol["x"], {"lam_x0": sol["lam_x"], "lam_g0": sol["lam_g"]}
+        stats = solver.stats()
+        iterations += int(stats.get("iter_count", 0))
+    Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(x))
     Q = np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None])
     scores = plan_scores(problem, Q, F, B0)
     rec = StartRecord(
         status=str(stats["return_status"]),
-        iterations=int(stats.get("iter_count", 0)),
+        iterations=iterations,
         value=scores.value(nlp.criterion),
         max_rms_error_m=scores.max_rms_error_m,
         feasible=not plan_violations(problem, Q, F) and scores.identifiable,

@@ -1,17 +1,145 @@
-"""Test oracle: the symbolic formulation of test-pose, D, A and T (one CasADi graph of M).
+"""Test oracle: the symbolic formulation of every criterion (one CasADi graph of M).
 
-The product solves these criteria in the reduced space (:mod:`casadi_design.reduced`); here
-they are posed on the lifted builder of E and condition (:func:`casadi_design.nlp.lifted_nlp`)
-with CasADi's own exact derivatives, to check the reduced space's values and derivatives.
+The product solves the criteria in the reduced space (:mod:`casadi_design.reduced`); here they
+are posed as one symbolic CasADi graph with CasADi's own exact derivatives, to check the
+reduced space's values and derivatives, and E and condition exactly (without surrogate) with
+semidefinite constraints written as Cholesky-factor equalities: ``M - lam I = C C^T`` (C lower
+triangular, free) holds iff ``M - lam I`` is positive semidefinite, so ``max lam`` gives
+``lam = lambda_min(M)``. Their graph grows as L^4: small cases only.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import casadi as ca
 import numpy as np
 
-from casadi_design.criteria import Objective
-from casadi_design.nlp import B0_at_test_poses, DesignNLP, lifted_nlp
+from casadi_design import nlp as nlp_module
+from casadi_design.build import Problem
+from casadi_design.nlp import B0_at_test_poses, DesignNLP, information_scale
+from casadi_design.rules import load_variables, pose_constraints
+
+
+@dataclass(frozen=True, eq=False)
+class Objective:
+    """A criterion's part of the NLP: ``f`` to minimise, auxiliary variables ``w``, constraints."""
+
+    f: ca.SX
+    w: ca.SX
+    lbw: np.ndarray
+    ubw: np.ndarray
+    g: ca.SX
+    lbg: np.ndarray
+    ubg: np.ndarray
+    init: Callable[[np.ndarray], np.ndarray]  # M at the start point -> w0
+
+
+def _lower(C: ca.SX) -> ca.SX:
+    """Entries of the lower triangle of a square matrix, column by column."""
+    n = C.shape[0]
+    return ca.vertcat(*[C[i, j] for j in range(n) for i in range(j, n)])
+
+
+def _psd_factor(name: str, S: ca.SX) -> tuple[ca.SX, ca.SX, Callable[[np.ndarray], np.ndarray]]:
+    """Variables ``C`` (lower triangular) and equalities ``lower(S - C C^T) = 0``: S is PSD.
+
+    Returns the variables, the equality constraints and ``init(S0) -> C0`` (Cholesky of S0).
+    """
+    L = S.shape[0]
+    c = ca.SX.sym(name, L * (L + 1) // 2)
+    C = ca.SX.zeros(L, L)
+    k = 0
+    for j in range(L):
+        for i in range(j, L):
+            C[i, j] = c[k]
+            k += 1
+
+    def init(S0: np.ndarray) -> np.ndarray:
+        C0 = np.linalg.cholesky(S0 + 1e-12 * np.trace(S0) * np.eye(L))
+        return np.array([C0[i, j] for j in range(L) for i in range(j, L)])
+
+    return c, _lower(S - C @ C.T), init
+
+
+def e_objective(M: ca.SX, B0: np.ndarray) -> Objective:
+    """``max lam`` s.t. ``M - lam I = C C^T``: lam = lambda_min(M) = s_L^2."""
+    L = M.shape[0]
+    lam = ca.SX.sym("lam")
+    c, g, init_c = _psd_factor("C", M - lam * ca.SX.eye(L))
+
+    def init(M0: np.ndarray) -> np.ndarray:
+        lam0 = 0.5 * np.linalg.eigvalsh(M0)[0]
+        return np.concatenate([[lam0], init_c(M0 - lam0 * np.eye(L))])
+
+    n = c.numel()
+    return Objective(-lam, ca.vertcat(lam, c), np.r_[0.0, np.full(n, -np.inf)], np.full(n + 1, np.inf),
+                     g, np.zeros(n), np.zeros(n), init)
+
+
+def condition_objective(M: ca.SX, B0: np.ndarray) -> Objective:
+    """``min kappa`` s.t. ``lam I <= M <= kappa lam I``: kappa = lambda_max / lambda_min = (s_1/s_L)^2."""
+    L = M.shape[0]
+    lam, kappa = ca.SX.sym("lam"), ca.SX.sym("kappa")
+    c1, g1, init1 = _psd_factor("C1", M - lam * ca.SX.eye(L))
+    c2, g2, init2 = _psd_factor("C2", kappa * lam * ca.SX.eye(L) - M)
+
+    def init(M0: np.ndarray) -> np.ndarray:
+        eig = np.linalg.eigvalsh(M0)
+        lam0, k0 = 0.5 * eig[0], 2.0 * eig[-1] / (0.5 * eig[0])
+        return np.concatenate([[lam0, k0], init1(M0 - lam0 * np.eye(L)), init2(k0 * lam0 * np.eye(L) - M0)])
+
+    n = c1.numel()
+    return Objective(kappa, ca.vertcat(lam, kappa, c1, c2),
+                     np.r_[1e-12, 1.0, np.full(2 * n, -np.inf)], np.full(2 * n + 2, np.inf),
+                     ca.vertcat(g1, g2), np.zeros(2 * n), np.zeros(2 * n), init)
+
+
+def lifted_nlp(problem: Problem, criterion: str,
+               objective: Callable[[ca.SX, np.ndarray], Objective], m: int,
+               B0: np.ndarray) -> DesignNLP:
+    """The NLP as one symbolic CasADi graph of ``M = scale sum_i B_i^T B_i`` and ``objective``
+    (its exact Hessian from CasADi)."""
+    model, robot = problem.model, problem.robot
+    loads = load_variables(problem)
+    Q = ca.SX.sym("Q", robot.n, m)
+    V = ca.SX.sym("V", loads.nv, m)
+    F = loads.loads(V)
+    scale = information_scale(model.L, B0)
+    M = ca.SX.zeros(model.L, model.L)
+    for i in range(m):
+        Bi = model.B(Q[:, i], F[:, i])
+        M += scale * (Bi.T @ Bi)
+    obj = objective(M, np.sqrt(scale) * B0)
+
+    rules = pose_constraints(problem)
+    g = [obj.g, ca.sum1(V**2).T if loads.norm_lb is not None else ca.SX(0, 1)]
+    g += [rules.g(Q[:, i]) for i in range(m)]
+    if problem.workspace.min_joint_distance_rad > 0:
+        g += [ca.sumsqr(Q[:, i] - Q[:, j]) for i in range(m) for j in range(i + 1, m)]
+    lb_rules, ub_rules = nlp_module._rule_bounds(problem, m, loads)
+    lb_plan, ub_plan = nlp_module._plan_bounds(problem, m, loads)
+
+    x = ca.vertcat(ca.vec(Q), ca.vec(V), obj.w)
+    oracle = ca.Function("nlp", [x, ca.SX(0, 1)], [obj.f, ca.vertcat(*g)], ["x", "p"],
+                         ["f", "g"])
+    plan = ca.Function("plan", [x], [Q, F], ["x"], ["Q", "F"])
+    information = ca.Function("M", [x], [M], ["x"], ["M"])
+    n_aux = obj.w.numel()
+
+    def start(Q0: np.ndarray, F0: np.ndarray) -> np.ndarray:
+        x_plan = np.concatenate([np.asarray(Q0).ravel(order="F"),
+                                 loads.variables(F0).ravel(order="F")])
+        M0 = np.asarray(information(np.concatenate([x_plan, np.zeros(n_aux)])))
+        return np.concatenate([x_plan, obj.init(M0)])
+
+    return DesignNLP(criterion, m, scale, oracle,
+                     np.concatenate([lb_plan, obj.lbw]), np.concatenate([ub_plan, obj.ubw]),
+                     np.concatenate([obj.lbg, lb_rules]), np.concatenate([obj.ubg, ub_rules]),
+                     plan, information, start)
+
+
 
 
 def _no_aux(f: ca.SX) -> Objective:
@@ -52,7 +180,8 @@ def t_objective(M: ca.SX, B0: np.ndarray) -> Objective:
     return _no_aux(-ca.trace(M))
 
 
-OBJECTIVES = {"test-pose": test_pose_objective, "D": d_objective, "A": a_objective, "T": t_objective}
+OBJECTIVES = {"test-pose": test_pose_objective, "D": d_objective, "A": a_objective,
+              "T": t_objective, "E": e_objective, "condition": condition_objective}
 
 
 def symbolic_nlp(problem, criterion: str, m: int, B0: np.ndarray | None = None) -> DesignNLP:

@@ -1,7 +1,8 @@
-"""The reduced-space NLP of test-pose, D, A and T: values, gradient, Jacobian and Hessian of the
-Lagrangian against finite differences and against the symbolic formulation (one CasADi graph of
-M with CasADi's exact derivatives, tests/symbolic_oracle.py), on the paper's case, its load and
-constraint variants and the UR10 drilling case; and the same IPOPT iterates as the symbolic NLP."""
+"""The reduced-space NLP: values, gradient, Jacobian and Hessian of the Lagrangian against finite
+differences and against the symbolic formulation (one CasADi graph of M with CasADi's exact
+derivatives, tests/symbolic_oracle.py), on the paper's case, its load and constraint variants
+and the UR10 drilling case; the same IPOPT iterates as the symbolic NLP; E and condition: the
+surrogates' bounds and the exact optimum of the lifted semidefinite formulation."""
 
 import gc
 
@@ -10,12 +11,17 @@ import numpy as np
 import pytest
 
 from casadi_design.build import load_problem
-from casadi_design.nlp import build_nlp
-from casadi_design.solve import CONVERGED, ipopt_call, make_solver, random_plan
+from casadi_design.criteria import CRITERIA as REGISTRY
+from casadi_design.measures import score_plan
+from casadi_design.nlp import B0_at_test_poses, build_nlp
+from casadi_design.reduced import log_power_mean
+from casadi_design.solve import CONVERGED, QUIET, ipopt_call, make_solver, random_plan, solve_design
 from tests.conftest import ROOT, build, paper_raw
 from tests.symbolic_oracle import symbolic_nlp
 
 CRITERIA = ("test-pose", "D", "A", "T")
+#: E and condition at a low and the highest power of their surrogates.
+SPECTRAL = [(c, r) for c in ("E", "condition") for r in (REGISTRY[c].powers[0], REGISTRY[c].powers[-1])]
 #: Agreement with the symbolic formulation (relative to the largest entry): rounding only.
 SYMBOLIC_RTOL = 1e-9
 #: Agreement with central finite differences (relative to the largest entry).
@@ -110,11 +116,11 @@ def test_derivatives_equal_the_symbolic_formulation(case, criterion):
         _close(np.reshape(got, want.shape), want, SYMBOLIC_RTOL)
 
 
-@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize("criterion", [(c, 0.0) for c in CRITERIA] + SPECTRAL)
 @pytest.mark.parametrize("case", ["paper-bound-distance", "paper-direction", "ur10"])
 def test_derivatives_equal_finite_differences(case, criterion):
     problem, m = _problem(case), _cases()[case][1]
-    nlp = build_nlp(problem, criterion, m)
+    nlp = build_nlp(problem, *criterion[:1], m, power=criterion[1])
     x, lam_f, lam_g = _point(problem, nlp, seed=2)
     f, g, grad, J, H = _reduced(nlp, x, lam_f, lam_g)
     step = 1e-6 * np.maximum(1.0, np.abs(x))
@@ -194,6 +200,55 @@ def test_ipopt_iterates_equal_the_symbolic_formulations(paper, criterion):
         if criterion != "T":
             assert status == status_s == "Solve_Succeeded"
             assert f == pytest.approx(f_s, rel=1e-9)
+
+
+def test_log_power_means_bound_the_extreme_eigenvalues():
+    """``log lambda_min <= l_{-r} <= log lambda_min + log(L)/r`` and ``log lambda_max - log(L)/r <=
+    l_r <= log lambda_max``, with equality of the upper (lower) bound when all eigenvalues are
+    equal; and its value equals the direct formula where that does not overflow."""
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        lam = np.exp(rng.uniform(-5, 5, size=rng.integers(2, 36)))
+        for r in (1.0, 16.0, 256.0, 4096.0):
+            lo, hi = log_power_mean(lam, -r)[0], log_power_mean(lam, r)[0]
+            L = len(lam)
+            assert np.log(lam.min()) - 1e-12 <= lo <= np.log(lam.min()) + np.log(L) / r + 1e-12
+            assert np.log(lam.max()) - np.log(L) / r - 1e-12 <= hi <= np.log(lam.max()) + 1e-12
+            if r <= 16:
+                assert lo == pytest.approx(np.log(np.mean(lam ** -r)) / -r, rel=1e-12, abs=1e-12)
+    assert log_power_mean(np.full(5, 2.0), -64.0)[0] == pytest.approx(np.log(2.0), rel=1e-14)
+
+
+@pytest.mark.parametrize("case, m", [("paper", 2), ("paper", 5), ("paper-direction", 3), ("geometric", 3)])
+@pytest.mark.parametrize("criterion", ["E", "condition"])
+def test_surrogates_reach_the_exact_optimum(case, m, criterion):
+    """The continuation in r reaches the optimum of the exact semidefinite formulation (the
+    lifted Cholesky-factor NLP of the oracle) from the same 6 starts, within what the last
+    power r guarantees: a surrogate optimum has ``lambda_min >= L^(-1/r)`` times the optimal
+    one (``s_L`` within ``L^(-1/2r)``), and ``s_1/s_L`` within ``L^(1/r)``."""
+    problem = _problem(case)
+    B0 = B0_at_test_poses(problem)
+    design = solve_design(problem, criterion, m, B0, starts=6)
+    sym = symbolic_nlp(problem, criterion, m, B0)
+    solver = sym.solver("exact", {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 3000})
+    best = None
+    rng = np.random.default_rng([problem.solver.seed, m, REGISTRY[criterion].seed_id])
+    for _ in range(6):
+        Q0, F0 = random_plan(problem, m, rng)
+        with ipopt_call():
+            sol = solver(x0=sym.start(Q0, F0), lbx=sym.lbx, ubx=sym.ubx, lbg=sym.lbg, ubg=sym.ubg)
+        if solver.stats()["return_status"] not in CONVERGED:
+            continue
+        Q, F = (np.asarray(v, dtype=float) for v in sym.plan(sol["x"]))
+        value = score_plan(problem.model.B_stack(Q.T, F.T), B0, problem.sigma_m).value(criterion)
+        if best is None or REGISTRY[criterion].better(value, best):
+            best = value
+    assert best is not None
+    L, r = problem.model.L, REGISTRY[criterion].powers[-1]
+    if criterion == "E":
+        assert design.scores.s_min >= best * L ** (-0.5 / r) * (1 - 1e-9)
+    else:
+        assert design.scores.condition <= best * L ** (1 / r) * (1 + 1e-9)
 
 
 def test_solver_keeps_its_callbacks_alive(paper):
