@@ -1,12 +1,14 @@
 """Speed and memory of the design NLPs: one table, and benchmark.json.
 
-    python scripts/benchmark.py [--cases paper,ur10,abb] [--criteria test-pose,D] [--starts 4]
+    python scripts/benchmark.py [--cases paper,ur10,ur10-50,abb] [--criteria test-pose,D] [--starts N]
                                 [--compare-with DIR] [--out benchmark.json]
 
 Each (case, criterion, m) runs in a fresh process (so its peak memory is its own): build the
 design solver, then the seeded starts of `casadi-design solve` one after the other. Printed per
 design: build time (s), time per start (s), IPOPT iterations, ms per iteration, peak memory
-(MB, the child's maximum resident set), best criterion value and best max error (mm).
+(MB, the child's maximum resident set), best max error (mm), best criterion value and the
+number of starts that reach it (the registry's same-optimum rule). Case ``ur10-50``: the UR10
+with a grid of 50 drilling points as test poses, m = 20, 16 starts.
 
 ``--compare-with DIR`` runs the same designs with the package found in DIR (another checkout,
 e.g. a worktree of an older commit) and adds the old/new ratios of time per start and memory.
@@ -25,21 +27,32 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: case -> (problem file, m values, starts, test poses: None for the file's own, or
+#: (x values, y values, z), m, of a grid of drilling points)
 CASES = {
-    "paper": ("problems/paper_planar_2r.toml", (1, 5)),
-    "ur10": ("problems/ur10_drilling.toml", (9, 12)),
-    "abb": ("problems/abb_irb6640_machining.toml", (6, 8)),
+    "paper": ("problems/paper_planar_2r.toml", (1, 5), 4, None),
+    "ur10": ("problems/ur10_drilling.toml", (9, 12), 4, None),
+    "ur10-50": ("problems/ur10_drilling.toml", (20,), 16,
+                (tuple(0.55 + 0.05 * i for i in range(10)), (-0.3, -0.15, 0.0, 0.15, 0.3), 0.1)),
+    "abb": ("problems/abb_irb6640_machining.toml", (6, 8), 4, None),
 }
 
 
-def run_one(problem_file: str, criterion: str, m: int, starts: int) -> dict:
+def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple | None) -> dict:
     """In the child: build the design solver and run the seeded starts; plain figures."""
-    from casadi_design.build import load_problem
+    import tomllib
+
+    from casadi_design.build import build_problem
     from casadi_design.criteria import CRITERIA
     from casadi_design.nlp import B0_at_test_poses
+    from casadi_design.problem import parse_problem
     from casadi_design.solve import make_design_solver, random_plan, solve_start, start_rng
 
-    problem = load_problem(problem_file)
+    raw = tomllib.loads(Path(problem_file).read_text())
+    if grid is not None:
+        xs, ys, z = grid
+        raw["test_poses"]["path"] = {"kind": "points", "points_m": [[x, y, z] for x in xs for y in ys]}
+    problem = build_problem(parse_problem(raw, problem_file))
     B0 = B0_at_test_poses(problem)
     rng = start_rng(problem.solver.seed, criterion, m)
     plans = [random_plan(problem, m, rng) for _ in range(starts)]
@@ -59,18 +72,22 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int) -> dict:
     return {"build_s": build_s, "start_s": times, "iterations": [r.iterations for r in records],
             "ms_per_iteration": 1e3 * sum(times) / max(iterations, 1),
             "converged": sum(r.converged for r in records), "best_value": best.value,
+            "at_best": sum(r.converged and CRITERIA[criterion].same_optimum(r.value, best.value)
+                           for r in records),
             "best_max_error_mm": best.max_rms_error_m * 1e3,
             "values": [r.value for r in records],
             "peak_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def child(package_dir: Path, problem_file: str, criterion: str, m: int, starts: int) -> dict:
+def child(package_dir: Path, problem_file: str, criterion: str, m: int, starts: int,
+          grid: tuple | None) -> dict:
     """Run one design in a fresh process with the package of ``package_dir`` (its own peak memory)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     # the package first on sys.path, before an installed (editable) copy; this script's helpers after
     code = ("import json, sys; sys.path[:0] = [%r, %r]; from benchmark import run_one; "
-            "print(json.dumps(run_one(%r, %r, %d, %d)))"
-            % (str(package_dir), str(ROOT / "scripts"), str(ROOT / problem_file), criterion, m, starts))
+            "print(json.dumps(run_one(%r, %r, %d, %d, %r)))"
+            % (str(package_dir), str(ROOT / "scripts"), str(ROOT / problem_file), criterion, m, starts,
+               grid))
     proc = subprocess.run([sys.executable, "-c", code], cwd=package_dir, env=env, capture_output=True, text=True)
     if proc.returncode:
         return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
@@ -82,22 +99,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", default="paper,ur10,abb", help=f"among {', '.join(CASES)}")
     parser.add_argument("--criteria", default="test-pose,D,A,E,condition")
     parser.add_argument("--m", help="numbers of experiments, e.g. 9,12 (default: per case)")
-    parser.add_argument("--starts", type=int, default=4, help="seeded starts per design (default 4)")
+    parser.add_argument("--starts", type=int, help="seeded starts per design (default: per case)")
     parser.add_argument("--compare-with", metavar="DIR", help="another checkout to compare with")
     parser.add_argument("--out", default="benchmark.json", help="JSON file of all figures")
     args = parser.parse_args(argv)
     rows = []
     head = (f"{'case':<6}{'criterion':<11}{'m':>3}{'build s':>9}{'s/start':>9}{'iter':>7}"
-            f"{'ms/iter':>9}{'peak MB':>9}{'best mm':>9}" + (f"{'old/new time':>14}{'old/new MB':>12}" if args.compare_with else ""))
+            f"{'ms/iter':>9}{'peak MB':>9}{'best mm':>9}{'best value':>13}{'at best':>8}" + (f"{'old/new time':>14}{'old/new MB':>12}" if args.compare_with else ""))
     print(head)
     print("-" * len(head))
     for case in args.cases.split(","):
-        problem_file, ms = CASES[case]
+        problem_file, ms, starts, grid = CASES[case]
+        starts = args.starts or starts
         for m in ([int(v) for v in args.m.split(",")] if args.m else ms):
             for criterion in args.criteria.split(","):
-                new = child(ROOT, problem_file, criterion, m, args.starts)
-                old = child(Path(args.compare_with), problem_file, criterion, m, args.starts) if args.compare_with else None
-                rows.append({"case": case, "criterion": criterion, "m": m, "starts": args.starts,
+                new = child(ROOT, problem_file, criterion, m, starts, grid)
+                old = (child(Path(args.compare_with), problem_file, criterion, m, starts, grid)
+                       if args.compare_with else None)
+                rows.append({"case": case, "criterion": criterion, "m": m, "starts": starts,
                              "new": new, "old": old})
                 if "error" in new:
                     print(f"{case:<6}{criterion:<11}{m:>3}  failed: {new['error']}")
@@ -105,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
                 per_start = sum(new["start_s"]) / len(new["start_s"])
                 line = (f"{case:<6}{criterion:<11}{m:>3}{new['build_s']:>9.2f}{per_start:>9.2f}"
                         f"{sum(new['iterations']):>7d}{new['ms_per_iteration']:>9.2f}{new['peak_MB']:>9.0f}"
-                        f"{new['best_max_error_mm']:>9.4f}")
+                        f"{new['best_max_error_mm']:>9.4f}{new['best_value']:>13.7g}{new['at_best']:>8d}")
                 if old and "error" not in old:
                     old_per_start = (old["build_s"] + sum(old["start_s"])) / len(old["start_s"])
                     new_per_start = (new["build_s"] + sum(new["start_s"])) / len(new["start_s"])

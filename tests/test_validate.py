@@ -30,7 +30,7 @@ from casadi_design.virtual import (
     validate,
 )
 from casadi_design.virtual.compensate import compensate
-from casadi_design.virtual.identify import identify_linear, identify_nonlinear
+from casadi_design.virtual.identify import LM_TOL, identify_linear, identify_nonlinear
 from casadi_design.virtual.simulate import draw_true_parameters, nominal_poses, simulate_measurements
 from casadi_design.virtual.statistics import chi2_quantile, rms_interval
 from tests.conftest import ROOT, build, paper_raw, read_raw
@@ -157,6 +157,47 @@ def test_gauss_newton_recovers_large_errors_where_one_linear_step_does_not(geome
     assert np.max(np.abs(X_lin - X_true)) > 1e-4
     _, stopped = identify_nonlinear(model, plan.Q, plan.F, ref, y, geometric.sigma_m, max_iterations=1)
     assert stopped.non_converged == 50
+
+
+def _exact_least_squares(model, plan, ref, y, sigma):
+    """Gauss-Newton with the exact Jacobian of the model at every iterate (the reference)."""
+    import casadi as ca
+
+    q, F = ca.SX.sym("q", model.n), ca.SX.sym("F", model.nF)
+    X, r = ca.SX.sym("X", model.L), ca.SX.sym("ref", 12)
+    h = model.measurement(q, F, X, r)[0]
+    fn = ca.Function("h", [q, F, X, r], [h, ca.jacobian(h, X)])
+    out = []
+    for yt in y:
+        Xt = np.zeros(model.L)
+        for _ in range(20):
+            hs, Js = zip(*[(np.asarray(a).ravel(), np.asarray(b)) for a, b in
+                           (fn(qi, Fi, Xt, ri) for qi, Fi, ri in zip(plan.Q, plan.F, ref))])
+            step = np.linalg.lstsq(np.vstack(Js), yt - np.concatenate(hs), rcond=None)[0]
+            Xt = Xt + step
+            if np.linalg.norm(np.vstack(Js) @ step) < 1e-9 * sigma:
+                break
+        out.append(Xt)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("factor", [1.0, 10.0])
+def test_taylor_jacobian_gives_the_least_squares_estimate(geometric, geometric_plans, factor):
+    """The Levenberg-Marquardt of the virtual calibration (exact residuals, Jacobian to second
+    order in X) reaches the least-squares estimate of exact Gauss-Newton within its own stopping
+    tolerance (a correction below LM_TOL sigma, i.e. ~LM_TOL of the parameters' noise), also at
+    10x the default spreads (5 mm, 0.5 deg), where the Jacobian's O(|X|^2) error is 100x larger."""
+    plan = next(p for p in geometric_plans if p.m == 4)
+    model = geometric.model
+    rng = np.random.default_rng(3)
+    X_true = draw_true_parameters(model, ErrorSpreads().scaled(factor), 8, rng)
+    ref, y = simulate_measurements(model, plan, X_true, geometric.sigma_m, ErrorSpreads(), rng)
+    X_hat, report = identify_nonlinear(model, plan.Q, plan.F, ref, y, geometric.sigma_m)
+    assert report.non_converged == 0
+    X_ls = _exact_least_squares(model, plan, ref, y, geometric.sigma_m)
+    B = model.B_stack(plan.Q, plan.F).reshape(-1, model.L) / model.column_scale
+    noise = geometric.sigma_m * np.sqrt(np.diag(np.linalg.inv(B.T @ B)))  # std of X_hat
+    assert np.max(np.abs(X_hat - X_ls) / noise) < 2 * LM_TOL
 
 
 def test_compensation_with_the_true_model_leaves_no_error(geometric):

@@ -6,8 +6,11 @@ value), so ordinary least squares is the weighted least squares of the noise mod
 * Elasto-static case: ``y = B X_s`` to first order in the compliances, with ``B`` the model's
   ``dy/dX`` for the scaled parameters ``X_s = c X`` (``c = model.column_scale``); the least
   squares ``X_s = (S^T S)^-1 S^T y`` of the stacked ``S`` is divided by ``c``.
-* Otherwise: Levenberg-Marquardt on ``model.measurement`` itself, with ``dy/dX`` derived once
-  from it (:func:`measurement_jacobian`).
+* Otherwise: Levenberg-Marquardt on ``model.measurement`` itself: the residuals are the exact
+  model's; the Jacobian of each trial is its Taylor expansion ``J(X) = J0 + sum_l X_l dJ/dX_l``
+  at X = 0, exact to ``O(|X|^2)`` (relative ~1e-7 for errors of 0.5 mm and 0.05 deg), derived
+  once per plan from the model (:func:`measurement_slopes`): evaluating the exact ``dy/dX`` of
+  every trial cost ten times the residuals and 85 % of a virtual calibration.
 """
 
 from __future__ import annotations
@@ -44,14 +47,28 @@ class Identification:
 
 
 @functools.lru_cache(maxsize=8)
-def measurement_jacobian(model: CalibrationModel) -> ca.Function:
-    """``(q, F, X, ref) -> (y, dy/dX)`` of ``model.measurement`` (shapes d and d x L, physical
-    X), derived once per model."""
+def measurement_slopes(model: CalibrationModel) -> ca.Function:
+    """``(q, F, X, ref, u) -> (J, dJ u)``: ``J = dy/dX`` of ``model.measurement`` (d x L,
+    physical X) and its derivative in the direction u (d x L), derived once per model."""
     q, F = ca.SX.sym("q", model.n), ca.SX.sym("F", model.nF)
-    X, ref = ca.SX.sym("X", model.L), ca.SX.sym("ref", 12)
+    X, ref, u = ca.SX.sym("X", model.L), ca.SX.sym("ref", 12), ca.SX.sym("u", model.L)
     y, _ = model.measurement(q, F, X, ref)
-    return ca.Function("dy", [q, F, X, ref], [y, ca.jacobian(y, X)],
-                       ["q", "F", "X", "ref"], ["y", "dy_dX"])
+    J = ca.jacobian(y, X)
+    return ca.Function("slopes", [q, F, X, ref, u], [J, ca.jtimes(J, X, u)],
+                       ["q", "F", "X", "ref", "u"], ["J", "dJ_u"])
+
+
+def taylor_jacobian(model: CalibrationModel, Q: np.ndarray, F: np.ndarray,
+                    ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``J0`` (m d, L) and ``T`` (m d, L, L), ``T[k, i, l] = dJ0[k, i] / dX_l``, of a plan at
+    X = 0: ``J(X) = J0 + T X + O(|X|^2)``."""
+    m, L = Q.shape[0], model.L
+    fn = measurement_slopes(model)
+    J, dJ = evaluate(fn, np.repeat(Q, L, axis=0), np.repeat(F, L, axis=0), np.zeros((m * L, L)),
+                     np.repeat(ref, L, axis=0), np.tile(np.eye(L), (m, 1)))
+    d = J.shape[1]
+    J0 = J.reshape(m, L, d, L)[:, 0].reshape(m * d, L)
+    return J0, dJ.reshape(m, L, d, L).transpose(0, 2, 3, 1).reshape(m * d, L, L)
 
 
 def identify_linear(B: np.ndarray, y: np.ndarray,
@@ -79,7 +96,8 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
     """Levenberg-Marquardt on ``model.measurement``, every trial at once, from ``X = 0``.
 
     Minimises ``|y - h(X)|^2`` with ``h(X) = model.measurement(q_i, F_i, X, ref_i)`` stacked over
-    the plan's ``Q`` (m, n), ``F`` (m, nF) and nominal references ``ref`` (m, 12). Step:
+    the plan's ``Q`` (m, n), ``F`` (m, nF) and nominal references ``ref`` (m, 12), with the
+    Jacobian ``J0 + T X`` of :func:`taylor_jacobian`. Step:
     ``(H + lambda diag H) dX = J^T r`` with ``H = J^T J``, solved with the parameters scaled by
     the column norms of ``J`` at ``X = 0`` (the same for every trial), so that lengths, angles
     and compliances share one scale. A trial has converged when its Gauss-Newton correction
@@ -92,17 +110,17 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
     report : :class:`Identification` (trials still not converged after ``max_iterations``)
     """
     trials, m, L = y.shape[0], Q.shape[0], model.L
-    fn = measurement_jacobian(model)
+    J0, T = taylor_jacobian(model, Q, F, ref)
 
     def residual(X: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = len(which)
-        h, dh = evaluate(fn, np.tile(Q, (t, 1)), np.tile(F, (t, 1)), np.repeat(X, m, axis=0),
-                         np.tile(ref, (t, 1)))
-        return y[which] - h.reshape(t, -1), dh.reshape(t, -1, L)
+        h = evaluate(model.measurement, np.tile(Q, (t, 1)), np.tile(F, (t, 1)),
+                     np.repeat(X, m, axis=0), np.tile(ref, (t, 1)))[0]
+        return y[which] - h.reshape(t, -1), J0 + np.einsum("kil,tl->tki", T, X)
 
     X = np.zeros((trials, L))
     r, J = residual(X, np.arange(trials))
-    norms = np.linalg.norm(J[0], axis=0)
+    norms = np.linalg.norm(J0, axis=0)
     scale = np.where(norms > 0, norms, 1.0)
     J = J / scale  # J is now d h / d (scale X): unit columns at X = 0
     cost = np.sum(r**2, axis=1)
