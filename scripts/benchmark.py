@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="benchmark.json", help="JSON file of all figures")
     args = parser.parse_args(argv)
     rows = []
-    head = (f"{'case':<6}{'criterion':<11}{'m':>3}{'build s':>9}{'s/start':>9}{'iter':>7}"
+    head = (f"{'case':<8}{'criterion':<11}{'m':>3}{'build s':>9}{'s/start':>9}{'iter':>7}"
             f"{'ms/iter':>9}{'peak MB':>9}{'best mm':>9}{'best value':>13}{'at best':>8}" + (f"{'old/new time':>14}{'old/new MB':>12}" if args.compare_with else ""))
     print(head)
     print("-" * len(head))
@@ -119,10 +119,10 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"case": case, "criterion": criterion, "m": m, "starts": starts,
                              "new": new, "old": old})
                 if "error" in new:
-                    print(f"{case:<6}{criterion:<11}{m:>3}  failed: {new['error']}")
+                    print(f"{case:<8}{criterion:<11}{m:>3}  failed: {new['error']}")
                     continue
                 per_start = sum(new["start_s"]) / len(new["start_s"])
-                line = (f"{case:<6}{criterion:<11}{m:>3}{new['build_s']:>9.2f}{per_start:>9.2f}"
+                line = (f"{case:<8}{criterion:<11}{m:>3}{new['build_s']:>9.2f}{per_start:>9.2f}"
                         f"{sum(new['iterations']):>7d}{new['ms_per_iteration']:>9.2f}{new['peak_MB']:>9.0f}"
                         f"{new['best_max_error_mm']:>9.4f}{new['best_value']:>13.7g}{new['at_best']:>8d}")
                 if old and "error" not in old:
