@@ -247,8 +247,9 @@ def format_sweep_table(sweep: Sweep) -> str:
 
     ``*`` marks a design whose warm start beat every seeded start.
     """
-    head = f"{'m':>4}" + "".join(f"{c:>12}" for c in sweep.criteria) + f"{'repeat best':>14}"
-    ref = "" if sweep.reference is None else (
+    repeat = sweep.reference is not None  # solved when test-pose is among the criteria
+    head = f"{'m':>4}" + "".join(f"{c:>12}" for c in sweep.criteria) + (f"{'repeat best':>14}" if repeat else "")
+    ref = "" if not repeat else (
         f" (repeat best: the best test-pose plan of {sweep.reference.m} experiment"
         f"{'s' if sweep.reference.m > 1 else ''} repeated, e / sqrt(m / {sweep.reference.m}))")
     lines = ["max over test poses of sqrt(rho), mm" + ref, head, "-" * len(head)]
@@ -258,7 +259,8 @@ def format_sweep_table(sweep: Sweep) -> str:
             d = sweep.designs[c, m]
             mark = "*" if sweep.warm_start_won(c, m) else " "
             cells.append(f"{d.scores.max_rms_error_m * 1e3:>11.4f}{mark}")
-        lines.append(f"{m:>4}" + "".join(cells) + f"{sweep.repeat_reference_m(m) * 1e3:>14.4f}")
+        lines.append(f"{m:>4}" + "".join(cells)
+                     + (f"{sweep.repeat_reference_m(m) * 1e3:>14.4f}" if repeat else ""))
     if any(sweep.warm_start_won(c, m) for c, m in sweep.designs):
         lines.append("* the warm start (previous m's plan plus new poses) beat the seeded starts: "
                      "better than `solve` with the same seed")
