@@ -57,7 +57,7 @@ def design_record(design: Design) -> dict:
                                  "median": float(np.median(values))},
             "per_start": [
                 {"status": st.status, "iterations": st.iterations, "value": st.value,
-                 "max_rms_error_m": st.max_rms_error_m, "feasible": st.feasible}
+                 "max_rms_error_m": st.max_rms_error_m, "feasible": st.feasible, "origin": st.origin}
                 for st in design.starts
             ],
         },
@@ -121,8 +121,11 @@ _RESULTS_HINT = "give a results file written by casadi-design solve or sweep"
 
 #: Numeric fields of a design's ``scores`` (finite: a design's plan is identifiable).
 _SCORE_NUMBERS = ("max_rms_error_m", "log_det_M", "trace_M_inv", "s_min", "trace_M", "condition")
-#: The keys of one start in ``solver.per_start``: the fields of :class:`StartRecord`.
+#: The keys of one start in ``solver.per_start``: the fields of :class:`StartRecord`; those
+#: with a default (``origin``) may be missing (files of earlier versions).
 _START_KEYS = tuple(f.name for f in dataclasses.fields(StartRecord))
+_START_REQUIRED = tuple(f.name for f in dataclasses.fields(StartRecord)
+                        if f.default is dataclasses.MISSING)
 
 
 class _Malformed(Exception):
@@ -214,7 +217,7 @@ def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> N
           starts)
     for i, s in enumerate(starts):
         at = f"{where}.solver.per_start[{i}]"
-        s = _object(s, at, _START_KEYS)
+        s = _object(s, at, _START_REQUIRED)
         extra = [k for k in s if k not in _START_KEYS]
         if extra:
             raise _Malformed(f"{at}: unexpected key '{extra[0]}'")
@@ -223,6 +226,7 @@ def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> N
         for k in ("value", "max_rms_error_m"):  # null (or +-Infinity, NaN) for a start that failed
             _need(s[k] is None or _is_number(s[k], finite=False), f"{at}.{k}", "a number or null", s[k])
         _need(isinstance(s["feasible"], bool), f"{at}.feasible", "true or false", s["feasible"])
+        _need(isinstance(s.get("origin", ""), str), f"{at}.origin", "a string", s.get("origin"))
 
 
 def _check_results(record: object) -> None:

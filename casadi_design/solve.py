@@ -10,6 +10,8 @@ solve is a status, not an exception.
 
 from __future__ import annotations
 
+import dataclasses
+
 import contextlib
 import functools
 import time
@@ -44,13 +46,16 @@ SAMPLING_TRIES = 2000
 
 @dataclass(frozen=True)
 class StartRecord:
-    """One IPOPT start: its status, iterations, criterion score and test-pose error (m)."""
+    """One IPOPT start: its status, iterations, criterion score and test-pose error (m), and
+    where its start plan came from (``origin``: "seeded", or the label of an initial plan, e.g.
+    "warm start" or "rounded approximate design")."""
 
     status: str
     iterations: int
     value: float
     max_rms_error_m: float
     feasible: bool
+    origin: str = "seeded"
 
     @property
     def converged(self) -> bool:
@@ -88,6 +93,13 @@ class Design:
     @property
     def iterations(self) -> int:
         return sum(st.iterations for st in self.starts)
+
+    @property
+    def winner(self) -> StartRecord | None:
+        """The start whose plan this is: the first to reach the best value (a later start wins
+        only when strictly better); None for a design read without its starts' values."""
+        best = self.scores.value(self.criterion)
+        return next((st for st in self.starts if st.converged and st.value == best), None)
 
 
 def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
@@ -262,7 +274,7 @@ def solve_design(
     starts: int | None = None,
     verbose: bool = False,
     *,
-    initial_plans: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    initial_plans: Sequence[tuple] = (),
     executor: StartExecutor | None = None,
     progress: Callable[[int], object] | None = None,
 ) -> Design:
@@ -275,7 +287,9 @@ def solve_design(
 
     Parameters
     ----------
-    initial_plans : extra starts ``(Q0, F0)``: ``Q0`` shape (n, m), rad; ``F0`` shape (nF, m), N.
+    initial_plans : extra starts ``(Q0, F0)`` or ``(Q0, F0, origin)``: ``Q0`` shape (n, m), rad;
+        ``F0`` shape (nF, m), N; ``origin`` labels the start's record ("initial plan" if not
+        given).
     executor : runs the starts elsewhere (:mod:`casadi_design.parallel`); None runs them here,
         one after the other. The result is the same either way.
     progress : called with 1 after each start (e.g. ``tqdm.update``).
@@ -289,7 +303,9 @@ def solve_design(
     t0 = time.perf_counter()
     rng = start_rng(problem.solver.seed, criterion, m)
     plans = [random_plan(problem, m, rng) for _ in range(starts or problem.solver.starts)]
-    for k, (Q0, F0) in enumerate(initial_plans):
+    origins = ["seeded"] * len(plans)
+    for k, (Q0, F0, *origin) in enumerate(initial_plans):
+        origins.append(origin[0] if origin else "initial plan")
         Q0, F0 = np.asarray(Q0, dtype=float), np.asarray(F0, dtype=float)
         F0 = F0.reshape(0, m) if F0.size == 0 and problem.model.nF == 0 else F0
         if Q0.shape != (problem.robot.n, m) or F0.shape != (problem.model.nF, m):
@@ -305,9 +321,10 @@ def solve_design(
         results = executor.map_starts(problem, criterion, m, B0, plans, verbose)
     crit = CRITERIA[criterion]
     records, best, why = [], None, []
-    for rec, Q, F, scores in results:
+    for (rec, Q, F, scores), origin in zip(results, origins):
         if progress is not None:
             progress(1)
+        rec = dataclasses.replace(rec, origin=origin)
         records.append(rec)
         why.append("" if rec.feasible else " (singular M: the plan does not identify every parameter)"
                    if not scores.identifiable else " (the plan breaks a rule of the problem)")

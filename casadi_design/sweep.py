@@ -95,12 +95,16 @@ def warm_start_plan(problem: Problem, previous: Design, m: int) -> tuple[np.ndar
     return np.hstack([previous.Q.T, Q_new]), np.hstack([previous.F.T, F_new])
 
 
-def best_seeded(design: Design, seeded: int) -> StartRecord | None:
-    """The record that wins among the first ``seeded`` starts (the rule of solve_design)."""
+#: ``StartRecord.origin`` of the warm start of a sweep.
+WARM_START = "warm start"
+
+
+def best_seeded(design: Design) -> StartRecord | None:
+    """The record that wins among the seeded starts (the rule of solve_design)."""
     crit = CRITERIA[design.criterion]
     best = None
-    for rec in design.starts[:seeded]:
-        if rec.converged and (best is None or crit.better(rec.value, best.value)):
+    for rec in design.starts:
+        if rec.origin == "seeded" and rec.converged and (best is None or crit.better(rec.value, best.value)):
             best = rec
     return best
 
@@ -112,7 +116,7 @@ class Sweep:
     Attributes
     ----------
     designs : {(criterion, m): Design}
-    seeded_starts : seeded starts per design; a design with more starts had a warm start (last).
+    seeded_starts : seeded starts per design.
     reference : the best test-pose design at ``problem.m_min``, for the "repeat" line (None when
         the sweep has no test-pose criterion).
     """
@@ -124,16 +128,10 @@ class Sweep:
     warm_start: bool
     reference: Design | None = None
 
-    def had_warm_start(self, criterion: str, m: int) -> bool:
-        return len(self.designs[criterion, m].starts) > self.seeded_starts
-
     def warm_start_won(self, criterion: str, m: int) -> bool:
         """True when the warm start is strictly better than every seeded start."""
-        d = self.designs[criterion, m]
-        if not self.had_warm_start(criterion, m):
-            return False
-        seeded = best_seeded(d, self.seeded_starts)
-        return seeded is None or d.scores.value(criterion) != seeded.value
+        winner = self.designs[criterion, m].winner
+        return winner is not None and winner.origin == WARM_START
 
     def repeat_reference_m(self, m: int) -> float:
         """``e(m_ref) sqrt(m_ref / m)`` (m): the best m_ref-experiment plan repeated."""
@@ -172,7 +170,7 @@ def run_sweep(
                 if progress is not None:
                     progress(len(designs[c, m].starts))
                 continue
-            extra = [warm_start_plan(problem, designs[c, ms[i - 1]], m)] if warm_start and i else []
+            extra = [(*warm_start_plan(problem, designs[c, ms[i - 1]], m), WARM_START)] if warm_start and i else []
             d = solve_design(problem, c, m, B0, starts=n_seeded, verbose=verbose,
                              initial_plans=extra, executor=executor, progress=progress)
             designs[c, m] = d
@@ -217,7 +215,7 @@ def sweep_rows(sweep: Sweep) -> list[dict]:
     rows = []
     for (c, m), d in sweep.designs.items():
         scores = d.scores
-        seeded = best_seeded(d, sweep.seeded_starts)
+        seeded = best_seeded(d)
         rows.append({
             "criterion": c,
             "m": m,
