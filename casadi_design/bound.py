@@ -61,6 +61,9 @@ EXCHANGE_ITERATIONS = 40
 MW_ITERATIONS = 5000
 #: Weights below this fraction of the largest are left out of the reported support.
 WEIGHT_RTOL = 1e-4
+#: Plans of :func:`rounded_plans`, and the step of the jittered ones (fraction of the joint range).
+ROUNDED_PLANS = 4
+ROUNDING_JITTER = 0.02
 #: Seed id of the bound's random numbers (beside the criteria's ids 0..5).
 SEED_ID = 100
 
@@ -304,3 +307,38 @@ def approximate_design(
         history = [h - L * np.log(c) for h in history]
     return ApproximateDesign(criterion, Q[support], F[support], w[support] / w[support].sum(), W / c, mu,
                              value, certified, d_max, tuple(history), len(A), time.perf_counter() - t0)
+
+
+def apportion(weights: np.ndarray, m: int) -> np.ndarray:
+    """Pukelsheim's efficient apportionment of m experiments to the support points of
+    ``weights`` (k,): ``n_i = ceil((m - k/2) w_i)``, then one at a time to the smallest
+    ``n_i / w_i`` (or from the largest ``(n_i - 1) / w_i``) until ``sum n_i = m``."""
+    w = np.asarray(weights, dtype=float)
+    n = np.maximum(np.ceil((m - len(w) / 2) * w), 0).astype(int)
+    while n.sum() < m:
+        n[np.argmin(n / w)] += 1
+    while n.sum() > m:
+        n[np.argmax((n - 1) / w)] -= 1
+    return n
+
+
+def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
+                  count: int = ROUNDED_PLANS) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Plans of m experiments from the approximate design, as extra starts of
+    :func:`casadi_design.solve.solve_design` (``initial_plans``).
+
+    The first repeats support point i ``n_i`` times (:func:`apportion`); the other ``count - 1``
+    move each of its joint values by a normal step of ``ROUNDING_JITTER`` times the joint's
+    range (seeded by ``problem.solver.seed`` and m), so repeated experiments can separate.
+    Returns ``(Q0, F0)`` pairs: Q0 shape (n, m), rad; F0 shape (nF, m), N.
+    """
+    idx = np.repeat(np.arange(len(approx.weights)), apportion(approx.weights, m))
+    Q0, F0 = approx.Q[idx].T, approx.F[idx].T
+    robot = problem.robot
+    rng = np.random.default_rng([problem.solver.seed, SEED_ID, m])
+    span = (robot.q_max - robot.q_min)[:, None]
+    plans = [(Q0, F0)]
+    for _ in range(count - 1):
+        Q = Q0 + ROUNDING_JITTER * span * rng.normal(size=Q0.shape)
+        plans.append((np.clip(Q, robot.q_min[:, None], robot.q_max[:, None]), F0.copy()))
+    return plans
