@@ -274,7 +274,8 @@ def approximate_design(
     c = L / np.mean(np.trace(A, axis1=1, axis2=2))  # the weights see c A: W of order 1
     A, As = c * A, c * _information(problem, Qs, Fs)
     B0c = None if B0 is None else np.sqrt(c) * B0
-    w, mu = np.full(len(A), 1.0 / len(A)), np.full(1 if B0 is None else len(B0), 1.0 / (1 if B0 is None else len(B0)))
+    s = 1 if B0 is None else len(B0)
+    w, mu = np.full(len(A), 1.0 / len(A)), np.full(s, 1.0 / s)
     history: list[float] = []
     for _ in range(iterations):
         w, mu, _, value = _weights(A, B0c, w, mu, rtol / 10)
