@@ -5,6 +5,7 @@
     casadi-design evaluate problems/<case>.toml --plan plan.csv      score your own plan
     casadi-design plot     DIR/sweep.json                       redraw the figures
     casadi-design validate problems/<case>.toml --results DIR   simulate the calibration
+    casadi-design bound    problems/<case>.toml --m 1:10        what no plan can beat
 
 Errors in the input or a design that cannot be produced print one line ``error: ...`` and exit
 with code 2; files are written only once the work they describe is done (a sweep also keeps
@@ -446,6 +447,27 @@ def _validate(args: argparse.Namespace) -> int:
     return run(args)
 
 
+# --------------------------------------------------------------------------- bound
+
+def _bound(args: argparse.Namespace) -> int:
+    from .bound import approximate_design, bound
+    from .sweep import check_m_values
+
+    problem = _load(args, check_solver=False)
+    ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
+    check_m_values(problem, ms)
+    approx = {c: approximate_design(problem, c) for c in ("test-pose", "D")}
+    print(_case_line(problem))
+    print(f"{'m':>4}{'test-pose error >= (mm)':>26}{'relaxation (mm)':>18}{'log det M <=':>15}")
+    for m in ms:
+        tp, d = bound(problem, m, approx["test-pose"]), bound(problem, m, approx["D"])
+        print(f"{m:>4}{tp.value * 1e3:>26.5f}{tp.relaxation * 1e3:>18.5f}{d.value:>15.4f}")
+    for a in approx.values():
+        _say(args, f"{a.criterion}: {len(a.weights)} support points, pool {a.pool_size}, "
+                   f"{len(a.history)} exchange steps, {a.wall_s:.2f} s")
+    return 0
+
+
 # --------------------------------------------------------------------------- parser
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -556,6 +578,19 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--force", action="store_true", help="overwrite figures that exist")
     _common(plot)
     plot.set_defaults(run=_plot)
+
+    bnd = sub.add_parser(
+        "bound", help="certified lower bound of the test-pose error (and upper bound of log det M)",
+        description="From the approximate design over single experiments, print per m the "
+                    "certified lower bound of the max error along the test poses (mm) that no "
+                    "plan of m experiments can beat, the relaxation's value, and the upper bound "
+                    "of log det M. No design NLP is solved.")
+    bnd.add_argument("problem", help="problem file (TOML), e.g. problems/paper_planar_2r.toml")
+    bnd.add_argument("--m", type=_m_values, metavar="RANGE",
+                     help="numbers of experiments, e.g. 1:10 or 1,5 (default: the smallest "
+                          "identifiable m to the largest [experiments].m)")
+    _common(bnd)
+    bnd.set_defaults(run=_bound)
 
     from .virtual import DESCRIPTION, HELP, add_arguments
 

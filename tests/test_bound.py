@@ -1,0 +1,144 @@
+"""The certified bounds of casadi_design.bound: published figures, an independent convex solver,
+a closed form with gap 0, and bounds that hold against solved plans."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from casadi_design.bound import EXCHANGE_RTOL, apportion, approximate_design, bound, gap_percent, rounded_plans
+from casadi_design.build import load_problem
+from casadi_design.errors import DesignError
+from casadi_design.nlp import B0_at_test_poses
+from casadi_design.rules import plan_violations
+from casadi_design.solve import solve_design
+
+from conftest import PROBLEM_FILES, build, paper_raw
+
+#: Issue 10's figures for the paper case (mm): the relaxation (t* on a fine pool) and the
+#: certified form with max_x d over a 181^3 grid of (q1, q2, load angle), computed outside the
+#: package; and the agreement asked for.
+RELAXATION_MM = {1: 0.1210, 5: 0.0541, 10: 0.0383}
+CERTIFIED_MM = {1: 0.12092, 5: 0.05408, 10: 0.03824}
+AGREEMENT_MM = 1e-4
+#: Relative slack for "the bound holds" (the solved plans and the bound are both rounded).
+HOLDS_RTOL = 1e-9
+L1, L2 = 0.6, 0.4
+
+
+@pytest.fixture(scope="module")
+def paper_tp(paper):
+    return approximate_design(paper, "test-pose")
+
+
+def planar_A(q1, q2, F):
+    """``B = [J_1 J_1^T F, J_2 J_2^T F]`` of the paper's arm, written out by hand: (..., 2, 2)."""
+    s1, c1, s12, c12 = np.sin(q1), np.cos(q1), np.sin(q1 + q2), np.cos(q1 + q2)
+    J1 = np.stack([-L1 * s1 - L2 * s12, L1 * c1 + L2 * c12], -1)
+    J2 = np.stack([-L2 * s12, L2 * c12], -1)
+    return np.stack([J1 * np.sum(J1 * F, -1, keepdims=True), J2 * np.sum(J2 * F, -1, keepdims=True)], -1)
+
+
+def test_paper_figures(paper, paper_tp):
+    for m, ref in CERTIFIED_MM.items():
+        b = bound(paper, m, paper_tp)
+        assert abs(b.value * 1e3 - ref) < AGREEMENT_MM
+        assert abs(b.relaxation * 1e3 - RELAXATION_MM[m]) < AGREEMENT_MM
+        assert b.value <= b.relaxation
+
+
+def test_max_of_d_found_on_a_grid(paper, paper_tp):
+    """The search for max_x d beats a dense grid of the hand-written B (an independent model)."""
+    rng = np.random.default_rng(0)
+    Q, th = rng.uniform(-np.pi, np.pi, (5, 2)), rng.uniform(-np.pi, np.pi, 5)
+    F = 100.0 * np.stack([np.cos(th), np.sin(th)], -1)
+    assert np.allclose(paper.model.B_stack(Q, F), planar_A(Q[:, 0], Q[:, 1], F), atol=1e-12)
+    B0 = B0_at_test_poses(paper)
+    H = np.einsum("j,jri,jrl->il", paper_tp.mu, B0, B0)
+    Wi = np.linalg.inv(paper_tp.W)
+    G = Wi @ H @ Wi
+    g = np.linspace(-np.pi, np.pi, 91)
+    q1, q2 = np.meshgrid(g, g, indexing="ij")
+    grid_max = max(np.einsum("...ri,ij,...rj->...", A, G, A).max()
+                   for A in (planar_A(q1, q2, 100.0 * np.array([np.cos(a), np.sin(a)])) for a in g))
+    assert grid_max <= paper_tp.d_max * (1 + 1e-9)
+    assert paper_tp.d_max <= grid_max * 1.01  # the grid is fine: it comes close
+
+
+def test_certified_below_convex_solver(paper, paper_tp):
+    """An SDP (cvxpy + Clarabel) on a grid pool gives t* of that pool >= the hull's t* >= the
+    certified value; and the relaxation of the package is as good as the SDP's."""
+    cp = pytest.importorskip("cvxpy")
+    g = np.linspace(-np.pi, np.pi, 25)[:-1]
+    q1, q2, a = (v.ravel() for v in np.meshgrid(g, g, g, indexing="ij"))
+    B = planar_A(q1, q2, 100.0 * np.stack([np.cos(a), np.sin(a)], -1))
+    A = np.einsum("kri,krj->kij", B, B)
+    c = 2.0 / np.mean(np.trace(A, axis1=1, axis2=2))
+    B0 = np.sqrt(c) * B0_at_test_poses(paper)
+    w, t, W = cp.Variable(len(A), nonneg=True), cp.Variable(), cp.Variable((2, 2), symmetric=True)
+    rows = [cp.matrix_frac(B0j.T, W) <= t for B0j in B0]
+    cp.Problem(cp.Minimize(t), [cp.sum(w) == 1, cp.vec(W, order="F") == (c * A).reshape(len(A), 4).T @ w]
+               + rows).solve(solver="CLARABEL")
+    assert paper_tp.certified <= t.value
+    assert paper_tp.value <= t.value * (1 + 1e-6)
+
+
+def test_bounds_hold_on_solved_plans(paper, paper_tp):
+    d_approx = approximate_design(paper, "D")
+    for m in (1, 5):
+        tp = solve_design(paper, "test-pose", m, starts=4)
+        b = bound(paper, m, paper_tp)
+        assert b.value <= tp.scores.max_rms_error_m * (1 + HOLDS_RTOL)
+        assert gap_percent(b, tp.scores.max_rms_error_m) >= 0
+        D = solve_design(paper, "D", m, starts=4)
+        bd = bound(paper, m, d_approx)
+        assert D.scores.log_det_M <= bd.value + HOLDS_RTOL
+        assert gap_percent(bd, D.scores.log_det_M) >= 0
+
+
+def test_D_gap_zero_for_joint_offsets():
+    """Joint offsets of the planar arm: B = J(q), det(J^T J) = (l1 l2 sin q2)^2, and d(x, W) = 2
+    for every x at q2 = pi/2: one pose repeated is optimal in the hull, so the bound is reached,
+    log det M = L log m + 2 log(l1 l2)."""
+    raw = paper_raw()
+    raw["calibration"] = {"case": "geometric", "parameters": ["joint1.offset", "joint2.offset"]}
+    del raw["experiments"]["force"], raw["test_poses"]["force_N"]
+    raw["design"]["criteria"] = ["test-pose", "D"]
+    problem = build(raw)
+    approx = approximate_design(problem, "D")
+    for m in (1, 3):
+        b = bound(problem, m, approx)
+        exact = 2 * np.log(m) + 2 * np.log(L1 * L2)
+        assert exact <= b.value <= exact + EXCHANGE_RTOL * 2  # the exchange stops within rtol L
+        D = solve_design(problem, "D", m, starts=2)
+        assert D.scores.log_det_M == pytest.approx(exact, abs=1e-9)
+        assert 0 <= gap_percent(b, D.scores.log_det_M) <= 100 * EXCHANGE_RTOL
+
+
+def test_rounded_plans_are_feasible_starts(paper, paper_tp):
+    assert apportion(np.array([0.5, 0.3, 0.2]), 4).tolist() == [2, 1, 1]
+    assert apportion(np.array([0.5, 0.3, 0.2]), 1).sum() == 1
+    plans = rounded_plans(paper, paper_tp, 5)
+    for Q0, F0 in plans:
+        assert Q0.shape == (2, 5) and F0.shape == (2, 5)
+        assert not plan_violations(paper, Q0, F0)
+    best = solve_design(paper, "test-pose", 5, starts=1, initial_plans=plans)
+    assert best.scores.max_rms_error_m >= bound(paper, 5, paper_tp).value
+
+
+def test_unknown_criterion(paper):
+    with pytest.raises(DesignError, match="criterion 'E' has no bound; allowed: test-pose, D, A"):
+        approximate_design(paper, "E")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", PROBLEM_FILES, ids=lambda p: p.stem)
+def test_bound_holds_on_every_problem(path):
+    problem = load_problem(path)
+    m = problem.m_min
+    for criterion in ("test-pose", "D"):
+        approx = approximate_design(problem, criterion, pool_size=200, sample_size=1000, iterations=2)
+        design = solve_design(problem, criterion, m, starts=1, initial_plans=rounded_plans(problem, approx, m, 1))
+        b = bound(problem, m, approx)
+        achieved = design.scores.value(criterion)
+        assert gap_percent(b, achieved) >= -100 * HOLDS_RTOL
