@@ -32,6 +32,7 @@ sigma^2 t / m`` in m^2.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from collections.abc import Callable
@@ -45,7 +46,7 @@ from .errors import DesignError
 from .nlp import B0_at_test_poses
 from .reduced import experiment_functions
 from .rules import load_variables, plan_violations, pose_constraints
-from .solve import QUIET, random_plan
+from .solve import QUIET, Design, random_plan
 
 #: Criteria with an approximate design and a bound.
 BOUND_CRITERIA = ("test-pose", "D", "A")
@@ -66,6 +67,10 @@ ROUNDED_PLANS = 4
 ROUNDING_JITTER = 0.02
 #: Seed id of the bound's random numbers (beside the criteria's ids 0..5).
 SEED_ID = 100
+#: Exchange steps of the commands (``--bound-steps``; 0: no bound, no rounded starts).
+BOUND_STEPS = 12
+#: ``StartRecord.origin`` of the starts rounded from the approximate design.
+ROUNDED = "rounded approximate design"
 
 
 @dataclass(frozen=True, eq=False)
@@ -343,3 +348,27 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
         Q = Q0 + ROUNDING_JITTER * span * rng.normal(size=Q0.shape)
         plans.append((np.clip(Q, robot.q_min[:, None], robot.q_max[:, None]), F0.copy()))
     return plans
+
+
+def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,
+                        progress: Callable[[float], object] | None = None) -> dict[str, ApproximateDesign]:
+    """The approximate design of each of ``criteria`` that has a bound, with ``steps`` exchange
+    steps at most; none when ``steps`` is 0."""
+    return {c: approximate_design(problem, c, iterations=steps, progress=progress)
+            for c in criteria if c in BOUND_CRITERIA and steps > 0}
+
+
+def rounded_starts(problem: Problem, approx: dict[str, ApproximateDesign], criterion: str,
+                   m: int) -> list[tuple[np.ndarray, np.ndarray, str]]:
+    """The :func:`rounded_plans` of ``criterion`` as labelled extra starts of
+    :func:`casadi_design.solve.solve_design` (none without its approximate design)."""
+    a = approx.get(criterion)
+    return [] if a is None else [(Q, F, ROUNDED) for Q, F in rounded_plans(problem, a, m)]
+
+
+def with_bound(problem: Problem, design: Design, approx: dict[str, ApproximateDesign]) -> Design:
+    """``design`` with the bound of its criterion and m (unchanged without its approximate
+    design)."""
+    a = approx.get(design.criterion)
+    return design if a is None else dataclasses.replace(design, bound=bound(problem, design.m, a))
+

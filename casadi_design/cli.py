@@ -47,6 +47,18 @@ def _positive_int(what: str):
     return parse
 
 
+def _count(what: str):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = -1
+        if v < 0:
+            raise argparse.ArgumentTypeError(f"{what} takes an integer >= 0, got '{text}'")
+        return v
+    return parse
+
+
 def _m_values(text: str) -> list[int]:
     from .sweep import parse_m_values
 
@@ -165,7 +177,20 @@ def _write_plans(out: Path, problem, designs) -> list[str]:
 
 # --------------------------------------------------------------------------- solve
 
+def _approximate(args: argparse.Namespace, problem, criteria) -> dict:
+    """The approximate designs of the criteria that have a bound (``--bound-steps``)."""
+    from .bound import approximate_designs
+
+    t0 = time.perf_counter()
+    approx = approximate_designs(problem, criteria, args.bound_steps)
+    if approx:
+        _say(args, f"approximate designs of {', '.join(approx)}: {time.perf_counter() - t0:.1f} s "
+                   f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})")
+    return approx
+
+
 def _solve(args: argparse.Namespace) -> int:
+    from .bound import ROUNDED_PLANS, rounded_starts, with_bound
     from .export import report_markdown
     from .nlp import B0_at_test_poses
     from .plotting import fig1
@@ -185,14 +210,18 @@ def _solve(args: argparse.Namespace) -> int:
         fig_m = _fig_m(args.fig_m, m_values, problem.m_values)
         starts = args.starts or problem.solver.starts
         B0 = B0_at_test_poses(problem)
-        bar = progress_bar(len(m_values) * len(criteria) * starts, "solve", args.quiet)
+        approx = _approximate(args, problem, criteria)
+        bar = progress_bar(len(m_values) * sum(starts + (ROUNDED_PLANS if c in approx else 0)
+                                               for c in criteria), "solve", args.quiet)
         designs = []
         try:
             for m in m_values:
                 for c in criteria:
                     bar.set_postfix_str(f"{c}, m = {m}")
-                    designs.append(solve_design(problem, c, m, B0, starts=starts, verbose=args.verbose,
-                                                executor=executor, progress=bar.update))
+                    d = solve_design(problem, c, m, B0, starts=starts, verbose=args.verbose,
+                                     initial_plans=rounded_starts(problem, approx, c, m),
+                                     executor=executor, progress=bar.update)
+                    designs.append(with_bound(problem, d, approx))
         finally:
             bar.close()
     wall = time.perf_counter() - t0
@@ -202,7 +231,7 @@ def _solve(args: argparse.Namespace) -> int:
          f"total {wall:.2f} s for {len(designs)} designs {_where(args)} (after imports)")
     if out:
         out.mkdir(parents=True, exist_ok=True)
-        write_results(out / "results.json", problem, designs)
+        write_results(out / "results.json", problem, designs, approx)
         files = ["results.json"]
         files += _write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
         files += _write_plans(out, problem, designs)
@@ -456,7 +485,9 @@ def _bound(args: argparse.Namespace) -> int:
     problem = _load(args, check_solver=False)
     ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
     check_m_values(problem, ms)
-    approx = {c: approximate_design(problem, c) for c in ("test-pose", "D")}
+    if args.bound_steps == 0:
+        raise ArgumentError("bound: --bound-steps 0 computes no bound; give at least 1")
+    approx = {c: approximate_design(problem, c, iterations=args.bound_steps) for c in ("test-pose", "D")}
     print(_case_line(problem))
     print(f"{'m':>4}{'test-pose error >= (mm)':>26}{'relaxation (mm)':>18}{'log det M <=':>15}")
     for m in ms:
@@ -500,7 +531,17 @@ def _compute(p: argparse.ArgumentParser, out_help: str) -> None:
     p.add_argument("--fig-m", type=_m_values, metavar="LIST",
                    help="m of the Fig. 1 panels, e.g. 1,5 (default: [experiments].m of the problem "
                         "when solved, else the first and last m)")
+    _bound_steps(p)
     _common(p)
+
+
+def _bound_steps(p: argparse.ArgumentParser) -> None:
+    from .bound import BOUND_CRITERIA, BOUND_STEPS
+
+    p.add_argument("--bound-steps", type=_count("--bound-steps"), default=BOUND_STEPS, metavar="K",
+                   help=f"exchange steps of the approximate design behind the certified bound of "
+                        f"{', '.join(BOUND_CRITERIA)} and their rounded starts (default {BOUND_STEPS}: "
+                        "more steps tighten the bound; 0: no bound, no rounded starts)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -589,6 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
     bnd.add_argument("--m", type=_m_values, metavar="RANGE",
                      help="numbers of experiments, e.g. 1:10 or 1,5 (default: the smallest "
                           "identifiable m to the largest [experiments].m)")
+    _bound_steps(bnd)
     _common(bnd)
     bnd.set_defaults(run=_bound)
 

@@ -18,6 +18,7 @@ import numpy as np
 from .build import Problem
 from .criteria import CRITERIA
 from .measures import Scores
+from .bound import ApproximateDesign, Bound
 from .solve import Design, StartRecord
 
 def optimum_spread(design: Design) -> dict:
@@ -30,6 +31,12 @@ def optimum_spread(design: Design) -> dict:
     best = design.scores.value(design.criterion)
     tied = [st.max_rms_error_m for st in design.starts if st.converged and crit.same_optimum(st.value, best)]
     return {"starts_at_optimum": len(tied), "min_max_rms_error_m": min(tied), "max_max_rms_error_m": max(tied)}
+
+
+#: What the ``bound.value`` of a design record bounds (units of the score).
+BOUND_MEANING = {"test-pose": "lower bound of max_rms_error_m (m) of any plan of m experiments",
+                 "D": "upper bound of log_det_M of any plan of m experiments",
+                 "A": "lower bound of trace_M_inv of any plan of m experiments"}
 
 
 def design_record(design: Design) -> dict:
@@ -45,6 +52,10 @@ def design_record(design: Design) -> dict:
         "max_rms_error_m": design.scores.max_rms_error_m,
         "scores": {k: v for k, v in design.scores.as_dict().items() if k != "rms_error_m"},
         "optimum": optimum_spread(design),
+        "bound": None if design.bound is None else {
+            "value": design.bound.value, "relaxation": design.bound.relaxation,
+            "gap_percent": design.gap_percent, "L": design.bound.L,
+            "meaning": BOUND_MEANING[design.criterion]},
         "solver": {
             "status": design.status,
             "starts": len(design.starts),
@@ -64,8 +75,20 @@ def design_record(design: Design) -> dict:
     }
 
 
-def results_dict(problem: Problem, designs: list[Design]) -> dict:
-    """The whole results record of a solved problem."""
+def approximate_record(approx: ApproximateDesign) -> dict:
+    """An approximate design as plain data (SI units)."""
+    return {"criterion": approx.criterion,
+            "support": [{"q_rad": q.tolist(), "force": f.tolist(), "weight": float(w)}
+                        for q, f, w in zip(approx.Q, approx.F, approx.weights)],
+            "relaxation": approx.value, "certified": approx.certified, "d_max": approx.d_max,
+            "exchange_steps": len(approx.history), "pool_size": approx.pool_size,
+            "wall_s": approx.wall_s}
+
+
+def results_dict(problem: Problem, designs: list[Design],
+                 approx: dict[str, ApproximateDesign] | None = None) -> dict:
+    """The whole results record of a solved problem (with the approximate designs of the
+    bounds, when computed)."""
     tp = problem.test_poses
     return {
         "problem": problem.name,
@@ -91,6 +114,7 @@ def results_dict(problem: Problem, designs: list[Design]) -> dict:
             for q, f, p in zip(tp.q, tp.F, tp.position_m)
         ],
         "designs": [design_record(d) for d in designs],
+        "approximate_designs": [approximate_record(a) for a in (approx or {}).values()],
     }
 
 
@@ -112,6 +136,9 @@ def design_from_record(record: dict) -> Design:
                      for st in solver["per_start"]),
         wall_s=solver["wall_s"],
         seed=solver["seed"],
+        bound=None if record.get("bound") is None else Bound(
+            record["criterion"], m, record["bound"]["value"], record["bound"]["relaxation"],
+            record["bound"]["L"]),
     )
 
 
@@ -189,6 +216,12 @@ def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> N
     _need(isinstance(d["criterion"], str) and d["criterion"] in CRITERIA, f"{where}.criterion",
           f"one of {', '.join(CRITERIA)}", d["criterion"])
     _int(d["m"], f"{where}.m", 1)
+    b = d.get("bound")
+    if b is not None:
+        b = _object(b, f"{where}.bound", ("value", "relaxation", "L"))
+        for k in ("value", "relaxation"):
+            _need(_is_number(b[k]), f"{where}.bound.{k}", "a finite number", b[k])
+        _int(b["L"], f"{where}.bound.L", 1)
     exps = d["experiments"]
     _need(isinstance(exps, list) and len(exps) == d["m"], f"{where}.experiments",
           f"a list of m = {d['m']} experiments", exps)
@@ -406,8 +439,9 @@ def write_atomic(path: Path, data: bytes) -> None:
         raise
 
 
-def write_results(path: Path, problem: Problem, designs: list[Design]) -> dict:
-    record = results_dict(problem, designs)
+def write_results(path: Path, problem: Problem, designs: list[Design],
+                  approx: dict[str, ApproximateDesign] | None = None) -> dict:
+    record = results_dict(problem, designs, approx)
     write_json(path, record)
     return record
 
@@ -422,6 +456,11 @@ def format_table(designs: list[Design]) -> str:
     for c in crits:
         lines.append(f"{c:<12}" + "".join(
             f"{cell[c, m]:>12.4f}" if (c, m) in cell else f"{'':>12}" for m in ms))
+    bounds = {d.m: d.bound.value * 1e3 for d in designs if d.criterion == "test-pose" and d.bound}
+    if bounds:
+        lines.append(f"{'bound':<12}" + "".join(
+            f"{bounds[m]:>12.4f}" if m in bounds else f"{'':>12}" for m in ms))
+        lines.append("bound: no plan of m experiments has a smaller max error (certified lower bound)")
     return "\n".join(lines)
 
 
@@ -435,5 +474,7 @@ def format_solver_lines(designs: list[Design]) -> str:
             f"{d.converged_starts}/{len(d.starts)} starts converged  "
             f"{spread['starts_at_optimum']} at the optimum, their error "
             f"{spread['min_max_rms_error_m'] * 1e3:.4f}..{spread['max_max_rms_error_m'] * 1e3:.4f} mm"
+            + ("" if d.bound is None else f"  {d.gap_percent:.1f} % from the bound")
+            + ("" if d.winner is None or d.winner.origin == "seeded" else f"  (won by the {d.winner.origin})")
         )
     return "\n".join(out)

@@ -32,6 +32,7 @@ from .nlp import B0_at_test_poses, DesignNLP, build_nlp
 from .rules import plan_violations, pose_constraints
 
 if TYPE_CHECKING:
+    from .bound import Bound
     from .parallel import StartExecutor
 
 #: IPOPT return statuses accepted as converged.
@@ -74,6 +75,8 @@ class Design:
     status : IPOPT status of the winning start.
     starts : every start, in the order run.
     wall_s : wall time of the multi-start solve, s.
+    bound : the certified bound of the criterion for m experiments
+        (:func:`casadi_design.bound.bound`), when it was computed.
     """
 
     criterion: str
@@ -85,6 +88,14 @@ class Design:
     starts: tuple[StartRecord, ...]
     wall_s: float
     seed: int
+    bound: Bound | None = None
+
+    @property
+    def gap_percent(self) -> float | None:
+        """How far the plan is from its bound, % (:func:`casadi_design.bound.gap_percent`)."""
+        from .bound import gap_percent
+
+        return None if self.bound is None else gap_percent(self.bound, self.scores.value(self.criterion))
 
     @property
     def converged_starts(self) -> int:
