@@ -272,7 +272,7 @@ def _sweep(args: argparse.Namespace) -> int:
     starts = args.starts or problem.solver.starts
     warm = not args.no_warm_start
     fig_m = _fig_m(args.fig_m, ms, problem.m_values)
-    key = sweep_key(problem, criteria, ms, starts, warm)
+    key = sweep_key(problem, criteria, ms, starts, warm, args.bound_steps)
     done = load_partial(out, key) if args.resume else {}
     if args.resume:
         _say(args, f"resuming: {len(done)} of {len(ms) * len(criteria)} designs already in {out}")
@@ -286,13 +286,14 @@ def _sweep(args: argparse.Namespace) -> int:
             out.mkdir(parents=True, exist_ok=True)
             partial_record(partial, problem, key, list(saved.values()))
 
-    total = sweep_total_starts(problem, criteria, ms, starts, warm)
+    approx = _approximate(args, problem, criteria)
+    total = sweep_total_starts(problem, criteria, ms, starts, warm, approx)
     bar = progress_bar(total, "sweep", args.quiet)
     try:
         with _executor(args) as executor:
             sweep = run_sweep(problem, criteria, ms, starts, warm_start=warm, done=done,
                               executor=executor, progress=bar.update, on_design=save,
-                              verbose=args.verbose)
+                              verbose=args.verbose, approx=approx)
     except KeyboardInterrupt:
         bar.close()
         where = (f"kept in {partial}; continue with the same command and --resume" if partial
@@ -307,7 +308,7 @@ def _sweep(args: argparse.Namespace) -> int:
     _say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({starts} seeded starts each"
                f"{', plus one warm start for m after the first' if warm else ''}) {_where(args)}")
     if out:
-        files = _write_sweep(out, problem, sweep, fig_m, args.log, starts)
+        files = _write_sweep(out, problem, sweep, fig_m, args.log, starts, key, approx)
         if partial.exists():
             partial.unlink()
         _say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
@@ -315,7 +316,8 @@ def _sweep(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_sweep(out: Path, problem, sweep, fig_m: list[int], log: bool, starts: int) -> list[str]:
+def _write_sweep(out: Path, problem, sweep, fig_m: list[int], log: bool, starts: int, key: dict,
+                 approx: dict) -> list[str]:
     from .export import report_markdown, write_table_csv
     from .plotting import fig1, sweep_figure
     from .results import write_json
@@ -323,7 +325,7 @@ def _write_sweep(out: Path, problem, sweep, fig_m: list[int], log: bool, starts:
 
     out.mkdir(parents=True, exist_ok=True)
     designs = list(sweep.designs.values())
-    write_json(out / "sweep.json", sweep_record(problem, sweep))
+    write_json(out / "sweep.json", sweep_record(problem, sweep, key, approx))
     write_table_csv(out / "sweep.csv", COLUMNS, sweep_rows(sweep))
     files = ["sweep.json", "sweep.csv"]
     files += _write_figures(out, "sweep_max_error", sweep_figure(sweep, log))

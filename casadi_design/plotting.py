@@ -36,6 +36,8 @@ def path_coordinate(position_m: np.ndarray) -> tuple[np.ndarray, str]:
 USER_STYLE = {"color": "tab:orange", "ls": "-", "lw": 5.0, "alpha": 0.5}  # wide: shows beneath an equal curve
 #: Style of the reference line "repeat the best single pose m times".
 REPEAT_STYLE = {"color": "k", "ls": ":", "lw": 1.2}
+#: Style of the certified bound of the test-pose error ("best possible").
+BOUND_STYLE = {"color": "tab:red", "ls": "--", "lw": 1.0, "alpha": 0.7}
 
 
 @dataclass(frozen=True)
@@ -97,8 +99,9 @@ def bands_figure(position_m: np.ndarray, bands: list[Design | Band], title: str)
 
 
 def draw_max_error_vs_m(ax: Axes, sweep: Sweep, log: bool = False) -> None:
-    """Max over the test poses of ``sqrt(rho)`` (mm) against m, one line per criterion, and
-    the reference "repeat the best single pose" ``e(m_ref) sqrt(m_ref / m)``."""
+    """Max over the test poses of ``sqrt(rho)`` (mm) against m, one line per criterion, the
+    reference "repeat the best single pose" ``e(m_ref) sqrt(m_ref / m)`` and, when the test-pose
+    designs carry it, their certified bound (dashed; it falls as ``1 / sqrt(m)``)."""
     ms = np.array(sweep.m_values)
     for c in sweep.criteria:
         e = np.array([sweep.designs[c, m].scores.max_rms_error_m for m in ms]) * 1e3
@@ -110,6 +113,12 @@ def draw_max_error_vs_m(ax: Axes, sweep: Sweep, log: bool = False) -> None:
         label = (r"Best single pose repeated m times ($e_1/\sqrt{m}$)" if m_ref == 1 else
                  f"Best {m_ref}-pose plan repeated ($e_{{{m_ref}}}\\sqrt{{{m_ref}/m}}$)")
         ax.plot(mm, [sweep.repeat_reference_m(v) * 1e3 for v in mm], **REPEAT_STYLE, label=label)
+    bounds = [sweep.designs[c, m].bound for c, m in sweep.designs if c == "test-pose"]
+    if bounds and all(bounds):  # value * sqrt(m) is the same for every m: one curve
+        mm = np.linspace(ms.min(), ms.max(), 200)
+        b = bounds[0]
+        ax.plot(mm, b.value * 1e3 * np.sqrt(b.m / mm), **BOUND_STYLE,
+                label="Best possible with m experiments (certified bound)")
     ticks = sorted(set(ms.tolist()) | ({sweep.reference.m} if sweep.reference is not None else set()))
     if log:
         ax.set_xscale("log")

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .bound import ROUNDED_PLANS, ApproximateDesign, rounded_starts, with_bound
 from .errors import ProblemError
 from .criteria import CRITERIA
 from .nlp import B0_at_test_poses
@@ -152,12 +153,16 @@ def run_sweep(
     progress: Callable[[int], object] | None = None,
     on_design: Callable[[Design], object] | None = None,
     verbose: bool = False,
+    approx: dict[str, ApproximateDesign] | None = None,
 ) -> Sweep:
     """Solve every (criterion, m), m ascending; ``done`` designs (a resumed sweep) are kept.
 
     ``on_design`` is called with each design as soon as it is solved (to save it); the order
-    is m ascending, then criteria in the given order.
+    is m ascending, then criteria in the given order. ``approx``: the approximate designs
+    (:func:`casadi_design.bound.approximate_designs`) whose rounded plans are extra starts and
+    whose bounds the designs carry.
     """
+    approx = approx or {}
     criteria, ms = tuple(criteria), tuple(sorted(set(m_values)))
     check_criteria(problem, criteria)
     check_m_values(problem, ms)
@@ -172,8 +177,9 @@ def run_sweep(
                 continue
             extra = [(*warm_start_plan(problem, designs[c, ms[i - 1]], m), WARM_START)] if warm_start and i else []
             d = solve_design(problem, c, m, B0, starts=n_seeded, verbose=verbose,
-                             initial_plans=extra, executor=executor, progress=progress)
-            designs[c, m] = d
+                             initial_plans=extra + rounded_starts(problem, approx, c, m),
+                             executor=executor, progress=progress)
+            d = designs[c, m] = with_bound(problem, d, approx)
             if on_design is not None:
                 on_design(d)
     m_ref = problem.m_min
@@ -186,11 +192,14 @@ def run_sweep(
 
 
 def sweep_total_starts(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],
-                       starts: int | None = None, warm_start: bool = True) -> int:
-    """Number of IPOPT starts a sweep runs (for progress bars), reference design included."""
+                       starts: int | None = None, warm_start: bool = True,
+                       bounded: Iterable[str] = ()) -> int:
+    """Number of IPOPT starts a sweep runs (for progress bars), reference design included;
+    ``bounded``: the criteria with rounded starts."""
     criteria, ms = tuple(criteria), sorted(set(m_values))
     n = (starts or problem.solver.starts)
     total = len(criteria) * (len(ms) * n + (len(ms) - 1 if warm_start else 0))
+    total += len(ms) * ROUNDED_PLANS * len(set(bounded) & set(criteria))
     if "test-pose" in criteria and problem.m_min not in ms:
         total += n
     return total
@@ -201,7 +210,7 @@ COLUMNS = (
     "criterion", "m", "max_error_mm", "repeat_best_single_pose_mm", "log_det_M", "trace_M_inv",
     "s_min", "trace_M", "condition", "O1", "O2", "O3", "O4", "O5", "identifiable", "status",
     "starts", "converged", "iterations", "wall_s", "warm_start_won", "seeded_best_max_error_mm",
-    "starts_at_optimum",
+    "starts_at_optimum", "bound", "gap_percent", "won_by",
 )
 
 
@@ -236,6 +245,10 @@ def sweep_rows(sweep: Sweep) -> list[dict]:
             "warm_start_won": sweep.warm_start_won(c, m),
             "seeded_best_max_error_mm": seeded.max_rms_error_m * 1e3 if seeded else math.nan,
             "starts_at_optimum": optimum_spread(d)["starts_at_optimum"],
+            # the bound in the units of the criterion's score (max error in mm for test-pose)
+            "bound": None if d.bound is None else d.bound.value * (1e3 if c == "test-pose" else 1.0),
+            "gap_percent": None if d.bound is None else d.gap_percent,
+            "won_by": "" if d.winner is None else d.winner.origin,
         })
     return rows
 
@@ -246,7 +259,10 @@ def format_sweep_table(sweep: Sweep) -> str:
     ``*`` marks a design whose warm start beat every seeded start.
     """
     repeat = sweep.reference is not None  # solved when test-pose is among the criteria
-    head = f"{'m':>4}" + "".join(f"{c:>12}" for c in sweep.criteria) + (f"{'repeat best':>14}" if repeat else "")
+    bounded = ("test-pose" in sweep.criteria
+               and all(sweep.designs["test-pose", m].bound for m in sweep.m_values))
+    head = (f"{'m':>4}" + "".join(f"{c:>12}" for c in sweep.criteria)
+            + (f"{'repeat best':>14}" if repeat else "") + (f"{'bound':>10}" if bounded else ""))
     ref = "" if not repeat else (
         f" (repeat best: the best test-pose plan of {sweep.reference.m} experiment"
         f"{'s' if sweep.reference.m > 1 else ''} repeated, e / sqrt(m / {sweep.reference.m}))")
@@ -258,7 +274,10 @@ def format_sweep_table(sweep: Sweep) -> str:
             mark = "*" if sweep.warm_start_won(c, m) else " "
             cells.append(f"{d.scores.max_rms_error_m * 1e3:>11.4f}{mark}")
         lines.append(f"{m:>4}" + "".join(cells)
-                     + (f"{sweep.repeat_reference_m(m) * 1e3:>14.4f}" if repeat else ""))
+                     + (f"{sweep.repeat_reference_m(m) * 1e3:>14.4f}" if repeat else "")
+                     + (f"{sweep.designs['test-pose', m].bound.value * 1e3:>10.4f}" if bounded else ""))
+    if bounded:
+        lines.append("bound: no plan of m experiments has a smaller max error (certified lower bound)")
     if any(sweep.warm_start_won(c, m) for c, m in sweep.designs):
         lines.append("* the warm start (previous m's plan plus new poses) beat the seeded starts: "
                      "better than `solve` with the same seed")
@@ -277,11 +296,11 @@ def problem_digest(problem: Problem) -> str:
 
 
 def sweep_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int], starts: int,
-              warm_start: bool) -> dict:
+              warm_start: bool, bound_steps: int = 0) -> dict:
     """What a sweep's designs depend on; a resume must match it."""
     return {"problem_sha256": problem_digest(problem), "seed": problem.solver.seed,
             "starts": starts, "warm_start": warm_start, "m": sorted(set(m_values)),
-            "criteria": list(criteria)}
+            "criteria": list(criteria), "bound_steps": bound_steps}
 
 
 def partial_record(path: Path, problem: Problem, key: dict, designs: list[Design]) -> None:
@@ -324,18 +343,22 @@ def load_partial(out: Path, key: dict) -> dict[tuple[str, int], Design]:
     return {}
 
 
-def sweep_record(problem: Problem, sweep: Sweep) -> dict:
-    """``sweep.json``: the results record of every design plus the sweep's table and settings."""
+def sweep_record(problem: Problem, sweep: Sweep, key: dict,
+                 approx: dict[str, ApproximateDesign] | None = None) -> dict:
+    """``sweep.json``: the results record of every design (and the approximate designs of
+    the bounds) plus the sweep's table and settings (``key``: :func:`sweep_key`)."""
     from .results import design_record, results_dict
 
-    record = results_dict(problem, list(sweep.designs.values()))
+    record = results_dict(problem, list(sweep.designs.values()), approx)
     record["sweep"] = {
-        "key": sweep_key(problem, sweep.criteria, sweep.m_values, sweep.seeded_starts, sweep.warm_start),
+        "key": key,
         "m": list(sweep.m_values),
         "criteria": list(sweep.criteria),
         "seeded_starts": sweep.seeded_starts,
         "warm_start": sweep.warm_start,
         "units": {"max_error_mm": "mm", "repeat_best_single_pose_mm": "mm",
+                  "bound": "mm for test-pose (lower bound of max_error_mm); log det M for D, "
+                           "trace M^-1 for A (upper and lower bounds)",
                   "seeded_best_max_error_mm": "mm", "wall_s": "s",
                   "other measures": "SI units of B (lengths in m)"},
         "columns": list(COLUMNS),

@@ -37,7 +37,13 @@ def test_results_json_recomputes_without_the_package(solved):
     for d in res["designs"]:
         assert len(d["experiments"]) == d["m"]
         assert d["solver"]["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-        assert d["solver"]["starts"] == 6 and d["solver"]["wall_s"] > 0
+        bounded = d["criterion"] in ("test-pose", "D")  # their rounded approximate designs: 4 starts
+        assert d["solver"]["starts"] == 6 + 4 * bounded and d["solver"]["wall_s"] > 0
+        assert (d["bound"] is not None) == bounded
+        if d["criterion"] == "test-pose":
+            assert d["bound"]["value"] <= d["max_rms_error_m"]
+        if d["criterion"] == "D":
+            assert d["bound"]["value"] >= d["scores"]["log_det_M"]
         M = sum(_A(np.array(e["q_rad"]), np.array(e["force"])).T @ _A(np.array(e["q_rad"]), np.array(e["force"]))
                 for e in d["experiments"])
         rms = [res["sigma_m"] * np.sqrt(np.trace(a @ np.linalg.inv(M) @ a.T)) for a in A0]
