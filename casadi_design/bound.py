@@ -46,7 +46,7 @@ from .errors import DesignError
 from .nlp import B0_at_test_poses
 from .reduced import experiment_functions
 from .rules import load_variables, plan_violations, pose_constraints
-from .solve import QUIET, Design, random_plan
+from .solve import QUIET, Design, ipopt_call, random_plan
 
 #: Criteria with an approximate design and a bound.
 BOUND_CRITERIA = ("test-pose", "D", "A")
@@ -231,7 +231,8 @@ def _maximise_d(problem: Problem, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
     found = []
     for i in np.argsort(d)[::-1][:POLISH_STARTS]:
         z0 = np.concatenate([Q[i], loads.variables(F[i][:, None]).ravel()])
-        sol = solver(x0=z0, p=(scale * G).ravel(order="F"), lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        with ipopt_call():  # Ctrl-C stops the command, not just this search
+            sol = solver(x0=z0, p=(scale * G).ravel(order="F"), lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         z = np.clip(np.asarray(sol["x"]).ravel(), lbx, ubx)
         q, f = z[:n], loads.loads(z[n:, None]).ravel()
         if not plan_violations(problem, q[:, None], f[:, None]):

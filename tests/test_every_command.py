@@ -1,7 +1,8 @@
 """Every subcommand on every file in problems/, with tiny settings: no traceback anywhere.
 
-Tiny settings: the D criterion, one start, IPOPT with a limited-memory Hessian, the smallest m;
-the sweep runs a range that does not start at the smallest m.
+Tiny settings: the D criterion, one start, IPOPT with a limited-memory Hessian, the smallest m,
+one exchange step of the approximate design (solve, bound; none in the sweep); the sweep runs a
+range that does not start at the smallest m.
 """
 
 import json
@@ -25,8 +26,10 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     tiny = ["--starts", "1", "--jobs", "1", "--criteria", CRITERION, "--quiet", "--ipopt", QUICK]
     solved, swept = tmp_path / "solve", tmp_path / "sweep"
 
-    assert main(["solve", str(path), "--m", str(m), *tiny, "--out", str(solved)]) == 0
-    assert main(["sweep", str(path), "--m", f"{m + 1}:{m + 1}", *tiny, "--out", str(swept)]) == 0
+    assert main(["solve", str(path), "--m", str(m), *tiny, "--bound-steps", "1", "--out", str(solved)]) == 0
+    assert main(["sweep", str(path), "--m", f"{m + 1}:{m + 1}", *tiny, "--bound-steps", "0",
+                 "--out", str(swept)]) == 0
+    assert main(["bound", str(path), "--m", f"{m}:{m + 1}", "--bound-steps", "1", "--quiet"]) == 0
     plan = solved / "plans" / f"{CRITERION}_m{m}.csv"
     assert main(["evaluate", str(path), "--plan", str(plan), "--quiet"]) == 0
     assert main(["evaluate", str(path), "--plan", str(plan), "--compare", str(solved),
@@ -37,6 +40,9 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     out, err = capsys.readouterr()
     assert "Traceback" not in out + err and "error" not in err
 
+    design = json.loads((solved / "results.json").read_text())["designs"][0]
+    assert design["bound"]["value"] >= design["scores"]["log_det_M"]  # the certified D bound holds
+    assert design["solver"]["per_start"][-1]["origin"] == "rounded approximate design"
     evaluation = json.loads((tmp_path / "evaluate" / "evaluation.json").read_text())
     assert evaluation["violations"] == []  # an optimal plan obeys every rule of its problem
     assert (tmp_path / "figures" / "sweep_max_error.png").stat().st_size > 0

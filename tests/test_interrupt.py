@@ -14,7 +14,8 @@ from tests.conftest import PAPER, ROOT
 #: Seconds to wait for the first finished design, then for the process to end after Ctrl-C.
 WAIT_FIRST_DESIGN_S = 60.0
 WAIT_EXIT_S = 10.0
-SWEEP = ["--m", "1:3", "--criteria", "test-pose,D", "--starts", "15", "--no-warm-start"]
+SWEEP = ["--m", "1:3", "--criteria", "test-pose,D", "--starts", "15", "--no-warm-start",
+         "--bound-steps", "0"]
 
 
 def _sweep(out, jobs: int, *extra: str) -> subprocess.Popen:
