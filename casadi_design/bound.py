@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -44,6 +45,7 @@ import numpy as np
 from .build import Problem
 from .errors import DesignError
 from .nlp import B0_at_test_poses
+from .problem import spec_digest_blob
 from .reduced import experiment_functions
 from .rules import load_variables, plan_violations, pose_constraints
 from .solve import QUIET, Design, ipopt_call, random_plan
@@ -351,12 +353,26 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     return plans
 
 
-def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,
-                        progress: Callable[[float], object] | None = None) -> dict[str, ApproximateDesign]:
+#: Approximate designs computed in this process, by (problem digest, criterion, steps): a pure
+#: function of them, reused by the commands that run one after the other in one process.
+_COMPUTED: dict[tuple[str, str, int], ApproximateDesign] = {}
+KEEP_COMPUTED = 8
+
+
+def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS) -> dict[str, ApproximateDesign]:
     """The approximate design of each of ``criteria`` that has a bound, with ``steps`` exchange
     steps at most; none when ``steps`` is 0."""
-    return {c: approximate_design(problem, c, iterations=steps, progress=progress)
-            for c in criteria if c in BOUND_CRITERIA and steps > 0}
+    digest = hashlib.sha256(spec_digest_blob(problem.spec)).hexdigest()
+    out = {}
+    for c in criteria:
+        if c in BOUND_CRITERIA and steps > 0:
+            key = (digest, c, steps)
+            if key not in _COMPUTED:
+                _COMPUTED[key] = approximate_design(problem, c, iterations=steps)
+                while len(_COMPUTED) > KEEP_COMPUTED:
+                    _COMPUTED.pop(next(iter(_COMPUTED)))
+            out[c] = _COMPUTED[key]
+    return out
 
 
 def rounded_starts(problem: Problem, approx: dict[str, ApproximateDesign], criterion: str,

@@ -263,6 +263,20 @@ def plan_markdown(problem: Problem, design: Design) -> str:
                      [[str(r[0])] + [f"{r[c]:.2f}" for c in keep[1:]] for r in rows])
 
 
+def bound_notes(designs: list[Design]) -> list[str]:
+    """One sentence per test-pose design with a bound: how much a better plan could still gain."""
+    out = []
+    for d in designs:
+        if d.criterion == "test-pose" and d.bound is not None:
+            e, b = d.scores.max_rms_error_m, d.bound.value
+            out.append(
+                f"m = {d.m}: no plan of {d.m} experiment{'s' if d.m > 1 else ''} can bring the "
+                f"worst test pose below {b * 1e3:.4f} mm (a certified lower bound from the "
+                f"approximate design); this plan reaches {e * 1e3:.4f} mm, {d.gap_percent:.1f} % "
+                f"above it: no other plan can reduce its error by more than {100 * (1 - b / e):.1f} %.")
+    return out
+
+
 def report_markdown(problem: Problem, designs: list[Design], *, table: str, figures: list[tuple[str, str]],
                     plans_for: list[int], files: list[str], starts: int, title: str = "Calibration plan",
                     notes: list[str] = ()) -> str:
@@ -299,8 +313,8 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
         table,
         "```",
         "",
-        *[f"- {n}" for n in notes],
-        *([""] if notes else []),
+        *[f"- {n}" for n in [*notes, *bound_notes(designs)]],
+        *([""] if notes or bound_notes(designs) else []),
     ]
     for caption, fname in figures:
         lines += [f"![{caption}]({fname})", "", f"*{caption}*", ""]
