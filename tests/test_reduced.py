@@ -219,7 +219,7 @@ def test_log_power_means_bound_the_extreme_eigenvalues():
     assert log_power_mean(np.full(5, 2.0), -64.0)[0] == pytest.approx(np.log(2.0), rel=1e-14)
 
 
-@pytest.mark.parametrize("case, m", [("paper", 2), ("paper", 5), ("paper-direction", 3), ("geometric", 3)])
+@pytest.mark.parametrize("case, m", [("paper", 5), ("paper-direction", 3), ("geometric", 3)])
 @pytest.mark.parametrize("criterion", ["E", "condition"])
 def test_surrogates_reach_the_exact_optimum(case, m, criterion):
     """The continuation in r reaches the optimum of the exact semidefinite formulation (the
