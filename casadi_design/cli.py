@@ -481,7 +481,7 @@ def _validate(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- bound
 
 def _bound(args: argparse.Namespace) -> int:
-    from .bound import approximate_design, bound
+    from .bound import approximate_designs, bound
     from .sweep import check_m_values
 
     problem = _load(args, check_solver=False)
@@ -489,7 +489,7 @@ def _bound(args: argparse.Namespace) -> int:
     check_m_values(problem, ms)
     if args.bound_steps == 0:
         raise ArgumentError("bound: --bound-steps 0 computes no bound; give at least 1")
-    approx = {c: approximate_design(problem, c, iterations=args.bound_steps) for c in ("test-pose", "D")}
+    approx = approximate_designs(problem, ("test-pose", "D"), args.bound_steps)
     print(_case_line(problem))
     print(f"{'m':>4}{'test-pose error >= (mm)':>26}{'relaxation (mm)':>18}{'log det M <=':>15}")
     for m in ms:
