@@ -353,22 +353,25 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     return plans
 
 
-#: Approximate designs computed in this process, by (problem digest, criterion, steps): a pure
+#: Approximate designs computed in this process, by (problem digest, criterion, steps, pool): a pure
 #: function of them, reused by the commands that run one after the other in one process.
-_COMPUTED: dict[tuple[str, str, int], ApproximateDesign] = {}
+_COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
 KEEP_COMPUTED = 8
 
 
-def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS) -> dict[str, ApproximateDesign]:
+def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,
+                        pool: int = POOL_SIZE) -> dict[str, ApproximateDesign]:
     """The approximate design of each of ``criteria`` that has a bound, with ``steps`` exchange
-    steps at most; none when ``steps`` is 0."""
+    steps at most, a first pool of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE``
+    times as many for the search of max d; none when ``steps`` is 0."""
     digest = hashlib.sha256(spec_digest_blob(problem.spec)).hexdigest()
     out = {}
     for c in criteria:
         if c in BOUND_CRITERIA and steps > 0:
-            key = (digest, c, steps)
+            key = (digest, c, steps, pool)
             if key not in _COMPUTED:
-                _COMPUTED[key] = approximate_design(problem, c, iterations=steps)
+                _COMPUTED[key] = approximate_design(problem, c, iterations=steps, pool_size=pool,
+                                                    sample_size=pool * SAMPLE_SIZE // POOL_SIZE)
                 while len(_COMPUTED) > KEEP_COMPUTED:
                     _COMPUTED.pop(next(iter(_COMPUTED)))
             out[c] = _COMPUTED[key]

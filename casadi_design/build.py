@@ -32,6 +32,7 @@ from .problem import (
     Workspace,
     check_size,
     read_problem,
+    spec_digest_blob,
 )
 from .robots import (
     DHJoint,
@@ -126,14 +127,29 @@ def load_problem(path: str | Path) -> Problem:
     return build_problem(read_problem(path))
 
 
+#: Problems built in this process, by their checked data (a problem is a pure function of it):
+#: commands run one after the other in one process (and worker processes) reuse the robot,
+#: model and the CasADi functions cached on it. At most ``KEEP_BUILT``, the oldest dropped.
+_BUILT: dict[bytes, Problem] = {}
+KEEP_BUILT = 4
+
+
 def build_problem(spec: ProblemSpec) -> Problem:
     """Build the robot, model and test poses of ``spec`` and check identifiability."""
+    key = spec_digest_blob(spec)
+    if key in _BUILT:
+        _BUILT[key] = _BUILT.pop(key)  # the newest
+        return _BUILT[key]
     try:
-        return _build(spec)
+        problem = _build(spec)
     except ProblemError as exc:
         if str(exc).startswith(f"{spec.path}: "):
             raise
         raise ProblemError(f"{spec.path}: {exc}") from None
+    _BUILT[key] = problem
+    while len(_BUILT) > KEEP_BUILT:
+        _BUILT.pop(next(iter(_BUILT)))
+    return problem
 
 
 def _build(spec: ProblemSpec) -> Problem:

@@ -182,7 +182,7 @@ def _approximate(args: argparse.Namespace, problem, criteria) -> dict:
     from .bound import approximate_designs
 
     t0 = time.perf_counter()
-    approx = approximate_designs(problem, criteria, args.bound_steps)
+    approx = approximate_designs(problem, criteria, args.bound_steps, args.bound_pool)
     if approx:
         _say(args, f"approximate designs of {', '.join(approx)}: {time.perf_counter() - t0:.1f} s "
                    f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})")
@@ -272,7 +272,7 @@ def _sweep(args: argparse.Namespace) -> int:
     starts = args.starts or problem.solver.starts
     warm = not args.no_warm_start
     fig_m = _fig_m(args.fig_m, ms, problem.m_values)
-    key = sweep_key(problem, criteria, ms, starts, warm, args.bound_steps)
+    key = sweep_key(problem, criteria, ms, starts, warm, (args.bound_steps, args.bound_pool))
     done = load_partial(out, key) if args.resume else {}
     if args.resume:
         _say(args, f"resuming: {len(done)} of {len(ms) * len(criteria)} designs already in {out}")
@@ -489,7 +489,7 @@ def _bound(args: argparse.Namespace) -> int:
     check_m_values(problem, ms)
     if args.bound_steps == 0:
         raise ArgumentError("bound: --bound-steps 0 computes no bound; give at least 1")
-    approx = approximate_designs(problem, ("test-pose", "D"), args.bound_steps)
+    approx = approximate_designs(problem, ("test-pose", "D"), args.bound_steps, args.bound_pool)
     print(_case_line(problem))
     print(f"{'m':>4}{'test-pose error >= (mm)':>26}{'relaxation (mm)':>18}{'log det M <=':>15}")
     for m in ms:
@@ -538,12 +538,16 @@ def _compute(p: argparse.ArgumentParser, out_help: str) -> None:
 
 
 def _bound_steps(p: argparse.ArgumentParser) -> None:
-    from .bound import BOUND_CRITERIA, BOUND_STEPS
+    from .bound import BOUND_CRITERIA, BOUND_STEPS, POOL_SIZE, SAMPLE_SIZE
 
     p.add_argument("--bound-steps", type=_count("--bound-steps"), default=BOUND_STEPS, metavar="K",
                    help=f"exchange steps of the approximate design behind the certified bound of "
                         f"{', '.join(BOUND_CRITERIA)} and their rounded starts (default {BOUND_STEPS}: "
                         "more steps tighten the bound; 0: no bound, no rounded starts)")
+    p.add_argument("--bound-pool", type=_positive_int("--bound-pool"), default=POOL_SIZE, metavar="N",
+                   help=f"random feasible experiments in the approximate design's first pool (default "
+                        f"{POOL_SIZE}; {SAMPLE_SIZE // POOL_SIZE}x as many are searched for the bound's "
+                        "certificate): fewer is faster and looser")
 
 
 def build_parser() -> argparse.ArgumentParser:

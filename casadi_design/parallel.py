@@ -82,7 +82,7 @@ _PROBLEMS: OrderedDict[str, tuple[Problem, dict]] = OrderedDict()
 
 
 def _cached(ref: ProblemRef) -> tuple[Problem, dict]:
-    if ref.key not in _PROBLEMS:
+    if ref.key not in _PROBLEMS:  # the problem from build_problem's own cache when built here
         _PROBLEMS[ref.key] = (build_problem(ref.spec), {})
         while len(_PROBLEMS) > CACHE_PROBLEMS:
             _PROBLEMS.popitem(last=False)

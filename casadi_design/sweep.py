@@ -296,11 +296,12 @@ def problem_digest(problem: Problem) -> str:
 
 
 def sweep_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int], starts: int,
-              warm_start: bool, bound_steps: int = 0) -> dict:
-    """What a sweep's designs depend on; a resume must match it."""
+              warm_start: bool, bound: tuple[int, int] = (0, 0)) -> dict:
+    """What a sweep's designs depend on (``bound``: exchange steps and pool of the approximate
+    designs); a resume must match it."""
     return {"problem_sha256": problem_digest(problem), "seed": problem.solver.seed,
             "starts": starts, "warm_start": warm_start, "m": sorted(set(m_values)),
-            "criteria": list(criteria), "bound_steps": bound_steps}
+            "criteria": list(criteria), "bound_steps_pool": list(bound)}
 
 
 def partial_record(path: Path, problem: Problem, key: dict, designs: list[Design]) -> None:

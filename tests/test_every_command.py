@@ -1,8 +1,8 @@
 """Every subcommand on every file in problems/, with tiny settings: no traceback anywhere.
 
 Tiny settings: the D criterion, one start, IPOPT with a limited-memory Hessian, the smallest m,
-one exchange step of the approximate design (solve, bound; none in the sweep); the sweep runs a
-range that does not start at the smallest m.
+one exchange step of the approximate design on 100 candidates (solve, bound; none in the
+sweep); the sweep runs a range that does not start at the smallest m.
 """
 
 import json
@@ -17,6 +17,8 @@ from tests.conftest import PROBLEM_FILES
 #: limited-memory Hessian: as fast as the exact one here, and it exercises the pass-through).
 CRITERION = "D"
 QUICK = "hessian_approximation=limited-memory"
+#: One exchange step of the approximate design on a pool of 100 candidates.
+BOUND = ["--bound-steps", "1", "--bound-pool", "100"]
 
 
 @pytest.mark.parametrize("path", PROBLEM_FILES, ids=lambda p: p.stem)
@@ -26,10 +28,10 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     tiny = ["--starts", "1", "--jobs", "1", "--criteria", CRITERION, "--quiet", "--ipopt", QUICK]
     solved, swept = tmp_path / "solve", tmp_path / "sweep"
 
-    assert main(["solve", str(path), "--m", str(m), *tiny, "--bound-steps", "1", "--out", str(solved)]) == 0
+    assert main(["solve", str(path), "--m", str(m), *tiny, *BOUND, "--out", str(solved)]) == 0
     assert main(["sweep", str(path), "--m", f"{m + 1}:{m + 1}", *tiny, "--bound-steps", "0",
                  "--out", str(swept)]) == 0
-    assert main(["bound", str(path), "--m", f"{m}:{m + 1}", "--bound-steps", "1", "--quiet"]) == 0
+    assert main(["bound", str(path), "--m", f"{m}:{m + 1}", *BOUND, "--quiet"]) == 0
     plan = solved / "plans" / f"{CRITERION}_m{m}.csv"
     assert main(["evaluate", str(path), "--plan", str(plan), "--quiet"]) == 0
     assert main(["evaluate", str(path), "--plan", str(plan), "--compare", str(solved),
