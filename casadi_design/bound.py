@@ -356,7 +356,7 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
 #: Approximate designs computed in this process, by (problem digest, criterion, steps, pool): a pure
 #: function of them, reused by the commands that run one after the other in one process.
 _COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
-KEEP_COMPUTED = 8
+KEEP_COMPUTED = 32
 
 
 def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,

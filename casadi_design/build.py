@@ -131,7 +131,7 @@ def load_problem(path: str | Path) -> Problem:
 #: commands run one after the other in one process (and worker processes) reuse the robot,
 #: model and the CasADi functions cached on it. At most ``KEEP_BUILT``, the oldest dropped.
 _BUILT: dict[bytes, Problem] = {}
-KEEP_BUILT = 4
+KEEP_BUILT = 8
 
 
 def build_problem(spec: ProblemSpec) -> Problem:

@@ -23,7 +23,8 @@ def _A(q, F):
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
-    assert main(["solve", str(PAPER), "--out", str(out), "--starts", "6"]) == 0
+    assert main(["solve", str(PAPER), "--out", str(out), "--starts", "6", "--jobs", "1",
+                 "--bound-pool", "300"]) == 0
     return out, json.loads((out / "results.json").read_text())
 
 

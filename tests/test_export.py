@@ -91,7 +91,8 @@ def test_exported_plan_reads_back_exactly_and_scores_like_the_design(paper, tmp_
 
 def test_evaluate_compares_with_the_optimal_plans_of_the_same_m(tmp_path, capsys):
     solved = tmp_path / "solved"
-    assert main(["solve", str(PAPER), "--starts", "4", "--out", str(solved), "--jobs", "1", "--quiet"]) == 0
+    assert main(["solve", str(PAPER), "--starts", "4", "--m", "5", "--out", str(solved), "--jobs", "1",
+                 "--quiet", "--bound-pool", "300"]) == 0
     capsys.readouterr()
     plan = solved / "plans" / "D_m5.csv"
     assert main(["evaluate", str(PAPER), "--plan", str(plan), "--compare", str(solved),
@@ -148,7 +149,7 @@ def test_fixed_load_plans_need_no_force_columns(tmp_path):
 def test_solve_writes_plans_and_a_report_that_links_its_figures(tmp_path):
     out = tmp_path / "out"
     assert main(["solve", str(PAPER), "--starts", "3", "--m", "1,5", "--criteria", "test-pose,D",
-                 "--out", str(out), "--jobs", "1", "--quiet"]) == 0
+                 "--out", str(out), "--jobs", "1", "--quiet", "--bound-pool", "300"]) == 0
     report = (out / "report.md").read_text()
     assert report.startswith("# Calibration plan: paper_planar_2r")
     assert "| calibration load | equal, \\|F\\| = 100 N |" in report

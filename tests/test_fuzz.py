@@ -21,7 +21,7 @@ from casadi_design.solve import random_plan
 from tests.conftest import PAPER, ROOT, read_raw
 
 #: Examples per property: bounded so that the default suite stays fast.
-EXAMPLES = 25
+EXAMPLES = 15
 GEOMETRIC = ROOT / "problems" / "planar_2r_geometric.toml"
 
 BAD_VALUES = st.sampled_from([

@@ -26,7 +26,7 @@ def _sweep(out, jobs: int, *extra: str) -> subprocess.Popen:
 
 
 @pytest.mark.parametrize("jobs", [1, 2])
-def test_ctrl_c_during_ipopt_exits_130_keeps_finished_designs_and_resumes(tmp_path, jobs):
+def test_ctrl_c_during_ipopt_exits_130_and_keeps_finished_designs(tmp_path, jobs):
     out = tmp_path / "sweep"
     proc = _sweep(out, jobs)
     partial = out / "sweep.partial.json"
@@ -44,10 +44,22 @@ def test_ctrl_c_during_ipopt_exits_130_keeps_finished_designs_and_resumes(tmp_pa
     assert "interrupted:" in err and "--resume" in err
     kept = json.loads(partial.read_text())["designs"]
     assert 1 <= len(kept) < 6
-    if jobs > 1:
-        return  # resuming does not depend on how the interrupted run ran its starts
     # resuming reproduces the uninterrupted numbers: test_sweep.py checks it design by design
-    resumed = _sweep(out, jobs, "--resume")
+    # (an in-process Ctrl-C), and the slow test below from a subprocess
+
+
+@pytest.mark.slow
+def test_sweep_resumed_after_ctrl_c_completes(tmp_path):
+    out = tmp_path / "sweep"
+    proc = _sweep(out, 1)
+    partial = out / "sweep.partial.json"
+    t0 = time.monotonic()
+    while not partial.exists() and proc.poll() is None and time.monotonic() - t0 < WAIT_FIRST_DESIGN_S:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=WAIT_EXIT_S)
+    assert proc.returncode == 130
+    resumed = _sweep(out, 1, "--resume")
     _, err = resumed.communicate(timeout=120)
     assert resumed.returncode == 0, err
     got = {(d["criterion"], d["m"]) for d in json.loads((out / "sweep.json").read_text())["designs"]}

@@ -42,9 +42,9 @@ def swept(tmp_path_factory):
     """The paper's example swept over m = 1..M_LAST (2 processes) and solved at m = 1, 5 (serial)."""
     root = tmp_path_factory.mktemp("sweep")
     sweep_out, solve_out = root / "sweep", root / "solve"
-    assert main(["sweep", str(PAPER), "--m", f"1:{M_LAST}", "--starts", str(STARTS), "--out", str(sweep_out),
-                 "--jobs", "2", "--quiet"]) == 0
-    assert main(["solve", str(PAPER), "--starts", str(STARTS), "--out", str(solve_out),
+    assert main(["sweep", str(PAPER), "--m", f"1:{M_LAST}", "--starts", str(STARTS), "--bound-pool", "300",
+                 "--out", str(sweep_out), "--jobs", "2", "--quiet"]) == 0
+    assert main(["solve", str(PAPER), "--starts", str(STARTS), "--bound-pool", "300", "--out", str(solve_out),
                  "--jobs", "1", "--quiet"]) == 0
     record = json.loads((sweep_out / "sweep.json").read_text())
     solved = json.loads((solve_out / "results.json").read_text())
@@ -155,7 +155,8 @@ def test_plot_redraws_the_sweep_figures_with_log_axes(swept, tmp_path):
 
 # --------------------------------------------------------------------------- interrupt and resume
 
-SMALL = ["--m", "1:3", "--starts", "3", "--criteria", "test-pose,D", "--jobs", "1", "--quiet"]
+SMALL = ["--m", "1:3", "--starts", "3", "--criteria", "test-pose,D", "--jobs", "1", "--quiet",
+         "--bound-steps", "0"]
 
 
 SOLVE_DESIGN = sweep_module.solve_design
