@@ -39,11 +39,12 @@ def _png_is_a_real_image(path, min_h=300, min_w=400):
 
 @pytest.fixture(scope="module")
 def swept(tmp_path_factory):
-    """The paper's example swept over m = 1..M_LAST (2 processes) and solved at m = 1, 5 (serial)."""
+    """The paper's example swept over m = 1..M_LAST and solved at m = 1, 5 (serial; sweeps on
+    processes equal serial ones: tests/test_parallel.py)."""
     root = tmp_path_factory.mktemp("sweep")
     sweep_out, solve_out = root / "sweep", root / "solve"
     assert main(["sweep", str(PAPER), "--m", f"1:{M_LAST}", "--starts", str(STARTS), "--bound-pool", "300",
-                 "--out", str(sweep_out), "--jobs", "2", "--quiet"]) == 0
+                 "--out", str(sweep_out), "--jobs", "1", "--quiet"]) == 0
     assert main(["solve", str(PAPER), "--starts", str(STARTS), "--bound-pool", "300", "--out", str(solve_out),
                  "--jobs", "1", "--quiet"]) == 0
     record = json.loads((sweep_out / "sweep.json").read_text())
