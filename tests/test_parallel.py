@@ -116,6 +116,7 @@ def test_missing_dask_gives_the_install_hint(monkeypatch, capsys):
     assert len(err) == 1 and "pip install casadi-design[dask]" in err[0]
 
 
+@pytest.mark.slow  # a local cluster of worker processes; DaskExecutor itself: the test above
 def test_dask_scheduler_option_of_the_command_equals_a_serial_run(tmp_path):
     import json
 
