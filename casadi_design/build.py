@@ -9,7 +9,7 @@ gives the smallest number of experiments. Errors name the problem file and field
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
