@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -44,10 +43,10 @@ import numpy as np
 
 from .build import Problem
 from .errors import DesignError
-from .nlp import B0_at_test_poses
+from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .problem import spec_digest_blob
 from .reduced import experiment_functions
-from .rules import load_variables, plan_violations, pose_constraints
+from .rules import load_variables, plan_violations
 from .solve import QUIET, Design, ipopt_call, random_plan
 
 #: Criteria with an approximate design and a bound.
@@ -208,18 +207,14 @@ def _weights(A: np.ndarray, B0: np.ndarray | None, w: np.ndarray, mu: np.ndarray
 def _search(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """IPOPT on one experiment ``z = (q, v)``: ``max tr(G B(z)^T B(z))`` within its rules, with
     parameter ``vec G`` (L x L); and the bounds of z and of the rule rows."""
-    fns, loads, rules = experiment_functions(problem), load_variables(problem), pose_constraints(problem)
+    fns, loads = experiment_functions(problem), load_variables(problem)
     L = problem.model.L
     z, G = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L)
     B, c = fns.values(z)
     solver = ca.nlpsol("max_d", "ipopt", {"x": z, "p": ca.vec(G), "f": -ca.dot(B @ G, B), "g": c},
                        {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200})
-    has_norm = loads.norm_lb is not None
-    lbg = np.concatenate([[loads.norm_lb] if has_norm else [], rules.lb])
-    ubg = np.concatenate([[1.0] if has_norm else [], rules.ub])
-    lbx = np.concatenate([problem.robot.q_min, np.full(fns.nv, loads.lower)])
-    ubx = np.concatenate([problem.robot.q_max, np.ones(fns.nv)])
-    return solver, lbx, ubx, lbg, ubg
+    # the plan of one experiment: its variables and rule rows are those of z and c
+    return (solver, *plan_bounds(problem, 1, loads), *rule_bounds(problem, 1, loads))
 
 
 def _maximise_d(problem: Problem, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
@@ -353,9 +348,10 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     return plans
 
 
-#: Approximate designs computed in this process, by (problem digest, criterion, steps, pool): a pure
-#: function of them, reused by the commands that run one after the other in one process.
-_COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
+#: Approximate designs computed in this process, by (the problem's checked data, criterion,
+#: steps, pool): a pure function of them, reused by the commands that run one after the other
+#: in one process (keyed like :func:`casadi_design.build.build_problem`'s problems).
+_COMPUTED: dict[tuple[bytes, str, int, int], ApproximateDesign] = {}
 KEEP_COMPUTED = 32
 
 
@@ -364,11 +360,11 @@ def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,
     """The approximate design of each of ``criteria`` that has a bound, with ``steps`` exchange
     steps at most, a first pool of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE``
     times as many for the search of max d; none when ``steps`` is 0."""
-    digest = hashlib.sha256(spec_digest_blob(problem.spec)).hexdigest()
+    blob = spec_digest_blob(problem.spec)
     out = {}
     for c in criteria:
         if c in BOUND_CRITERIA and steps > 0:
-            key = (digest, c, steps, pool)
+            key = (blob, c, steps, pool)
             if key not in _COMPUTED:
                 _COMPUTED[key] = approximate_design(problem, c, iterations=steps, pool_size=pool,
                                                     sample_size=pool * SAMPLE_SIZE // POOL_SIZE)

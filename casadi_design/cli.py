@@ -35,26 +35,17 @@ EXIT_INTERRUPTED = 130
 
 # --------------------------------------------------------------------------- option types
 
-def _positive_int(what: str):
+def _integer(what: str, minimum: int = 1):
+    """An option's integer ``>= minimum`` (1: "a positive integer")."""
+    kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+
     def parse(text: str) -> int:
         try:
             v = int(text)
         except ValueError:
-            v = 0
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{what} takes a positive integer, got '{text}'")
-        return v
-    return parse
-
-
-def _count(what: str):
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            v = -1
-        if v < 0:
-            raise argparse.ArgumentTypeError(f"{what} takes an integer >= 0, got '{text}'")
+            v = minimum - 1
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"{what} takes {kind}, got '{text}'")
         return v
     return parse
 
@@ -487,8 +478,6 @@ def _bound(args: argparse.Namespace) -> int:
     problem = _load(args, check_solver=False)
     ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
     check_m_values(problem, ms)
-    if args.bound_steps == 0:
-        raise ArgumentError("bound: --bound-steps 0 computes no bound; give at least 1")
     approx = approximate_designs(problem, ("test-pose", "D"), args.bound_steps, args.bound_pool)
     print(_case_line(problem))
     print(f"{'m':>4}{'test-pose error >= (mm)':>26}{'relaxation (mm)':>18}{'log det M <=':>15}")
@@ -521,9 +510,9 @@ def _compute(p: argparse.ArgumentParser, out_help: str) -> None:
     p.add_argument("--criteria", type=_names, metavar="LIST",
                    help=f"criteria, comma separated, among {', '.join(CRITERIA)} "
                         "(default: [design].criteria of the problem)")
-    p.add_argument("--starts", type=_positive_int("--starts"), metavar="N",
+    p.add_argument("--starts", type=_integer("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
-    p.add_argument("--jobs", "-j", type=_positive_int("--jobs"), metavar="N",
+    p.add_argument("--jobs", "-j", type=_integer("--jobs"), metavar="N",
                    help=f"local worker processes for the starts (default: the number of CPUs, "
                         f"here {cpu_count()}; 1 = serial in this process). Results do not depend on it")
     p.add_argument("--dask-scheduler", metavar="ADDRESS",
@@ -537,14 +526,17 @@ def _compute(p: argparse.ArgumentParser, out_help: str) -> None:
     _common(p)
 
 
-def _bound_steps(p: argparse.ArgumentParser) -> None:
+def _bound_steps(p: argparse.ArgumentParser, minimum: int = 0) -> None:
+    """``--bound-steps`` (at least ``minimum``; 0 turns the bound off) and ``--bound-pool``."""
     from .bound import BOUND_CRITERIA, BOUND_STEPS, POOL_SIZE, SAMPLE_SIZE
 
-    p.add_argument("--bound-steps", type=_count("--bound-steps"), default=BOUND_STEPS, metavar="K",
+    p.add_argument("--bound-steps", type=_integer("--bound-steps", minimum), default=BOUND_STEPS,
+                   metavar="K",
                    help=f"exchange steps of the approximate design behind the certified bound of "
                         f"{', '.join(BOUND_CRITERIA)} and their rounded starts (default {BOUND_STEPS}: "
-                        "more steps tighten the bound; 0: no bound, no rounded starts)")
-    p.add_argument("--bound-pool", type=_positive_int("--bound-pool"), default=POOL_SIZE, metavar="N",
+                        "more steps tighten the bound"
+                        + ("; 0: no bound, no rounded starts)" if minimum == 0 else ")"))
+    p.add_argument("--bound-pool", type=_integer("--bound-pool"), default=POOL_SIZE, metavar="N",
                    help=f"random feasible experiments in the approximate design's first pool (default "
                         f"{POOL_SIZE}; {SAMPLE_SIZE // POOL_SIZE}x as many are searched for the bound's "
                         "certificate): fewer is faster and looser")
@@ -636,7 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
     bnd.add_argument("--m", type=_m_values, metavar="RANGE",
                      help="numbers of experiments, e.g. 1:10 or 1,5 (default: the smallest "
                           "identifiable m to the largest [experiments].m)")
-    _bound_steps(bnd)
+    _bound_steps(bnd, minimum=1)
     _common(bnd)
     bnd.set_defaults(run=_bound)
 

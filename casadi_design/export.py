@@ -290,6 +290,7 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
             f"{force.mode}, |F| = {force.magnitude_N:g} N" if force.mode != "fixed" else
             f"fixed F = {list(force.vector_N)} N")
     x = tp.position_m * 1e3
+    notes = [*notes, *bound_notes(designs)]
     lines = [
         f"# {title}: {problem.name}",
         "",
@@ -313,8 +314,8 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
         table,
         "```",
         "",
-        *[f"- {n}" for n in [*notes, *bound_notes(designs)]],
-        *([""] if notes or bound_notes(designs) else []),
+        *[f"- {n}" for n in notes],
+        *([""] if notes else []),
     ]
     for caption, fname in figures:
         lines += [f"![{caption}]({fname})", "", f"*{caption}*", ""]

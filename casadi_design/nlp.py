@@ -90,8 +90,8 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     scale = information_scale(problem.model.L, B0)
     nlp = reduced_nlp(problem, criterion, m, B0, scale, power)
     oracle, options = nlp.functions()
-    lbx, ubx = _plan_bounds(problem, m, loads)
-    lbg, ubg = _rule_bounds(problem, m, loads)
+    lbx, ubx = plan_bounds(problem, m, loads)
+    lbg, ubg = rule_bounds(problem, m, loads)
     if criterion == "test-pose":  # t >= 0; rho_j - t <= 0
         lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
         s = nlp.n_rows
@@ -115,14 +115,14 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     return DesignNLP(criterion, m, scale, oracle, lbx, ubx, lbg, ubg, plan, information, start, options)
 
 
-def _plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
+def plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of ``(vec Q, vec V)``: joint limits (rad, m) and the load variables."""
     robot = problem.robot
     return (np.concatenate([np.tile(robot.q_min, m), np.full(loads.nv * m, loads.lower)]),
             np.concatenate([np.tile(robot.q_max, m), np.ones(loads.nv * m)]))
 
 
-def _rule_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
+def rule_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment, joint distance
     of each pair ``i < j`` (squared, rad^2)."""
     rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad

@@ -113,11 +113,8 @@ def draw_max_error_vs_m(ax: Axes, sweep: Sweep, log: bool = False) -> None:
         label = (r"Best single pose repeated m times ($e_1/\sqrt{m}$)" if m_ref == 1 else
                  f"Best {m_ref}-pose plan repeated ($e_{{{m_ref}}}\\sqrt{{{m_ref}/m}}$)")
         ax.plot(mm, [sweep.repeat_reference_m(v) * 1e3 for v in mm], **REPEAT_STYLE, label=label)
-    bounds = [sweep.designs[c, m].bound for c, m in sweep.designs if c == "test-pose"]
-    if bounds and all(bounds):  # value * sqrt(m) is the same for every m: one curve
-        mm = np.linspace(ms.min(), ms.max(), 200)
-        b = bounds[0]
-        ax.plot(mm, b.value * 1e3 * np.sqrt(b.m / mm), **BOUND_STYLE,
+    if "test-pose" in sweep.criteria and all(sweep.designs["test-pose", m].bound for m in ms):
+        ax.plot(ms, [sweep.designs["test-pose", m].bound.value * 1e3 for m in ms], **BOUND_STYLE,
                 label="Best possible with m experiments (certified bound)")
     ticks = sorted(set(ms.tolist()) | ({sweep.reference.m} if sweep.reference is not None else set()))
     if log:

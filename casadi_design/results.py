@@ -19,7 +19,7 @@ from .build import Problem
 from .criteria import CRITERIA
 from .measures import Scores
 from .bound import ApproximateDesign, Bound
-from .solve import Design, StartRecord
+from .solve import SEEDED, Design, StartRecord
 
 def optimum_spread(design: Design) -> dict:
     """Test-pose errors (m) of every converged start that reached the design's optimum.
@@ -475,6 +475,6 @@ def format_solver_lines(designs: list[Design]) -> str:
             f"{spread['starts_at_optimum']} at the optimum, their error "
             f"{spread['min_max_rms_error_m'] * 1e3:.4f}..{spread['max_max_rms_error_m'] * 1e3:.4f} mm"
             + ("" if d.bound is None else f"  {d.gap_percent:.1f} % from the bound")
-            + ("" if d.winner is None or d.winner.origin == "seeded" else f"  (won by the {d.winner.origin})")
+            + ("" if d.winner is None or d.winner.origin == SEEDED else f"  (won by the {d.winner.origin})")
         )
     return "\n".join(out)

@@ -10,9 +10,8 @@ solve is a status, not an exception.
 
 from __future__ import annotations
 
-import dataclasses
-
 import contextlib
+import dataclasses
 import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -45,6 +44,10 @@ POLISH_ITERATIONS = 30
 SAMPLING_TRIES = 2000
 
 
+#: ``StartRecord.origin`` of the seeded random starts.
+SEEDED = "seeded"
+
+
 @dataclass(frozen=True)
 class StartRecord:
     """One IPOPT start: its status, iterations, criterion score and test-pose error (m), and
@@ -56,7 +59,7 @@ class StartRecord:
     value: float
     max_rms_error_m: float
     feasible: bool
-    origin: str = "seeded"
+    origin: str = SEEDED
 
     @property
     def converged(self) -> bool:
@@ -314,7 +317,7 @@ def solve_design(
     t0 = time.perf_counter()
     rng = start_rng(problem.solver.seed, criterion, m)
     plans = [random_plan(problem, m, rng) for _ in range(starts or problem.solver.starts)]
-    origins = ["seeded"] * len(plans)
+    origins = [SEEDED] * len(plans)
     for k, (Q0, F0, *origin) in enumerate(initial_plans):
         origins.append(origin[0] if origin else "initial plan")
         Q0, F0 = np.asarray(Q0, dtype=float), np.asarray(F0, dtype=float)

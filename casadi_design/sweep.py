@@ -33,7 +33,7 @@ from .criteria import CRITERIA
 from .nlp import B0_at_test_poses
 from .build import Problem
 from .problem import spec_digest_blob
-from .solve import Design, StartRecord, random_plan, solve_design
+from .solve import SEEDED, Design, StartRecord, random_plan, solve_design
 
 if TYPE_CHECKING:
     from .parallel import StartExecutor
@@ -97,7 +97,7 @@ def warm_start_plan(problem: Problem, previous: Design, m: int) -> tuple[np.ndar
 
 
 #: ``StartRecord.origin`` of the warm start of a sweep.
-WARM_START = "warm start"
+WARM_ORIGIN = "warm start"
 
 
 def best_seeded(design: Design) -> StartRecord | None:
@@ -105,7 +105,7 @@ def best_seeded(design: Design) -> StartRecord | None:
     crit = CRITERIA[design.criterion]
     best = None
     for rec in design.starts:
-        if rec.origin == "seeded" and rec.converged and (best is None or crit.better(rec.value, best.value)):
+        if rec.origin == SEEDED and rec.converged and (best is None or crit.better(rec.value, best.value)):
             best = rec
     return best
 
@@ -132,7 +132,7 @@ class Sweep:
     def warm_start_won(self, criterion: str, m: int) -> bool:
         """True when the warm start is strictly better than every seeded start."""
         winner = self.designs[criterion, m].winner
-        return winner is not None and winner.origin == WARM_START
+        return winner is not None and winner.origin == WARM_ORIGIN
 
     def repeat_reference_m(self, m: int) -> float:
         """``e(m_ref) sqrt(m_ref / m)`` (m): the best m_ref-experiment plan repeated."""
@@ -175,7 +175,7 @@ def run_sweep(
                 if progress is not None:
                     progress(len(designs[c, m].starts))
                 continue
-            extra = [(*warm_start_plan(problem, designs[c, ms[i - 1]], m), WARM_START)] if warm_start and i else []
+            extra = [(*warm_start_plan(problem, designs[c, ms[i - 1]], m), WARM_ORIGIN)] if warm_start and i else []
             d = solve_design(problem, c, m, B0, starts=n_seeded, verbose=verbose,
                              initial_plans=extra + rounded_starts(problem, approx, c, m),
                              executor=executor, progress=progress)

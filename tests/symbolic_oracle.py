@@ -118,8 +118,8 @@ def lifted_nlp(problem: Problem, criterion: str,
     g += [rules.g(Q[:, i]) for i in range(m)]
     if problem.workspace.min_joint_distance_rad > 0:
         g += [ca.sumsqr(Q[:, i] - Q[:, j]) for i in range(m) for j in range(i + 1, m)]
-    lb_rules, ub_rules = nlp_module._rule_bounds(problem, m, loads)
-    lb_plan, ub_plan = nlp_module._plan_bounds(problem, m, loads)
+    lb_rules, ub_rules = nlp_module.rule_bounds(problem, m, loads)
+    lb_plan, ub_plan = nlp_module.plan_bounds(problem, m, loads)
 
     x = ca.vertcat(ca.vec(Q), ca.vec(V), obj.w)
     oracle = ca.Function("nlp", [x, ca.SX(0, 1)], [obj.f, ca.vertcat(*g)], ["x", "p"],
