@@ -44,3 +44,19 @@ def paper_solved(paper):
     from casadi_design.solve import solve_design
 
     return {(c, m): solve_design(paper, c, m) for m in paper.m_values for c in paper.criteria}
+
+
+#: Seeded starts of the command-line runs of the paper's example shared by the tests.
+CLI_STARTS = 6
+
+
+@pytest.fixture(scope="session")
+def paper_solve_out(tmp_path_factory):
+    """``casadi-design solve`` of the paper's example (Table 4's designs, CLI_STARTS starts, one
+    process, a 300-candidate bound pool), run once for the suite: its output folder."""
+    from casadi_design.cli import main
+
+    out = tmp_path_factory.mktemp("paper_solve")
+    assert main(["solve", str(PAPER), "--out", str(out), "--starts", str(CLI_STARTS), "--jobs", "1",
+                 "--bound-pool", "300", "--quiet"]) == 0
+    return out

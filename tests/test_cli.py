@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from casadi_design.cli import main
-from tests.conftest import PAPER, ROOT
+from tests.conftest import CLI_STARTS, PAPER, ROOT
 
 L1, L2 = 0.6, 0.4  # the paper's arm, m
 
@@ -21,11 +21,8 @@ def _A(q, F):
 
 
 @pytest.fixture(scope="module")
-def solved(tmp_path_factory):
-    out = tmp_path_factory.mktemp("out")
-    assert main(["solve", str(PAPER), "--out", str(out), "--starts", "6", "--jobs", "1",
-                 "--bound-pool", "300"]) == 0
-    return out, json.loads((out / "results.json").read_text())
+def solved(paper_solve_out):
+    return paper_solve_out, json.loads((paper_solve_out / "results.json").read_text())
 
 
 def test_results_json_recomputes_without_the_package(solved):
@@ -39,7 +36,7 @@ def test_results_json_recomputes_without_the_package(solved):
         assert len(d["experiments"]) == d["m"]
         assert d["solver"]["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
         bounded = d["criterion"] in ("test-pose", "D")  # their rounded approximate designs: 4 starts
-        assert d["solver"]["starts"] == 6 + 4 * bounded and d["solver"]["wall_s"] > 0
+        assert d["solver"]["starts"] == CLI_STARTS + 4 * bounded and d["solver"]["wall_s"] > 0
         assert (d["bound"] is not None) == bounded
         if d["criterion"] == "test-pose":
             assert d["bound"]["value"] <= d["max_rms_error_m"]

@@ -89,11 +89,8 @@ def test_exported_plan_reads_back_exactly_and_scores_like_the_design(paper, tmp_
         assert row[1:3] == pytest.approx(np.degrees([q1, q2]), rel=1e-15)
 
 
-def test_evaluate_compares_with_the_optimal_plans_of_the_same_m(tmp_path, capsys):
-    solved = tmp_path / "solved"
-    assert main(["solve", str(PAPER), "--starts", "4", "--m", "5", "--out", str(solved), "--jobs", "1",
-                 "--quiet", "--bound-pool", "300"]) == 0
-    capsys.readouterr()
+def test_evaluate_compares_with_the_optimal_plans_of_the_same_m(paper_solve_out, tmp_path, capsys):
+    solved = paper_solve_out
     plan = solved / "plans" / "D_m5.csv"
     assert main(["evaluate", str(PAPER), "--plan", str(plan), "--compare", str(solved),
                  "--out", str(tmp_path / "ev")]) == 0
