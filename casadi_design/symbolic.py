@@ -62,13 +62,13 @@ class SymbolicKinematics:
     frame_names: tuple[str, ...]
 
 
-def _rot(axis: np.ndarray, angle: ca.SX) -> ca.SX:
+def rotation_about(axis: np.ndarray, angle: ca.SX) -> ca.SX:
     """Rotation matrix about a unit ``axis`` by ``angle`` (Rodrigues), exact zeros kept."""
     K = ca.SX(np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]))
     return ca.SX.eye(3) + ca.sin(angle) * K + (1 - ca.cos(angle)) * (K @ K)
 
 
-def _axis_and_kind(joint: pin.JointModel) -> tuple[np.ndarray, str]:
+def joint_axis(joint: pin.JointModel) -> tuple[np.ndarray, str]:
     kind = joint.shortname()
     unit = {"X": np.array([1.0, 0, 0]), "Y": np.array([0, 1.0, 0]), "Z": np.array([0, 0, 1.0])}
     if kind in ("JointModelRevoluteUnaligned", "JointModelPrismaticUnaligned"):
@@ -79,11 +79,11 @@ def _axis_and_kind(joint: pin.JointModel) -> tuple[np.ndarray, str]:
 
 def _error_placement(d: ca.SX) -> tuple[ca.SX, ca.SX]:
     """``E(d)`` for ``d = (tx, ty, tz, rx, ry, rz)``: (Rx Ry Rz, t)."""
-    R = _rot(np.array([1.0, 0, 0]), d[3]) @ _rot(np.array([0, 1.0, 0]), d[4])
-    return R @ _rot(np.array([0, 0, 1.0]), d[5]), d[0:3]
+    R = rotation_about(np.array([1.0, 0, 0]), d[3]) @ rotation_about(np.array([0, 1.0, 0]), d[4])
+    return R @ rotation_about(np.array([0, 0, 1.0]), d[5]), d[0:3]
 
 
-def _compose(Ra, pa, Rb, pb):
+def compose(Ra, pa, Rb, pb):
     return Ra @ Rb, pa + Ra @ pb
 
 
@@ -120,21 +120,21 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
     for k, jid in enumerate(robot.joint_ids):
         base = 6 + 7 * k
         M = model.jointPlacements[jid]
-        R, p = _compose(R, p, ca.SX(M.rotation), ca.SX(M.translation))
-        R, p = _compose(R, p, *_error_placement(Pi[base + 1 : base + 7]))
+        R, p = compose(R, p, ca.SX(M.rotation), ca.SX(M.translation))
+        R, p = compose(R, p, *_error_placement(Pi[base + 1 : base + 7]))
         origins.append(p)
-        axis, kind = _axis_and_kind(model.joints[jid])
+        axis, kind = joint_axis(model.joints[jid])
         qk = q[k] + Pi[base]
         if kind == "R":
-            R = R @ _rot(axis, qk)
+            R = R @ rotation_about(axis, qk)
         else:
             p = p + R @ (ca.SX(axis) * qk)
         points, point_names = _carried_frames(model, jid, R, p, exclude=robot.frame_id)
         carried += points
         carried_names += point_names
     fMt = model.frames[robot.frame_id].placement
-    R, p = _compose(R, p, ca.SX(fMt.rotation), ca.SX(fMt.translation))
-    R, p = _compose(R, p, *_error_placement(Pi[-6:]))
+    R, p = compose(R, p, ca.SX(fMt.rotation), ca.SX(fMt.translation))
+    R, p = compose(R, p, *_error_placement(Pi[-6:]))
 
     zero = ca.DM.zeros(len(names))
     frames = ca.substitute(ca.horzcat(*carried, p), Pi, zero)

@@ -1,0 +1,618 @@
+"""Collision rules of one configuration: links as capsules, obstacles, lines of sight.
+
+Each link is approximated by capsules: a segment ``[a, b]`` fixed in the link's frame and a
+radius ``r`` (m), the set of points within ``r`` of the segment. Two capsules are apart by at
+least ``c`` (the clearance, m) when
+
+    dist([a1, b1], [a2, b2]) - r1 - r2 - c >= 0,
+
+with ``dist`` the segment-segment distance (:func:`segment_distance`). The rows of
+:func:`capsule_rows` are of that form, ``g(q) >= 0`` (m), for
+
+* self-collision: every pair of capsules that can meet (:func:`self_collision_pairs`);
+* obstacles fixed in the world: half-spaces (the floor), boxes and capsules;
+* lines of sight: the beam from a tracker to a reflector carried by the robot against every
+  capsule, except those of the link carrying the reflector (the beam ends on that link).
+
+The capsules of a URDF robot are fitted around its collision meshes so that every vertex is
+inside (:func:`capsules_from_urdf`); a capsule distance is then a lower bound of the mesh
+distance, which :func:`mesh_min_distance` computes with Pinocchio and coal to check a plan.
+Robots without collision geometry (DH tables) take capsules given as numbers
+(:func:`capsules_from_table`). :func:`capsule_clearances` is the numpy twin of the rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import casadi as ca
+import coal
+import numpy as np
+import pinocchio as pin
+from scipy.optimize import minimize
+
+from .errors import ProblemError
+from .robots import Robot
+from .symbolic import compose, joint_axis, rotation_about
+
+#: ``delta`` of the smoothed distance ``sqrt(D^2 + delta^2) - delta`` (m): differentiable where
+#: the segments touch, below the exact distance by at most ``delta``.
+SMOOTHING_M = 1e-6
+#: Segments are treated as parallel when ``sin^2`` of their angle is below this.
+PARALLEL_TOL = 1e-10
+#: Configurations sampled by :func:`self_collision_pairs` to find the pairs that can separate.
+PAIR_SAMPLES = 200
+
+
+def _vector(value, name: str) -> tuple[float, float, float]:
+    v = np.asarray(value, dtype=float)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ProblemError(f"{name}: needs 3 finite numbers (m); got {value!r}")
+    return tuple(float(x) for x in v)
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """Points within ``radius_m`` of the segment ``[a_m, b_m]`` (m, in the frame ``frame``).
+
+    ``frame`` names a Pinocchio frame (a link) or a joint; the segment moves with it. A capsule
+    in a frame fixed to the world (``"universe"``) is an obstacle.
+    """
+
+    frame: str
+    a_m: tuple[float, float, float]
+    b_m: tuple[float, float, float]
+    radius_m: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "a_m", _vector(self.a_m, f"capsule on '{self.frame}': a_m"))
+        object.__setattr__(self, "b_m", _vector(self.b_m, f"capsule on '{self.frame}': b_m"))
+        r = float(self.radius_m)
+        if not (np.isfinite(r) and r >= 0):
+            raise ProblemError(f"capsule on '{self.frame}': radius_m must be finite and >= 0; got {self.radius_m!r}")
+        object.__setattr__(self, "radius_m", r)
+
+
+@dataclass(frozen=True)
+class HalfSpace:
+    """Free side ``{x : n . x >= offset_m}`` of a plane (``n`` need not be unit; m).
+
+    The floor at height h is ``HalfSpace((0, 0, 1), h)``.
+    """
+
+    normal: tuple[float, float, float]
+    offset_m: float
+    name: str = "half-space"
+
+    def __post_init__(self):
+        n = np.array(_vector(self.normal, f"{self.name}: normal"))
+        if not np.linalg.norm(n) > 0 or not np.isfinite(self.offset_m):
+            raise ProblemError(f"{self.name}: needs a non-zero normal and a finite offset_m; got "
+                               f"{self.normal!r}, {self.offset_m!r}")
+        object.__setattr__(self, "normal", tuple(n))
+
+
+@dataclass(frozen=True)
+class Box:
+    """Box centred at ``center_m``, half sizes ``half_extents_m`` along its axes (m), rotated
+    by ``rpy_rad`` (roll, pitch, yaw, URDF convention) from the world axes."""
+
+    center_m: tuple[float, float, float]
+    half_extents_m: tuple[float, float, float]
+    rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str = "box"
+
+    def __post_init__(self):
+        object.__setattr__(self, "center_m", _vector(self.center_m, f"{self.name}: center_m"))
+        object.__setattr__(self, "rpy_rad", _vector(self.rpy_rad, f"{self.name}: rpy_rad"))
+        h = _vector(self.half_extents_m, f"{self.name}: half_extents_m")
+        if min(h) < 0:
+            raise ProblemError(f"{self.name}: half_extents_m must be >= 0; got {self.half_extents_m!r}")
+        object.__setattr__(self, "half_extents_m", h)
+
+    def faces(self) -> tuple[np.ndarray, np.ndarray]:
+        """Outward unit normals ``N`` (6 x 3) and offsets ``o`` (6, m): the box is
+        ``{x : N x <= o}``."""
+        R = pin.rpy.rpyToMatrix(*self.rpy_rad)
+        N = np.vstack([R.T, -R.T])
+        return N, N @ np.array(self.center_m) + np.tile(self.half_extents_m, 2)
+
+
+@dataclass(frozen=True)
+class LineOfSight:
+    """Beam from a tracker at ``tracker_m`` (world, m) to a reflector at ``point_m`` in
+    ``frame`` (m).
+
+    ``excluded`` names the capsule frames the beam may touch; by default the capsules carried
+    by the same joint as ``frame`` (the reflector sits on, or inside, that link's capsule).
+    """
+
+    tracker_m: tuple[float, float, float]
+    frame: str
+    point_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    excluded: tuple[str, ...] | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "tracker_m", _vector(self.tracker_m, "line of sight: tracker_m"))
+        object.__setattr__(self, "point_m", _vector(self.point_m, f"line of sight to '{self.frame}': point_m"))
+
+
+Obstacle = HalfSpace | Box | Capsule
+
+
+# ---------------------------------------------------------------------------------------------
+# segment-segment distance
+
+
+def _clamp01(x, fmin, fmax):
+    return fmin(fmax(x, 0.0), 1.0)
+
+
+def _segment_distance_sq(p0, p1, q0, q1, ops) -> object:
+    """``D^2 = min_{s, t in [0, 1]} |p0 + s d1 - q0 - t d2|^2`` (m^2), ``d1 = p1 - p0``,
+    ``d2 = q1 - q0``.
+
+    The minimum of a convex quadratic over the square: the stationary point when it lies
+    inside and the segments are not parallel, otherwise the smallest of the four
+    endpoint-to-segment distances (the minima on the square's sides). Written once for
+    CasADi and numpy (``ops``: dot, fmin, fmax, if_else).
+    """
+    dot, fmin, fmax, if_else = ops.dot, ops.fmin, ops.fmax, ops.if_else
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a, e, b = dot(d1, d1), dot(d2, d2), dot(d1, d2)
+    c, f = dot(d1, r), dot(d2, r)
+
+    def to_segment(p, s0, d, dd):
+        t = _clamp01(dot(p - s0, d) / fmax(dd, 1e-300), fmin, fmax)
+        w = s0 + t * d - p
+        return dot(w, w)
+
+    sides = fmin(fmin(to_segment(p0, q0, d2, e), to_segment(p1, q0, d2, e)),
+                 fmin(to_segment(q0, p0, d1, a), to_segment(q1, p0, d1, a)))
+    denom = a * e - b * b
+    crossing = denom > PARALLEL_TOL * a * e
+    safe = if_else(crossing, denom, 1.0)
+    s, t = (b * f - c * e) / safe, (a * f - b * c) / safe
+    w = r + s * d1 - t * d2
+    inside = ops.logical_and(crossing, ops.logical_and(ops.logical_and(s > 0, s < 1),
+                                                       ops.logical_and(t > 0, t < 1)))
+    return if_else(inside, dot(w, w), sides)
+
+
+_CA = SimpleNamespace(dot=ca.dot, fmin=ca.fmin, fmax=ca.fmax, sqrt=ca.sqrt, if_else=ca.if_else,
+                      logical_and=ca.logic_and)
+_NP = SimpleNamespace(dot=np.dot, fmin=np.minimum, fmax=np.maximum, sqrt=np.sqrt,
+                      if_else=lambda c, x, y: x if c else y, logical_and=lambda x, y: bool(x and y))
+
+
+def segment_distance(p0, p1, q0, q1, smoothing_m: float = SMOOTHING_M) -> ca.SX:
+    """Distance (m) between the segments ``[p0, p1]`` and ``[q0, q1]`` (CasADi, 3-vectors).
+
+    Returns ``sqrt(D^2 + delta^2) - delta`` with ``D`` the exact distance and
+    ``delta = smoothing_m``: within ``delta`` below ``D``, defined everywhere.
+
+    Smoothness: ``D^2`` is the minimum over ``(s, t)`` of a convex quadratic; where the
+    minimiser is unique its gradient is that of the quadratic at the minimiser (Danskin), and
+    the branches (interior point, clamped sides) meet with equal values and gradients. ``D^2``
+    is therefore continuously differentiable except for parallel segments whose projections
+    overlap (a whole set of closest pairs), where it is continuous but has a kink; near that
+    set (``sin^2`` of the angle ~ ``PARALLEL_TOL``) the gradient is computed through an
+    ill-conditioned stationary point and loses digits. Degenerate segments (points) are
+    exact. No branch divides by zero, so no NaN is produced.
+    """
+    p0, p1, q0, q1 = (ca.SX(v) if not isinstance(v, ca.SX) else v for v in (p0, p1, q0, q1))
+    D2 = _segment_distance_sq(p0, p1, q0, q1, _CA)
+    return ca.sqrt(D2 + smoothing_m**2) - smoothing_m
+
+
+def segment_distance_np(p0, p1, q0, q1, smoothing_m: float = SMOOTHING_M) -> float:
+    """Numpy twin of :func:`segment_distance` (same formula, m)."""
+    p0, p1, q0, q1 = (np.asarray(v, dtype=float) for v in (p0, p1, q0, q1))
+    D2 = max(float(_segment_distance_sq(p0, p1, q0, q1, _NP)), 0.0)
+    return float(np.sqrt(D2 + smoothing_m**2) - smoothing_m)
+
+
+# ---------------------------------------------------------------------------------------------
+# capsules from geometry
+
+
+def fit_capsule(frame: str, points_m: np.ndarray, inflation_m: np.ndarray | None = None) -> Capsule:
+    """Smallest-volume capsule found that contains balls ``(points_m[i], inflation_m[i])``.
+
+    Every ball is inside, by construction: for an axis ``u`` through a centre ``c`` (the 3
+    principal axes of the points, then refined by Nelder-Mead on the volume
+    ``pi r^2 L + 4/3 pi r^3``), with axial ``t_i`` and radial ``d_i`` coordinates of the
+    points, ``r = max_i (d_i + rho_i)`` and the ends ``t_a = min_i (t_i + sqrt((r - rho_i)^2 -
+    d_i^2))``, ``t_b = max_i (t_i - sqrt((r - rho_i)^2 - d_i^2))``. When ``t_a > t_b`` the
+    capsule is a sphere around the middle. A capsule holding the vertices of a mesh holds
+    the mesh (it is convex).
+
+    Parameters
+    ----------
+    points_m : ndarray, shape (k, 3), m
+    inflation_m : ndarray, shape (k,), m
+        Radius of a ball around each point (0 for mesh vertices).
+    """
+    X = np.asarray(points_m, dtype=float).reshape(-1, 3)
+    rho = np.zeros(len(X)) if inflation_m is None else np.asarray(inflation_m, dtype=float)
+    mean = X.mean(axis=0)
+    _, _, Vt = np.linalg.svd(X - mean, full_matrices=False)
+
+    def shape(x: np.ndarray, basis: np.ndarray):
+        # x: tilt of the axis basis[0] about basis[1], basis[2] (rad), centre offset (m)
+        Rb = pin.exp3(x[0] * basis[1] + x[1] * basis[2])
+        u, v, w = Rb @ basis[0], Rb @ basis[1], Rb @ basis[2]
+        c = mean + x[2] * v + x[3] * w
+        Y = X - c
+        t = Y @ u
+        d = np.linalg.norm(Y - np.outer(t, u), axis=1)
+        r = float(np.max(d + rho))
+        reach = np.sqrt(np.maximum((r - rho) ** 2 - d**2, 0.0))
+        ta, tb = float(np.min(t + reach)), float(np.max(t - reach))
+        if ta > tb:
+            centre = c + u * (ta + tb) / 2
+            r = float(np.max(np.linalg.norm(X - centre, axis=1) + rho))
+            return np.pi * 4 / 3 * r**3, centre, centre, r
+        return np.pi * r**2 * (tb - ta + 4 * r / 3), c + ta * u, c + tb * u, r
+
+    best = None
+    for k in range(3):
+        basis = np.roll(Vt, -k, axis=0)
+        x = minimize(lambda x: shape(x, basis)[0], np.zeros(4), method="Nelder-Mead",
+                     options={"xatol": 1e-6, "fatol": 1e-12, "maxiter": 2000}).x
+        fit = shape(x, basis)
+        if best is None or fit[0] < best[0]:
+            best = fit
+    _, a, b, r = best
+    return Capsule(frame, a, b, r)
+
+
+def _geometry_balls(geometry) -> tuple[np.ndarray, np.ndarray]:
+    """Balls (centres, radii; m) whose convex hull contains a coal geometry, in its frame."""
+    if isinstance(geometry, coal.BVHModelBase):
+        return np.asarray(geometry.vertices(), dtype=float), np.zeros(geometry.num_vertices)
+    if isinstance(geometry, coal.ConvexBase):
+        P = np.asarray(geometry.points(), dtype=float)
+        return P, np.zeros(len(P))
+    if isinstance(geometry, coal.Box):
+        corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        return corners * np.asarray(geometry.halfSide), np.zeros(8)
+    if isinstance(geometry, coal.Sphere):
+        return np.zeros((1, 3)), np.array([geometry.radius])
+    if isinstance(geometry, (coal.Capsule, coal.Cylinder)):
+        h = geometry.halfLength
+        return np.array([[0, 0, -h], [0, 0, h]], dtype=float), np.full(2, geometry.radius)
+    raise ProblemError(f"collision geometry of type {type(geometry).__name__} is not supported; "
+                       "use meshes, convex meshes, boxes, spheres, capsules or cylinders")
+
+
+def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel) -> tuple[Capsule, ...]:
+    """One capsule per link (frame) carrying geometry objects, fitted around all of them
+    (:func:`fit_capsule`), in the link's frame; links in the model's frame order."""
+    balls: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for go in geom_model.geometryObjects:
+        centres, radii = _geometry_balls(go.geometry)
+        # geometry placement is relative to the joint; express it in the link frame
+        fMg = model.frames[go.parentFrame].placement.inverse() * go.placement
+        balls.setdefault(go.parentFrame, []).append((centres @ fMg.rotation.T + fMg.translation, radii))
+    return tuple(fit_capsule(model.frames[fid].name, np.vstack([c for c, _ in parts]),
+                             np.concatenate([r for _, r in parts]))
+                 for fid, parts in sorted(balls.items()))
+
+
+def load_collision_geometry(model: pin.Model, urdf_path, package_dirs: Sequence[str] = ()) -> pin.GeometryModel:
+    """The collision geometry of a URDF (meshes read by Pinocchio and coal, scales applied)."""
+    try:
+        return pin.buildGeomFromUrdf(model, str(urdf_path), pin.GeometryType.COLLISION,
+                                     package_dirs=[str(d) for d in package_dirs])
+    except (RuntimeError, ValueError) as exc:
+        raise ProblemError(f"{urdf_path}: cannot read the collision geometry ({exc}); check the "
+                           "mesh paths and package_dirs") from None
+
+
+def capsules_from_urdf(model: pin.Model, urdf_path, package_dirs: Sequence[str] = ()) -> tuple[Capsule, ...]:
+    """Capsules around the collision geometry of a URDF, one per link (see
+    :func:`capsules_from_geometry`). ``package_dirs``: folders in which ``package://`` paths
+    are resolved (for example-robot-data: the folder holding ``example-robot-data``)."""
+    geom_model = load_collision_geometry(model, urdf_path, package_dirs)
+    if not geom_model.ngeoms:
+        raise ProblemError(f"{urdf_path}: the URDF has no collision geometry; give the capsules "
+                           "as numbers (frame, a_m, b_m, radius_m) instead")
+    return capsules_from_geometry(model, geom_model)
+
+
+def capsules_from_table(model: pin.Model, rows: Iterable[Mapping]) -> tuple[Capsule, ...]:
+    """Capsules given as numbers: each row ``{frame, a_m, b_m, radius_m}`` (m), ``frame`` a
+    frame or joint of ``model`` (for DH robots, a joint: its frame as Pinocchio places it)."""
+    out = []
+    for k, row in enumerate(rows, start=1):
+        missing = [key for key in ("frame", "a_m", "b_m", "radius_m") if key not in row]
+        if missing:
+            raise ProblemError(f"capsule {k}: missing {', '.join(missing)}; give frame, a_m, b_m, radius_m")
+        capsule = Capsule(str(row["frame"]), row["a_m"], row["b_m"], row["radius_m"])
+        _carrier(model, capsule.frame)
+        out.append(capsule)
+    return tuple(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# kinematics of the capsules
+
+
+def _carrier(model: pin.Model, name: str) -> tuple[int, pin.SE3]:
+    """Joint carrying frame or joint ``name`` and the placement of ``name`` in that joint."""
+    if model.existFrame(name):
+        frame = model.frames[model.getFrameId(name)]
+        return frame.parentJoint, frame.placement
+    if model.existJointName(name):
+        return model.getJointId(name), pin.SE3.Identity()
+    names = [f.name for f in model.frames if f.name != "universe"]
+    raise ProblemError(f"capsule on '{name}': no such frame or joint; the model has: {', '.join(names)}")
+
+
+def _symbolic_joint_placement(robot: Robot, q: ca.SX, jid: int, memo: dict) -> tuple[ca.SX, ca.SX]:
+    """World placement ``(R, p)`` of joint ``jid`` at chain configuration ``q`` (joints off the
+    chain at their neutral value, 0), nominal kinematics as in :mod:`casadi_design.symbolic`."""
+    if jid == 0:
+        return ca.SX.eye(3), ca.SX.zeros(3)
+    if jid not in memo:
+        model = robot.model
+        R, p = _symbolic_joint_placement(robot, q, model.parents[jid], memo)
+        M = model.jointPlacements[jid]
+        R, p = compose(R, p, ca.SX(M.rotation), ca.SX(M.translation))
+        if jid in robot.joint_ids:
+            axis, kind = joint_axis(model.joints[jid])
+            qk = q[robot.joint_ids.index(jid)]
+            R, p = (R @ rotation_about(axis, qk), p) if kind == "R" else (R, p + R @ (ca.SX(axis) * qk))
+        elif model.joints[jid].nq:
+            raise ProblemError(f"capsules on joint '{model.names[jid]}' off the chain to '{robot.frame}' "
+                               "are not supported; attach them to links of the chain")
+        memo[jid] = (R, p)
+    return memo[jid]
+
+
+def _moves(robot: Robot, jid: int) -> bool:
+    return any(j in robot.joint_ids for j in robot.model.supports[jid])
+
+
+def _adjacent(model: pin.Model, i: int, j: int) -> bool:
+    return i == j or model.parents[i] == j or model.parents[j] == i
+
+
+def _ends_symbolic(robot: Robot, capsules: Sequence[Capsule], q: ca.SX) -> Callable:
+    memo: dict = {}
+
+    def ends(capsule: Capsule):
+        jid, M = _carrier(robot.model, capsule.frame)
+        R, p = _symbolic_joint_placement(robot, q, jid, memo)
+        return tuple(p + R @ ca.DM(M.act(np.array(x))) for x in (capsule.a_m, capsule.b_m))
+
+    return ends
+
+
+def _ends_numeric(robot: Robot, q: np.ndarray) -> Callable:
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, robot.full_q(q))
+
+    def ends(capsule: Capsule):
+        jid, M = _carrier(robot.model, capsule.frame)
+        oMc = data.oMi[jid] * M
+        return tuple(oMc.act(np.array(x)) for x in (capsule.a_m, capsule.b_m))
+
+    return ends
+
+
+# ---------------------------------------------------------------------------------------------
+# pairs and rows
+
+
+def capsule_names(capsules: Sequence[Capsule]) -> tuple[str, ...]:
+    """A name per capsule: its frame, with ``#k`` (k = 1, 2, ...) when a frame has several."""
+    count = {c.frame: 0 for c in capsules}
+    for c in capsules:
+        count[c.frame] += 1
+    seen = dict.fromkeys(count, 0)
+    out = []
+    for c in capsules:
+        seen[c.frame] += 1
+        out.append(c.frame if count[c.frame] == 1 else f"{c.frame}#{seen[c.frame]}")
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class PairSelection:
+    """Self-collision pairs: ``kept`` (indices into the capsules) become rows; ``skipped``
+    maps each other pair of capsule names to the reason; ``links`` are the pairs of link
+    frames of ``kept`` (for :func:`mesh_min_distance`)."""
+
+    kept: tuple[tuple[int, int], ...]
+    skipped: dict[tuple[str, str], str]
+    links: tuple[tuple[str, str], ...]
+
+
+def self_collision_pairs(robot: Robot, capsules: Sequence[Capsule], clearance_m: float = 0.0,
+                         disabled: Iterable[tuple[str, str]] = (), samples: int = PAIR_SAMPLES,
+                         seed: int = 0) -> PairSelection:
+    """The capsule pairs that can meet and that the capsules can keep apart.
+
+    A pair (capsules on joints i and j) is a candidate unless the links are adjacent (same
+    joint, or one joint the parent of the other: they touch at the joint) or no joint of the
+    chain moves one relative to the other. A candidate is kept when its row
+    ``dist - r1 - r2 - clearance`` is positive in at least one of ``samples`` configurations
+    drawn uniformly within the joint limits (seeded); otherwise the capsules overlap wherever
+    the robot goes (links whose meshes stay close but whose capsules cannot separate), so
+    the row would make every plan infeasible: the pair is skipped, with the reason. Pairs whose sampled distance is constant (within 1e-9 m) and positive are skipped
+    as never meeting. Pairs of link frames in ``disabled`` (as an SRDF's
+    ``disable_collisions``: links that the user knows never meet) are skipped.
+    """
+    model = robot.model
+    jids = [_carrier(model, c.frame)[0] for c in capsules]
+    rng = np.random.default_rng(seed)
+    Q = rng.uniform(robot.q_min, robot.q_max, size=(samples, robot.n))
+    ends = [_ends_numeric(robot, q) for q in Q]
+    kept, skipped, names = [], {}, capsule_names(capsules)
+    off = [set(p) for p in disabled]
+    for i, ci in enumerate(capsules):
+        for j in range(i + 1, len(capsules)):
+            cj, key = capsules[j], (names[i], names[j])
+            path = set(model.supports[jids[i]]) ^ set(model.supports[jids[j]])
+            if {ci.frame, cj.frame} in off:
+                skipped[key] = "disabled"
+                continue
+            if _adjacent(model, jids[i], jids[j]):
+                skipped[key] = "adjacent links"
+                continue
+            if not path & set(robot.joint_ids):
+                skipped[key] = "no joint of the chain moves one relative to the other"
+                continue
+            g = np.array([segment_distance_np(*e(ci), *e(cj)) for e in ends]) - ci.radius_m - cj.radius_m - clearance_m
+            if np.all(g <= 0):
+                skipped[key] = (f"capsules overlap in all {samples} sampled configurations "
+                                f"(largest clearance {g.max() * 1e3:.1f} mm)")
+            elif np.ptp(g) < 1e-9:
+                skipped[key] = "constant distance, positive"
+            else:
+                kept.append((i, j))
+    links = tuple(dict.fromkeys((capsules[i].frame, capsules[j].frame) for i, j in kept))
+    return PairSelection(tuple(kept), skipped, links)
+
+
+def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: Callable,
+          clearance_m: float, obstacles: Sequence[Obstacle], sights: Sequence[LineOfSight],
+          pairs: Sequence[tuple[int, int]]) -> list[tuple[object, str]]:
+    """Rows ``(g, label)`` with ``g >= 0`` required (m), for CasADi or numpy (``ops``)."""
+    model, names = robot.model, capsule_names(capsules)
+    world = [ends(c) for c in capsules]
+    jids = [_carrier(model, c.frame)[0] for c in capsules]
+    mm = f"{clearance_m * 1e3:g} mm"
+    out = []
+    for i, j in pairs:
+        g = dist(*world[i], *world[j]) - capsules[i].radius_m - capsules[j].radius_m - clearance_m
+        out.append((g, f"links {names[i]} and {names[j]} closer than {mm}"))
+    moving = [k for k in range(len(capsules)) if _moves(robot, jids[k])]
+    for obstacle in obstacles:
+        for k in moving:
+            (a, b), r, name = world[k], capsules[k].radius_m, names[k]
+            if isinstance(obstacle, HalfSpace):
+                n = np.array(obstacle.normal) / np.linalg.norm(obstacle.normal)
+                o = obstacle.offset_m / np.linalg.norm(obstacle.normal)
+                g = ops.fmin(ops.dot(n, a), ops.dot(n, b)) - o - r - clearance_m
+                out.append((g, f"link {name} closer than {mm} to {obstacle.name}"))
+            elif isinstance(obstacle, Box):
+                N, o = obstacle.faces()
+                gaps = [ops.fmin(ops.dot(N[f], a), ops.dot(N[f], b)) - o[f] for f in range(6)]
+                g = gaps[0]
+                for gap in gaps[1:]:
+                    g = ops.fmax(g, gap)
+                out.append((g - r - clearance_m, f"link {name} closer than {mm} to {obstacle.name}"))
+            else:
+                if _moves(robot, _carrier(model, obstacle.frame)[0]):
+                    raise ProblemError(f"obstacle capsule on '{obstacle.frame}': it moves with the robot; "
+                                       "give obstacles in a fixed frame such as 'universe'")
+                g = dist(a, b, *ends(obstacle)) - r - obstacle.radius_m - clearance_m
+                out.append((g, f"link {name} closer than {mm} to the capsule obstacle on {obstacle.frame}"))
+    for sight in sights:
+        jid, M = _carrier(model, sight.frame)
+        excluded = (set(sight.excluded) if sight.excluded is not None
+                    else {c.frame for c, j in zip(capsules, jids) if j == jid})
+        reflector = ends(Capsule(sight.frame, sight.point_m, sight.point_m, 0.0))[0]
+        tracker = np.array(sight.tracker_m)
+        for k, c in enumerate(capsules):
+            if c.frame not in excluded:
+                g = dist(tracker, reflector, *world[k]) - c.radius_m - clearance_m
+                out.append((g, f"line of sight to {sight.frame}: within {mm} of link {names[k]}"))
+    return out
+
+
+def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_m: float = 0.0,
+                 obstacles: Sequence[Obstacle] = (), sights: Sequence[LineOfSight] = (),
+                 pairs: Sequence[tuple[int, int]] | None = None) -> list[tuple[ca.SX, float, float, str]]:
+    """Collision rows of configuration ``q`` (CasADi SX, n): ``(g(q), 0, inf, label)``, each
+    ``g >= 0`` (m), in the format of :func:`casadi_design.rules.pose_constraints`' rows.
+
+    * self-collision, for ``pairs`` of capsule indices (default :func:`self_collision_pairs`):
+      ``dist(s_i, s_j) - r_i - r_j - clearance_m``;
+    * for every capsule moving with ``q`` and every obstacle:
+      half-space ``n . x >= o`` (unit n): ``min(n . a, n . b) - o - r - clearance_m`` (exact
+      signed distance of the capsule from the plane; kink where the segment is parallel to
+      the plane);
+      box ``{x : N x <= o}``: ``max_f [min(N_f . a, N_f . b) - o_f] - r - clearance_m``, the
+      largest gap between the capsule and a face plane: when positive, that plane separates
+      the capsule from the box by at least the clearance. Conservative: a capsule passing
+      diagonally near an edge or corner may be reported too close though it is not (the exact
+      distance is larger); kinks where two faces or two ends tie;
+      capsule (in a fixed frame): ``dist(s, s_o) - r - r_o - clearance_m``;
+    * for each line of sight, every capsule not excluded (see :class:`LineOfSight`):
+      ``dist([tracker, reflector(q)], s_k) - r_k - clearance_m``.
+
+    ``dist`` is :func:`segment_distance` (smoothed, within ``SMOOTHING_M`` below the exact
+    distance).
+    """
+    if pairs is None:
+        pairs = self_collision_pairs(robot, capsules, clearance_m).kept
+    rows = _rows(robot, capsules, _ends_symbolic(robot, capsules, q), _CA, segment_distance,
+                 clearance_m, obstacles, sights, pairs)
+    return [(g, 0.0, np.inf, label) for g, label in rows]
+
+
+def capsule_clearances(robot: Robot, capsules: Sequence[Capsule], q: np.ndarray, clearance_m: float = 0.0,
+                       obstacles: Sequence[Obstacle] = (), sights: Sequence[LineOfSight] = (),
+                       pairs: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Numpy twin of :func:`capsule_rows` at ``q`` (ndarray, n): the rows' values ``g`` (m,
+    negative: too close) and labels, in the same order; placements by Pinocchio."""
+    if pairs is None:
+        pairs = self_collision_pairs(robot, capsules, clearance_m).kept
+    rows = _rows(robot, capsules, _ends_numeric(robot, np.asarray(q, dtype=float)), _NP, segment_distance_np,
+                 clearance_m, obstacles, sights, pairs)
+    return np.array([float(g) for g, _ in rows]), tuple(label for _, label in rows)
+
+
+# ---------------------------------------------------------------------------------------------
+# check on the meshes
+
+
+@dataclass(frozen=True)
+class MeshDistance:
+    """Distances (m) between the collision meshes at one configuration: ``pairs`` maps each
+    pair of link frames to its distance (0 when the meshes intersect); ``min_m`` is the
+    smallest, between ``closest``."""
+
+    min_m: float
+    closest: tuple[str, str]
+    pairs: dict[tuple[str, str], float]
+
+
+def mesh_min_distance(model: pin.Model, geom_model: pin.GeometryModel, q: np.ndarray,
+                      pairs: Iterable[tuple[str, str]] | None = None) -> MeshDistance:
+    """Smallest distance between the meshes of ``pairs`` of link frames at the Pinocchio
+    configuration ``q`` (``model.nq``), by ``pinocchio.computeDistances`` (coal).
+
+    ``pairs`` defaults to every pair of links carried by non-adjacent joints (see
+    :func:`self_collision_pairs`). Between triangle meshes, coal reports 0 for meshes that
+    cross; a mesh entirely inside another without crossing triangles is not detected.
+    """
+    names = [model.frames[go.parentFrame].name for go in geom_model.geometryObjects]
+    wanted = None if pairs is None else {frozenset(p) for p in pairs}
+    checked = pin.GeometryModel(geom_model)
+    checked.removeAllCollisionPairs()
+    for i, gi in enumerate(geom_model.geometryObjects):
+        for j in range(i + 1, geom_model.ngeoms):
+            gj = geom_model.geometryObjects[j]
+            if wanted is None:
+                if not _adjacent(model, gi.parentJoint, gj.parentJoint):
+                    checked.addCollisionPair(pin.CollisionPair(i, j))
+            elif frozenset((names[i], names[j])) in wanted:
+                checked.addCollisionPair(pin.CollisionPair(i, j))
+    if not checked.collisionPairs:
+        raise ProblemError("mesh_min_distance: no pair of meshes to check; give pairs of link frames "
+                           f"among: {', '.join(sorted(set(names)))}")
+    data = checked.createData()
+    pin.computeDistances(model, model.createData(), checked, data, np.asarray(q, dtype=float))
+    out: dict[tuple[str, str], float] = {}
+    for k, cp in enumerate(checked.collisionPairs):
+        key = (names[cp.first], names[cp.second])
+        out[key] = min(out.get(key, np.inf), max(float(data.distanceResults[k].min_distance), 0.0))
+    closest = min(out, key=out.get)
+    return MeshDistance(out[closest], closest, out)

@@ -1,0 +1,203 @@
+"""Capsules, segment distances and collision rows, checked against brute force, coal and
+finite differences."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import coal
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from casadi_design import collision as C
+from casadi_design.errors import ProblemError
+from casadi_design.robots import example_robot_data_dir, load_urdf, make_robot
+
+ROOT = Path(__file__).resolve().parents[1]
+#: grid of the brute-force segment distance (points per side)
+GRID = 401
+#: agreement of the CasADi rows with their numpy twin (m)
+TWIN_TOL = 1e-10
+#: relative agreement of the rows' gradients with central differences
+GRAD_RTOL = 1e-5
+#: coal's mesh distance is computed to ~1e-6 m
+MESH_TOL = 1e-6
+#: elbow folded onto the upper arm (rad)
+FOLDED = np.array([0.0, -1.57, 3.1, 0.0, 0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def ur10():
+    root = example_robot_data_dir()
+    urdf = root / "ur_description/urdf/ur10_robot.urdf"
+    model = pin.buildModelFromUrdf(str(urdf))
+    geom = C.load_collision_geometry(model, urdf, [root.parent.parent])
+    capsules = C.capsules_from_geometry(model, geom)
+    robot = make_robot(model, "tool0")
+    return model, geom, capsules, robot, C.self_collision_pairs(robot, capsules)
+
+
+def _brute_distance(p0, p1, q0, q1):
+    s = np.linspace(0, 1, GRID)
+    P = p0 + np.outer(s, p1 - p0)
+    Q = q0 + np.outer(s, q1 - q0)
+    return np.sqrt(((P[:, None, :] - Q[None, :, :]) ** 2).sum(-1).min())
+
+
+def _segments(rng):
+    """Random segments, then parallel, collinear, crossing and degenerate ones."""
+    out = [tuple(rng.normal(size=(4, 3))) for _ in range(40)]
+    for _ in range(10):
+        p0, d, off = rng.normal(size=(3, 3))
+        s0, s1 = rng.uniform(-2, 2, 2)
+        out.append((p0, p0 + d, p0 + off + s0 * d, p0 + off + s1 * d))  # parallel
+        out.append((p0, p0 + d, p0 + s0 * d, p0 + s1 * d))  # collinear
+        out.append((p0, p0 + d, p0 + 0.5 * d - off, p0 + 0.5 * d + off))  # crossing
+        out.append((p0, p0, p0 + off, p0 + off + d))  # a point
+        out.append((p0, p0, p0 + off, p0 + off))  # two points
+    return out
+
+
+def test_segment_distance_matches_brute_force_and_twin():
+    rng = np.random.default_rng(0)
+    x = ca.SX.sym("x", 12)
+    f = ca.Function("d", [x], [C.segment_distance(x[0:3], x[3:6], x[6:9], x[9:12])])
+    for p0, p1, q0, q1 in _segments(rng):
+        d = C.segment_distance_np(p0, p1, q0, q1)
+        brute = _brute_distance(p0, p1, q0, q1)
+        grid_error = (np.linalg.norm(p1 - p0) + np.linalg.norm(q1 - q0)) / (GRID - 1)
+        assert d <= brute + 1e-12
+        assert brute - d <= grid_error + C.SMOOTHING_M
+        value = float(f(np.concatenate([p0, p1, q0, q1])))
+        assert np.isfinite(value) and abs(value - d) < TWIN_TOL
+        grad = np.asarray(ca.Function("g", [x], [ca.jacobian(f(x), x)])(np.concatenate([p0, p1, q0, q1])))
+        assert np.all(np.isfinite(grad))
+
+
+def test_capsules_hold_every_vertex(ur10):
+    model, geom, capsules, _, _ = ur10
+    by_frame = {c.frame: c for c in capsules}
+    assert set(by_frame) == {model.frames[go.parentFrame].name for go in geom.geometryObjects}
+    for go in geom.geometryObjects:
+        capsule = by_frame[model.frames[go.parentFrame].name]
+        fMg = model.frames[go.parentFrame].placement.inverse() * go.placement
+        centres, radii = C._geometry_balls(go.geometry)
+        for x, rho in zip(centres @ fMg.rotation.T + fMg.translation, radii):
+            d = C.segment_distance_np(x, x, capsule.a_m, capsule.b_m, smoothing_m=0.0)
+            assert d + rho <= capsule.radius_m + 1e-12
+
+
+def test_capsules_are_conservative_against_meshes(ur10):
+    model, geom, capsules, robot, _ = ur10
+    rng = np.random.default_rng(1)
+    checked = pin.GeometryModel(geom)
+    checked.addAllCollisionPairs()
+    for q in rng.uniform(robot.q_min, robot.q_max, size=(15, robot.n)):
+        mesh = C.mesh_min_distance(model, geom, q)
+        ends = C._ends_numeric(robot, q)
+        caps = {c.frame: c for c in capsules}
+        for (fa, fb), d_mesh in mesh.pairs.items():
+            a, b = caps[fa], caps[fb]
+            d_caps = C.segment_distance_np(*ends(a), *ends(b)) - a.radius_m - b.radius_m
+            assert d_caps <= d_mesh + MESH_TOL, (fa, fb, q)
+        data = checked.createData()
+        pin.computeCollisions(model, model.createData(), checked, data, q, False)
+        g, labels = C.capsule_clearances(robot, capsules, q, pairs=C.self_collision_pairs(robot, capsules).kept)
+        for k, cp in enumerate(checked.collisionPairs):
+            names = {model.frames[geom.geometryObjects[i].parentFrame].name for i in (cp.first, cp.second)}
+            hit = [v for v, label in zip(g, labels) if all(n in label.split() for n in names)]
+            if data.collisionResults[k].isCollision() and hit:
+                assert min(hit) < 0, (names, q)
+
+
+def test_folded_elbow_is_flagged(ur10):
+    model, geom, capsules, robot, pairs = ur10
+    mesh = C.mesh_min_distance(model, geom, FOLDED, pairs=pairs.links)
+    assert mesh.min_m == 0.0
+    g, labels = C.capsule_clearances(robot, capsules, FOLDED, pairs=pairs.kept)
+    flagged = {label for v, label in zip(g, labels) if v < 0}
+    assert f"links {mesh.closest[0]} and {mesh.closest[1]} closer than 0 mm" in flagged
+    off = C.self_collision_pairs(robot, capsules, disabled=[mesh.closest])
+    assert off.skipped[mesh.closest] == "disabled" and mesh.closest not in off.links
+
+
+def test_line_of_sight_blocked_by_a_link(ur10):
+    _, _, capsules, robot, pairs = ur10
+    q = np.array([0.3, -1.2, 1.5, -0.8, -1.57, 0.0])
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, q)
+    tool = data.oMf[robot.model.getFrameId("tool0")]
+    clear = C.LineOfSight(tool.translation + 2.0 * tool.rotation[:, 2], "tool0")
+    g, labels = C.capsule_clearances(robot, capsules, q, sights=[clear], pairs=())
+    assert len(g) == len(capsules) - 2  # wrist_3_link and ee_link carry tool0
+    assert np.all(g > 0)
+    a, b = C._ends_numeric(robot, q)(next(c for c in capsules if c.frame == "upper_arm_link"))
+    behind = C.LineOfSight(tool.translation + 2.0 * ((a + b) / 2 - tool.translation), "tool0")
+    g, labels = C.capsule_clearances(robot, capsules, q, sights=[behind], pairs=())
+    assert g[labels.index("line of sight to tool0: within 0 mm of link upper_arm_link")] < 0
+
+
+def test_box_row_is_below_the_exact_distance():
+    rng = np.random.default_rng(2)
+    model = pin.Model()
+    model.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "j")
+    model.lowerPositionLimit[:], model.upperPositionLimit[:] = -np.pi, np.pi
+    model.addFrame(pin.Frame("tip", 1, pin.SE3.Identity(), pin.FrameType.OP_FRAME))
+    robot = make_robot(model, "tip")
+    for _ in range(50):
+        a, b = rng.normal(size=(2, 3))
+        capsule = C.Capsule("j", a, b, rng.uniform(0.0, 0.3))
+        box = C.Box(rng.normal(size=3) * 2, rng.uniform(0.1, 1.0, 3), rng.uniform(-np.pi, np.pi, 3))
+        q = rng.uniform(-np.pi, np.pi, 1)
+        (g,), _ = C.capsule_clearances(robot, [capsule], q, obstacles=[box], pairs=())
+        wa, wb = C._ends_numeric(robot, q)(capsule)
+        axis = wb - wa
+        R = pin.Quaternion.FromTwoVectors(np.array([0.0, 0, 1]), axis / np.linalg.norm(axis)).matrix()
+        result = coal.DistanceResult()
+        coal.distance(coal.Capsule(capsule.radius_m, np.linalg.norm(axis)), coal.Transform3s(R, (wa + wb) / 2),
+                      coal.Box(*(2 * np.array(box.half_extents_m))),
+                      coal.Transform3s(pin.rpy.rpyToMatrix(*box.rpy_rad), np.array(box.center_m)),
+                      coal.DistanceRequest(), result)
+        assert g <= result.min_distance + MESH_TOL
+
+
+def test_rows_match_twin_and_finite_differences(ur10):
+    _, _, capsules, robot, pairs = ur10
+    obstacles = [C.HalfSpace((0, 0, 1), -0.2, "floor"), C.Box((0.8, 0.0, 0.3), (0.2, 0.3, 0.3)),
+                 C.Capsule("universe", (-0.8, -0.5, 0.0), (-0.8, 0.5, 1.0), 0.1)]
+    sights = [C.LineOfSight((2.0, 1.0, 1.5), "tool0")]
+    q = ca.SX.sym("q", robot.n)
+    rows = C.capsule_rows(robot, capsules, q, 0.01, obstacles, sights, pairs.kept)
+    g = ca.vertcat(*[r[0] for r in rows])
+    f = ca.Function("g", [q], [g, ca.jacobian(g, q)])
+    assert all(r[1] == 0.0 and r[2] == np.inf for r in rows)
+    rng = np.random.default_rng(3)
+    h = 1e-6
+    for qv in rng.uniform(robot.q_min, robot.q_max, size=(5, robot.n)):
+        twin, labels = C.capsule_clearances(robot, capsules, qv, 0.01, obstacles, sights, pairs.kept)
+        assert labels == tuple(r[3] for r in rows)
+        value, jac = (np.asarray(v) for v in f(qv))
+        assert np.max(np.abs(value.ravel() - twin)) < TWIN_TOL
+        fd = np.column_stack([(np.asarray(f(qv + h * e)[0]) - np.asarray(f(qv - h * e)[0])).ravel() / (2 * h)
+                              for e in np.eye(robot.n)])
+        assert np.max(np.abs(jac - fd)) <= GRAD_RTOL * max(1.0, np.max(np.abs(jac)))
+
+
+def test_dh_robot_takes_capsules_as_numbers():
+    model = load_urdf(ROOT / "problems/robots/abb_irb6640_180_255.urdf")
+    with pytest.raises(ProblemError, match="no collision geometry; give the capsules as numbers"):
+        C.capsules_from_urdf(model, ROOT / "problems/robots/abb_irb6640_180_255.urdf")
+    joints = [model.names[j] for j in range(2, 5)]
+    capsules = C.capsules_from_table(model, [{"frame": joints[0], "a_m": (0, 0, 0), "b_m": (1.0, 0, 0), "radius_m": 0.2},
+                                             {"frame": joints[2], "a_m": (0, 0, 0), "b_m": (0, 0, 1.0), "radius_m": 0.15}])
+    robot = make_robot(model, model.frames[-1].name)
+    rows = C.capsule_rows(robot, capsules, ca.SX.sym("q", robot.n), obstacles=[C.HalfSpace((0, 0, 1), 0.0)])
+    assert len(rows) >= 2
+    with pytest.raises(ProblemError, match="capsule on 'nowhere': no such frame or joint"):
+        C.capsules_from_table(model, [{"frame": "nowhere", "a_m": (0, 0, 0), "b_m": (0, 0, 0), "radius_m": 0.1}])
+    with pytest.raises(ProblemError, match="capsule 1: missing radius_m"):
+        C.capsules_from_table(model, [{"frame": joints[0], "a_m": (0, 0, 0), "b_m": (0, 0, 0)}])
+    with pytest.raises(ProblemError, match="radius_m must be finite and >= 0"):
+        C.Capsule(joints[0], (0, 0, 0), (0, 0, 0), -1.0)
