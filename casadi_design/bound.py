@@ -46,7 +46,7 @@ from .errors import DesignError
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .problem import spec_digest_blob
 from .reduced import experiment_functions
-from .rules import load_variables, plan_violations
+from .rules import joint_limits, load_variables, plan_violations
 from .solve import QUIET, Design, ipopt_call, random_plan
 
 #: Criteria with an approximate design and a bound.
@@ -338,13 +338,13 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     """
     idx = np.repeat(np.arange(len(approx.weights)), apportion(approx.weights, m))
     Q0, F0 = approx.Q[idx].T, approx.F[idx].T
-    robot = problem.robot
+    limits = joint_limits(problem)
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, m])
-    span = (robot.q_max - robot.q_min)[:, None]
+    span = (limits.upper - limits.lower)[:, None]
     plans = [(Q0, F0)]
     for _ in range(count - 1):
         Q = Q0 + ROUNDING_JITTER * span * rng.normal(size=Q0.shape)
-        plans.append((np.clip(Q, robot.q_min[:, None], robot.q_max[:, None]), F0.copy()))
+        plans.append((limits.wrap(Q), F0.copy()))
     return plans
 
 

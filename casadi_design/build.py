@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from .cell import Cell, build_cell
 from .errors import ProblemError
 from .identifiability import BaseSet, base_set
 from .ik import path_ik, sample_path
@@ -79,7 +80,8 @@ class Problem:
 
     ``base_set`` is set when the parameters were selected automatically
     (``parameters = "identifiable"``); ``m_min`` is the fewest experiments that can identify X,
-    ``ceil(L / d)`` with d the independent values per experiment.
+    ``ceil(L / d)`` with d the independent values per experiment. ``cell``: the robot's
+    capsules, obstacles and tracker of ``[cell]`` (None without one).
     """
 
     spec: ProblemSpec
@@ -88,6 +90,7 @@ class Problem:
     test_poses: TestPoses
     base_set: BaseSet | None
     m_min: int
+    cell: Cell | None = None
 
     @property
     def name(self) -> str:
@@ -185,7 +188,9 @@ def _build(spec: ProblemSpec) -> Problem:
         # parameters in units that give every column of B unit RMS over random poses (Khalil)
         c = np.sqrt(np.mean(S.reshape(-1, model.d, model.L) ** 2, axis=0).sum(axis=0))
         model = calibration_model(kin, cal.case, column_scale=c, **model_args)
-    return Problem(spec, robot, model, test_poses, chosen, m_min)
+    cell = build_cell(spec.cell, robot, spec.workspace, spec.robot.urdf,
+                      np.zeros((1, 3)) if markers is None else markers)
+    return Problem(spec, robot, model, test_poses, chosen, m_min, cell)
 
 
 def build_robot(r: RobotSpec) -> Robot:

@@ -34,6 +34,7 @@ import pinocchio as pin
 from scipy.optimize import minimize
 
 from .errors import ProblemError
+from .problem import Box, Capsule, HalfSpace
 from .robots import Robot
 from .symbolic import compose, joint_axis, rotation_about
 
@@ -51,73 +52,6 @@ def _vector(value, name: str) -> tuple[float, float, float]:
     if v.shape != (3,) or not np.all(np.isfinite(v)):
         raise ProblemError(f"{name}: needs 3 finite numbers (m); got {value!r}")
     return tuple(float(x) for x in v)
-
-
-@dataclass(frozen=True)
-class Capsule:
-    """Points within ``radius_m`` of the segment ``[a_m, b_m]`` (m, in the frame ``frame``).
-
-    ``frame`` names a Pinocchio frame (a link) or a joint; the segment moves with it. A capsule
-    in a frame fixed to the world (``"universe"``) is an obstacle.
-    """
-
-    frame: str
-    a_m: tuple[float, float, float]
-    b_m: tuple[float, float, float]
-    radius_m: float
-
-    def __post_init__(self):
-        object.__setattr__(self, "a_m", _vector(self.a_m, f"capsule on '{self.frame}': a_m"))
-        object.__setattr__(self, "b_m", _vector(self.b_m, f"capsule on '{self.frame}': b_m"))
-        r = float(self.radius_m)
-        if not (np.isfinite(r) and r >= 0):
-            raise ProblemError(f"capsule on '{self.frame}': radius_m must be finite and >= 0; got {self.radius_m!r}")
-        object.__setattr__(self, "radius_m", r)
-
-
-@dataclass(frozen=True)
-class HalfSpace:
-    """Free side ``{x : n . x >= offset_m}`` of a plane (``n`` need not be unit; m).
-
-    The floor at height h is ``HalfSpace((0, 0, 1), h)``.
-    """
-
-    normal: tuple[float, float, float]
-    offset_m: float
-    name: str = "half-space"
-
-    def __post_init__(self):
-        n = np.array(_vector(self.normal, f"{self.name}: normal"))
-        if not np.linalg.norm(n) > 0 or not np.isfinite(self.offset_m):
-            raise ProblemError(f"{self.name}: needs a non-zero normal and a finite offset_m; got "
-                               f"{self.normal!r}, {self.offset_m!r}")
-        object.__setattr__(self, "normal", tuple(n))
-
-
-@dataclass(frozen=True)
-class Box:
-    """Box centred at ``center_m``, half sizes ``half_extents_m`` along its axes (m), rotated
-    by ``rpy_rad`` (roll, pitch, yaw, URDF convention) from the world axes."""
-
-    center_m: tuple[float, float, float]
-    half_extents_m: tuple[float, float, float]
-    rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    name: str = "box"
-
-    def __post_init__(self):
-        object.__setattr__(self, "center_m", _vector(self.center_m, f"{self.name}: center_m"))
-        object.__setattr__(self, "rpy_rad", _vector(self.rpy_rad, f"{self.name}: rpy_rad"))
-        h = _vector(self.half_extents_m, f"{self.name}: half_extents_m")
-        if min(h) < 0:
-            raise ProblemError(f"{self.name}: half_extents_m must be >= 0; got {self.half_extents_m!r}")
-        object.__setattr__(self, "half_extents_m", h)
-
-    def faces(self) -> tuple[np.ndarray, np.ndarray]:
-        """Outward unit normals ``N`` (6 x 3) and offsets ``o`` (6, m): the box is
-        ``{x : N x <= o}``."""
-        R = pin.rpy.rpyToMatrix(*self.rpy_rad)
-        N = np.vstack([R.T, -R.T])
-        return N, N @ np.array(self.center_m) + np.tile(self.half_extents_m, 2)
 
 
 @dataclass(frozen=True)
@@ -512,7 +446,7 @@ def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: 
                     raise ProblemError(f"obstacle capsule on '{obstacle.frame}': it moves with the robot; "
                                        "give obstacles in a fixed frame such as 'universe'")
                 g = dist(a, b, *ends(obstacle)) - r - obstacle.radius_m - clearance_m
-                out.append((g, f"link {name} closer than {mm} to the capsule obstacle on {obstacle.frame}"))
+                out.append((g, f"link {name} closer than {mm} to {obstacle.name or 'the capsule obstacle'}"))
     for sight in sights:
         jid, M = _carrier(model, sight.frame)
         excluded = (set(sight.excluded) if sight.excluded is not None

@@ -33,7 +33,7 @@ import numpy as np
 
 from .build import Problem
 from .reduced import reduced_nlp
-from .rules import LoadVariables, load_variables, pose_constraints
+from .rules import LoadVariables, joint_limits, load_variables, pose_constraints
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,15 +116,16 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
 
 
 def plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of ``(vec Q, vec V)``: joint limits (rad, m) and the load variables."""
-    robot = problem.robot
-    return (np.concatenate([np.tile(robot.q_min, m), np.full(loads.nv * m, loads.lower)]),
-            np.concatenate([np.tile(robot.q_max, m), np.ones(loads.nv * m)]))
+    """Bounds of ``(vec Q, vec V)``: joint limits (rad, m; :meth:`JointLimits.bounds`) and the
+    load variables."""
+    lower, upper = joint_limits(problem).bounds()
+    return (np.concatenate([np.tile(lower, m), np.full(loads.nv * m, loads.lower)]),
+            np.concatenate([np.tile(upper, m), np.ones(loads.nv * m)]))
 
 
 def rule_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment, joint distance
-    of each pair ``i < j`` (squared, rad^2)."""
+    of each pair ``i < j`` (squared, rad^2; :func:`~casadi_design.rules.joint_distance_sq`)."""
     rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad
     n_norm = m if loads.norm_lb is not None else 0
     n_pairs = m * (m - 1) // 2 if dmin > 0 else 0

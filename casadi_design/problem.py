@@ -43,7 +43,7 @@ SYMMETRY_RTOL = 1e-9
 
 SECTIONS: dict[str, set[str] | None] = {
     "": {"name", "description", "robot", "calibration", "measurement", "test_poses",
-         "experiments", "design", "solver"},
+         "experiments", "design", "solver", "cell"},
     "robot": {"planar_links_m", "urdf", "dh", "frame", "tool_xyz_m", "tool_rpy_deg", "joint_limits_rad"},
     "robot.dh": {"convention", "joints", "flange_xyz_m", "flange_rpy_deg"},
     "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "limits_deg"},
@@ -57,9 +57,16 @@ SECTIONS: dict[str, set[str] | None] = {
     "experiments": {"m", "force", "workspace"},
     "experiments.force": {"mode", "magnitude_N", "vector_N", "direction", "load_point_m"},
     "experiments.workspace": {"box_min_m", "box_max_m", "half_spaces", "sphere_center_m",
-                              "sphere_radius_m", "floor_z_m", "min_joint_distance_rad"},
+                              "sphere_radius_m", "floor_z_m", "min_joint_distance_rad",
+                              "joint_limit_margin_rad"},
     "experiments.workspace.half_spaces": {"normal", "offset_m"},
     "design": {"criteria", "parameter_scaling"},
+    "cell": {"clearance_m", "capsules_per_link", "capsules", "disabled_pairs", "obstacles", "tracker",
+             "collision_urdf"},
+    "cell.capsules": {"frame", "a_m", "b_m", "radius_m"},
+    "cell.obstacles": {"name", "kind", "normal", "offset_m", "center_m", "half_extents_m", "rpy_deg",
+                       "a_m", "b_m", "radius_m"},
+    "cell.tracker": {"position_m", "reflector_axis", "acceptance_deg"},
     "solver": {"starts", "seed", "max_iter", "tol", "ipopt"},
     "solver.ipopt": None,  # passed through to IPOPT unchanged
 }
@@ -179,12 +186,119 @@ class ForceSpec:
     load_point_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
+def _vector3(value, name: str) -> tuple[float, float, float]:
+    v = np.asarray(value, dtype=float)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ProblemError(f"{name}: needs 3 finite numbers; got {value!r}")
+    return tuple(float(x) for x in v)
+
+
 @dataclass(frozen=True)
 class HalfSpace:
-    """``normal . p >= offset_m`` for the measured point ``p`` (m)."""
+    """The free side ``{x : normal . x >= offset_m}`` of a plane (m; ``normal`` need not be unit).
+
+    In ``[experiments.workspace]`` it bounds the measured points; as an obstacle of the cell
+    (the floor at height h is ``HalfSpace((0, 0, 1), h)``) it bounds every moving capsule.
+    """
 
     normal: tuple[float, float, float]
     offset_m: float
+    name: str = "half-space"
+
+    def __post_init__(self):
+        n = _vector3(self.normal, f"{self.name}: normal")
+        if not np.linalg.norm(n) > 0 or not np.isfinite(self.offset_m):
+            raise ProblemError(f"{self.name}: needs a non-zero normal and a finite offset_m; got "
+                               f"{self.normal!r}, {self.offset_m!r}")
+        object.__setattr__(self, "normal", n)
+        object.__setattr__(self, "offset_m", float(self.offset_m))
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """Points within ``radius_m`` of the segment ``[a_m, b_m]`` (m, in the frame ``frame``).
+
+    ``frame`` names a frame (a link) or a joint of the robot model; the segment moves with it.
+    A capsule in the world frame (``"universe"``) is an obstacle; ``name`` names it in messages.
+    """
+
+    frame: str
+    a_m: tuple[float, float, float]
+    b_m: tuple[float, float, float]
+    radius_m: float
+    name: str = ""
+
+    def __post_init__(self):
+        object.__setattr__(self, "a_m", _vector3(self.a_m, f"capsule on '{self.frame}': a_m"))
+        object.__setattr__(self, "b_m", _vector3(self.b_m, f"capsule on '{self.frame}': b_m"))
+        r = float(self.radius_m)
+        if not (np.isfinite(r) and r >= 0):
+            raise ProblemError(f"capsule on '{self.frame}': radius_m must be finite and >= 0; got {self.radius_m!r}")
+        object.__setattr__(self, "radius_m", r)
+
+
+@dataclass(frozen=True)
+class Box:
+    """Box centred at ``center_m``, half sizes ``half_extents_m`` along its axes (m), turned
+    by ``rpy_rad`` (roll, pitch, yaw, URDF convention) from the world axes."""
+
+    center_m: tuple[float, float, float]
+    half_extents_m: tuple[float, float, float]
+    rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str = "box"
+
+    def __post_init__(self):
+        object.__setattr__(self, "center_m", _vector3(self.center_m, f"{self.name}: center_m"))
+        object.__setattr__(self, "rpy_rad", _vector3(self.rpy_rad, f"{self.name}: rpy_rad"))
+        h = _vector3(self.half_extents_m, f"{self.name}: half_extents_m")
+        if min(h) < 0:
+            raise ProblemError(f"{self.name}: half_extents_m must be >= 0; got {self.half_extents_m!r}")
+        object.__setattr__(self, "half_extents_m", h)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """World rotation of the box's axes: ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+        (cr, cp, cy), (sr, sp, sy) = np.cos(self.rpy_rad), np.sin(self.rpy_rad)
+        return (np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+                @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]]))
+
+    def faces(self) -> tuple[np.ndarray, np.ndarray]:
+        """Outward unit normals ``N`` (6 x 3) and offsets ``o`` (6, m): the box is
+        ``{x : N x <= o}``."""
+        R = self.rotation
+        N = np.vstack([R.T, -R.T])
+        return N, N @ np.array(self.center_m) + np.tile(self.half_extents_m, 2)
+
+
+@dataclass(frozen=True)
+class TrackerSpec:
+    """The laser tracker: at ``position_m`` (world, m); each reflector (SMR) opens along the
+    unit ``reflector_axis`` (measured frame) and returns the beam within ``acceptance_rad`` of
+    that axis."""
+
+    position_m: tuple[float, float, float]
+    reflector_axis: tuple[float, float, float]
+    acceptance_rad: float
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    """The calibration cell: robot capsules, obstacles and tracker, with a clearance (m).
+
+    ``capsules_per_link``: capsules fitted around each link's URDF collision meshes (0: none);
+    ``capsules``: capsules given as numbers (added to the fitted ones; the only ones of a DH
+    robot); ``disabled_pairs``: pairs of link frames never checked against each other;
+    ``collision_urdf``: for a DH robot, a URDF of the same robot (same joint names) whose
+    collision geometry checks the plans.
+    """
+
+    clearance_m: float = 0.0
+    capsules_per_link: int = 0
+    capsules: tuple[Capsule, ...] = ()
+    disabled_pairs: tuple[tuple[str, str], ...] = ()
+    obstacles: tuple[HalfSpace | Box | Capsule, ...] = ()
+    tracker: TrackerSpec | None = None
+    collision_urdf: str = ""
 
 
 @dataclass(frozen=True)
@@ -194,7 +308,8 @@ class Workspace:
     Every measured point inside the box, the half-spaces and the sphere (the tracker's range);
     every moving joint origin, moving frame (flange, tool) and measured point at
     ``z >= floor_z_m``; the configurations of any two experiments at least
-    ``min_joint_distance_rad`` apart (Euclidean norm of q_i - q_j).
+    ``min_joint_distance_rad`` apart (:func:`casadi_design.rules.joint_distance`); every
+    joint at least ``joint_limit_margin_rad`` (rad, m for prismatic joints) inside its limits.
     """
 
     box_min_m: tuple[float, float, float] | None = None
@@ -204,6 +319,7 @@ class Workspace:
     sphere_radius_m: float | None = None
     floor_z_m: float | None = None
     min_joint_distance_rad: float = 0.0
+    joint_limit_margin_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -234,6 +350,7 @@ class ProblemSpec:
     criteria: tuple[str, ...]
     parameter_scaling: str = "column"
     solver: SolverSettings = field(default_factory=SolverSettings)
+    cell: CellSpec | None = None
 
 
 # --------------------------------------------------------------------------- field reader
@@ -440,8 +557,9 @@ def _parse(raw: dict, path: str) -> ProblemSpec:
     if scaling not in ("column", "none"):
         raise design.error(f"'{scaling}'", "allowed: column, none", "parameter_scaling")
     solver = _solver(top.sub("solver"))
+    cell = _cell(top.sub("cell"), robot)
     return ProblemSpec(name, path, description, robot, calibration, measurement, test_poses, m_values,
-                       force, workspace, criteria, scaling, solver)
+                       force, workspace, criteria, scaling, solver, cell)
 
 
 def check_size(path: str, where: str, count: int, limit: int, bytes_per_l2: int, what: str,
@@ -720,7 +838,7 @@ def _workspace(w: _Reader | None) -> Workspace:
         normal = h.array("normal", (3,), hint="a non-zero 3-vector")
         if not np.linalg.norm(normal) > 0:
             raise h.error("is zero", "give a non-zero 3-vector", "normal")
-        spaces.append(HalfSpace(_vec(normal), h.number("offset_m", hint="b in normal . p >= b, m")))
+        spaces.append(HalfSpace(_vec(normal), h.number("offset_m", hint="b in normal . p >= b, m"), f"half-space {k + 1}"))
     center = w.array("sphere_center_m", (3,), None, hint="(x, y, z) of the tracker, m")
     radius = w.number("sphere_radius_m", None, hint="the tracker's range, m", positive=True)
     if (center is None) != (radius is None):
@@ -729,7 +847,88 @@ def _workspace(w: _Reader | None) -> Workspace:
         _vec(lo), _vec(hi), tuple(spaces), _vec(center), radius,
         w.number("floor_z_m", None, hint="height of the floor, m"),
         w.number("min_joint_distance_rad", 0.0, hint="a distance in rad", nonnegative=True),
+        w.number("joint_limit_margin_rad", 0.0, hint="a margin inside the joint limits in rad, e.g. 0.05",
+                 nonnegative=True),
     )
+
+
+def _entries(c: _Reader, key: str, example: str) -> list[_Reader]:
+    """The inline tables of the list ``key`` of ``c``, each as a reader named ``key[k]``."""
+    out = []
+    for k, row in enumerate(c.get(key, list, [])):
+        if not isinstance(row, dict):
+            raise c.error(f"entry {k + 1} is {_short(row)}", f"write each entry as {example}", key)
+        reader = _Reader(c.path, row, f"{c.section}.{key}")
+        reader.section = f"{c.section}.{key}[{k + 1}]"
+        out.append(reader)
+    return out
+
+
+def _capsule(r: _Reader, frame: str, name: str = "") -> Capsule:
+    return Capsule(frame, _vec(r.array("a_m", (3,), hint="one end of the segment, m")),
+                   _vec(r.array("b_m", (3,), hint="the other end of the segment, m")),
+                   r.number("radius_m", hint="the capsule's radius, m", nonnegative=True), name)
+
+
+def _cell(c: _Reader | None, robot: RobotSpec) -> CellSpec | None:
+    if c is None:
+        return None
+    capsules = tuple(_capsule(r, r.get("frame", str, hint="a link frame or joint name of the robot"))
+                     for r in _entries(c, "capsules", "{ frame = \"link\", a_m = [...], b_m = [...], radius_m = r }"))
+    per_link = c.integer("capsules_per_link", 3 if robot.source == "urdf" else 0,
+                         "capsules fitted around each link's collision meshes, 1 to 8 (0: none)", low=0, high=8)
+    if per_link and robot.source != "urdf":
+        raise c.error(f"is {per_link} but the robot has no URDF collision meshes",
+                      "give the capsules as numbers (capsules = [...]) and capsules_per_link = 0", "capsules_per_link")
+    pairs = []
+    for k, pair in enumerate(c.get("disabled_pairs", list, [])):
+        if not (isinstance(pair, list) and len(pair) == 2 and all(isinstance(v, str) for v in pair)):
+            raise c.error(f"entry {k + 1} is {_short(pair)}", "write each as [\"link_a\", \"link_b\"]", "disabled_pairs")
+        pairs.append((pair[0], pair[1]))
+    obstacles = []
+    for r in _entries(c, "obstacles", "{ name = \"table\", kind = \"box\", center_m = [...], half_extents_m = [...] }"):
+        name = r.get("name", str, hint="a name for messages, e.g. name = \"table\"")
+        kind = r.get("kind", str, hint="half_space, box or capsule")
+        keys = {"half_space": {"normal", "offset_m"}, "box": {"center_m", "half_extents_m", "rpy_deg"},
+                "capsule": {"a_m", "b_m", "radius_m"}}
+        if kind not in keys:
+            raise r.error(f"'{kind}'", "allowed: half_space, box, capsule", "kind")
+        extra = sorted(set(r.table) - keys[kind] - {"name", "kind"})
+        if extra:
+            raise r.error(f"'{extra[0]}' is not a key of a {kind}", f"a {kind} takes {', '.join(sorted(keys[kind]))}", extra[0])
+        if kind == "half_space":
+            normal = r.array("normal", (3,), hint="the plane's normal, towards the free side")
+            if not np.linalg.norm(normal) > 0:
+                raise r.error("is zero", "give a non-zero 3-vector", "normal")
+            obstacles.append(HalfSpace(_vec(normal), r.number("offset_m", hint="b in normal . x >= b, m"), name))
+        elif kind == "box":
+            half = r.array("half_extents_m", (3,), hint="half sizes along the box's axes, m")
+            if not np.all(half > 0):
+                raise r.error(f"{half.tolist()}", "give positive half sizes (m)", "half_extents_m")
+            rpy = r.array("rpy_deg", (3,), np.zeros(3), hint="roll, pitch, yaw of the box, deg")
+            obstacles.append(Box(_vec(r.array("center_m", (3,), hint="the box's centre, m")), _vec(half),
+                                 _vec(np.deg2rad(rpy)), name))
+        else:
+            obstacles.append(_capsule(r, "universe", name))
+    t = c.sub("tracker")
+    tracker = None
+    if t is not None:
+        axis = t.array("reflector_axis", (3,), hint="the direction the reflector opens towards, in the measured frame")
+        if not np.linalg.norm(axis) > 0:
+            raise t.error("is zero", "give a non-zero 3-vector", "reflector_axis")
+        acceptance = t.number("acceptance_deg", hint="the reflector's acceptance half-angle, e.g. 30 for an SMR",
+                              positive=True)
+        if acceptance >= 180:
+            raise t.error(f"is {acceptance}", "give an angle below 180 deg", "acceptance_deg")
+        tracker = TrackerSpec(_vec(t.array("position_m", (3,), hint="the tracker's head, world, m")),
+                              _vec(axis / np.linalg.norm(axis)), math.radians(acceptance))
+    urdf = c.get("collision_urdf", str, "")
+    if urdf and robot.source != "dh":
+        raise c.error("is only used with a DH robot", "remove it: the robot's own URDF meshes are used", "collision_urdf")
+    if urdf and not urdf.startswith("example-robot-data:") and not Path(urdf).is_absolute():
+        urdf = str(Path(c.path).parent / urdf)
+    return CellSpec(c.number("clearance_m", 0.0, hint="the smallest distance kept between bodies, m", nonnegative=True),
+                    per_link, capsules, tuple(pairs), tuple(obstacles), tracker, urdf)
 
 
 def _solver(table: _Reader | None) -> SolverSettings:

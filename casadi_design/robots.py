@@ -209,15 +209,19 @@ def example_robot_data_dir() -> Path:
     return root
 
 
+def urdf_file(path: str | Path) -> Path:
+    """The file of a URDF path: ``example-robot-data:<relative path>`` or a file path."""
+    text, prefix = str(path), "example-robot-data:"
+    return example_robot_data_dir() / text[len(prefix):] if text.startswith(prefix) else Path(text)
+
+
 def load_urdf(path: str | Path) -> pin.Model:
     """Load a URDF into a ``pinocchio.Model`` (kinematics only).
 
     ``path`` is a file path, or ``example-robot-data:<relative path>`` for a URDF shipped by
     the example-robot-data package, e.g. ``example-robot-data:ur_description/urdf/ur10_robot.urdf``.
     """
-    text = str(path)
-    prefix = "example-robot-data:"
-    file = example_robot_data_dir() / text[len(prefix) :] if text.startswith(prefix) else Path(text)
+    file = urdf_file(path)
     if not file.is_file():
         raise ProblemError(f"[robot].urdf: file {file} does not exist; give a URDF path")
     with _captured_stderr() as said:

@@ -2,14 +2,19 @@
 
 A plan is m experiments ``(q_i, F_i)``. Its rules:
 
-* joint limits: ``q_min <= q_i <= q_max`` (rad, m);
+* joint limits (:func:`joint_limits`): ``q_min + margin <= q_i <= q_max - margin`` (rad, m);
+  a revolute joint whose range spans a full turn is periodic instead: free in the NLP and
+  wrapped into its range afterwards;
 * calibration load (:class:`casadi_design.problem.ForceSpec`): ``|F_i| = F_max`` ("equal"),
   ``|F_i| <= F_max`` ("bound"), ``F_i = F_fixed`` ("fixed"), ``F_i = a F_max u`` with
   ``0 <= a <= 1`` ("direction");
 * workspace of every configuration (:func:`pose_constraints`): each measured point in the box,
   the half-spaces and the tracker's sphere; every moving frame origin (joints, links, flange,
-  tool) and measured point above the floor;
-* distinct experiments: ``|q_i - q_j| >= min_joint_distance_rad``.
+  tool) and measured point above the floor; with a ``[cell]``, the rows of
+  :func:`casadi_design.cell.cell_rows` (self-collision, obstacles, lines of sight, reflector
+  incidence) and, after solving, the clearance on the real geometry
+  (:func:`casadi_design.cell.clearances`);
+* distinct experiments: ``joint_distance(q_i, q_j) >= min_joint_distance_rad``.
 
 :func:`pose_constraints` gives the workspace rows as one CasADi function (the NLP imposes it on
 every experiment); the NLP's bounds and load variables encode the other rules. After solving,
@@ -26,6 +31,9 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem
+from .cell import cell_rows, clearances
+from .errors import ProblemError
+from .symbolic import joint_axis
 
 #: Largest violation of a joint limit or workspace rule accepted (rad, m).
 FEASIBILITY_TOL = 1e-6
@@ -34,16 +42,84 @@ LOAD_RTOL = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
+class JointLimits:
+    """The joint limits of a plan (rad, m for prismatic joints).
+
+    ``lower``/``upper``: the robot's limits moved inward by ``joint_limit_margin_rad``.
+    ``periodic``: revolute joints whose range is more than a full turn. Their angle is free in
+    the NLP (a bound there would stop the local search at an angle equivalent to one inside),
+    every angle has an equivalent in the range, and :meth:`wrap` maps it to the one within pi
+    of the range's middle.
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    periodic: np.ndarray
+
+    @property
+    def middle(self) -> np.ndarray:
+        return (self.lower + self.upper) / 2
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of q in the NLP: the limits, -inf / inf for periodic joints."""
+        return (np.where(self.periodic, -np.inf, self.lower), np.where(self.periodic, np.inf, self.upper))
+
+    def wrap(self, Q: np.ndarray) -> np.ndarray:
+        """``Q`` (n x m) with each periodic angle moved by whole turns to
+        ``[middle - pi, middle + pi)``, the others clipped to the limits."""
+        Q = np.asarray(Q, dtype=float)
+        c = self.middle[:, None]
+        wrapped = c + np.mod(Q - c + np.pi, 2 * np.pi) - np.pi
+        return np.where(self.periodic[:, None], wrapped, np.clip(Q, self.lower[:, None], self.upper[:, None]))
+
+    def sample(self, rng: np.random.Generator) -> np.ndarray:
+        """A configuration drawn uniformly within the limits (within one turn for periodic joints)."""
+        lo = np.where(self.periodic, self.middle - np.pi, self.lower)
+        hi = np.where(self.periodic, self.middle + np.pi, self.upper)
+        return rng.uniform(lo, hi)
+
+
+@functools.cache
+def joint_limits(problem: Problem) -> JointLimits:
+    """The plan's joint limits (:class:`JointLimits`) of ``problem``."""
+    robot, margin = problem.robot, problem.workspace.joint_limit_margin_rad
+    lower, upper = robot.q_min + margin, robot.q_max - margin
+    narrow = np.flatnonzero(lower > upper)
+    if narrow.size:
+        k = int(narrow[0])
+        raise ProblemError(f"{problem.path}: [experiments.workspace].joint_limit_margin_rad: {margin:g} leaves no "
+                           f"room in the range [{robot.q_min[k]:.6g}, {robot.q_max[k]:.6g}] of {robot.joints[k]}; "
+                           "use a smaller margin")
+    revolute = np.array([joint_axis(robot.model.joints[j])[1] == "R" for j in robot.joint_ids])
+    return JointLimits(lower, upper, revolute & (upper - lower > 2 * np.pi + 1e-9))
+
+
+def joint_distance_sq(limits: JointLimits, qa, qb):
+    """Squared distance (rad^2) of two configurations (numpy or CasADi): ``sum_k d_k^2`` with
+    ``d_k = q_a,k - q_b,k``, or ``2 sin(d_k / 2)`` for periodic joints (the chord: equal to
+    ``d_k`` to third order, zero for a whole turn)."""
+    d = qa - qb
+    numeric = isinstance(d, np.ndarray)
+    if np.any(limits.periodic):
+        w = limits.periodic.astype(float)
+        w = w if numeric else ca.DM(w)
+        d = w * 2 * (np.sin if numeric else ca.sin)(d / 2) + (1 - w) * d
+    return float(d @ d) if numeric else ca.sumsqr(d)
+
+
+@dataclass(frozen=True, eq=False)
 class PoseConstraints:
-    """Workspace rows of one configuration: ``lb <= g(q) <= ub`` (m), one label per row."""
+    """Workspace rows of one configuration: ``lb <= g(q) <= ub``, one label and unit ("m" or
+    "rad") per row."""
 
     g: ca.Function
     lb: np.ndarray
     ub: np.ndarray
     labels: tuple[str, ...]
+    units: tuple[str, ...]
 
     def violation(self, q: np.ndarray) -> np.ndarray:
-        """Violation (m, >= 0) of each row at configuration ``q``."""
+        """Violation (in the row's unit, >= 0) of each row at configuration ``q``."""
         if not self.lb.size:
             return np.zeros(0)
         g = np.asarray(self.g(np.asarray(q, dtype=float))).ravel()
@@ -56,30 +132,35 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
     ws, model, robot = problem.workspace, problem.model, problem.robot
     q = ca.SX.sym("q", robot.n)
     P = model.points(q)
-    rows: list[tuple[ca.SX, float, float, str]] = []
+    rows: list[tuple[ca.SX, float, float, str, str]] = []
     for j in range(P.shape[1]):
         p, name = P[:, j], f"measured point {j + 1}" if P.shape[1] > 1 else "measured point"
         if ws.box_min_m is not None:
-            rows += [(p[a], ws.box_min_m[a], ws.box_max_m[a], f"{name}: {'xyz'[a]} outside the box") for a in range(3)]
+            rows += [(p[a], ws.box_min_m[a], ws.box_max_m[a], f"{name}: {'xyz'[a]} outside the box", "m")
+                     for a in range(3)]
         for k, hs in enumerate(ws.half_spaces):
             n = np.array(hs.normal) / np.linalg.norm(hs.normal)
             rows.append((ca.dot(ca.DM(n), p), hs.offset_m / np.linalg.norm(hs.normal), np.inf,
-                         f"{name}: outside half-space {k + 1}"))
+                         f"{name}: outside half-space {k + 1}", "m"))
         if ws.sphere_center_m is not None:
             rows.append((ca.sqrt(ca.sumsqr(p - ca.DM(ws.sphere_center_m)) + 1e-12), -np.inf, ws.sphere_radius_m,
-                         f"{name}: out of the tracker's range"))
+                         f"{name}: out of the tracker's range", "m"))
     if ws.floor_z_m is not None:
         # frames fixed to the base (not moving with q) are where the robot stands: not constrained
         frames, names = model.kinematics.frame_origins(q), model.kinematics.frame_names
         named = ([(frames[:, k], f"frame '{names[k]}'") for k in range(frames.shape[1] - 1)]
                  + [(frames[:, -1], f"measured frame '{robot.frame}'")]
                  + [(P[:, j], f"measured point {j + 1}") for j in range(P.shape[1])])
-        rows += [(p[2], ws.floor_z_m, np.inf, f"{name}: below the floor")
+        rows += [(p[2], ws.floor_z_m, np.inf, f"{name}: below the floor", "m")
                  for p, name in named if ca.depends_on(p[2], q)]
+    if problem.cell is not None:
+        R = model.kinematics.placement(q, ca.DM.zeros(len(model.kinematics.parameter_names)))[0]
+        rows += cell_rows(problem.cell, robot, q, R, P)
     g = ca.vertcat(*[r[0] for r in rows]) if rows else ca.SX(0, 1)
     return PoseConstraints(ca.Function("workspace", [q], [g], ["q"], ["g"]),
                            np.array([r[1] for r in rows], dtype=float),
-                           np.array([r[2] for r in rows], dtype=float), tuple(r[3] for r in rows))
+                           np.array([r[2] for r in rows], dtype=float), tuple(r[3] for r in rows),
+                           tuple(r[4] for r in rows))
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,15 +220,24 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
     robot, force, ws = problem.robot, problem.force, problem.workspace
     Q = np.asarray(Q, dtype=float)
     F = np.asarray(F, dtype=float).reshape(problem.model.nF, Q.shape[1])
-    out, rules = [], pose_constraints(problem)
+    out, rules, limits = [], pose_constraints(problem), joint_limits(problem)
     for i, q in enumerate(Q.T):
         for k, j in enumerate(robot.joints):
-            if not robot.q_min[k] - FEASIBILITY_TOL <= q[k] <= robot.q_max[k] + FEASIBILITY_TOL:
-                out.append(f"experiment {i + 1}: {j} = {q[k]:.6g} outside [{robot.q_min[k]:.6g}, "
-                           f"{robot.q_max[k]:.6g}]")
-        for v, label in zip(rules.violation(q), rules.labels):
+            if not limits.lower[k] - FEASIBILITY_TOL <= q[k] <= limits.upper[k] + FEASIBILITY_TOL:
+                margin = f" (limits less the {ws.joint_limit_margin_rad:g} margin)" if ws.joint_limit_margin_rad else ""
+                out.append(f"experiment {i + 1}: {j} = {q[k]:.6g} outside [{limits.lower[k]:.6g}, "
+                           f"{limits.upper[k]:.6g}]{margin}")
+        for v, label, unit in zip(rules.violation(q), rules.labels, rules.units):
             if v > FEASIBILITY_TOL:
-                out.append(f"experiment {i + 1}: {label} by {v * 1e3:.3g} mm")
+                out.append(f"experiment {i + 1}: {label} by " +
+                           (f"{v * 1e3:.3g} mm" if unit == "m" else f"{np.rad2deg(v):.3g} deg"))
+    if problem.cell is not None:
+        c = problem.cell.spec.clearance_m
+        for i, near in enumerate(clearances(problem.cell, Q)):
+            if near.distance_m < c - FEASIBILITY_TOL:
+                out.append(f"experiment {i + 1}: {near.between[0]} and {near.between[1]} are "
+                           f"{near.distance_m * 1e3:.3g} mm apart on the {problem.cell.check.source}, "
+                           f"below the {c * 1e3:g} mm clearance")
     if force is not None and F.size:
         for i, f in enumerate(F.T):
             norm = float(np.linalg.norm(f))
@@ -166,7 +256,7 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
     m = Q.shape[1]
     for i in range(m):
         for j in range(i + 1, m):
-            dist = float(np.linalg.norm(Q[:, i] - Q[:, j]))
+            dist = float(np.sqrt(joint_distance_sq(limits, Q[:, i], Q[:, j])))
             if dist < dmin - FEASIBILITY_TOL:
                 out.append(f"experiments {i + 1} and {j + 1}: joint distance {dist:.4g} rad below "
                            f"min_joint_distance_rad = {dmin:g}")

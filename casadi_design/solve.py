@@ -28,7 +28,7 @@ from .criteria import CRITERIA
 from .errors import DesignError, ProblemError
 from .measures import Scores, score_plan
 from .nlp import B0_at_test_poses, DesignNLP, build_nlp
-from .rules import plan_violations, pose_constraints
+from .rules import joint_limits, plan_violations, pose_constraints
 
 if TYPE_CHECKING:
     from .bound import Bound
@@ -124,11 +124,11 @@ def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
 def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """A random feasible plan: ``Q`` (n x m, rad) within the limits and workspace, ``F`` (nF x m, N)."""
     robot, model, force = problem.robot, problem.model, problem.force
-    rules = pose_constraints(problem)
+    rules, limits = pose_constraints(problem), joint_limits(problem)
     Q = np.empty((robot.n, m))
     for i in range(m):
         for _ in range(SAMPLING_TRIES):
-            q = rng.uniform(robot.q_min, robot.q_max)
+            q = limits.sample(rng)
             if not np.any(rules.violation(q) > 0):
                 break
         else:
@@ -247,7 +247,7 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
     with ipopt_call():
         sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
     Q, F = (np.asarray(v, dtype=float) for v in d_nlp.plan(sol["x"]))
-    return np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None]), F
+    return joint_limits(problem).wrap(Q), F
 
 
 def solve_start(
@@ -268,7 +268,7 @@ def solve_start(
         stats = solver.stats()
         iterations += int(stats.get("iter_count", 0))
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(x))
-    Q = np.clip(Q, problem.robot.q_min[:, None], problem.robot.q_max[:, None])
+    Q = joint_limits(problem).wrap(Q)
     scores = plan_scores(problem, Q, F, B0)
     rec = StartRecord(
         status=str(stats["return_status"]),

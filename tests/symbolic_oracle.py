@@ -19,7 +19,7 @@ import numpy as np
 from casadi_design import nlp as nlp_module
 from casadi_design.build import Problem
 from casadi_design.nlp import B0_at_test_poses, DesignNLP, information_scale
-from casadi_design.rules import load_variables, pose_constraints
+from casadi_design.rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,7 +117,8 @@ def lifted_nlp(problem: Problem, criterion: str,
     g = [obj.g, ca.sum1(V**2).T if loads.norm_lb is not None else ca.SX(0, 1)]
     g += [rules.g(Q[:, i]) for i in range(m)]
     if problem.workspace.min_joint_distance_rad > 0:
-        g += [ca.sumsqr(Q[:, i] - Q[:, j]) for i in range(m) for j in range(i + 1, m)]
+        limits = joint_limits(problem)
+        g += [joint_distance_sq(limits, Q[:, i], Q[:, j]) for i in range(m) for j in range(i + 1, m)]
     lb_rules, ub_rules = nlp_module.rule_bounds(problem, m, loads)
     lb_plan, ub_plan = nlp_module.plan_bounds(problem, m, loads)
 

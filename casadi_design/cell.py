@@ -1,0 +1,313 @@
+"""The calibration cell of a problem: the robot's capsules, the obstacles and the tracker.
+
+Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
+
+* the cell's rows of one configuration (:func:`cell_rows`), added to the workspace rows of
+  :func:`casadi_design.rules.pose_constraints`, hence imposed on every experiment by the NLP
+  and checked by :func:`casadi_design.rules.plan_violations`:
+  - self-collision, obstacles (the floor of ``[experiments.workspace]`` included: every moving
+    capsule stays above it) and lines of sight, from :func:`casadi_design.collision.capsule_rows`
+    (m, each ``>= 0``: capsules apart by at least ``clearance_m``);
+  - reflector incidence (rad): the beam from reflector ``k`` at ``p_k`` to the tracker at
+    ``t`` makes the angle ``acos(a . u_k)`` with the reflector's axis ``a = R(q) a_tool``,
+    ``u_k = (t - p_k) / |t - p_k|``; it must stay within the acceptance angle. Written as
+    ``atan2(sqrt(|a x u|^2 + eps^2), a . u) <= acceptance`` (smooth everywhere; eps = 1e-9).
+  A reflector that the tracker cannot see rejects the pose, rather than dropping that
+  measurement: the information matrix assumes every marker is measured in every experiment,
+  and an operator would re-teach such a pose anyway.
+* the check of a plan on the real geometry (:func:`clearances`): exact distances (coal,
+  through Pinocchio) between the URDF collision meshes (or, for robots without meshes, the
+  capsules themselves), the capsules given as numbers (a tool) and the obstacles, for the
+  pairs the rows constrain. A plan whose bodies come closer than ``clearance_m`` breaks a
+  rule of the problem.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import coal
+import numpy as np
+import pinocchio as pin
+
+from .collision import (
+    LineOfSight,
+    PairSelection,
+    capsule_rows,
+    capsules_from_geometry,
+    load_collision_geometry,
+    self_collision_pairs,
+)
+from .errors import ProblemError
+from .problem import Box, Capsule, CellSpec, HalfSpace, Workspace
+from .robots import Robot, example_robot_data_dir, load_urdf, urdf_file
+
+#: ``eps`` of the smoothed incidence angle (see the module docstring).
+INCIDENCE_SMOOTHING = 1e-9
+#: Largest change (m, rad) of the offset between a DH joint frame and the same joint of
+#: ``collision_urdf`` over test configurations: both must carry the same link.
+SAME_KINEMATICS_TOL = 1e-6
+
+
+@dataclass(frozen=True, eq=False)
+class CheckGeometry:
+    """The real geometry a plan is checked on.
+
+    ``model`` moves ``geometry`` (whose collision pairs are the checked ones); ``q_index[k]``
+    is where chain joint k sits in ``model``'s configuration; ``labels`` names each geometry
+    object's body (link, tool capsule or obstacle); ``source`` says what the robot's bodies
+    are ("URDF collision meshes" or "capsules").
+    """
+
+    model: pin.Model
+    geometry: pin.GeometryModel
+    q_index: np.ndarray
+    labels: tuple[str, ...]
+    source: str
+
+    def configuration(self, q: np.ndarray) -> np.ndarray:
+        full = pin.neutral(self.model)
+        full[self.q_index] = q
+        return full
+
+
+@dataclass(frozen=True, eq=False)
+class Cell:
+    """A problem's cell: ``capsules`` of the robot, the checked self-collision ``pairs``, the
+    ``obstacles`` (the floor included), one line of ``sights`` per reflector, and the
+    geometry plans are ``check``-ed on. ``spec`` keeps the clearance and the tracker."""
+
+    spec: CellSpec
+    capsules: tuple[Capsule, ...]
+    pairs: PairSelection
+    obstacles: tuple[HalfSpace | Box | Capsule, ...]
+    sights: tuple[LineOfSight, ...]
+    check: CheckGeometry
+
+
+@dataclass(frozen=True)
+class Clearance:
+    """Smallest distance (m) between the checked bodies in one configuration, and which."""
+
+    distance_m: float
+    between: tuple[str, str]
+
+
+def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: str,
+               markers_m: np.ndarray) -> Cell | None:
+    """The cell of ``[cell]`` for ``robot`` (built from ``urdf`` when not empty).
+
+    ``markers_m`` (k x 3, measured frame, m): the reflectors, one line of sight each.
+    """
+    if spec is None:
+        return None
+    model = robot.model
+    geometry, carriers, where = None, None, "[cell]"
+    if urdf:
+        geometry = load_collision_geometry(model, urdf_file(urdf), _package_dirs(urdf))
+        carriers = [go.parentJoint for go in geometry.geometryObjects]
+        fitted_in = (model, geometry)
+    elif spec.collision_urdf:
+        urdf_model = load_urdf(spec.collision_urdf)
+        geometry = load_collision_geometry(urdf_model, urdf_file(spec.collision_urdf),
+                                           _package_dirs(spec.collision_urdf))
+        geometry, carriers = _onto_chain(robot, urdf_model, geometry, f"{where}.collision_urdf")
+        fitted_in = (model, geometry)
+    if spec.capsules_per_link and (geometry is None or not geometry.ngeoms):
+        raise ProblemError(f"{where}.capsules_per_link: the robot has no collision geometry to fit "
+                           "capsules around; give them as numbers (capsules = [...]) and capsules_per_link = 0")
+    fitted = capsules_from_geometry(*fitted_in) if spec.capsules_per_link else ()
+    for c in spec.capsules:
+        _carrier_joint(model, c.frame, f"{where}.capsules")
+    capsules = tuple(fitted) + spec.capsules
+    if not capsules and (spec.tracker is not None or spec.obstacles):
+        raise ProblemError(f"{where}: obstacles and lines of sight need the robot's capsules; give "
+                           "capsules = [...] (or capsules_per_link for a URDF robot)")
+    links = {c.frame for c in capsules}
+    for a, b in spec.disabled_pairs:
+        unknown = [x for x in (a, b) if x not in links]
+        if unknown:
+            raise ProblemError(f"{where}.disabled_pairs: '{unknown[0]}' carries no capsule; the capsules "
+                               f"are on: {', '.join(sorted(links))}")
+    pairs = self_collision_pairs(robot, capsules, spec.clearance_m, spec.disabled_pairs) if capsules else \
+        PairSelection((), {}, ())
+    obstacles = spec.obstacles + ((HalfSpace((0.0, 0.0, 1.0), workspace.floor_z_m, "the floor"),)
+                                  if workspace.floor_z_m is not None and capsules else ())
+    sights = (tuple(LineOfSight(spec.tracker.position_m, robot.model.frames[robot.frame_id].name, tuple(p))
+                    for p in np.asarray(markers_m, dtype=float))
+              if spec.tracker is not None and capsules else ())
+    check = _check_geometry(robot, capsules, fitted, geometry, carriers, pairs, obstacles)
+    return Cell(spec, capsules, pairs, obstacles, sights, check)
+
+
+def _package_dirs(urdf: str) -> list[Path]:
+    """Folders where ``package://`` mesh paths of ``urdf`` are looked up."""
+    file = urdf_file(urdf)
+    dirs = [file.parent, file.parent.parent, file.parent.parent.parent]
+    if urdf.startswith("example-robot-data:"):
+        dirs.append(example_robot_data_dir().parent.parent)
+    return dirs
+
+
+def _carrier_joint(model: pin.Model, name: str, where: str) -> tuple[int, pin.SE3]:
+    """The joint carrying frame or joint ``name`` and the placement of ``name`` in it."""
+    if model.existFrame(name):
+        frame = model.frames[model.getFrameId(name)]
+        return frame.parentJoint, frame.placement
+    if model.existJointName(name):
+        return model.getJointId(name), pin.SE3.Identity()
+    names = sorted({f.name for f in model.frames if f.name != "universe"} | set(model.names[1:]))
+    raise ProblemError(f"{where}: no frame or joint '{name}'; the robot has: {', '.join(names)}")
+
+
+def _onto_chain(robot: Robot, urdf_model: pin.Model, geometry: pin.GeometryModel,
+                where: str) -> tuple[pin.GeometryModel, list[int]]:
+    """The geometry of ``collision_urdf`` carried by the joints of ``robot`` with the same names.
+
+    A geometry object on URDF joint ``j`` goes onto the robot's joint of the same name with
+    placement ``(oMi_robot^-1 oMi_urdf) gMo``; that offset must be the same in every
+    configuration (checked at q = 0 and three random configurations), else the URDF is not
+    the same robot.
+    """
+    missing = [j for j in robot.joints if not urdf_model.existJointName(j)]
+    if missing:
+        raise ProblemError(f"{where}: the URDF has no joint '{missing[0]}'; its joints must carry the "
+                           f"names of the chain ({', '.join(robot.joints)})")
+    index = np.array([urdf_model.joints[urdf_model.getJointId(j)].idx_q for j in robot.joints])
+    data, udata = robot.model.createData(), urdf_model.createData()
+    offsets = None
+    rng = np.random.default_rng(0)
+    for q in [np.zeros(robot.n)] + [rng.uniform(robot.q_min, robot.q_max) for _ in range(3)]:
+        full = pin.neutral(urdf_model)
+        full[index] = q
+        pin.forwardKinematics(robot.model, data, robot.full_q(q))
+        pin.forwardKinematics(urdf_model, udata, full)
+        now = {jid: data.oMi[jid].inverse() * udata.oMi[urdf_model.getJointId(robot.model.names[jid])]
+               for jid in robot.joint_ids}
+        if offsets is None:
+            offsets = now
+            continue
+        for jid, M in now.items():
+            if not offsets[jid].isApprox(M, SAME_KINEMATICS_TOL):
+                raise ProblemError(f"{where}: its kinematics differ from the robot's at joint "
+                                   f"'{robot.model.names[jid]}'; give a URDF of the same robot")
+    out = pin.GeometryModel()
+    carriers = []
+    chain = {urdf_model.getJointId(robot.model.names[j]): j for j in robot.joint_ids}
+    for go in geometry.geometryObjects:
+        jid = chain.get(go.parentJoint, 0)
+        if jid == 0 and go.parentJoint != 0:
+            continue  # a body off the chain (not moved by it): not checked
+        placement = (offsets[jid] if jid else pin.SE3.Identity()) * go.placement
+        frame = robot.model.frames[0].name if jid == 0 else robot.model.names[jid]
+        obj = pin.GeometryObject(f"{frame}:{go.name}", jid, 0, placement, go.geometry)
+        out.addGeometryObject(obj)
+        carriers.append(jid)
+    return out, carriers
+
+
+def _capsule_object(name: str, joint: int, placement: pin.SE3, capsule: Capsule) -> pin.GeometryObject:
+    """A coal capsule along ``[a, b]`` of ``capsule`` (placed by ``placement`` in ``joint``)."""
+    a, b = np.array(capsule.a_m), np.array(capsule.b_m)
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    R = (pin.Quaternion.FromTwoVectors(np.array([0.0, 0, 1]), axis / length).matrix() if length > 0
+         else np.eye(3))
+    return pin.GeometryObject(name, joint, 0, placement * pin.SE3(R, (a + b) / 2),
+                              coal.Capsule(capsule.radius_m, length))
+
+
+def _check_geometry(robot: Robot, capsules, fitted, geometry, carriers, pairs: PairSelection,
+                    obstacles) -> CheckGeometry:
+    """The geometry model of :func:`clearances` with the pairs it checks (see the module
+    docstring): meshes when there are any (else the fitted capsules), the capsules given as
+    numbers, the obstacles."""
+    model = robot.model
+    out, labels, carried = pin.GeometryModel(), [], []
+    if geometry is not None and geometry.ngeoms and fitted:
+        for go, jid in zip(geometry.geometryObjects, carriers):
+            if jid == 0 or jid in robot.joint_ids or _moved(robot, jid):
+                out.addGeometryObject(pin.GeometryObject(go.name, jid, 0, go.placement, go.geometry))
+                labels.append(go.name.rsplit("_", 1)[0] if go.name.rsplit("_", 1)[-1].isdigit() else go.name)
+                carried.append(jid)
+        own = capsules[len(fitted):]
+        source = "URDF collision meshes"
+    else:
+        own = capsules
+        source = "capsules"
+    for c in own:
+        jid, M = _carrier_joint(model, c.frame, "[cell].capsules")
+        out.addGeometryObject(_capsule_object(f"capsule:{c.frame}", jid, M, c))
+        labels.append(c.frame)
+        carried.append(jid)
+    moving = [k for k, j in enumerate(carried) if _moved(robot, j)]
+    capsule_joints = [_carrier_joint(model, c.frame, "[cell].capsules")[0] for c in capsules]
+    wanted = {frozenset((capsule_joints[i], capsule_joints[j])) for i, j in pairs.kept}
+    for i in range(len(carried)):
+        for j in range(i + 1, len(carried)):
+            if carried[i] != carried[j] and frozenset((carried[i], carried[j])) in wanted:
+                out.addCollisionPair(pin.CollisionPair(i, j))
+    for o in obstacles:
+        k = out.ngeoms
+        if isinstance(o, HalfSpace):
+            n = np.array(o.normal) / np.linalg.norm(o.normal)
+            out.addGeometryObject(pin.GeometryObject(o.name, 0, 0, pin.SE3.Identity(),
+                                                     coal.Halfspace(n, o.offset_m / np.linalg.norm(o.normal))))
+        elif isinstance(o, Box):
+            out.addGeometryObject(pin.GeometryObject(o.name, 0, 0, pin.SE3(o.rotation, np.array(o.center_m)),
+                                                     coal.Box(*(2 * np.array(o.half_extents_m)))))
+        else:
+            out.addGeometryObject(_capsule_object(o.name, 0, pin.SE3.Identity(), o))
+        labels.append(o.name)
+        for i in moving:
+            out.addCollisionPair(pin.CollisionPair(i, k))
+    index = np.array([model.joints[j].idx_q for j in robot.joint_ids])
+    return CheckGeometry(model, out, index, tuple(labels), source)
+
+
+def _moved(robot: Robot, jid: int) -> bool:
+    return any(j in robot.joint_ids for j in robot.model.supports[jid])
+
+
+def clearances(cell: Cell, Q: np.ndarray) -> list[Clearance]:
+    """The smallest distance (m) between checked bodies in each configuration of ``Q`` (n x m,
+    rad): 0 where they touch or cross (coal reports crossing meshes as 0)."""
+    check = cell.check
+    if not check.geometry.collisionPairs:
+        return [Clearance(np.inf, ("", "")) for _ in np.asarray(Q).T]
+    data, gdata = check.model.createData(), check.geometry.createData()
+    out = []
+    for q in np.asarray(Q, dtype=float).T:
+        pin.computeDistances(check.model, data, check.geometry, gdata, check.configuration(q))
+        d = [max(float(r.min_distance), 0.0) for r in gdata.distanceResults]
+        k = int(np.argmin(d))
+        cp = check.geometry.collisionPairs[k]
+        out.append(Clearance(d[k], (check.labels[cp.first], check.labels[cp.second])))
+    return out
+
+
+def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> list[tuple[ca.SX, float, float, str, str]]:
+    """The cell's rows of configuration ``q``: ``(g, lb, ub, label, unit)`` with ``lb <= g <= ub``.
+
+    ``R`` (3 x 3): the measured frame's rotation; ``P`` (3 x k, m): the reflectors, both at
+    ``q``. Capsule rows in m (:func:`casadi_design.collision.capsule_rows`), incidence rows in
+    rad (module docstring).
+    """
+    rows = [(g, lb, ub, label, "m") for g, lb, ub, label in
+            capsule_rows(robot, cell.capsules, q, cell.spec.clearance_m, cell.obstacles, cell.sights,
+                         cell.pairs.kept)]
+    tracker = cell.spec.tracker
+    if tracker is not None:
+        a = R @ ca.DM(tracker.reflector_axis)
+        many = P.shape[1] > 1
+        for k in range(P.shape[1]):
+            u = ca.DM(tracker.position_m) - P[:, k]
+            angle = ca.atan2(ca.sqrt(ca.sumsqr(ca.cross(a, u)) + INCIDENCE_SMOOTHING**2 * ca.sumsqr(u)),
+                             ca.dot(a, u))
+            name = f"reflector {k + 1}" if many else "reflector"
+            rows.append((angle, -np.inf, tracker.acceptance_rad,
+                         f"{name}: tracker beam beyond the {np.rad2deg(tracker.acceptance_rad):g} deg acceptance angle",
+                         "rad"))
+    return rows
