@@ -8,10 +8,10 @@ Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
   - self-collision, obstacles (the floor of ``[experiments.workspace]`` included: every moving
     capsule stays above it) and lines of sight, from :func:`casadi_design.collision.capsule_rows`
     (m, each ``>= 0``: capsules apart by at least ``clearance_m``);
-  - reflector incidence (rad): the beam from reflector ``k`` at ``p_k`` to the tracker at
-    ``t`` makes the angle ``acos(a . u_k)`` with the reflector's axis ``a = R(q) a_tool``,
-    ``u_k = (t - p_k) / |t - p_k|``; it must stay within the acceptance angle. Written as
-    ``atan2(sqrt(|a x u|^2 + eps^2), a . u) <= acceptance`` (smooth everywhere; eps = 1e-9).
+  - reflector incidence: the beam from reflector ``k`` at ``p_k`` to the tracker at ``t``
+    makes the angle ``acos(a . u_k)`` with the reflector's axis ``a = R(q) a_tool``,
+    ``u_k = (t - p_k) / |t - p_k|``; it must stay within the acceptance angle, written
+    ``a . u_k >= cos(acceptance)`` (a smooth row; unit "cos").
   A reflector that the tracker cannot see rejects the pose, rather than dropping that
   measurement: the information matrix assumes every marker is measured in every experiment,
   and an operator would re-teach such a pose anyway.
@@ -38,14 +38,13 @@ from .collision import (
     capsule_rows,
     capsules_from_geometry,
     load_collision_geometry,
+    obstacle_pairs,
     self_collision_pairs,
 )
 from .errors import ProblemError
 from .problem import Box, Capsule, CellSpec, HalfSpace, Workspace
 from .robots import Robot, example_robot_data_dir, load_urdf, urdf_file
 
-#: ``eps`` of the smoothed incidence angle (see the module docstring).
-INCIDENCE_SMOOTHING = 1e-9
 #: Largest change (m, rad) of the offset between a DH joint frame and the same joint of
 #: ``collision_urdf`` over test configurations: both must carry the same link.
 SAME_KINEMATICS_TOL = 1e-6
@@ -75,14 +74,18 @@ class CheckGeometry:
 
 @dataclass(frozen=True, eq=False)
 class Cell:
-    """A problem's cell: ``capsules`` of the robot, the checked self-collision ``pairs``, the
-    ``obstacles`` (the floor included), one line of ``sights`` per reflector, and the
-    geometry plans are ``check``-ed on. ``spec`` keeps the clearance and the tracker."""
+    """A problem's cell: ``capsules`` of the robot, the constrained self-collision ``pairs``,
+    the ``obstacles`` (the floor included) with the (capsule, obstacle) pairs ``near`` that
+    can meet (``near_skipped``: the others, with the reason), one line of ``sights`` per
+    reflector, and the geometry plans are ``check``-ed on. ``spec`` keeps the clearance and
+    the tracker."""
 
     spec: CellSpec
     capsules: tuple[Capsule, ...]
     pairs: PairSelection
     obstacles: tuple[HalfSpace | Box | Capsule, ...]
+    near: tuple[tuple[int, int], ...]
+    near_skipped: dict[tuple[str, str], str]
     sights: tuple[LineOfSight, ...]
     check: CheckGeometry
 
@@ -103,22 +106,19 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
     """
     if spec is None:
         return None
-    model = robot.model
-    geometry, carriers, where = None, None, "[cell]"
+    model, where = robot.model, "[cell]"
+    geometry, bodies, fitted = None, [], ()
     if urdf:
         geometry = load_collision_geometry(model, urdf_file(urdf), _package_dirs(urdf))
-        carriers = [go.parentJoint for go in geometry.geometryObjects]
-        fitted_in = (model, geometry)
+        bodies = [model.frames[go.parentFrame].name for go in geometry.geometryObjects]
+        if spec.capsules_per_link and geometry.ngeoms:
+            fitted = capsules_from_geometry(model, geometry)
     elif spec.collision_urdf:
-        urdf_model = load_urdf(spec.collision_urdf)
-        geometry = load_collision_geometry(urdf_model, urdf_file(spec.collision_urdf),
-                                           _package_dirs(spec.collision_urdf))
-        geometry, carriers = _onto_chain(robot, urdf_model, geometry, f"{where}.collision_urdf")
-        fitted_in = (model, geometry)
+        geometry, bodies, fitted = _onto_chain(robot, spec.collision_urdf, bool(spec.capsules_per_link),
+                                               f"{where}.collision_urdf")
     if spec.capsules_per_link and (geometry is None or not geometry.ngeoms):
         raise ProblemError(f"{where}.capsules_per_link: the robot has no collision geometry to fit "
                            "capsules around; give them as numbers (capsules = [...]) and capsules_per_link = 0")
-    fitted = capsules_from_geometry(*fitted_in) if spec.capsules_per_link else ()
     for c in spec.capsules:
         _carrier_joint(model, c.frame, f"{where}.capsules")
     capsules = tuple(fitted) + spec.capsules
@@ -135,11 +135,12 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
         PairSelection((), {}, ())
     obstacles = spec.obstacles + ((HalfSpace((0.0, 0.0, 1.0), workspace.floor_z_m, "the floor"),)
                                   if workspace.floor_z_m is not None and capsules else ())
+    near, near_skipped = obstacle_pairs(robot, capsules, obstacles, spec.clearance_m) if obstacles else ((), {})
     sights = (tuple(LineOfSight(spec.tracker.position_m, robot.model.frames[robot.frame_id].name, tuple(p))
                     for p in np.asarray(markers_m, dtype=float))
               if spec.tracker is not None and capsules else ())
-    check = _check_geometry(robot, capsules, fitted, geometry, carriers, pairs, obstacles)
-    return Cell(spec, capsules, pairs, obstacles, sights, check)
+    check = _check_geometry(robot, capsules, fitted, geometry, bodies, pairs, obstacles, near)
+    return Cell(spec, capsules, pairs, obstacles, near, near_skipped, sights, check)
 
 
 def _package_dirs(urdf: str) -> list[Path]:
@@ -162,21 +163,25 @@ def _carrier_joint(model: pin.Model, name: str, where: str) -> tuple[int, pin.SE
     raise ProblemError(f"{where}: no frame or joint '{name}'; the robot has: {', '.join(names)}")
 
 
-def _onto_chain(robot: Robot, urdf_model: pin.Model, geometry: pin.GeometryModel,
-                where: str) -> tuple[pin.GeometryModel, list[int]]:
-    """The geometry of ``collision_urdf`` carried by the joints of ``robot`` with the same names.
+def _onto_chain(robot: Robot, urdf: str, fit: bool, where: str) -> tuple[pin.GeometryModel, list[str], tuple[Capsule, ...]]:
+    """The collision geometry of ``urdf`` carried by the joints of ``robot`` (a DH robot) with
+    the same names, a body name per object (the joint's name) and, when ``fit``, the capsules
+    fitted around it, on those joints.
 
-    A geometry object on URDF joint ``j`` goes onto the robot's joint of the same name with
-    placement ``(oMi_robot^-1 oMi_urdf) gMo``; that offset must be the same in every
+    An object or capsule point on URDF joint ``j`` goes onto the robot's joint of the same
+    name through the offset ``oMi_robot^-1 oMi_urdf``; that offset must be the same in every
     configuration (checked at q = 0 and three random configurations), else the URDF is not
-    the same robot.
+    the same robot. Bodies on joints off the chain are left out.
     """
+    urdf_model = load_urdf(urdf)
+    geometry = load_collision_geometry(urdf_model, urdf_file(urdf), _package_dirs(urdf))
     missing = [j for j in robot.joints if not urdf_model.existJointName(j)]
     if missing:
         raise ProblemError(f"{where}: the URDF has no joint '{missing[0]}'; its joints must carry the "
                            f"names of the chain ({', '.join(robot.joints)})")
     index = np.array([urdf_model.joints[urdf_model.getJointId(j)].idx_q for j in robot.joints])
     data, udata = robot.model.createData(), urdf_model.createData()
+    to_robot = {urdf_model.getJointId(robot.model.names[j]): j for j in robot.joint_ids}
     offsets = None
     rng = np.random.default_rng(0)
     for q in [np.zeros(robot.n)] + [rng.uniform(robot.q_min, robot.q_max) for _ in range(3)]:
@@ -184,28 +189,28 @@ def _onto_chain(robot: Robot, urdf_model: pin.Model, geometry: pin.GeometryModel
         full[index] = q
         pin.forwardKinematics(robot.model, data, robot.full_q(q))
         pin.forwardKinematics(urdf_model, udata, full)
-        now = {jid: data.oMi[jid].inverse() * udata.oMi[urdf_model.getJointId(robot.model.names[jid])]
-               for jid in robot.joint_ids}
+        now = {u: data.oMi[j].inverse() * udata.oMi[u] for u, j in to_robot.items()}
         if offsets is None:
             offsets = now
-            continue
-        for jid, M in now.items():
-            if not offsets[jid].isApprox(M, SAME_KINEMATICS_TOL):
+        for u, M in now.items():
+            if not offsets[u].isApprox(M, SAME_KINEMATICS_TOL):
                 raise ProblemError(f"{where}: its kinematics differ from the robot's at joint "
-                                   f"'{robot.model.names[jid]}'; give a URDF of the same robot")
-    out = pin.GeometryModel()
-    carriers = []
-    chain = {urdf_model.getJointId(robot.model.names[j]): j for j in robot.joint_ids}
+                                   f"'{urdf_model.names[u]}'; give a URDF of the same robot")
+    out, bodies = pin.GeometryModel(), []
     for go in geometry.geometryObjects:
-        jid = chain.get(go.parentJoint, 0)
-        if jid == 0 and go.parentJoint != 0:
-            continue  # a body off the chain (not moved by it): not checked
-        placement = (offsets[jid] if jid else pin.SE3.Identity()) * go.placement
-        frame = robot.model.frames[0].name if jid == 0 else robot.model.names[jid]
-        obj = pin.GeometryObject(f"{frame}:{go.name}", jid, 0, placement, go.geometry)
-        out.addGeometryObject(obj)
-        carriers.append(jid)
-    return out, carriers
+        if go.parentJoint in to_robot:
+            j = to_robot[go.parentJoint]
+            out.addGeometryObject(pin.GeometryObject(go.name, j, 0, offsets[go.parentJoint] * go.placement,
+                                                     go.geometry))
+            bodies.append(robot.model.names[j])
+    fitted = []
+    for c in capsules_from_geometry(urdf_model, geometry) if fit else ():
+        frame = urdf_model.frames[urdf_model.getFrameId(c.frame)]
+        if frame.parentJoint in to_robot:
+            M = offsets[frame.parentJoint] * frame.placement
+            fitted.append(Capsule(robot.model.names[to_robot[frame.parentJoint]], M.act(np.array(c.a_m)),
+                                  M.act(np.array(c.b_m)), c.radius_m))
+    return out, bodies, tuple(fitted)
 
 
 def _capsule_object(name: str, joint: int, placement: pin.SE3, capsule: Capsule) -> pin.GeometryObject:
@@ -219,52 +224,49 @@ def _capsule_object(name: str, joint: int, placement: pin.SE3, capsule: Capsule)
                               coal.Capsule(capsule.radius_m, length))
 
 
-def _check_geometry(robot: Robot, capsules, fitted, geometry, carriers, pairs: PairSelection,
-                    obstacles) -> CheckGeometry:
+def _check_geometry(robot: Robot, capsules, fitted, geometry, bodies, pairs: PairSelection,
+                    obstacles, near) -> CheckGeometry:
     """The geometry model of :func:`clearances` with the pairs it checks (see the module
-    docstring): meshes when there are any (else the fitted capsules), the capsules given as
-    numbers, the obstacles."""
+    docstring): the meshes the capsules were fitted around (else the capsules themselves),
+    the capsules given as numbers and the obstacles. Each object belongs to the body (capsule
+    frame) it stands for; the pairs checked are those of the rows: bodies of a kept capsule
+    pair, a body and an obstacle of ``near``."""
     model = robot.model
-    out, labels, carried = pin.GeometryModel(), [], []
-    if geometry is not None and geometry.ngeoms and fitted:
-        for go, jid in zip(geometry.geometryObjects, carriers):
-            if jid == 0 or jid in robot.joint_ids or _moved(robot, jid):
-                out.addGeometryObject(pin.GeometryObject(go.name, jid, 0, go.placement, go.geometry))
-                labels.append(go.name.rsplit("_", 1)[0] if go.name.rsplit("_", 1)[-1].isdigit() else go.name)
-                carried.append(jid)
-        own = capsules[len(fitted):]
-        source = "URDF collision meshes"
-    else:
-        own = capsules
-        source = "capsules"
-    for c in own:
+    out, labels = pin.GeometryModel(), []
+    meshes = geometry is not None and geometry.ngeoms and fitted
+    if meshes:
+        for go, body in zip(geometry.geometryObjects, bodies):
+            out.addGeometryObject(pin.GeometryObject(go.name, go.parentJoint, 0, go.placement, go.geometry))
+            labels.append(body)
+    for c in capsules[len(fitted):] if meshes else capsules:
         jid, M = _carrier_joint(model, c.frame, "[cell].capsules")
         out.addGeometryObject(_capsule_object(f"capsule:{c.frame}", jid, M, c))
         labels.append(c.frame)
-        carried.append(jid)
-    moving = [k for k, j in enumerate(carried) if _moved(robot, j)]
-    capsule_joints = [_carrier_joint(model, c.frame, "[cell].capsules")[0] for c in capsules]
-    wanted = {frozenset((capsule_joints[i], capsule_joints[j])) for i, j in pairs.kept}
-    for i in range(len(carried)):
-        for j in range(i + 1, len(carried)):
-            if carried[i] != carried[j] and frozenset((carried[i], carried[j])) in wanted:
+    robot_objects = len(labels)
+    self_pairs = {frozenset((capsules[i].frame, capsules[j].frame)) for i, j in pairs.kept}
+    for i in range(robot_objects):
+        for j in range(i + 1, robot_objects):
+            if frozenset((labels[i], labels[j])) in self_pairs:
                 out.addCollisionPair(pin.CollisionPair(i, j))
-    for o in obstacles:
-        k = out.ngeoms
+    for k, o in enumerate(obstacles):
         if isinstance(o, HalfSpace):
             n = np.array(o.normal) / np.linalg.norm(o.normal)
-            out.addGeometryObject(pin.GeometryObject(o.name, 0, 0, pin.SE3.Identity(),
-                                                     coal.Halfspace(n, o.offset_m / np.linalg.norm(o.normal))))
+            obj = pin.GeometryObject(o.name, 0, 0, pin.SE3.Identity(),
+                                     coal.Halfspace(n, o.offset_m / np.linalg.norm(o.normal)))
         elif isinstance(o, Box):
-            out.addGeometryObject(pin.GeometryObject(o.name, 0, 0, pin.SE3(o.rotation, np.array(o.center_m)),
-                                                     coal.Box(*(2 * np.array(o.half_extents_m)))))
+            obj = pin.GeometryObject(o.name, 0, 0, pin.SE3(o.rotation, np.array(o.center_m)),
+                                     coal.Box(*(2 * np.array(o.half_extents_m))))
         else:
-            out.addGeometryObject(_capsule_object(o.name, 0, pin.SE3.Identity(), o))
-        labels.append(o.name)
-        for i in moving:
-            out.addCollisionPair(pin.CollisionPair(i, k))
-    index = np.array([model.joints[j].idx_q for j in robot.joint_ids])
-    return CheckGeometry(model, out, index, tuple(labels), source)
+            obj = _capsule_object(o.name, 0, pin.SE3.Identity(), o)
+        index = out.addGeometryObject(obj)
+        labels.append(o.name or "capsule obstacle")
+        frames = {capsules[c].frame for c, ob in near if ob == k}
+        for i in range(robot_objects):
+            if labels[i] in frames:
+                out.addCollisionPair(pin.CollisionPair(i, index))
+    q_index = np.array([model.joints[j].idx_q for j in robot.joint_ids])
+    return CheckGeometry(model, out, q_index, tuple(labels),
+                         "URDF collision meshes" if meshes else "capsules")
 
 
 def _moved(robot: Robot, jid: int) -> bool:
@@ -292,22 +294,20 @@ def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> list[tu
     """The cell's rows of configuration ``q``: ``(g, lb, ub, label, unit)`` with ``lb <= g <= ub``.
 
     ``R`` (3 x 3): the measured frame's rotation; ``P`` (3 x k, m): the reflectors, both at
-    ``q``. Capsule rows in m (:func:`casadi_design.collision.capsule_rows`), incidence rows in
-    rad (module docstring).
+    ``q``. Capsule rows in m (:func:`casadi_design.collision.capsule_rows`), incidence rows as
+    cosines (unit "cos", module docstring).
     """
     rows = [(g, lb, ub, label, "m") for g, lb, ub, label in
             capsule_rows(robot, cell.capsules, q, cell.spec.clearance_m, cell.obstacles, cell.sights,
-                         cell.pairs.kept)]
+                         cell.pairs.kept, cell.near)]
     tracker = cell.spec.tracker
     if tracker is not None:
         a = R @ ca.DM(tracker.reflector_axis)
         many = P.shape[1] > 1
         for k in range(P.shape[1]):
             u = ca.DM(tracker.position_m) - P[:, k]
-            angle = ca.atan2(ca.sqrt(ca.sumsqr(ca.cross(a, u)) + INCIDENCE_SMOOTHING**2 * ca.sumsqr(u)),
-                             ca.dot(a, u))
             name = f"reflector {k + 1}" if many else "reflector"
-            rows.append((angle, -np.inf, tracker.acceptance_rad,
-                         f"{name}: tracker beam beyond the {np.rad2deg(tracker.acceptance_rad):g} deg acceptance angle",
-                         "rad"))
+            rows.append((ca.dot(a, u) / ca.norm_2(u), np.cos(tracker.acceptance_rad), np.inf,
+                         f"{name}: tracker beam beyond the {np.rad2deg(tracker.acceptance_rad):g} deg "
+                         "acceptance angle", "cos"))
     return rows

@@ -371,6 +371,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from .export import read_plan_csv
     from .nlp import B0_at_test_poses
     from .results import design_from_record, prepare_out, read_json, write_json
+    from .cell import clearances
     from .rules import plan_violations
     from .solve import plan_scores
 
@@ -404,7 +405,14 @@ def _evaluate(args: argparse.Namespace) -> int:
         for v in violations:
             print(f"  {v}")
     else:
-        print("the plan satisfies the problem's joint limits, load and workspace")
+        print("the plan satisfies the problem's joint limits, load"
+              + (", workspace and cell" if problem.cell else " and workspace"))
+    near = clearances(problem.cell, Q) if problem.cell else []
+    if near:
+        print(f"clearance on the {problem.cell.check.source} (mm), per experiment: "
+              + ", ".join(f"{c.distance_m * 1e3:.0f}" for c in near)
+              + f"; smallest {min(c.distance_m for c in near) * 1e3:.1f} mm between "
+              + " and ".join(min(near, key=lambda c: c.distance_m).between))
     if out:
         from .plotting import USER_STYLE, Band, bands_figure
 
@@ -412,7 +420,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         write_json(out / "evaluation.json", {
             "problem": problem.name, "problem_file": problem.path, "plan_file": str(args.plan),
             "m": m, "units": {"q": "rad", "force": "N (N m for moments)", "errors": "m"},
-            "experiments": [{"q_rad": q.tolist(), "force": f.tolist()} for q, f in zip(Q.T, F.T)],
+            "experiments": [{"q_rad": q.tolist(), "force": f.tolist()}
+                            | ({"clearance_m": c.distance_m, "closest_bodies": list(c.between)} if c else {})
+                            for q, f, c in zip(Q.T, F.T, near or [None] * m)],
             "max_rms_error_m": scores.max_rms_error_m, **scores.as_dict(),
             "violations": violations,
         })

@@ -413,10 +413,51 @@ def self_collision_pairs(robot: Robot, capsules: Sequence[Capsule], clearance_m:
     return PairSelection(tuple(kept), skipped, links)
 
 
+def _near_all(robot: Robot, capsules: Sequence[Capsule], obstacles: Sequence[Obstacle]) -> list[tuple[int, int]]:
+    """Every (moving capsule, obstacle) pair, obstacle by obstacle."""
+    moving = [k for k, c in enumerate(capsules) if _moves(robot, _carrier(robot.model, c.frame)[0])]
+    return [(k, o) for o in range(len(obstacles)) for k in moving]
+
+
+def obstacle_pairs(robot: Robot, capsules: Sequence[Capsule], obstacles: Sequence[Obstacle],
+                   clearance_m: float = 0.0, samples: int = PAIR_SAMPLES,
+                   seed: int = 0) -> tuple[tuple[tuple[int, int], ...], dict[tuple[str, str], str]]:
+    """The (moving capsule, obstacle) pairs that can meet and that the capsules can keep apart.
+
+    As :func:`self_collision_pairs`, over ``samples`` seeded configurations within the joint
+    limits: a pair whose row is the same in every sample (a link that only turns about a
+    vertical axis over the floor) is skipped as "constant distance" when positive; a pair
+    whose row is negative in every sample (the housing at the shoulder of a link always
+    within the clearance of the floor the robot stands on) is skipped with that reason.
+    Returns the kept pairs and the reasons for the others, keyed by (capsule, obstacle) names.
+    """
+    near = _near_all(robot, capsules, obstacles)
+    rng = np.random.default_rng(seed)
+    rows = [capsule_clearances(robot, capsules, q, clearance_m, obstacles, (), (), near)
+            for q in rng.uniform(robot.q_min, robot.q_max, size=(samples, robot.n))]
+    labels = rows[0][1]
+    G = np.array([g for g, _ in rows])
+    # a pair's rows share its label (a half-space gives two); its clearance is their minimum
+    groups = list(dict.fromkeys(labels))
+    G = np.column_stack([G[:, [i for i, lb in enumerate(labels) if lb == label]].min(axis=1) for label in groups])
+    names, kept, skipped = capsule_names(capsules), [], {}
+    for (k, o), g in zip(near, G.T):
+        key = (names[k], obstacles[o].name or "capsule obstacle")
+        if np.ptp(g) < 1e-9 and g[0] > 0:
+            skipped[key] = "constant distance, positive"
+        elif np.all(g <= 0):
+            skipped[key] = (f"closer than the clearance in all {samples} sampled configurations "
+                            f"(largest clearance {g.max() * 1e3:.1f} mm)")
+        else:
+            kept.append((k, o))
+    return tuple(kept), skipped
+
+
 def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: Callable,
           clearance_m: float, obstacles: Sequence[Obstacle], sights: Sequence[LineOfSight],
-          pairs: Sequence[tuple[int, int]]) -> list[tuple[object, str]]:
-    """Rows ``(g, label)`` with ``g >= 0`` required (m), for CasADi or numpy (``ops``)."""
+          pairs: Sequence[tuple[int, int]], near: Sequence[tuple[int, int]] | None = None) -> list[tuple[object, str]]:
+    """Rows ``(g, label)`` with ``g >= 0`` required (m), for CasADi or numpy (``ops``);
+    ``near``: the (capsule, obstacle) index pairs constrained (None: :func:`_near_all`)."""
     model, names = robot.model, capsule_names(capsules)
     world = [ends(c) for c in capsules]
     jids = [_carrier(model, c.frame)[0] for c in capsules]
@@ -425,28 +466,28 @@ def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: 
     for i, j in pairs:
         g = dist(*world[i], *world[j]) - capsules[i].radius_m - capsules[j].radius_m - clearance_m
         out.append((g, f"links {names[i]} and {names[j]} closer than {mm}"))
-    moving = [k for k in range(len(capsules)) if _moves(robot, jids[k])]
-    for obstacle in obstacles:
-        for k in moving:
-            (a, b), r, name = world[k], capsules[k].radius_m, names[k]
-            if isinstance(obstacle, HalfSpace):
-                n = np.array(obstacle.normal) / np.linalg.norm(obstacle.normal)
-                o = obstacle.offset_m / np.linalg.norm(obstacle.normal)
-                g = ops.fmin(ops.dot(n, a), ops.dot(n, b)) - o - r - clearance_m
-                out.append((g, f"link {name} closer than {mm} to {obstacle.name}"))
-            elif isinstance(obstacle, Box):
-                N, o = obstacle.faces()
-                gaps = [ops.fmin(ops.dot(N[f], a), ops.dot(N[f], b)) - o[f] for f in range(6)]
-                g = gaps[0]
-                for gap in gaps[1:]:
-                    g = ops.fmax(g, gap)
-                out.append((g - r - clearance_m, f"link {name} closer than {mm} to {obstacle.name}"))
-            else:
-                if _moves(robot, _carrier(model, obstacle.frame)[0]):
-                    raise ProblemError(f"obstacle capsule on '{obstacle.frame}': it moves with the robot; "
-                                       "give obstacles in a fixed frame such as 'universe'")
-                g = dist(a, b, *ends(obstacle)) - r - obstacle.radius_m - clearance_m
-                out.append((g, f"link {name} closer than {mm} to {obstacle.name or 'the capsule obstacle'}"))
+    for k, o in (_near_all(robot, capsules, obstacles) if near is None else near):
+        obstacle = obstacles[o]
+        (a, b), r, name = world[k], capsules[k].radius_m, names[k]
+        if isinstance(obstacle, HalfSpace):
+            n = np.array(obstacle.normal) / np.linalg.norm(obstacle.normal)
+            off = obstacle.offset_m / np.linalg.norm(obstacle.normal)
+            # min(n . a, n . b) >= c as two smooth rows
+            out += [(ops.dot(n, e) - off - r - clearance_m, f"link {name} closer than {mm} to {obstacle.name}")
+                    for e in (a, b)]
+        elif isinstance(obstacle, Box):
+            N, off = obstacle.faces()
+            gaps = [ops.fmin(ops.dot(N[f], a), ops.dot(N[f], b)) - off[f] for f in range(6)]
+            g = gaps[0]
+            for gap in gaps[1:]:
+                g = ops.fmax(g, gap)
+            out.append((g - r - clearance_m, f"link {name} closer than {mm} to {obstacle.name}"))
+        else:
+            if _moves(robot, _carrier(model, obstacle.frame)[0]):
+                raise ProblemError(f"obstacle capsule on '{obstacle.frame}': it moves with the robot; "
+                                   "give obstacles in a fixed frame such as 'universe'")
+            g = dist(a, b, *ends(obstacle)) - r - obstacle.radius_m - clearance_m
+            out.append((g, f"link {name} closer than {mm} to {obstacle.name or 'the capsule obstacle'}"))
     for sight in sights:
         jid, M = _carrier(model, sight.frame)
         excluded = (set(sight.excluded) if sight.excluded is not None
@@ -462,16 +503,18 @@ def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: 
 
 def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_m: float = 0.0,
                  obstacles: Sequence[Obstacle] = (), sights: Sequence[LineOfSight] = (),
-                 pairs: Sequence[tuple[int, int]] | None = None) -> list[tuple[ca.SX, float, float, str]]:
+                 pairs: Sequence[tuple[int, int]] | None = None,
+                 near: Sequence[tuple[int, int]] | None = None) -> list[tuple[ca.SX, float, float, str]]:
     """Collision rows of configuration ``q`` (CasADi SX, n): ``(g(q), 0, inf, label)``, each
     ``g >= 0`` (m), in the format of :func:`casadi_design.rules.pose_constraints`' rows.
 
     * self-collision, for ``pairs`` of capsule indices (default :func:`self_collision_pairs`):
       ``dist(s_i, s_j) - r_i - r_j - clearance_m``;
-    * for every capsule moving with ``q`` and every obstacle:
-      half-space ``n . x >= o`` (unit n): ``min(n . a, n . b) - o - r - clearance_m`` (exact
-      signed distance of the capsule from the plane; kink where the segment is parallel to
-      the plane);
+    * for each (capsule, obstacle) index pair of ``near`` (default: every capsule moving with
+      ``q`` and every obstacle; :func:`obstacle_pairs` selects those that can meet):
+      half-space ``n . x >= o`` (unit n): ``n . a - o - r - clearance_m`` and the same for b,
+      two smooth rows (their minimum is the exact signed distance of the capsule from the
+      plane);
       box ``{x : N x <= o}``: ``max_f [min(N_f . a, N_f . b) - o_f] - r - clearance_m``, the
       largest gap between the capsule and a face plane: when positive, that plane separates
       the capsule from the box by at least the clearance. Conservative: a capsule passing
@@ -487,19 +530,20 @@ def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_
     if pairs is None:
         pairs = self_collision_pairs(robot, capsules, clearance_m).kept
     rows = _rows(robot, capsules, _ends_symbolic(robot, capsules, q), _CA, segment_distance,
-                 clearance_m, obstacles, sights, pairs)
+                 clearance_m, obstacles, sights, pairs, near)
     return [(g, 0.0, np.inf, label) for g, label in rows]
 
 
 def capsule_clearances(robot: Robot, capsules: Sequence[Capsule], q: np.ndarray, clearance_m: float = 0.0,
                        obstacles: Sequence[Obstacle] = (), sights: Sequence[LineOfSight] = (),
-                       pairs: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
+                       pairs: Sequence[tuple[int, int]] | None = None,
+                       near: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
     """Numpy twin of :func:`capsule_rows` at ``q`` (ndarray, n): the rows' values ``g`` (m,
     negative: too close) and labels, in the same order; placements by Pinocchio."""
     if pairs is None:
         pairs = self_collision_pairs(robot, capsules, clearance_m).kept
     rows = _rows(robot, capsules, _ends_numeric(robot, np.asarray(q, dtype=float)), _NP, segment_distance_np,
-                 clearance_m, obstacles, sights, pairs)
+                 clearance_m, obstacles, sights, pairs, near)
     return np.array([float(g) for g, _ in rows]), tuple(label for _, label in rows)
 
 

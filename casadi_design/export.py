@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .build import Problem
+from .cell import clearances
 from .errors import ProblemError
 from .problem import WRENCH_ROWS
 from .results import write_atomic
@@ -33,6 +34,9 @@ from .solve import Design
 #: Largest disagreement (rad or m) between the two unit columns of one joint in a plan CSV.
 UNIT_AGREEMENT_TOL = 1e-6
 POSITION_COLUMNS = ("x_mm", "y_mm", "z_mm")
+#: Columns written for people with a [cell] and ignored when read: the experiment's clearance on
+#: the real geometry (mm) and the two closest bodies.
+CLEARANCE_COLUMNS = ("clearance_mm", "closest_bodies")
 
 
 def is_prismatic(problem: Problem, k: int) -> bool:
@@ -53,16 +57,23 @@ def force_columns(problem: Problem) -> list[str]:
 
 
 def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[list[str], list[list]]:
-    """Header and rows of a plan: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m)."""
+    """Header and rows of a plan: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m).
+
+    With a ``[cell]``, each row also gives the experiment's clearance on the real geometry
+    (:func:`casadi_design.cell.clearances`, mm) and the two bodies at that distance.
+    """
     joints = problem.robot.joints
     units = [joint_units(problem, k) for k in range(len(joints))]
     header = (["experiment"] + [f"{j}_{u[1]}" for j, u in zip(joints, units)]
               + [f"{j}_{u[0]}" for j, u in zip(joints, units)] + force_columns(problem)
-              + list(POSITION_COLUMNS))
+              + list(POSITION_COLUMNS) + (list(CLEARANCE_COLUMNS) if problem.cell else []))
+    Q = np.asarray(Q, float)
+    near = clearances(problem.cell, Q.T) if problem.cell else [None] * len(Q)
     rows = []
-    for i, (q, f) in enumerate(zip(np.asarray(Q, float), np.asarray(F, float).reshape(len(Q), -1))):
+    for i, (q, f, c) in enumerate(zip(Q, np.asarray(F, float).reshape(len(Q), -1), near)):
         p = np.asarray(problem.model.position(q), dtype=float).ravel() * 1e3
-        rows.append([i + 1] + [qk / u[2] for qk, u in zip(q, units)] + list(q) + list(f) + list(p))
+        rows.append([i + 1] + [qk / u[2] for qk, u in zip(q, units)] + list(q) + list(f) + list(p)
+                    + ([c.distance_m * 1e3, " / ".join(c.between)] if c else []))
     return header, rows
 
 
@@ -180,7 +191,7 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
             columns[f"{name}_{si}"] = (k, 1.0)
             columns[f"{name}_{people}"] = (k, scale)
     forces = force_columns(problem)
-    allowed = set(columns) | set(forces) | {"experiment", *POSITION_COLUMNS}
+    allowed = set(columns) | set(forces) | {"experiment", *POSITION_COLUMNS, *CLEARANCE_COLUMNS}
     if "" in header:
         raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
                            "name it or delete the column")
@@ -255,12 +266,14 @@ def _md_table(header: list[str], rows: list[list[str]]) -> str:
 
 
 def plan_markdown(problem: Problem, design: Design) -> str:
-    """A plan as a Markdown table: joints (deg or mm), load (N), measured point (mm)."""
+    """A plan as a Markdown table: joints (deg or mm), load (N), measured point (mm), with a
+    ``[cell]`` the clearance (mm) and the closest bodies."""
     header, rows = plan_table(problem, design.Q, design.F)
     n = problem.robot.n
     keep = [0, *range(1, 1 + n), *range(1 + 2 * n, len(header))]
     return _md_table([header[c] for c in keep],
-                     [[str(r[0])] + [f"{r[c]:.2f}" for c in keep[1:]] for r in rows])
+                     [[str(r[0])] + [f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in keep[1:]]
+                      for r in rows])
 
 
 def bound_notes(designs: list[Design]) -> list[str]:

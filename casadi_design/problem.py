@@ -888,6 +888,8 @@ def _cell(c: _Reader | None, robot: RobotSpec) -> CellSpec | None:
     obstacles = []
     for r in _entries(c, "obstacles", "{ name = \"table\", kind = \"box\", center_m = [...], half_extents_m = [...] }"):
         name = r.get("name", str, hint="a name for messages, e.g. name = \"table\"")
+        if not name.strip() or name in [o.name for o in obstacles] or name == "the floor":
+            raise r.error(f"'{name}' is empty, repeated or reserved", "give each obstacle its own name", "name")
         kind = r.get("kind", str, hint="half_space, box or capsule")
         keys = {"half_space": {"normal", "offset_m"}, "box": {"center_m", "half_extents_m", "rpy_deg"},
                 "capsule": {"a_m", "b_m", "radius_m"}}

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from .build import Problem
+from .cell import clearances
+from .collision import capsule_names
 from .criteria import CRITERIA
 from .measures import Scores
 from .bound import ApproximateDesign, Bound
@@ -113,8 +115,41 @@ def results_dict(problem: Problem, designs: list[Design],
             {"q_rad": q.tolist(), "force": f.tolist(), "position_m": p.tolist()}
             for q, f, p in zip(tp.q, tp.F, tp.position_m)
         ],
-        "designs": [design_record(d) for d in designs],
+        "designs": [with_clearances(problem, design_record(d)) for d in designs],
         "approximate_designs": [approximate_record(a) for a in (approx or {}).values()],
+        "cell": cell_record(problem),
+    }
+
+
+def with_clearances(problem: Problem, record: dict) -> dict:
+    """A design record whose experiments carry their clearance on the real geometry
+    (``clearance_m``, m) and the two bodies at that distance (``closest_bodies``), when the
+    problem has a ``[cell]`` (:func:`casadi_design.cell.clearances`)."""
+    if problem.cell is None:
+        return record
+    Q = np.array([e["q_rad"] for e in record["experiments"]], dtype=float).T
+    for e, c in zip(record["experiments"], clearances(problem.cell, Q)):
+        e["clearance_m"], e["closest_bodies"] = c.distance_m, list(c.between)
+    return record
+
+
+def cell_record(problem: Problem) -> dict | None:
+    """The cell as built (None without ``[cell]``): clearance (m), the geometry plans are
+    checked on, the capsules, and every pair of bodies the rows leave out, with the reason."""
+    cell = problem.cell
+    if cell is None:
+        return None
+    names = capsule_names(cell.capsules)
+    return {
+        "clearance_m": cell.spec.clearance_m,
+        "checked_on": cell.check.source,
+        "capsules": [{"name": n, "frame": c.frame, "a_m": list(c.a_m), "b_m": list(c.b_m), "radius_m": c.radius_m}
+                     for n, c in zip(names, cell.capsules)],
+        "self_collision_pairs": [[names[i], names[j]] for i, j in cell.pairs.kept],
+        "obstacle_pairs": [[names[k], cell.obstacles[o].name or "capsule obstacle"] for k, o in cell.near],
+        "pairs_left_out": [{"bodies": list(k), "reason": r}
+                           for k, r in {**cell.pairs.skipped, **cell.near_skipped}.items()],
+        "tracker": None if cell.spec.tracker is None else dataclasses.asdict(cell.spec.tracker),
     }
 
 

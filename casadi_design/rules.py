@@ -109,8 +109,8 @@ def joint_distance_sq(limits: JointLimits, qa, qb):
 
 @dataclass(frozen=True, eq=False)
 class PoseConstraints:
-    """Workspace rows of one configuration: ``lb <= g(q) <= ub``, one label and unit ("m" or
-    "rad") per row."""
+    """Workspace rows of one configuration: ``lb <= g(q) <= ub``, one label and unit per row
+    ("m", or "cos" for the cosine of an angle)."""
 
     g: ca.Function
     lb: np.ndarray
@@ -209,6 +209,14 @@ def load_variables(problem: Problem) -> LoadVariables:
                          1.0 if force.mode == "equal" else 0.0)
 
 
+def _amount(v: float, unit: str, lb: float) -> str:
+    """A row's violation ``v`` for people: mm for "m" rows; for "cos" rows (``cos(angle) >=
+    lb``) the angle beyond its limit, deg."""
+    if unit == "m":
+        return f"{v * 1e3:.3g} mm"
+    return f"{np.rad2deg(np.arccos(np.clip(lb - v, -1, 1)) - np.arccos(lb)):.3g} deg"
+
+
 def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]:
     """Every rule the plan breaks, one line each (empty: the plan is feasible).
 
@@ -227,10 +235,14 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
                 margin = f" (limits less the {ws.joint_limit_margin_rad:g} margin)" if ws.joint_limit_margin_rad else ""
                 out.append(f"experiment {i + 1}: {j} = {q[k]:.6g} outside [{limits.lower[k]:.6g}, "
                            f"{limits.upper[k]:.6g}]{margin}")
-        for v, label, unit in zip(rules.violation(q), rules.labels, rules.units):
-            if v > FEASIBILITY_TOL:
-                out.append(f"experiment {i + 1}: {label} by " +
-                           (f"{v * 1e3:.3g} mm" if unit == "m" else f"{np.rad2deg(v):.3g} deg"))
+        worst: dict[str, int] = {}  # rows sharing a label (a capsule's two ends): the worst one
+        violation = rules.violation(q)
+        for k in np.flatnonzero(violation > FEASIBILITY_TOL):
+            label = rules.labels[k]
+            if label not in worst or violation[k] > violation[worst[label]]:
+                worst[label] = k
+        out += [f"experiment {i + 1}: {label} by {_amount(violation[k], rules.units[k], rules.lb[k])}"
+                for label, k in worst.items()]
     if problem.cell is not None:
         c = problem.cell.spec.clearance_m
         for i, near in enumerate(clearances(problem.cell, Q)):
