@@ -157,6 +157,13 @@ def build_problem(spec: ProblemSpec) -> Problem:
 
 def _build(spec: ProblemSpec) -> Problem:
     robot = build_robot(spec.robot)
+    margin = spec.workspace.joint_limit_margin_rad
+    narrow = np.flatnonzero(robot.q_max - robot.q_min < 2 * margin)
+    if narrow.size:
+        k = int(narrow[0])
+        raise ProblemError(f"[experiments.workspace].joint_limit_margin_rad: {margin:g} leaves no room in the "
+                           f"range [{robot.q_min[k]:.6g}, {robot.q_max[k]:.6g}] of {robot.joints[k]}; use a "
+                           "smaller margin")
     kin = symbolic_kinematics(robot)
     cal, meas = spec.calibration, spec.measurement
     markers = None if meas.markers_m is None else np.array(meas.markers_m)

@@ -32,7 +32,6 @@ import numpy as np
 
 from .build import Problem
 from .cell import cell_rows, clearances
-from .errors import ProblemError
 from .symbolic import joint_axis
 
 #: Largest violation of a joint limit or workspace rule accepted (rad, m).
@@ -83,13 +82,7 @@ class JointLimits:
 def joint_limits(problem: Problem) -> JointLimits:
     """The plan's joint limits (:class:`JointLimits`) of ``problem``."""
     robot, margin = problem.robot, problem.workspace.joint_limit_margin_rad
-    lower, upper = robot.q_min + margin, robot.q_max - margin
-    narrow = np.flatnonzero(lower > upper)
-    if narrow.size:
-        k = int(narrow[0])
-        raise ProblemError(f"{problem.path}: [experiments.workspace].joint_limit_margin_rad: {margin:g} leaves no "
-                           f"room in the range [{robot.q_min[k]:.6g}, {robot.q_max[k]:.6g}] of {robot.joints[k]}; "
-                           "use a smaller margin")
+    lower, upper = robot.q_min + margin, robot.q_max - margin  # lower <= upper: checked when built
     revolute = np.array([joint_axis(robot.model.joints[j])[1] == "R" for j in robot.joint_ids])
     return JointLimits(lower, upper, revolute & (upper - lower > 2 * np.pi + 1e-9))
 

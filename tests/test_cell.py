@@ -1,0 +1,179 @@
+"""The calibration cell of a problem: problem-file keys, the rows every experiment gets, the
+check on the real geometry, periodic joints and the joint-limit margin."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from casadi_design.build import build_problem, load_problem
+from casadi_design.cell import clearances
+from casadi_design.errors import ProblemError
+from casadi_design.export import read_plan_csv
+from casadi_design.problem import parse_problem, read_problem
+from casadi_design.reduced import experiment_functions
+from casadi_design.rules import joint_distance_sq, joint_limits, plan_violations, pose_constraints
+from casadi_design.solve import random_plan
+from tests.conftest import ROOT
+
+UR10 = ROOT / "problems" / "ur10_drilling.toml"
+#: Relative agreement of the rows' Hessian with central differences of their Jacobian. The
+#: rows are C1 only (their closest points switch branch): a step that crosses a switch is
+#: off, so the agreement is looser than for the criteria.
+HESSIAN_FD_RTOL = 1e-4
+
+
+@pytest.fixture(scope="module")
+def ur10():
+    return load_problem(UR10)
+
+
+def _raw(path=UR10):
+    import tomllib
+
+    return tomllib.loads(path.read_text())
+
+
+def test_old_plan_through_the_floor_is_rejected(ur10):
+    """The D-optimal plan at m = 12 of the UR10 case without its cell (solved before the cell
+    existed) drives links through the floor and the table: every rule set says so."""
+    Q, F = read_plan_csv(ur10, ROOT / "tests" / "data" / "ur10_D_m12_without_cell.csv")
+    bare = build_problem(dataclasses.replace(ur10.spec, cell=None,
+                                             workspace=dataclasses.replace(ur10.workspace, joint_limit_margin_rad=0.0)))
+    assert plan_violations(bare, Q, F) == []  # the old rules: frame origins above the floor only
+    lines = plan_violations(ur10, Q, F)
+    assert any("closer than 20 mm to the floor" in ln for ln in lines)
+    assert any("closer than 20 mm to table" in ln for ln in lines)
+    assert any("acceptance angle" in ln for ln in lines)
+    near = clearances(ur10.cell, Q)
+    assert sum(c.distance_m == 0.0 for c in near) >= 6  # meshes cross the floor or the table
+    hit = [i for i, c in enumerate(near) if c.distance_m < 0.02]
+    for i in hit:  # every experiment the meshes reject, the rows reject too (capsules are conservative)
+        assert any(ln.startswith(f"experiment {i + 1}: ") and "closer than" in ln for ln in lines)
+
+
+def test_random_plans_satisfy_every_row_and_the_mesh_check(ur10):
+    Q, F = random_plan(ur10, 3, np.random.default_rng(4))
+    rules = pose_constraints(ur10)
+    assert all(np.all(rules.violation(q) == 0) for q in Q.T)
+    # capsules are conservative: rows satisfied means the meshes keep the clearance
+    assert min(c.distance_m for c in clearances(ur10.cell, Q)) >= ur10.cell.spec.clearance_m
+    assert plan_violations(ur10, Q, F) == []
+
+
+def test_incidence_row_is_the_cosine_of_the_beam_angle(ur10):
+    """Against Pinocchio: the angle between the reflector's axis (x of tool0, turned by the
+    tool frame) and the beam from the reflector to the tracker."""
+    rules, robot = pose_constraints(ur10), ur10.robot
+    row = rules.labels.index("reflector: tracker beam beyond the 30 deg acceptance angle")
+    assert rules.units[row] == "cos" and rules.lb[row] == pytest.approx(np.cos(np.deg2rad(30)))
+    data = robot.model.createData()
+    rng = np.random.default_rng(5)
+    tracker, axis = np.array(ur10.cell.spec.tracker.position_m), np.array(ur10.cell.spec.tracker.reflector_axis)
+    for q in rng.uniform(robot.q_min, robot.q_max, size=(20, robot.n)):
+        pin.framesForwardKinematics(robot.model, data, robot.full_q(q))
+        M = data.oMf[robot.frame_id]
+        beam = tracker - M.translation
+        want = (M.rotation @ axis) @ beam / np.linalg.norm(beam)
+        got = float(np.asarray(rules.g(q)).ravel()[row])
+        assert got == pytest.approx(want, abs=1e-12)
+
+
+def test_cell_rows_hessian_equals_finite_differences(ur10):
+    fns = experiment_functions(ur10)
+    rng = np.random.default_rng(6)
+    Q, F = random_plan(ur10, 2, rng)
+    for q in Q.T:
+        z = np.concatenate([q, np.zeros(fns.nv)])
+        W = np.zeros(np.asarray(fns.values(z)[0]).shape)
+        lam = rng.normal(size=fns.nc)
+        H = np.asarray(fns.second(z, W, lam))
+        h = 1e-6
+        fd = np.column_stack([(np.asarray(fns.first(z + h * e)[1]).T @ lam - np.asarray(fns.first(z - h * e)[1]).T @ lam)
+                              / (2 * h) for e in np.eye(z.size)])
+        np.testing.assert_allclose(H, fd, atol=HESSIAN_FD_RTOL * np.abs(H).max())
+
+
+def test_periodic_joints_are_free_and_wrapped(ur10):
+    limits, robot = joint_limits(ur10), ur10.robot
+    # the UR10's +/-2 pi joints are periodic; the elbow's +/-pi (exactly a turn) is not
+    assert limits.periodic.tolist() == [True, True, False, True, True, True]
+    lb, ub = limits.bounds()
+    assert np.all(np.isinf(lb[limits.periodic])) and np.all(np.isinf(ub[limits.periodic]))
+    np.testing.assert_allclose(limits.lower[2], -np.pi + 0.05)  # the margin
+    rng = np.random.default_rng(7)
+    Q = rng.uniform(-15, 15, size=(robot.n, 20))
+    W = limits.wrap(Q)
+    assert np.all(W >= limits.lower[:, None] - 1e-12) and np.all(W <= limits.upper[:, None] + 1e-12)
+    turns = (W - Q)[limits.periodic] / (2 * np.pi)
+    np.testing.assert_allclose(turns, np.round(turns), atol=1e-12)  # whole turns only
+    # the same pose: same measured point
+    for q, w in zip(Q.T, W.T):
+        q = np.where(limits.periodic, q, w)
+        np.testing.assert_allclose(np.asarray(ur10.model.position(q)).ravel(),
+                                   np.asarray(ur10.model.position(w)).ravel(), atol=1e-12)
+    # the chord distance: a whole turn apart is the same configuration; small moves as |d|
+    qa = limits.sample(rng)
+    assert joint_distance_sq(limits, qa, qa + 2 * np.pi * limits.periodic) == pytest.approx(0.0, abs=1e-24)
+    d = 1e-4 * rng.normal(size=robot.n)
+    assert np.sqrt(joint_distance_sq(limits, qa, qa + d)) == pytest.approx(np.linalg.norm(d), rel=1e-8)
+    qs = ca.SX.sym("q", robot.n)
+    f = ca.Function("d", [qs], [joint_distance_sq(limits, qs, ca.DM(qa))])
+    assert float(f(qa + d)) == pytest.approx(joint_distance_sq(limits, qa + d, qa), rel=1e-12)
+
+
+def test_margin_keeps_plans_off_the_limits(ur10):
+    Q, F = random_plan(ur10, 2, np.random.default_rng(8))
+    Q[2, 0] = -np.pi + 0.01  # the elbow 10 mrad from its limit, inside the 50 mrad margin
+    lines = plan_violations(ur10, Q, F)
+    assert any(ln.startswith("experiment 1: elbow_joint") and "margin" in ln for ln in lines)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c.update(obstacles=[{"name": "t", "kind": "cone"}]), r"\[cell.obstacles\[1\]\].kind: 'cone'; allowed: half_space, box, capsule"),
+    (lambda c: c.update(obstacles=[{"name": "t", "kind": "box", "center_m": [0, 0, 0], "half_extents_m": [1, 0, 1]}]),
+     r"half_extents_m: \[1.0, 0.0, 1.0\]; give positive half sizes"),
+    (lambda c: c.update(obstacles=[{"name": "t", "kind": "box", "center_m": [0, 0, 0], "half_extents_m": [1, 1, 1], "radius_m": 1}]),
+     r"'radius_m' is not a key of a box"),
+    (lambda c: c.update(obstacles=[{"name": "a", "kind": "half_space", "normal": [0, 0, 1], "offset_m": 0},
+                                   {"name": "a", "kind": "half_space", "normal": [0, 0, 1], "offset_m": 1}]),
+     r"\[cell.obstacles\[2\]\].name: 'a' is empty, repeated or reserved"),
+    (lambda c: c.update(capsules_per_link=9), r"\[cell\].capsules_per_link: must be between 0 and 8"),
+    (lambda c: c.update(disabled_pairs=[["forearm_link", "nowhere"]]), r"\[cell\].disabled_pairs: 'nowhere' carries no capsule"),
+    (lambda c: c.update(capsules=[{"frame": "nowhere", "a_m": [0, 0, 0], "b_m": [0, 0, 0], "radius_m": 0.1}]),
+     r"\[cell\].capsules: no frame or joint 'nowhere'"),
+    (lambda c: c["tracker"].update(acceptance_deg=180), r"\[cell.tracker\].acceptance_deg: is 180"),
+    (lambda c: c["tracker"].update(reflector_axis=[0, 0, 0]), r"\[cell.tracker\].reflector_axis: is zero"),
+    (lambda c: c.update(collision_urdf="robots/x.urdf"), r"\[cell\].collision_urdf: is only used with a DH robot"),
+])
+def test_bad_cell_keys_name_the_field(edit, message):
+    raw = _raw()
+    edit(raw["cell"])
+    with pytest.raises(ProblemError, match=message):
+        build_problem(parse_problem(raw, str(UR10)))
+
+
+def test_margin_larger_than_a_range_is_refused():
+    raw = _raw()
+    raw["experiments"]["workspace"]["joint_limit_margin_rad"] = 3.2
+    with pytest.raises(ProblemError, match=r"joint_limit_margin_rad: 3.2 leaves no room .* elbow_joint"):
+        build_problem(parse_problem(raw, str(UR10)))
+
+
+def test_dh_robot_needs_capsules_as_numbers():
+    raw = _raw(ROOT / "problems" / "abb_irb6640_machining.toml")
+    raw["cell"] = {"capsules_per_link": 2}
+    with pytest.raises(ProblemError, match=r"\[cell\].capsules_per_link: is 2 but the robot has no URDF collision meshes"):
+        parse_problem(raw, "abb.toml")
+    raw["cell"] = {"obstacles": [{"name": "wall", "kind": "half_space", "normal": [1, 0, 0], "offset_m": -1}]}
+    with pytest.raises(ProblemError, match=r"obstacles and lines of sight need the robot's capsules"):
+        build_problem(parse_problem(raw, "abb.toml"))
+
+
+def test_problem_without_cell_is_unchanged():
+    spec = read_problem(ROOT / "problems" / "paper_planar_2r.toml")
+    assert spec.cell is None and build_problem(spec).cell is None
