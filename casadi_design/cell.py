@@ -290,16 +290,21 @@ def clearances(cell: Cell, Q: np.ndarray) -> list[Clearance]:
     return out
 
 
-def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> list[tuple[ca.SX, float, float, str, str]]:
+Row = tuple[ca.SX, float, float, str, str]
+
+
+def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> tuple[list[Row], list[Row]]:
     """The cell's rows of configuration ``q``: ``(g, lb, ub, label, unit)`` with ``lb <= g <= ub``.
 
     ``R`` (3 x 3): the measured frame's rotation; ``P`` (3 x k, m): the reflectors, both at
-    ``q``. Capsule rows in m (:func:`casadi_design.collision.capsule_rows`), incidence rows as
-    cosines (unit "cos", module docstring).
+    ``q``. Returns the capsule rows in m (:func:`casadi_design.collision.capsule_rows`) and,
+    apart because they cost far less to evaluate, the incidence rows as cosines (unit "cos",
+    module docstring).
     """
-    rows = [(g, lb, ub, label, "m") for g, lb, ub, label in
-            capsule_rows(robot, cell.capsules, q, cell.spec.clearance_m, cell.obstacles, cell.sights,
-                         cell.pairs.kept, cell.near)]
+    capsule = [(g, lb, ub, label, "m") for g, lb, ub, label in
+               capsule_rows(robot, cell.capsules, q, cell.spec.clearance_m, cell.obstacles, cell.sights,
+                            cell.pairs.kept, cell.near)]
+    rows: list[Row] = []
     tracker = cell.spec.tracker
     if tracker is not None:
         a = R @ ca.DM(tracker.reflector_axis)
@@ -310,4 +315,4 @@ def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> list[tu
             rows.append((ca.dot(a, u) / ca.norm_2(u), np.cos(tracker.acceptance_rad), np.inf,
                          f"{name}: tracker beam beyond the {np.rad2deg(tracker.acceptance_rad):g} deg "
                          "acceptance angle", "cos"))
-    return rows
+    return capsule, rows

@@ -71,11 +71,12 @@ class JointLimits:
         wrapped = c + np.mod(Q - c + np.pi, 2 * np.pi) - np.pi
         return np.where(self.periodic[:, None], wrapped, np.clip(Q, self.lower[:, None], self.upper[:, None]))
 
-    def sample(self, rng: np.random.Generator) -> np.ndarray:
-        """A configuration drawn uniformly within the limits (within one turn for periodic joints)."""
+    def sample(self, rng: np.random.Generator, size: int | None = None) -> np.ndarray:
+        """A configuration (n), or ``size`` of them (size x n), drawn uniformly within the
+        limits (within one turn for periodic joints)."""
         lo = np.where(self.periodic, self.middle - np.pi, self.lower)
         hi = np.where(self.periodic, self.middle + np.pi, self.upper)
-        return rng.uniform(lo, hi)
+        return rng.uniform(lo, hi, size=None if size is None else (size, lo.size))
 
 
 @functools.cache
@@ -103,13 +104,30 @@ def joint_distance_sq(limits: JointLimits, qa, qb):
 @dataclass(frozen=True, eq=False)
 class PoseConstraints:
     """Workspace rows of one configuration: ``lb <= g(q) <= ub``, one label and unit per row
-    ("m", or "cos" for the cosine of an angle)."""
+    ("m", or "cos" for the cosine of an angle); ``screen`` gives the first rows alone (all but
+    the cell's capsule rows, which cost most)."""
 
     g: ca.Function
     lb: np.ndarray
     ub: np.ndarray
     labels: tuple[str, ...]
     units: tuple[str, ...]
+    screen: ca.Function
+
+    def feasible(self, Q: np.ndarray) -> np.ndarray:
+        """Whether each configuration (row of ``Q``, k x n) satisfies every row: the first
+        rows (``screen``: all but the costly capsule rows) on all of them, every row on those
+        that pass."""
+        Q = np.asarray(Q, dtype=float)
+        ok = np.ones(len(Q), dtype=bool)
+        for f in (self.screen, self.g):
+            rows = f.numel_out(0)
+            if not rows or not ok.any():
+                continue
+            idx = np.flatnonzero(ok)
+            G = np.asarray(f.map(idx.size)(Q[idx].T)).reshape(rows, idx.size).T
+            ok[idx] = np.all((G >= self.lb[:rows]) & (G <= self.ub[:rows]), axis=1)
+        return ok
 
     def violation(self, q: np.ndarray) -> np.ndarray:
         """Violation (in the row's unit, >= 0) of each row at configuration ``q``."""
@@ -146,14 +164,19 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
                  + [(P[:, j], f"measured point {j + 1}") for j in range(P.shape[1])])
         rows += [(p[2], ws.floor_z_m, np.inf, f"{name}: below the floor", "m")
                  for p, name in named if ca.depends_on(p[2], q)]
+    capsule = []
     if problem.cell is not None:
         R = model.kinematics.placement(q, ca.DM.zeros(len(model.kinematics.parameter_names)))[0]
-        rows += cell_rows(problem.cell, robot, q, R, P)
+        capsule, incidence = cell_rows(problem.cell, robot, q, R, P)
+        rows += incidence
+    screen = len(rows)  # the rows before the capsule rows are cheap: they screen candidates
+    rows += capsule
     g = ca.vertcat(*[r[0] for r in rows]) if rows else ca.SX(0, 1)
     return PoseConstraints(ca.Function("workspace", [q], [g], ["q"], ["g"]),
                            np.array([r[1] for r in rows], dtype=float),
                            np.array([r[2] for r in rows], dtype=float), tuple(r[3] for r in rows),
-                           tuple(r[4] for r in rows))
+                           tuple(r[4] for r in rows),
+                           ca.Function("screen", [q], [g[:screen]], ["q"], ["g"]))
 
 
 @dataclass(frozen=True, eq=False)

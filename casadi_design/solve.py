@@ -40,8 +40,11 @@ CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 #: a start first gets a few D-optimal iterations, and their number.
 POLISH_RCOND = 1e-6
 POLISH_ITERATIONS = 30
-#: Random configurations tried per experiment to satisfy the workspace constraints.
-SAMPLING_TRIES = 2000
+#: Random configurations tried per experiment to satisfy the workspace constraints, drawn one
+#: first, then in batches of ``SAMPLING_BATCH`` doubling up to ``SAMPLING_BATCH_MAX``.
+SAMPLING_TRIES = 20000
+SAMPLING_BATCH = 16
+SAMPLING_BATCH_MAX = 1024
 
 
 #: ``StartRecord.origin`` of the seeded random starts.
@@ -127,15 +130,23 @@ def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.
     rules, limits = pose_constraints(problem), joint_limits(problem)
     Q = np.empty((robot.n, m))
     for i in range(m):
-        for _ in range(SAMPLING_TRIES):
-            q = limits.sample(rng)
-            if not np.any(rules.violation(q) > 0):
-                break
-        else:
+        # one configuration, then growing batches (one CasADi call each) until one is feasible
+        tried, batch, q = 0, 1, None
+        while q is None and tried < SAMPLING_TRIES:
+            size = min(batch, SAMPLING_TRIES - tried)
+            candidates = limits.sample(rng, size)
+            ok = np.flatnonzero(rules.feasible(candidates))
+            q = candidates[ok[0]] if ok.size else None
+            tried, batch = tried + size, SAMPLING_BATCH if batch == 1 else min(2 * batch, SAMPLING_BATCH_MAX)
+        if q is None:
+            broken = np.sum([rules.violation(c) > 0 for c in candidates], axis=0)
+            worst = [rules.labels[k] for k in np.argsort(-broken)[:3] if broken[k]]
+            where = "[experiments.workspace] and [cell] leave" if problem.cell else "[experiments.workspace] leaves"
             raise DesignError(
-                f"{problem.path}: [experiments.workspace] leaves no feasible pose: none of "
-                f"{SAMPLING_TRIES} random configurations within the joint limits puts the measured "
-                "point inside it; enlarge the workspace or widen the joint limits"
+                f"{problem.path}: {where} no feasible pose: none of {SAMPLING_TRIES} random "
+                f"configurations within the joint limits satisfies them (most often broken: "
+                f"{'; '.join(worst)}); enlarge the workspace, move the obstacles or the tracker, or "
+                "widen the joint limits"
             )
         Q[:, i] = q
     if model.nF == 0:
