@@ -214,7 +214,7 @@ def test_industrial_input_errors(edit, match):
     edit(raw)
     if match is None:  # a floor above the robot: no feasible calibration pose
         p = build(raw, "ur10.toml")
-        with pytest.raises(DesignError, match=r"and \[cell\] leave no feasible pose: .* most often broken: "
+        with pytest.raises(DesignError, match=r"and \[cell\] leave no feasible pose: .*most often broken: "
                                               r"frame '\w+': below the floor"):
             solve_design(p, "D", 9, starts=1)
         return
