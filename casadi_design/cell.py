@@ -316,3 +316,16 @@ def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> tuple[l
                          f"{name}: tracker beam beyond the {np.rad2deg(tracker.acceptance_rad):g} deg "
                          "acceptance angle", "cos"))
     return capsule, rows
+
+
+def world_capsules(cell: Cell, robot: Robot, q: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float, str]]:
+    """The robot's capsules at configuration ``q`` (n, rad): world ends ``a``, ``b`` (m),
+    radius (m) and frame, for drawing."""
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, robot.full_q(np.asarray(q, dtype=float)))
+    out = []
+    for c in cell.capsules:
+        jid, M = _carrier_joint(robot.model, c.frame, "[cell].capsules")
+        oMc = data.oMi[jid] * M
+        out.append((oMc.act(np.array(c.a_m)), oMc.act(np.array(c.b_m)), c.radius_m, c.frame))
+    return out

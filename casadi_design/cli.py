@@ -184,7 +184,7 @@ def _solve(args: argparse.Namespace) -> int:
     from .bound import ROUNDED_PLANS, rounded_starts, with_bound
     from .export import report_markdown
     from .nlp import B0_at_test_poses
-    from .plotting import fig1
+    from .plotting import fig1, poses_figure
     from .progress import progress_bar
     from .results import format_solver_lines, format_table, prepare_out, write_results
     from .solve import solve_design
@@ -225,12 +225,17 @@ def _solve(args: argparse.Namespace) -> int:
         write_results(out / "results.json", problem, designs, approx)
         files = ["results.json"]
         files += _write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
+        figures = [("Fig. 1: +/- sqrt(rho) along the test poses", "fig1.png")]
+        if problem.cell is not None:  # the robot in the cell, in each experiment of the first criterion's plans
+            shown = [d for d in designs if d.criterion == criteria[0] and d.m in fig_m]
+            files += _write_figures(out, "poses", poses_figure(problem, shown))
+            figures.append((f"The robot in the cell in every experiment ({criteria[0]} plans), the "
+                            "tracker's beams and the test poses", "poses.png"))
         files += _write_plans(out, problem, designs)
-        report = report_markdown(problem, designs, table=format_table(designs),
-                                 figures=[("Fig. 1: +/- sqrt(rho) along the test poses", "fig1.png")],
+        report = report_markdown(problem, designs, table=format_table(designs), figures=figures,
                                  plans_for=fig_m, files=files, starts=starts)
         write_atomic(out / "report.md", report.encode())
-        _say(args, f"wrote {out / 'results.json'}, {out / 'fig1.png'}, {out / 'fig1.pdf'}, "
+        _say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))}, "
                    f"{out / 'report.md'} and {len(designs)} plans in {out / 'plans'}")
     return 0
 

@@ -186,3 +186,73 @@ def validation_figure(validation) -> Figure:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")
     return fig
+
+
+def _box_edges(box) -> list[np.ndarray]:
+    """The 12 edges (2 x 3, m) of a :class:`casadi_design.problem.Box`."""
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+    corners = np.array(box.center_m) + (signs * np.array(box.half_extents_m)) @ box.rotation.T
+    return [corners[[i, j]] for i in range(8) for j in range(i + 1, 8)
+            if np.sum(signs[i] != signs[j]) == 1]
+
+
+def poses_figure(problem, designs: list[Design]) -> Figure:
+    """The robot in every experiment of each design (one 3-D panel each, mm): its capsules as
+    thick lines (one colour per experiment), the obstacles, the tracker and its beams to the
+    reflectors, and the test path."""
+    from .cell import world_capsules
+    from .problem import Box, HalfSpace
+
+    cell, robot = problem.cell, problem.robot
+    fig = Figure(figsize=(6.0 * len(designs), 6.0), layout="constrained")
+    colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown",
+               "tab:pink", "tab:gray", "tab:olive", "tab:cyan"]
+    path = problem.test_poses.position_m * 1e3
+    for k, d in enumerate(designs):
+        ax = fig.add_subplot(1, len(designs), k + 1, projection="3d")
+        points = [path]
+        for i, q in enumerate(d.Q):
+            colour = colours[i % len(colours)]
+            for a, b, r, _ in world_capsules(cell, robot, q):
+                seg = np.array([a, b]) * 1e3
+                ax.plot(*seg.T, color=colour, lw=max(1.0, 60 * r), alpha=0.45, solid_capstyle="round")
+                points.append(seg)
+            P = np.asarray(problem.model.points(q), dtype=float).T * 1e3
+            ax.scatter(*P.T, color=colour, s=12, depthshade=False)
+            if cell.spec.tracker is not None:
+                t = np.array(cell.spec.tracker.position_m) * 1e3
+                for p in P:
+                    ax.plot(*np.array([t, p]).T, color=colour, lw=0.6, ls="--")
+        for o in cell.obstacles:
+            if isinstance(o, Box):
+                for e in _box_edges(o):
+                    ax.plot(*(e * 1e3).T, color="0.35", lw=0.8)
+            elif not isinstance(o, HalfSpace):
+                ax.plot(*(np.array([o.a_m, o.b_m]) * 1e3).T, color="0.35", lw=max(1.0, 60 * o.radius_m), alpha=0.5)
+        if cell.spec.tracker is not None:
+            t = np.array(cell.spec.tracker.position_m) * 1e3
+            ax.scatter(*t, marker="*", s=120, color="k", label="tracker")
+            points.append(t[None])
+        ax.plot(*path.T, color="k", lw=1.0, marker=".", ms=5, label="test poses")
+        allp = np.vstack(points)
+        lo, hi = allp.min(axis=0), allp.max(axis=0)
+        floor = next((o.offset_m for o in cell.obstacles if isinstance(o, HalfSpace) and o.normal == (0.0, 0.0, 1.0)), None)
+        if floor is not None:  # the floor as a grid under everything
+            X, Y = np.meshgrid(np.linspace(lo[0], hi[0], 6), np.linspace(lo[1], hi[1], 6))
+            ax.plot_wireframe(X, Y, np.full_like(X, floor * 1e3), color="0.8", lw=0.5)
+            lo[2] = min(lo[2], floor * 1e3)
+        pad = 0.05 * (hi - lo).max()
+        lo, hi = lo - pad, hi + pad
+        if floor is not None:
+            lo[2] = floor * 1e3
+        for setter, a, b in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), lo, hi):
+            setter(a, b)
+        ax.set_box_aspect(hi - lo)  # true proportions
+        ax.view_init(elev=25, azim=-70)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_zlabel("z (mm)")
+        ax.set_title(f"{CRITERIA[d.criterion].legend}, m = {d.m}: "
+                     f"{d.scores.max_rms_error_m * 1e3:.4f} mm", fontsize=10)
+        ax.legend(fontsize=8, loc="upper left")
+    return fig
