@@ -18,8 +18,11 @@ Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
 * the check of a plan on the real geometry (:func:`clearances`): exact distances (coal,
   through Pinocchio) between the URDF collision meshes (or, for robots without meshes, the
   capsules themselves), the capsules given as numbers (a tool) and the obstacles, for the
-  pairs the rows constrain. A plan whose bodies come closer than ``clearance_m`` breaks a
-  rule of the problem.
+  pairs the rows constrain. A plan in which two of them touch or cross breaks a rule of the
+  problem. The rows keep ``clearance_m`` between the capsules, hence at least as much between
+  the meshes, on every capsule pair they constrain; bodies whose capsules overlap in every
+  configuration (left out of the rows) may sit closer by construction, as the UR10's forearm
+  and second wrist link, 18 to 20 mm apart in every pose.
 """
 
 from __future__ import annotations
@@ -112,9 +115,9 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
         geometry = load_collision_geometry(model, urdf_file(urdf), _package_dirs(urdf))
         bodies = [model.frames[go.parentFrame].name for go in geometry.geometryObjects]
         if spec.capsules_per_link and geometry.ngeoms:
-            fitted = capsules_from_geometry(model, geometry)
+            fitted = capsules_from_geometry(model, geometry, spec.capsules_per_link)
     elif spec.collision_urdf:
-        geometry, bodies, fitted = _onto_chain(robot, spec.collision_urdf, bool(spec.capsules_per_link),
+        geometry, bodies, fitted = _onto_chain(robot, spec.collision_urdf, spec.capsules_per_link,
                                                f"{where}.collision_urdf")
     if spec.capsules_per_link and (geometry is None or not geometry.ngeoms):
         raise ProblemError(f"{where}.capsules_per_link: the robot has no collision geometry to fit "
@@ -163,9 +166,9 @@ def _carrier_joint(model: pin.Model, name: str, where: str) -> tuple[int, pin.SE
     raise ProblemError(f"{where}: no frame or joint '{name}'; the robot has: {', '.join(names)}")
 
 
-def _onto_chain(robot: Robot, urdf: str, fit: bool, where: str) -> tuple[pin.GeometryModel, list[str], tuple[Capsule, ...]]:
+def _onto_chain(robot: Robot, urdf: str, per_link: int, where: str) -> tuple[pin.GeometryModel, list[str], tuple[Capsule, ...]]:
     """The collision geometry of ``urdf`` carried by the joints of ``robot`` (a DH robot) with
-    the same names, a body name per object (the joint's name) and, when ``fit``, the capsules
+    the same names, a body name per object (the joint's name) and up to ``per_link`` capsules
     fitted around it, on those joints.
 
     An object or capsule point on URDF joint ``j`` goes onto the robot's joint of the same
@@ -204,7 +207,7 @@ def _onto_chain(robot: Robot, urdf: str, fit: bool, where: str) -> tuple[pin.Geo
                                                      go.geometry))
             bodies.append(robot.model.names[j])
     fitted = []
-    for c in capsules_from_geometry(urdf_model, geometry) if fit else ():
+    for c in capsules_from_geometry(urdf_model, geometry, per_link) if per_link else ():
         frame = urdf_model.frames[urdf_model.getFrameId(c.frame)]
         if frame.parentJoint in to_robot:
             M = offsets[frame.parentJoint] * frame.placement

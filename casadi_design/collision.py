@@ -23,6 +23,7 @@ Robots without collision geometry (DH tables) take capsules given as numbers
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -203,37 +204,113 @@ def fit_capsule(frame: str, points_m: np.ndarray, inflation_m: np.ndarray | None
     return Capsule(frame, a, b, r)
 
 
-def _geometry_balls(geometry) -> tuple[np.ndarray, np.ndarray]:
-    """Balls (centres, radii; m) whose convex hull contains a coal geometry, in its frame."""
+def _geometry_pieces(geometry) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Convex pieces covering a coal geometry, in its frame: each as balls (centres k x 3,
+    radii k; m) whose convex hull contains the piece. A mesh gives one piece per triangle;
+    a primitive, or a convex mesh, one piece."""
     if isinstance(geometry, coal.BVHModelBase):
-        return np.asarray(geometry.vertices(), dtype=float), np.zeros(geometry.num_vertices)
+        V = np.asarray(geometry.vertices(), dtype=float)
+        T = np.array([[t[0], t[1], t[2]] for t in map(geometry.tri_indices, range(geometry.num_tris))])
+        return [(V[t], np.zeros(3)) for t in T]
     if isinstance(geometry, coal.ConvexBase):
         P = np.asarray(geometry.points(), dtype=float)
-        return P, np.zeros(len(P))
+        return [(P, np.zeros(len(P)))]
     if isinstance(geometry, coal.Box):
         corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-        return corners * np.asarray(geometry.halfSide), np.zeros(8)
+        return [(corners * np.asarray(geometry.halfSide), np.zeros(8))]
     if isinstance(geometry, coal.Sphere):
-        return np.zeros((1, 3)), np.array([geometry.radius])
+        return [(np.zeros((1, 3)), np.array([geometry.radius]))]
     if isinstance(geometry, (coal.Capsule, coal.Cylinder)):
         h = geometry.halfLength
-        return np.array([[0, 0, -h], [0, 0, h]], dtype=float), np.full(2, geometry.radius)
+        return [(np.array([[0, 0, -h], [0, 0, h]], dtype=float), np.full(2, geometry.radius))]
     raise ProblemError(f"collision geometry of type {type(geometry).__name__} is not supported; "
                        "use meshes, convex meshes, boxes, spheres, capsules or cylinders")
 
 
-def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel) -> tuple[Capsule, ...]:
-    """One capsule per link (frame) carrying geometry objects, fitted around all of them
-    (:func:`fit_capsule`), in the link's frame; links in the model's frame order."""
-    balls: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+def _geometry_balls(geometry) -> tuple[np.ndarray, np.ndarray]:
+    """Balls (centres, radii; m) whose convex hull contains a coal geometry, in its frame."""
+    pieces = _geometry_pieces(geometry)
+    return np.vstack([c for c, _ in pieces]), np.concatenate([r for _, r in pieces])
+
+
+def _rough_volume(X: np.ndarray, rho: np.ndarray) -> float:
+    """Volume (m^3) of the capsule of :func:`fit_capsule` on the principal axis alone (no
+    refinement): a quick score of a partition."""
+    c = X.mean(axis=0)
+    u = np.linalg.svd(X - c, full_matrices=False)[2][0]
+    t = (X - c) @ u
+    d = np.linalg.norm((X - c) - np.outer(t, u), axis=1)
+    r = float(np.max(d + rho))
+    reach = np.sqrt(np.maximum((r - rho) ** 2 - d**2, 0.0))
+    length = max(float(np.max(t - reach) - np.min(t + reach)), 0.0)
+    return np.pi * r**2 * (length + 4 * r / 3)
+
+
+#: A link gets one more capsule only when it cuts the total volume by this fraction.
+SPLIT_GAIN = 0.10
+#: Cut positions tried along a link's principal axis: these quantiles of its pieces.
+CUT_QUANTILES = np.linspace(0.1, 0.9, 9)
+
+
+def _partition(points: np.ndarray, radii: np.ndarray, piece: np.ndarray, most: int) -> list[np.ndarray]:
+    """Groups of pieces (masks over the points) whose capsules have the least rough volume.
+
+    The pieces are cut into slabs along the points' principal axis by their centroids, at
+    ``CUT_QUANTILES``; from one slab up to ``most``, a further cut is kept only when it
+    reduces the total volume by ``SPLIT_GAIN``.
+    """
+    n = int(piece.max()) + 1
+    count = np.bincount(piece, minlength=n)
+    centroid = np.array([np.bincount(piece, points[:, a], n) for a in range(3)]).T / count[:, None]
+    c = points.mean(axis=0)
+    u = np.linalg.svd(points - c, full_matrices=False)[2][0]
+    t = (centroid - c) @ u
+    cuts = np.unique(np.quantile(t, CUT_QUANTILES))
+
+    def groups(chosen) -> list[np.ndarray]:
+        slab = np.searchsorted(np.asarray(chosen), t)[piece]
+        return [m for m in (slab == k for k in range(len(chosen) + 1)) if m.any()]
+
+    def volume(chosen) -> float:
+        return sum(_rough_volume(points[m], radii[m]) for m in groups(chosen))
+
+    best, best_volume = (), volume(())
+    for k in range(1, most):
+        options = list(itertools.combinations(cuts, k))
+        if not options:
+            break
+        chosen = min(options, key=volume)
+        v = volume(chosen)
+        if v > (1 - SPLIT_GAIN) * best_volume:
+            break
+        best, best_volume = chosen, v
+    return groups(best)
+
+
+def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_link: int = 1) -> tuple[Capsule, ...]:
+    """Up to ``per_link`` capsules per link (frame) carrying geometry objects, in the link's
+    frame; links in the model's frame order.
+
+    The link's convex pieces (mesh triangles, primitives: :func:`_geometry_pieces`) are
+    grouped into slabs along the link's principal axis (:func:`_partition`), and a capsule is
+    fitted around each group (:func:`fit_capsule`). Every piece lies inside one capsule
+    (convexity), so the link's surface lies inside the union of its capsules and the smallest
+    capsule distance between two links is never larger than the mesh distance.
+    """
+    parts: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
     for go in geom_model.geometryObjects:
-        centres, radii = _geometry_balls(go.geometry)
         # geometry placement is relative to the joint; express it in the link frame
         fMg = model.frames[go.parentFrame].placement.inverse() * go.placement
-        balls.setdefault(go.parentFrame, []).append((centres @ fMg.rotation.T + fMg.translation, radii))
-    return tuple(fit_capsule(model.frames[fid].name, np.vstack([c for c, _ in parts]),
-                             np.concatenate([r for _, r in parts]))
-                 for fid, parts in sorted(balls.items()))
+        parts.setdefault(go.parentFrame, []).extend(
+            (c @ fMg.rotation.T + fMg.translation, r) for c, r in _geometry_pieces(go.geometry))
+    out = []
+    for fid, pieces in sorted(parts.items()):
+        points = np.vstack([c for c, _ in pieces])
+        radii = np.concatenate([r for _, r in pieces])
+        piece = np.repeat(np.arange(len(pieces)), [len(r) for _, r in pieces])
+        for mask in _partition(points, radii, piece, per_link):
+            out.append(fit_capsule(model.frames[fid].name, points[mask], radii[mask]))
+    return tuple(out)
 
 
 def load_collision_geometry(model: pin.Model, urdf_path, package_dirs: Sequence[str] = ()) -> pin.GeometryModel:

@@ -12,7 +12,7 @@ A plan is m experiments ``(q_i, F_i)``. Its rules:
   the half-spaces and the tracker's sphere; every moving frame origin (joints, links, flange,
   tool) and measured point above the floor; with a ``[cell]``, the rows of
   :func:`casadi_design.cell.cell_rows` (self-collision, obstacles, lines of sight, reflector
-  incidence) and, after solving, the clearance on the real geometry
+  incidence) and, after solving, no two bodies touching on the real geometry
   (:func:`casadi_design.cell.clearances`);
 * distinct experiments: ``joint_distance(q_i, q_j) >= min_joint_distance_rad``.
 
@@ -260,12 +260,10 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
         out += [f"experiment {i + 1}: {label} by {_amount(violation[k], rules.units[k], rules.lb[k])}"
                 for label, k in worst.items()]
     if problem.cell is not None:
-        c = problem.cell.spec.clearance_m
         for i, near in enumerate(clearances(problem.cell, Q)):
-            if near.distance_m < c - FEASIBILITY_TOL:
-                out.append(f"experiment {i + 1}: {near.between[0]} and {near.between[1]} are "
-                           f"{near.distance_m * 1e3:.3g} mm apart on the {problem.cell.check.source}, "
-                           f"below the {c * 1e3:g} mm clearance")
+            if near.distance_m <= FEASIBILITY_TOL:
+                out.append(f"experiment {i + 1}: {near.between[0]} and {near.between[1]} touch or cross "
+                           f"on the {problem.cell.check.source}")
     if force is not None and F.size:
         for i, f in enumerate(F.T):
             norm = float(np.linalg.norm(f))

@@ -201,3 +201,44 @@ def test_dh_robot_takes_capsules_as_numbers():
         C.capsules_from_table(model, [{"frame": joints[0], "a_m": (0, 0, 0), "b_m": (0, 0, 0)}])
     with pytest.raises(ProblemError, match="radius_m must be finite and >= 0"):
         C.Capsule(joints[0], (0, 0, 0), (0, 0, 0), -1.0)
+
+
+@pytest.fixture(scope="module")
+def ur10_three(ur10):
+    model, geom, _, robot, _ = ur10
+    capsules = C.capsules_from_geometry(model, geom, 3)
+    return capsules, C.self_collision_pairs(robot, capsules, disabled=[("base_link", "upper_arm_link")])
+
+
+def test_several_capsules_hold_every_triangle(ur10, ur10_three):
+    """Each mesh triangle lies in one capsule of its link: the union covers the surface."""
+    model, geom, _, _, _ = ur10
+    capsules, _ = ur10_three
+    assert len(capsules) > len({c.frame for c in capsules})  # some links got several
+    for go in geom.geometryObjects:
+        frame = model.frames[go.parentFrame]
+        fMg = frame.placement.inverse() * go.placement
+        mine = [c for c in capsules if c.frame == frame.name]
+        for tri, _ in C._geometry_pieces(go.geometry):
+            x = tri @ fMg.rotation.T + fMg.translation
+            inside = [max(C.segment_distance_np(p, p, c.a_m, c.b_m, smoothing_m=0.0) for p in x) <= c.radius_m + 1e-12
+                      for c in mine]
+            assert any(inside)
+
+
+def test_several_capsules_are_conservative_and_pass_more_configurations(ur10, ur10_three):
+    model, geom, one, robot, _ = ur10
+    three, pairs3 = ur10_three
+    pairs1 = C.self_collision_pairs(robot, one, disabled=[("base_link", "upper_arm_link")])
+    rng = np.random.default_rng(9)
+    passed = {1: 0, 3: 0}
+    for q in rng.uniform(robot.q_min, robot.q_max, size=(60, robot.n)):
+        mesh = C.mesh_min_distance(model, geom, q, pairs=pairs3.links)
+        ends = C._ends_numeric(robot, q)
+        for (fa, fb), d_mesh in mesh.pairs.items():
+            d_caps = min(C.segment_distance_np(*ends(a), *ends(b)) - a.radius_m - b.radius_m
+                         for a in three if a.frame == fa for b in three if b.frame == fb)
+            assert d_caps <= d_mesh + MESH_TOL, (fa, fb, q)
+        for k, caps, pairs in ((1, one, pairs1), (3, three, pairs3)):
+            passed[k] += bool(np.all(C.capsule_clearances(robot, caps, q, pairs=pairs.kept)[0] > 0))
+    assert passed[3] > passed[1]
