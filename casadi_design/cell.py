@@ -6,12 +6,17 @@ Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
   :func:`casadi_design.rules.pose_constraints`, hence imposed on every experiment by the NLP
   and checked by :func:`casadi_design.rules.plan_violations`:
   - self-collision, obstacles (the floor of ``[experiments.workspace]`` included: every moving
-    capsule stays above it) and lines of sight, from :func:`casadi_design.collision.capsule_rows`
+    capsule stays above it) and the line of sight to the reflectors, from :func:`casadi_design.collision.capsule_rows`
     (m, each ``>= 0``: capsules apart by at least ``clearance_m``);
   - reflector incidence: the beam from reflector ``k`` at ``p_k`` to the tracker at ``t``
-    makes the angle ``acos(a . u_k)`` with the reflector's axis ``a = R(q) a_tool``,
-    ``u_k = (t - p_k) / |t - p_k|``; it must stay within the acceptance angle, written
-    ``a . u_k >= cos(acceptance)`` (a smooth row; unit "cos").
+    makes the angle ``acos(a . u_k)`` with the reflectors' axis ``a = R(q) a_tool``,
+    ``u_k = (t - p_k) / |t - p_k|``; it must stay within the acceptance angle. One smooth row
+    per experiment (unit "cos"): with ``c`` the reflectors' centroid, ``u = (t - c) / D``,
+    ``D = |t - c|`` and ``s`` the largest distance of a reflector from ``c``, every ``u_k`` is
+    within ``asin(s / D)`` of ``u``, so ``a . u >= cos(acceptance - asin(s / D))`` keeps every
+    reflector within the acceptance angle (exact for one reflector; a few degrees
+    conservative for a spread of markers). Three nearly parallel rows, one per marker, made
+    IPOPT crawl (degenerate constraints).
   A reflector that the tracker cannot see rejects the pose, rather than dropping that
   measurement: the information matrix assumes every marker is measured in every experiment,
   and an operator would re-teach such a pose anyway.
@@ -79,8 +84,8 @@ class CheckGeometry:
 class Cell:
     """A problem's cell: ``capsules`` of the robot, the constrained self-collision ``pairs``,
     the ``obstacles`` (the floor included) with the (capsule, obstacle) pairs ``near`` that
-    can meet (``near_skipped``: the others, with the reason), one line of ``sights`` per
-    reflector, and the geometry plans are ``check``-ed on. ``spec`` keeps the clearance and
+    can meet (``near_skipped``: the others, with the reason), the line of ``sights`` to the
+    reflectors, and the geometry plans are ``check``-ed on. ``spec`` keeps the clearance and
     the tracker."""
 
     spec: CellSpec
@@ -105,7 +110,10 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
                markers_m: np.ndarray) -> Cell | None:
     """The cell of ``[cell]`` for ``robot`` (built from ``urdf`` when not empty).
 
-    ``markers_m`` (k x 3, measured frame, m): the reflectors, one line of sight each.
+    ``markers_m`` (k x 3, measured frame, m): the reflectors; one line of sight stands for
+    all of them: the beam to their centroid, kept further from the capsules by their spread
+    (:class:`casadi_design.collision.LineOfSight`). One beam per reflector gave nearly
+    parallel rows that made IPOPT crawl.
     """
     if spec is None:
         return None
@@ -139,8 +147,10 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
     obstacles = spec.obstacles + ((HalfSpace((0.0, 0.0, 1.0), workspace.floor_z_m, "the floor"),)
                                   if workspace.floor_z_m is not None and capsules else ())
     near, near_skipped = obstacle_pairs(robot, capsules, obstacles, spec.clearance_m) if obstacles else ((), {})
-    sights = (tuple(LineOfSight(spec.tracker.position_m, robot.model.frames[robot.frame_id].name, tuple(p))
-                    for p in np.asarray(markers_m, dtype=float))
+    markers = np.asarray(markers_m, dtype=float)
+    centroid = markers.mean(axis=0)
+    sights = ((LineOfSight(spec.tracker.position_m, robot.model.frames[robot.frame_id].name, tuple(centroid),
+                           spread_m=float(np.max(np.linalg.norm(markers - centroid, axis=1)))),)
               if spec.tracker is not None and capsules else ())
     check = _check_geometry(robot, capsules, fitted, geometry, bodies, pairs, obstacles, near)
     return Cell(spec, capsules, pairs, obstacles, near, near_skipped, sights, check)
@@ -296,11 +306,12 @@ def clearances(cell: Cell, Q: np.ndarray) -> list[Clearance]:
 Row = tuple[ca.SX, float, float, str, str]
 
 
-def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> tuple[list[Row], list[Row]]:
+def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX,
+              markers_m: np.ndarray) -> tuple[list[Row], list[Row]]:
     """The cell's rows of configuration ``q``: ``(g, lb, ub, label, unit)`` with ``lb <= g <= ub``.
 
     ``R`` (3 x 3): the measured frame's rotation; ``P`` (3 x k, m): the reflectors, both at
-    ``q``. Returns the capsule rows in m (:func:`casadi_design.collision.capsule_rows`) and,
+    ``q``; ``markers_m`` (k x 3, m): the reflectors in the measured frame. Returns the capsule rows in m (:func:`casadi_design.collision.capsule_rows`) and,
     apart because they cost far less to evaluate, the incidence rows as cosines (unit "cos",
     module docstring).
     """
@@ -311,13 +322,17 @@ def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX) -> tuple[l
     tracker = cell.spec.tracker
     if tracker is not None:
         a = R @ ca.DM(tracker.reflector_axis)
-        many = P.shape[1] > 1
-        for k in range(P.shape[1]):
-            u = ca.DM(tracker.position_m) - P[:, k]
-            name = f"reflector {k + 1}" if many else "reflector"
-            rows.append((ca.dot(a, u) / ca.norm_2(u), np.cos(tracker.acceptance_rad), np.inf,
-                         f"{name}: tracker beam beyond the {np.rad2deg(tracker.acceptance_rad):g} deg "
-                         "acceptance angle", "cos"))
+        c = ca.sum2(P) / P.shape[1]
+        spread = float(np.max(np.linalg.norm(markers_m - markers_m.mean(axis=0), axis=1)))
+        u = ca.DM(tracker.position_m) - c
+        D = ca.norm_2(u)
+        margin = ca.asin(ca.fmin(spread / D, 0.99)) if spread > 0 else 0.0
+        acceptance = tracker.acceptance_rad
+        # cos(angle at the centroid) >= cos(acceptance - margin), shifted so that the row reads
+        # as cos(angle) >= cos(acceptance) (exact for one reflector)
+        rows.append((ca.dot(a, u) / D - ca.cos(acceptance - margin) + np.cos(acceptance), np.cos(acceptance),
+                     np.inf, f"{'reflectors' if spread > 0 else 'reflector'}: tracker beam beyond the "
+                             f"{np.rad2deg(acceptance):g} deg acceptance angle", "cos"))
     return capsule, rows
 
 

@@ -62,12 +62,17 @@ class LineOfSight:
 
     ``excluded`` names the capsule frames the beam may touch; by default the capsules carried
     by the same joint as ``frame`` (the reflector sits on, or inside, that link's capsule).
+    ``spread_m``: the beam stands for every beam from the tracker to a point within this
+    distance of ``point_m`` (several reflectors around their centroid): each such beam is
+    within ``spread_m`` of this one, point for point, so the rows keep this beam
+    ``spread_m`` further from the capsules.
     """
 
     tracker_m: tuple[float, float, float]
     frame: str
     point_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     excluded: tuple[str, ...] | None = None
+    spread_m: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "tracker_m", _vector(self.tracker_m, "line of sight: tracker_m"))
@@ -573,7 +578,7 @@ def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: 
         tracker = np.array(sight.tracker_m)
         for k, c in enumerate(capsules):
             if c.frame not in excluded:
-                g = dist(tracker, reflector, *world[k]) - c.radius_m - clearance_m
+                g = dist(tracker, reflector, *world[k]) - c.radius_m - sight.spread_m - clearance_m
                 out.append((g, f"line of sight to {sight.frame}: within {mm} of link {names[k]}"))
     return out
 
@@ -599,7 +604,7 @@ def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_
       distance is larger); kinks where two faces or two ends tie;
       capsule (in a fixed frame): ``dist(s, s_o) - r - r_o - clearance_m``;
     * for each line of sight, every capsule not excluded (see :class:`LineOfSight`):
-      ``dist([tracker, reflector(q)], s_k) - r_k - clearance_m``.
+      ``dist([tracker, reflector(q)], s_k) - r_k - spread - clearance_m``.
 
     ``dist`` is :func:`segment_distance` (smoothed, within ``SMOOTHING_M`` below the exact
     distance).

@@ -167,7 +167,9 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
     capsule = []
     if problem.cell is not None:
         R = model.kinematics.placement(q, ca.DM.zeros(len(model.kinematics.parameter_names)))[0]
-        capsule, incidence = cell_rows(problem.cell, robot, q, R, P)
+        markers = problem.spec.measurement.markers_m
+        capsule, incidence = cell_rows(problem.cell, robot, q, R, P,
+                                       np.zeros((1, 3)) if markers is None else np.array(markers))
         rows += incidence
     screen = len(rows)  # the rows before the capsule rows are cheap: they screen candidates
     rows += capsule

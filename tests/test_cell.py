@@ -180,3 +180,34 @@ def test_dh_robot_needs_capsules_as_numbers():
 def test_problem_without_cell_is_unchanged():
     spec = read_problem(ROOT / "problems" / "paper_planar_2r.toml")
     assert spec.cell is None and build_problem(spec).cell is None
+
+
+def test_one_incidence_and_sight_row_stand_for_every_reflector():
+    """The ABB's three reflectors: the centroid rows are conservative for each reflector (its
+    exact beam angle, its own line of sight)."""
+    from casadi_design.collision import LineOfSight, capsule_clearances
+
+    abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
+    rules, robot, cell = pose_constraints(abb), abb.robot, abb.cell
+    markers = np.array(abb.spec.measurement.markers_m)
+    incidence = rules.labels.index("reflectors: tracker beam beyond the 30 deg acceptance angle")
+    sight = [k for k, label in enumerate(rules.labels) if label.startswith("line of sight")]
+    tracker, axis = np.array(cell.spec.tracker.position_m), np.array(cell.spec.tracker.reflector_axis)
+    data = robot.model.createData()
+    each = [LineOfSight(tuple(tracker), cell.sights[0].frame, tuple(p)) for p in markers]
+    rng = np.random.default_rng(10)
+    seen, clear = 0, 0
+    for q in rng.uniform(robot.q_min, robot.q_max, size=(400, robot.n)):
+        g = np.asarray(rules.g(q)).ravel()
+        pin.framesForwardKinematics(robot.model, data, robot.full_q(q))
+        M = data.oMf[robot.frame_id]
+        beams = tracker - (M.rotation @ markers.T).T - M.translation
+        cos = beams @ (M.rotation @ axis) / np.linalg.norm(beams, axis=1)
+        if g[incidence] >= rules.lb[incidence]:
+            seen += 1
+            assert np.all(cos >= np.cos(cell.spec.tracker.acceptance_rad) - 1e-12)
+        if np.all(g[sight] >= 0):
+            clear += 1
+            own, _ = capsule_clearances(robot, cell.capsules, q, cell.spec.clearance_m, (), each, ())
+            assert np.all(own >= -1e-12)
+    assert seen > 0 and clear > 0
