@@ -15,16 +15,17 @@ with ``dist`` the segment-segment distance (:func:`segment_distance`). The rows 
   capsule, except those of the link carrying the reflector (the beam ends on that link).
 
 The capsules of a URDF robot are fitted around its collision meshes so that every vertex is
-inside (:func:`capsules_from_urdf`); a capsule distance is then a lower bound of the mesh
-distance, which :func:`mesh_min_distance` computes with Pinocchio and coal to check a plan.
+inside (:func:`capsules_from_geometry`); a capsule distance is then a lower bound of the mesh
+distance, which :func:`casadi_design.cell.clearances` computes with Pinocchio and coal to check
+a plan.
 Robots without collision geometry (DH tables) take capsules given as numbers
-(:func:`capsules_from_table`). :func:`capsule_clearances` is the numpy twin of the rows.
+(``[cell].capsules``). :func:`capsule_clearances` is the numpy twin of the rows.
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -232,12 +233,6 @@ def _geometry_pieces(geometry) -> list[tuple[np.ndarray, np.ndarray]]:
                        "use meshes, convex meshes, boxes, spheres, capsules or cylinders")
 
 
-def _geometry_balls(geometry) -> tuple[np.ndarray, np.ndarray]:
-    """Balls (centres, radii; m) whose convex hull contains a coal geometry, in its frame."""
-    pieces = _geometry_pieces(geometry)
-    return np.vstack([c for c, _ in pieces]), np.concatenate([r for _, r in pieces])
-
-
 def _rough_volume(X: np.ndarray, rho: np.ndarray) -> float:
     """Volume (m^3) of the capsule of :func:`fit_capsule` on the principal axis alone (no
     refinement): a quick score of a partition."""
@@ -328,31 +323,6 @@ def load_collision_geometry(model: pin.Model, urdf_path, package_dirs: Sequence[
                            "mesh paths and package_dirs") from None
 
 
-def capsules_from_urdf(model: pin.Model, urdf_path, package_dirs: Sequence[str] = ()) -> tuple[Capsule, ...]:
-    """Capsules around the collision geometry of a URDF, one per link (see
-    :func:`capsules_from_geometry`). ``package_dirs``: folders in which ``package://`` paths
-    are resolved (for example-robot-data: the folder holding ``example-robot-data``)."""
-    geom_model = load_collision_geometry(model, urdf_path, package_dirs)
-    if not geom_model.ngeoms:
-        raise ProblemError(f"{urdf_path}: the URDF has no collision geometry; give the capsules "
-                           "as numbers (frame, a_m, b_m, radius_m) instead")
-    return capsules_from_geometry(model, geom_model)
-
-
-def capsules_from_table(model: pin.Model, rows: Iterable[Mapping]) -> tuple[Capsule, ...]:
-    """Capsules given as numbers: each row ``{frame, a_m, b_m, radius_m}`` (m), ``frame`` a
-    frame or joint of ``model`` (for DH robots, a joint: its frame as Pinocchio places it)."""
-    out = []
-    for k, row in enumerate(rows, start=1):
-        missing = [key for key in ("frame", "a_m", "b_m", "radius_m") if key not in row]
-        if missing:
-            raise ProblemError(f"capsule {k}: missing {', '.join(missing)}; give frame, a_m, b_m, radius_m")
-        capsule = Capsule(str(row["frame"]), row["a_m"], row["b_m"], row["radius_m"])
-        _carrier(model, capsule.frame)
-        out.append(capsule)
-    return tuple(out)
-
-
 # ---------------------------------------------------------------------------------------------
 # kinematics of the capsules
 
@@ -441,7 +411,7 @@ def capsule_names(capsules: Sequence[Capsule]) -> tuple[str, ...]:
 class PairSelection:
     """Self-collision pairs: ``kept`` (indices into the capsules) become rows; ``skipped``
     maps each other pair of capsule names to the reason; ``links`` are the pairs of link
-    frames of ``kept`` (for :func:`mesh_min_distance`)."""
+    frames of ``kept``."""
 
     kept: tuple[tuple[int, int], ...]
     skipped: dict[tuple[str, str], str]
@@ -627,52 +597,3 @@ def capsule_clearances(robot: Robot, capsules: Sequence[Capsule], q: np.ndarray,
     rows = _rows(robot, capsules, _ends_numeric(robot, np.asarray(q, dtype=float)), _NP, segment_distance_np,
                  clearance_m, obstacles, sights, pairs, near)
     return np.array([float(g) for g, _ in rows]), tuple(label for _, label in rows)
-
-
-# ---------------------------------------------------------------------------------------------
-# check on the meshes
-
-
-@dataclass(frozen=True)
-class MeshDistance:
-    """Distances (m) between the collision meshes at one configuration: ``pairs`` maps each
-    pair of link frames to its distance (0 when the meshes intersect); ``min_m`` is the
-    smallest, between ``closest``."""
-
-    min_m: float
-    closest: tuple[str, str]
-    pairs: dict[tuple[str, str], float]
-
-
-def mesh_min_distance(model: pin.Model, geom_model: pin.GeometryModel, q: np.ndarray,
-                      pairs: Iterable[tuple[str, str]] | None = None) -> MeshDistance:
-    """Smallest distance between the meshes of ``pairs`` of link frames at the Pinocchio
-    configuration ``q`` (``model.nq``), by ``pinocchio.computeDistances`` (coal).
-
-    ``pairs`` defaults to every pair of links carried by non-adjacent joints (see
-    :func:`self_collision_pairs`). Between triangle meshes, coal reports 0 for meshes that
-    cross; a mesh entirely inside another without crossing triangles is not detected.
-    """
-    names = [model.frames[go.parentFrame].name for go in geom_model.geometryObjects]
-    wanted = None if pairs is None else {frozenset(p) for p in pairs}
-    checked = pin.GeometryModel(geom_model)
-    checked.removeAllCollisionPairs()
-    for i, gi in enumerate(geom_model.geometryObjects):
-        for j in range(i + 1, geom_model.ngeoms):
-            gj = geom_model.geometryObjects[j]
-            if wanted is None:
-                if not _adjacent(model, gi.parentJoint, gj.parentJoint):
-                    checked.addCollisionPair(pin.CollisionPair(i, j))
-            elif frozenset((names[i], names[j])) in wanted:
-                checked.addCollisionPair(pin.CollisionPair(i, j))
-    if not checked.collisionPairs:
-        raise ProblemError("mesh_min_distance: no pair of meshes to check; give pairs of link frames "
-                           f"among: {', '.join(sorted(set(names)))}")
-    data = checked.createData()
-    pin.computeDistances(model, model.createData(), checked, data, np.asarray(q, dtype=float))
-    out: dict[tuple[str, str], float] = {}
-    for k, cp in enumerate(checked.collisionPairs):
-        key = (names[cp.first], names[cp.second])
-        out[key] = min(out.get(key, np.inf), max(float(data.distanceResults[k].min_distance), 0.0))
-    closest = min(out, key=out.get)
-    return MeshDistance(out[closest], closest, out)
