@@ -32,6 +32,7 @@ Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,7 +124,7 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
         geometry = load_collision_geometry(model, urdf_file(urdf), _package_dirs(urdf))
         bodies = [model.frames[go.parentFrame].name for go in geometry.geometryObjects]
         if spec.capsules_per_link and geometry.ngeoms:
-            fitted = capsules_from_geometry(model, geometry, spec.capsules_per_link)
+            fitted = _fitted(urdf, spec.capsules_per_link)
     elif spec.collision_urdf:
         geometry, bodies, fitted = _onto_chain(robot, spec.collision_urdf, spec.capsules_per_link,
                                                f"{where}.collision_urdf")
@@ -154,6 +155,15 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
               if spec.tracker is not None and capsules else ())
     check = _check_geometry(robot, capsules, fitted, geometry, bodies, pairs, obstacles, near)
     return Cell(spec, capsules, pairs, obstacles, near, near_skipped, sights, check)
+
+
+@functools.lru_cache(maxsize=8)
+def _fitted(urdf: str, per_link: int) -> tuple[Capsule, ...]:
+    """The capsules fitted around the collision meshes of ``urdf`` (by frame name: they do
+    not depend on frames added later), once per process: a fit takes a few seconds."""
+    model = load_urdf(urdf)
+    return capsules_from_geometry(model, load_collision_geometry(model, urdf_file(urdf), _package_dirs(urdf)),
+                                  per_link)
 
 
 def _package_dirs(urdf: str) -> list[Path]:
