@@ -195,9 +195,22 @@ def _build(spec: ProblemSpec) -> Problem:
         # parameters in units that give every column of B unit RMS over random poses (Khalil)
         c = np.sqrt(np.mean(S.reshape(-1, model.d, model.L) ** 2, axis=0).sum(axis=0))
         model = calibration_model(kin, cal.case, column_scale=c, **model_args)
-    cell = build_cell(spec.cell, robot, spec.workspace, spec.robot.urdf,
-                      np.zeros((1, 3)) if markers is None else markers)
-    return Problem(spec, robot, model, test_poses, chosen, m_min, cell)
+    return Problem(spec, robot, model, test_poses, chosen, m_min, _cell(spec, robot, markers))
+
+
+#: Cells built in this process, by the data they depend on (a cell samples configurations to
+#: select its pairs, which takes seconds; problem variants that keep the cell reuse it).
+_CELLS: dict[str, Cell | None] = {}
+
+
+def _cell(spec: ProblemSpec, robot: Robot, markers: np.ndarray | None) -> Cell | None:
+    key = repr((spec.cell, spec.robot, spec.workspace.floor_z_m, None if markers is None else markers.tolist()))
+    if key not in _CELLS:
+        _CELLS[key] = build_cell(spec.cell, robot, spec.workspace, spec.robot.urdf,
+                                 np.zeros((1, 3)) if markers is None else markers)
+        while len(_CELLS) > KEEP_BUILT:
+            _CELLS.pop(next(iter(_CELLS)))
+    return _CELLS[key]
 
 
 def build_robot(r: RobotSpec) -> Robot:
