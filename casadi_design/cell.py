@@ -25,9 +25,11 @@ Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
   capsules themselves), the capsules given as numbers (a tool) and the obstacles, for the
   pairs the rows constrain. A plan in which two of them touch or cross breaks a rule of the
   problem. The rows keep ``clearance_m`` between the capsules, hence at least as much between
-  the meshes, on every capsule pair they constrain; bodies whose capsules overlap in every
-  configuration (left out of the rows) may sit closer by construction, as the UR10's forearm
-  and second wrist link, 18 to 20 mm apart in every pose.
+  the meshes, on every capsule pair they constrain: the reported clearance is the smallest
+  distance between bodies all of whose capsule pairs are constrained. Bodies some of whose
+  capsules overlap in every configuration (left out of the rows) may sit closer by
+  construction, as the UR10's forearm and second wrist link, 18 to 20 mm apart in every pose:
+  they are only checked for touching.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ import pinocchio as pin
 from .collision import (
     LineOfSight,
     PairSelection,
+    capsule_names,
     capsule_rows,
     capsules_from_geometry,
     load_collision_geometry,
@@ -66,7 +69,8 @@ class CheckGeometry:
     ``model`` moves ``geometry`` (whose collision pairs are the checked ones); ``q_index[k]``
     is where chain joint k sits in ``model``'s configuration; ``labels`` names each geometry
     object's body (link, tool capsule or obstacle); ``source`` says what the robot's bodies
-    are ("URDF collision meshes" or "capsules").
+    are ("URDF collision meshes" or "capsules"); ``partial`` marks the collision pairs of
+    bodies some of whose capsule pairs the rows leave out (they always overlap).
     """
 
     model: pin.Model
@@ -74,6 +78,7 @@ class CheckGeometry:
     q_index: np.ndarray
     labels: tuple[str, ...]
     source: str
+    partial: np.ndarray
 
     def configuration(self, q: np.ndarray) -> np.ndarray:
         full = pin.neutral(self.model)
@@ -101,10 +106,14 @@ class Cell:
 
 @dataclass(frozen=True)
 class Clearance:
-    """Smallest distance (m) between the checked bodies in one configuration, and which."""
+    """One configuration on the real geometry: the smallest distance (m) between bodies whose
+    every capsule pair the rows constrain (at least the clearance when the rows hold), the two
+    bodies at that distance, and two checked bodies that touch or cross, if any (``touching``;
+    bodies some of whose capsules always overlap are only checked for this)."""
 
     distance_m: float
     between: tuple[str, str]
+    touching: tuple[str, str] | None = None
 
 
 def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: str,
@@ -288,8 +297,14 @@ def _check_geometry(robot: Robot, capsules, fitted, geometry, bodies, pairs: Pai
             if labels[i] in frames:
                 out.addCollisionPair(pin.CollisionPair(i, index))
     q_index = np.array([model.joints[j].idx_q for j in robot.joint_ids])
+    names = capsule_names(capsules)
+    frame_of = dict(zip(names, (c.frame for c in capsules)))
+    overlapping = {frozenset((frame_of[a], frame_of[b])) for (a, b), why in pairs.skipped.items()
+                   if why.startswith("capsules overlap")}
+    partial = np.array([frozenset((labels[cp.first], labels[cp.second])) in overlapping
+                        for cp in out.collisionPairs], dtype=bool)
     return CheckGeometry(model, out, q_index, tuple(labels),
-                         "URDF collision meshes" if meshes else "capsules")
+                         "URDF collision meshes" if meshes else "capsules", partial)
 
 
 def _moved(robot: Robot, jid: int) -> bool:
@@ -303,13 +318,15 @@ def clearances(cell: Cell, Q: np.ndarray) -> list[Clearance]:
     if not check.geometry.collisionPairs:
         return [Clearance(np.inf, ("", "")) for _ in np.asarray(Q).T]
     data, gdata = check.model.createData(), check.geometry.createData()
+    names = [(check.labels[cp.first], check.labels[cp.second]) for cp in check.geometry.collisionPairs]
     out = []
     for q in np.asarray(Q, dtype=float).T:
         pin.computeDistances(check.model, data, check.geometry, gdata, check.configuration(q))
-        d = [max(float(r.min_distance), 0.0) for r in gdata.distanceResults]
-        k = int(np.argmin(d))
-        cp = check.geometry.collisionPairs[k]
-        out.append(Clearance(d[k], (check.labels[cp.first], check.labels[cp.second])))
+        d = np.array([max(float(r.min_distance), 0.0) for r in gdata.distanceResults])
+        full = np.where(check.partial, np.inf, d)
+        k, touch = int(np.argmin(full)), np.flatnonzero(d <= 0.0)
+        out.append(Clearance(float(full[k]), names[k] if np.isfinite(full[k]) else ("", ""),
+                             names[touch[0]] if touch.size else None))
     return out
 
 

@@ -263,8 +263,8 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
                 for label, k in worst.items()]
     if problem.cell is not None:
         for i, near in enumerate(clearances(problem.cell, Q)):
-            if near.distance_m <= FEASIBILITY_TOL:
-                out.append(f"experiment {i + 1}: {near.between[0]} and {near.between[1]} touch or cross "
+            if near.touching is not None:
+                out.append(f"experiment {i + 1}: {near.touching[0]} and {near.touching[1]} touch or cross "
                            f"on the {problem.cell.check.source}")
     if force is not None and F.size:
         for i, f in enumerate(F.T):
