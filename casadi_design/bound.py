@@ -33,7 +33,6 @@ sigma^2 t / m`` in m^2.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -41,7 +40,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .build import Problem
+from .build import Problem, per_model
 from .errors import DesignError
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .problem import spec_digest_blob
@@ -203,7 +202,7 @@ def _weights(A: np.ndarray, B0: np.ndarray | None, w: np.ndarray, mu: np.ndarray
     return w, mu, float(lower), float(upper)
 
 
-@functools.cache
+@per_model
 def _search(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """IPOPT on one experiment ``z = (q, v)``: ``max tr(G B(z)^T B(z))`` within its rules, with
     parameter ``vec G`` (L x L); and the bounds of z and of the rule rows."""

@@ -9,8 +9,12 @@ gives the smallest number of experiments. Errors name the problem file and field
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import pinocchio as pin
@@ -47,6 +51,8 @@ from .robots import (
     planar_arm,
 )
 from .symbolic import symbolic_kinematics
+
+T = TypeVar("T")
 
 #: Rank test of identifiability: relative singular-value threshold of the column-scaled S.
 IDENTIFIABILITY_RTOL = 1e-9
@@ -138,11 +144,15 @@ KEEP_BUILT = 8
 
 
 def build_problem(spec: ProblemSpec) -> Problem:
-    """Build the robot, model and test poses of ``spec`` and check identifiability."""
-    key = spec_digest_blob(spec)
+    """Build the robot, model and test poses of ``spec`` and check identifiability.
+
+    A spec that differs from a built one only in its solver settings (``--ipopt``) shares its
+    robot, model, test poses and cell, and so the functions cached on them (:func:`per_model`).
+    """
+    key = spec_digest_blob(dataclasses.replace(spec, solver=SolverSettings()))
     if key in _BUILT:
         _BUILT[key] = _BUILT.pop(key)  # the newest
-        return _BUILT[key]
+        return _BUILT[key] if _BUILT[key].spec == spec else dataclasses.replace(_BUILT[key], spec=spec)
     try:
         problem = _build(spec)
     except ProblemError as exc:
@@ -153,6 +163,21 @@ def build_problem(spec: ProblemSpec) -> Problem:
     while len(_BUILT) > KEEP_BUILT:
         _BUILT.pop(next(iter(_BUILT)))
     return problem
+
+
+def per_model(f: Callable[[Problem], T]) -> Callable[[Problem], T]:
+    """Cache ``f(problem)`` by the built parts it depends on (model, cell, workspace, load):
+    problems that differ only in their solver settings share them."""
+    cache: dict = {}
+
+    @functools.wraps(f)
+    def cached(problem: Problem) -> T:
+        key = (problem.model, problem.cell, problem.workspace, problem.force)
+        if key not in cache:
+            cache[key] = f(problem)
+        return cache[key]
+
+    return cached
 
 
 def _build(spec: ProblemSpec) -> Problem:

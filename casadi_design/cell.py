@@ -312,22 +312,30 @@ def _moved(robot: Robot, jid: int) -> bool:
 
 
 def clearances(cell: Cell, Q: np.ndarray) -> list[Clearance]:
-    """The smallest distance (m) between checked bodies in each configuration of ``Q`` (n x m,
-    rad): 0 where they touch or cross (coal reports crossing meshes as 0)."""
+    """The :class:`Clearance` of each configuration of ``Q`` (n x m, rad) on the real geometry
+    (coal reports crossing meshes as 0 apart). A plan's are computed once: the plan check,
+    results, CSV and report ask for the same ones."""
+    Q = np.ascontiguousarray(Q, dtype=float)
+    return list(_clearances(cell, Q.tobytes(), Q.shape[0]))
+
+
+@functools.lru_cache(maxsize=256)
+def _clearances(cell: Cell, Q_bytes: bytes, n: int) -> tuple[Clearance, ...]:
+    Q = np.frombuffer(Q_bytes).reshape(n, -1)
     check = cell.check
     if not check.geometry.collisionPairs:
-        return [Clearance(np.inf, ("", "")) for _ in np.asarray(Q).T]
+        return tuple(Clearance(np.inf, ("", "")) for _ in Q.T)
     data, gdata = check.model.createData(), check.geometry.createData()
     names = [(check.labels[cp.first], check.labels[cp.second]) for cp in check.geometry.collisionPairs]
     out = []
-    for q in np.asarray(Q, dtype=float).T:
+    for q in Q.T:
         pin.computeDistances(check.model, data, check.geometry, gdata, check.configuration(q))
         d = np.array([max(float(r.min_distance), 0.0) for r in gdata.distanceResults])
         full = np.where(check.partial, np.inf, d)
         k, touch = int(np.argmin(full)), np.flatnonzero(d <= 0.0)
         out.append(Clearance(float(full[k]), names[k] if np.isfinite(full[k]) else ("", ""),
                              names[touch[0]] if touch.size else None))
-    return out
+    return tuple(out)
 
 
 Row = tuple[ca.SX, float, float, str, str]

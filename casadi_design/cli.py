@@ -228,7 +228,7 @@ def _solve(args: argparse.Namespace) -> int:
         figures = [("Fig. 1: +/- sqrt(rho) along the test poses", "fig1.png")]
         if problem.cell is not None:  # the robot in the cell, in each experiment of the first criterion's plans
             shown = [d for d in designs if d.criterion == criteria[0] and d.m in fig_m]
-            files += _write_figures(out, "poses", poses_figure(problem, shown))
+            files += _write_figures(out, "poses", poses_figure(problem, shown), ("png",))  # 3-D: no PDF
             figures.append((f"The robot in the cell in every experiment ({criteria[0]} plans), the "
                             "tracker's beams and the test poses", "poses.png"))
         files += _write_plans(out, problem, designs)

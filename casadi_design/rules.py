@@ -24,13 +24,12 @@ when it finds none, and ``casadi-design evaluate`` prints them for a user's plan
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
-from .build import Problem
+from .build import Problem, per_model
 from .cell import cell_rows, clearances
 from .symbolic import joint_axis
 
@@ -79,7 +78,7 @@ class JointLimits:
         return rng.uniform(lo, hi, size=None if size is None else (size, lo.size))
 
 
-@functools.cache
+@per_model
 def joint_limits(problem: Problem) -> JointLimits:
     """The plan's joint limits (:class:`JointLimits`) of ``problem``."""
     robot, margin = problem.robot, problem.workspace.joint_limit_margin_rad
@@ -137,7 +136,7 @@ class PoseConstraints:
         return np.maximum(np.maximum(self.lb - g, g - self.ub), 0.0)
 
 
-@functools.cache
+@per_model
 def pose_constraints(problem: Problem) -> PoseConstraints:
     """The workspace rules of one configuration (see the module docstring)."""
     ws, model, robot = problem.workspace, problem.model, problem.robot
