@@ -24,6 +24,7 @@ when it finds none, and ``casadi-design evaluate`` prints them for a user's plan
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import casadi as ca
@@ -124,7 +125,7 @@ class PoseConstraints:
             if not rows or not ok.any():
                 continue
             idx = np.flatnonzero(ok)
-            G = np.asarray(f.map(idx.size)(Q[idx].T)).reshape(rows, idx.size).T
+            G = np.asarray(_mapped(f, idx.size)(Q[idx].T)).reshape(rows, idx.size).T
             ok[idx] = np.all((G >= self.lb[:rows]) & (G <= self.ub[:rows]), axis=1)
         return ok
 
@@ -224,6 +225,12 @@ def load_variables(problem: Problem) -> LoadVariables:
                              np.zeros(nF), 0.0, None)
     return LoadVariables(np.eye(nF), force.magnitude_N, np.zeros(nF), -1.0,
                          1.0 if force.mode == "equal" else 0.0)
+
+
+@functools.lru_cache(maxsize=64)
+def _mapped(f: ca.Function, k: int) -> ca.Function:
+    """``f`` mapped over ``k`` configurations (made once per size: it costs about a ms)."""
+    return f.map(k)
 
 
 def _amount(v: float, unit: str, lb: float) -> str:
