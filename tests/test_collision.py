@@ -253,6 +253,7 @@ def test_several_capsules_hold_every_triangle(ur10, ur10_three):
             assert any(inside)
 
 
+@pytest.mark.slow  # 3 s: a second fit (one capsule per link); conservativeness stays in the default run
 def test_several_capsules_are_conservative_and_pass_more_configurations(ur10, ur10_three):
     model, geom, _, robot, _ = ur10
     three, pairs3 = ur10_three
