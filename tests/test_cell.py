@@ -12,6 +12,7 @@ import pytest
 
 from casadi_design.build import build_problem, load_problem
 from casadi_design.cell import clearances
+from casadi_design.collision import capsule_names
 from casadi_design.errors import ProblemError
 from casadi_design.export import read_plan_csv
 from casadi_design.problem import parse_problem, read_problem
@@ -212,3 +213,37 @@ def test_one_incidence_and_sight_row_stand_for_every_reflector():
             own, _ = capsule_clearances(robot, cell.capsules, q, cell.spec.clearance_m, (), each, ())
             assert np.all(own >= -1e-12)
     assert seen > 0 and clear > 0
+
+
+def test_dh_robot_is_checked_on_its_capsules_with_coal():
+    """The ABB (a DH table, no meshes) is checked on its capsules as coal shapes; coal's exact
+    capsule distances bound the smooth self-collision rows from above, within their smoothing."""
+    from casadi_design.cell import world_capsules
+
+    abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
+    cell, robot, rules = abb.cell, abb.robot, pose_constraints(abb)
+    assert cell.check.source == "capsules"
+    names = capsule_names(cell.capsules)
+    rows = [(k, names.index(label.split()[1]), names.index(label.split()[3]))
+            for k, label in enumerate(rules.labels) if label.startswith("links ")]
+    assert len(rows) == len(cell.pairs.kept)
+    for q in np.random.default_rng(11).uniform(robot.q_min, robot.q_max, size=(10, robot.n)):
+        g, world = np.asarray(rules.g(q)).ravel(), world_capsules(cell, robot, q)
+        for k, i, j in rows:
+            exact = _coal_distance(world[i], world[j])
+            assert exact - 2e-6 <= g[k] + cell.spec.clearance_m <= exact + 1e-9 or exact <= 0
+
+
+def _coal_distance(first, second) -> float:
+    """coal's distance (m) between two capsules given as (a, b, radius, frame), world frame."""
+    import coal
+
+    shapes = []
+    for a, b, r, _ in (first, second):
+        axis = b - a
+        length = float(np.linalg.norm(axis))
+        R = pin.Quaternion.FromTwoVectors(np.array([0.0, 0, 1]), axis / length).matrix() if length > 0 else np.eye(3)
+        shapes.append((coal.Capsule(r, length), coal.Transform3s(R, (a + b) / 2)))
+    result = coal.DistanceResult()
+    coal.distance(*shapes[0], *shapes[1], coal.DistanceRequest(), result)
+    return result.min_distance
