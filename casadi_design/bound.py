@@ -44,22 +44,33 @@ from .build import Problem, per_model
 from .errors import DesignError
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .problem import spec_digest_blob
-from .reduced import experiment_functions
+from .reduced import NumericFunction, experiment_functions
 from .rules import joint_limits, load_variables, plan_violations
 from .solve import QUIET, Design, ipopt_call, random_plan
 
 #: Criteria with an approximate design and a bound.
 BOUND_CRITERIA = ("test-pose", "D", "A")
 #: Candidate experiments of the first pool, and of the dense sample searched for max_x d.
-POOL_SIZE = 1000
-SAMPLE_SIZE = 5000
-#: IPOPT starts of the search for max_x d: the best points of the sample.
+POOL_SIZE = 300
+SAMPLE_SIZE = 3000
+#: IPOPT starts of the search for max_x d besides the support points: the best candidates.
 POLISH_STARTS = 8
+#: Support points polished per step, the heaviest first.
+POLISH_SUPPORT = 24
+#: Candidates (d > phi) added to the pool per exchange step, and their first weight (times the
+#: support's mean weight).
+ADDED_CANDIDATES = 40
+NEW_WEIGHT = 0.1
+#: Maxima closer than this (relative, in their information matrices) are one candidate.
+DISTINCT_RTOL = 1e-6
+#: IPOPT starts of the final, independent search for max_x d.
+VERIFY_STARTS = 16
+#: IPOPT on the convex problem of a pool: tolerance and iterations.
+POOL_TOL = 1e-10
+POOL_ITERATIONS = 200
 #: The exchange stops when the certified value moves by less than this (relative).
-EXCHANGE_RTOL = 1e-4
+EXCHANGE_RTOL = 1e-3
 EXCHANGE_ITERATIONS = 40
-#: Multiplicative updates of the weights per convex solve, at most.
-MW_ITERATIONS = 5000
 #: Weights below this fraction of the largest are left out of the reported support.
 WEIGHT_RTOL = 1e-4
 #: Plans of :func:`rounded_plans`, and the step of the jittered ones (fraction of the joint range).
@@ -68,7 +79,7 @@ ROUNDING_JITTER = 0.02
 #: Seed id of the bound's random numbers (beside the criteria's ids 0..5).
 SEED_ID = 100
 #: Exchange steps of the commands (``--bound-steps``; 0: no bound, no rounded starts).
-BOUND_STEPS = 12
+BOUND_STEPS = 40
 #: ``StartRecord.origin`` of the starts rounded from the approximate design.
 ROUNDED = "rounded approximate design"
 
@@ -161,45 +172,86 @@ def _sample(problem: Problem, size: int, rng: np.random.Generator) -> tuple[np.n
     return Q.T.copy(), F.T.copy()
 
 
-def _weights(A: np.ndarray, B0: np.ndarray | None, w: np.ndarray, mu: np.ndarray,
-             rtol: float) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """The convex problem on a pool ``A`` (k, L, L), ``W = sum_k w_k A_k``, w in the simplex:
-    ``min_w max_j tr(B0_j W^-1 B0_j^T)`` (``B0`` (s, r, L)) or ``max_w log det W`` (``B0``
-    None), by multiplicative updates from ``w`` (k,) and ``mu`` (s,).
+def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The convex problem on a pool ``A`` (k, L, L), ``W = sum_k w_k A_k`` with w in the simplex,
+    solved by IPOPT with exact derivatives from ``w0`` (k,):
 
-    test-pose and A: ``mu_j <- mu_j f_j / sum_i mu_i f_i`` (``f_j = tr(H_j W^-1)``, the weights
-    move to the worst test poses) and ``w_k <- w_k sqrt(d_k / phi)`` (the multiplicative
-    algorithm of the linear criterion ``phi = tr(H W^-1)``, ``H = sum_j mu_j H_j``,
-    ``d_k = tr(H W^-1 A_k W^-1)``). D: ``w_k <- w_k d_k / L``, ``d_k = tr(W^-1 A_k)``
-    (Titterington). Each step brackets the pool's optimum: ``phi^2 / max_k d_k <= opt <=
-    max_j f_j`` (D: ``log det W <= opt <= log det W + max_k d_k - L``); the updates stop when
-    the bracket is within ``rtol`` (relative; D: ``rtol L``) or after ``MW_ITERATIONS``.
-    Returns w, mu and the bracket (lower, upper) of the pool's optimum.
+    - test-pose and A (``Hj`` = ``B0_j^T B0_j``, shape (s, L, L)): ``min t`` subject to
+      ``f_j = tr(Hj_j N) <= t``, ``N = W^-1``; the rows' multipliers are the test-pose weights
+      mu (they sum to 1, the gradient of t);
+    - D (``Hj`` None): ``min -log det W``.
+
+    With ``df_j/dw_k = -<N Hj_j N, A_k>`` and ``d(-log det W)/dw_k = -<N, A_k>``, the Hessian of
+    the Lagrangian is ``<G A_k N, A_l>`` with ``G = 2 N (sum_j lam_j Hj_j) N`` (test-pose) or
+    ``G = sigma_f N`` (D): dense over the pool, so pools are kept to a few hundred candidates
+    (:func:`approximate_design` adds candidates by column generation). Returns w (k,) and mu
+    (s,; ``[1]`` for D). Any w and mu give a valid certificate; how exactly IPOPT solves this
+    only decides how tight it is.
     """
     k, L = A.shape[:2]
     Av = A.reshape(k, L * L)
-    Hj = None if B0 is None else np.einsum("jri,jrl->jil", B0, B0)
-    for _ in range(MW_ITERATIONS):
-        N = np.linalg.inv((w @ Av).reshape(L, L))
-        if Hj is None:
-            d = Av @ N.ravel()
-            logdet = -np.linalg.slogdet(N)[1]
-            lower, upper = logdet, logdet + d.max() - L
-            w = w * d / L
-            if upper - lower <= rtol * L:
-                break
-        else:
-            f = np.einsum("jil,li->j", Hj, N)
-            mu = mu * f / (mu @ f)
-            H = np.einsum("j,jil->il", mu, Hj)
-            d = Av @ (N @ H @ N).ravel()
-            phi = float(w @ d)
-            lower, upper = phi**2 / d.max(), float(f.max())
-            w = w * np.sqrt(d / phi)
-            if upper - lower <= rtol * upper:
-                break
-        w /= w.sum()
-    return w, mu, float(lower), float(upper)
+    s = 0 if Hj is None else len(Hj)
+    nx, ng = k + (s > 0), s + 1
+    last: dict = {}
+
+    def inverse(x: np.ndarray) -> np.ndarray:
+        if last.get("x") is None or not np.array_equal(last["x"], x):
+            N = np.linalg.inv((x[:k] @ Av).reshape(L, L))
+            last.update(x=x.copy(), N=(N + N.T) / 2)
+        return last["N"]
+
+    def f_g(x: np.ndarray) -> list[np.ndarray]:
+        N = inverse(x)
+        if s == 0:
+            return [np.array([np.linalg.slogdet(N)[1]]), np.array([x.sum()])]
+        return [x[k:].copy(), np.concatenate([np.einsum("jil,li->j", Hj, N) - x[k], [x[:k].sum()]])]
+
+    def grad_f(x: np.ndarray) -> list[np.ndarray]:
+        g = -(Av @ inverse(x).ravel()) if s == 0 else np.eye(nx)[k]
+        return [f_g(x)[0], g]
+
+    def jac_g(x: np.ndarray) -> list[np.ndarray]:
+        J = np.zeros((ng, nx))
+        if s:
+            N = inverse(x)
+            J[:s, :k] = -((N @ Hj) @ N).reshape(s, L * L) @ Av.T
+            J[:s, k] = -1.0
+        J[s, :k] = 1.0
+        return [f_g(x)[1], J.ravel(order="F")]
+
+    rows, cols = np.triu_indices(nx)
+    order = np.lexsort((rows, cols))  # the upper triangle's nonzeros, column by column
+    rows, cols = rows[order], cols[order]
+
+    def hess(x: np.ndarray, lam_f: np.ndarray, lam_g: np.ndarray) -> list[np.ndarray]:
+        N = inverse(x)
+        G = lam_f[0] * N if s == 0 else 2.0 * N @ np.einsum("j,jil->il", lam_g[:s], Hj) @ N
+        Hs = np.zeros((nx, nx))
+        Hs[:k, :k] = ((G @ A) @ N).reshape(k, L * L) @ Av.T
+        return [Hs[rows, cols]]
+
+    dense = ca.Sparsity.dense
+    x_p = [("x", dense(nx, 1)), ("p", dense(0, 1))]
+    f, g = ("f", dense(1, 1)), ("g", dense(ng, 1))
+    opts = {
+        "grad_f": NumericFunction("grad_f", x_p, [f, ("grad_f_x", dense(nx, 1))], lambda x, p: grad_f(x)),
+        "jac_g": NumericFunction("jac_g", x_p, [g, ("jac_g_x", dense(ng, nx))], lambda x, p: jac_g(x)),
+        "hess_lag": NumericFunction("hess_lag", x_p + [("lam_f", dense(1, 1)), ("lam_g", dense(ng, 1))],
+                                    [("triu_hess_gamma_x_x", ca.Sparsity.upper(nx))],
+                                    lambda x, p, lam_f, lam_g: hess(x, lam_f, lam_g)),
+        "no_nlp_grad": True, **QUIET, "ipopt.tol": POOL_TOL, "ipopt.max_iter": POOL_ITERATIONS,
+    }
+    oracle = NumericFunction("nlp", x_p, [f, g], lambda x, p: f_g(x))  # alive while IPOPT runs
+    solver = ca.nlpsol("pool_optimum", "ipopt", oracle, opts)
+    x0 = w0 if s == 0 else np.concatenate([w0, [1.01 * f_g(np.concatenate([w0, [0.0]]))[1][:s].max()]])
+    with ipopt_call():
+        sol = solver(x0=x0, lbx=np.concatenate([np.zeros(k), np.full(nx - k, -np.inf)]), ubx=np.inf,
+                     lbg=np.concatenate([np.full(s, -np.inf), [1.0]]), ubg=np.concatenate([np.zeros(s), [1.0]]))
+    w = np.maximum(np.asarray(sol["x"]).ravel()[:k], 0.0)
+    mu = np.maximum(np.asarray(sol["lam_g"]).ravel()[:s], 0.0) if s else np.ones(1)
+    if not mu.sum() > 0:  # a failed solve: the worst test pose
+        mu = np.eye(s)[np.argmax(f_g(np.concatenate([w, [0.0]]))[1][:s])]
+    return w / w.sum(), mu / mu.sum()
 
 
 @per_model
@@ -218,15 +270,14 @@ def _search(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndarray, np.n
 
 def _maximise_d(problem: Problem, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
                 d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Local maxima of ``d(x) = tr(G B(x)^T B(x))`` from the ``POLISH_STARTS`` best of the sampled
-    experiments ``Q`` (k, n), ``F`` (k, nF) with values ``d`` (k,). Returns the feasible
-    maxima: Q (p, n), F (p, nF)."""
+    """Local maxima of ``d(x) = tr(G B(x)^T B(x))`` from the experiments ``Q`` (k, n), ``F``
+    (k, nF) with values ``d`` (k,). Returns the feasible maxima: Q (p, n), F (p, nF)."""
     solver, lbx, ubx, lbg, ubg = _search(problem)
     loads, n = load_variables(problem), problem.robot.n
     scale = 1.0 / np.max(d)  # IPOPT sees d of order 1
     found = []
-    for i in np.argsort(d)[::-1][:POLISH_STARTS]:
-        z0 = np.concatenate([Q[i], loads.variables(F[i][:, None]).ravel()])
+    for q0, f0 in zip(Q, F):
+        z0 = np.concatenate([q0, loads.variables(f0[:, None]).ravel()])
         with ipopt_call():  # Ctrl-C stops the command, not just this search
             sol = solver(x0=z0, p=(scale * G).ravel(order="F"), lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         z = np.clip(np.asarray(sol["x"]).ravel(), lbx, ubx)
@@ -249,14 +300,23 @@ def approximate_design(
 ) -> ApproximateDesign:
     """The approximate design of ``criterion`` and its certified bound constant.
 
-    A pool of ``pool_size`` random feasible experiments (seeded by ``problem.solver.seed``)
-    gives the convex problem over the weights (:func:`_weights`). Then exchange steps: the
-    local maxima of ``d(x, W)`` (searched by IPOPT from the best of ``sample_size`` random
-    feasible experiments) that exceed ``phi`` join the pool, until the certified value is
-    within ``rtol`` (relative; for D: ``rtol L`` on log det) of the relaxation's value on the
-    pool (then both are within rtol of the hull's optimum), or no local maximum of d exceeds
+    Column generation over single experiments. The candidates are ``pool_size`` random feasible
+    experiments (seeded by ``problem.solver.seed``), the first pool, and ``sample_size`` more.
+    Each step solves the convex problem on the pool (:func:`_pool_optimum`), prices every
+    candidate by ``d(x, W)``, and polishes by IPOPT (:func:`_maximise_d`) the support points and
+    the ``POLISH_STARTS`` best candidates: at the optimum every support point is a local
+    maximum of d, so the support moves to where the continuum wants it. The certificate of the
+    step is ``phi^2 / d_max`` (D: ``log det W + d_max - L``) with d_max the largest d of the
+    candidates and maxima. The next pool is the support, the ``ADDED_CANDIDATES`` best
+    candidates and the maxima whose d exceeds ``phi``. The steps stop when the best certified
+    value is within ``rtol`` (relative; D: ``rtol L`` on log det) of the best value on a pool
+    (then both are within rtol of the hull's optimum), when no candidate or maximum exceeds
     ``phi`` (the equivalence theorem: the pool holds the hull's optimum, up to the search for
-    the maximum). ``progress`` is called with the certified value after each step.
+    the maximum), or after ``iterations``. ``progress`` is called with the best certified
+    value after each step.
+
+    Every step's certificate is valid, so the best one is kept with its W, mu, d_max and
+    support; ``value`` is the best value on a pool over the steps.
 
     Raises
     ------
@@ -270,46 +330,93 @@ def approximate_design(
     L = problem.model.L
     B0 = None if criterion == "D" else B0_at_test_poses(problem) if criterion == "test-pose" else np.eye(L)[None]
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, BOUND_CRITERIA.index(criterion)])
-    Q, F = _sample(problem, pool_size, rng)
-    Qs, Fs = _sample(problem, sample_size, rng)
+    Q, F = _sample(problem, pool_size + sample_size, rng)
     A = _information(problem, Q, F)
     c = L / np.mean(np.trace(A, axis1=1, axis2=2))  # the weights see c A: W of order 1
-    A, As = c * A, c * _information(problem, Qs, Fs)
-    B0c = None if B0 is None else np.sqrt(c) * B0
-    s = 1 if B0 is None else len(B0)
-    w, mu = np.full(len(A), 1.0 / len(A)), np.full(s, 1.0 / s)
-    history: list[float] = []
+    A = c * A
+    Hj = None if B0 is None else c * np.einsum("jri,jrl->jil", B0, B0)
+    sense = 1.0 if Hj is None else -1.0  # D's certificate is an upper bound, the others' lower
+    pool, w = np.arange(pool_size), np.full(pool_size, 1.0 / pool_size)
+    best, value, history = None, -np.inf * sense, []
     for _ in range(iterations):
-        w, mu, _, value = _weights(A, B0c, w, mu, rtol / 10)
-        W = np.einsum("k,kij->ij", w, A)
+        w, mu = _pool_optimum(A[pool], Hj, w)
+        W = np.einsum("k,kij->ij", w, A[pool])
         Wi = np.linalg.inv(W)
-        if B0c is None:
-            G, phi, value = Wi, float(L), float(np.linalg.slogdet(W)[1])
+        if Hj is None:
+            G, phi, step_value = Wi, float(L), float(np.linalg.slogdet(W)[1])
         else:
-            H = np.einsum("j,jri,jrl->il", mu, B0c, B0c)
+            H = np.einsum("j,jil->il", mu, Hj)
             G, phi = Wi @ H @ Wi, float(np.trace(H @ Wi))
-        ds = np.einsum("kij,ij->k", As, G)
-        Qp, Fp = _maximise_d(problem, G, Qs, Fs, ds)
+            step_value = float(np.einsum("jil,li->j", Hj, Wi).max())
+        value = max(value, step_value) if Hj is None else min(value, step_value)
+        d = np.einsum("kij,ij->k", A, G)
+        support = w > WEIGHT_RTOL * w.max()
+        heavy = pool[np.argsort(w)[::-1][:min(support.sum(), POLISH_SUPPORT)]]
+        starts = np.union1d(heavy, np.argsort(d)[::-1][:POLISH_STARTS])
+        Qp, Fp = _maximise_d(problem, G, Q[starts], F[starts], d[starts])
         Ap = c * _information(problem, Qp, Fp)
         dp = np.einsum("kij,ij->k", Ap, G)
-        d_max = float(max(ds.max(), dp.max(initial=0.0), np.einsum("kij,ij->k", A, G).max()))
-        certified = float(value + d_max - L if B0c is None else phi**2 / d_max)
-        history.append(certified)
+        d_max = float(max(d.max(), dp.max(initial=0.0)))
+        certified = float(step_value + d_max - L if Hj is None else phi**2 / d_max)
+        if best is None or sense * (certified - best[0]) < 0:
+            best = (certified, pool[support], w[support] / w[support].sum(), W, mu, d_max)
+        history.append(best[0])
         if progress is not None:
-            progress(certified)
-        new = dp > phi
-        gap = (certified - value) / L if B0c is None else (value - certified) / value
-        if gap <= rtol or not new.any():
+            progress(best[0])
+        gap = (best[0] - value) / L if Hj is None else (value - best[0]) / value
+        priced = np.setdiff1d(np.flatnonzero(d > phi), pool[support])
+        added = priced[np.argsort(d[priced])[::-1][:ADDED_CANDIDATES]]
+        new = (dp > phi) & _distinct(Ap, A[pool[support]])
+        if gap <= rtol or not (added.size or new.any()):
             break
         Q, F, A = np.concatenate([Q, Qp[new]]), np.concatenate([F, Fp[new]]), np.concatenate([A, Ap[new]])
-        w = np.concatenate([w, np.full(new.sum(), 1.0 / len(A))])
+        pool = np.concatenate([pool[support], added, np.arange(len(A) - new.sum(), len(A))])
+        w = np.concatenate([w[support], np.full(len(pool) - support.sum(), NEW_WEIGHT * w[support].mean())])
         w /= w.sum()
-    support = w > WEIGHT_RTOL * w.max()
-    if B0c is None:  # log det of the unscaled W
+    certified, idx, weights, W, mu, d_max = best
+    certified, d_max = _verified(problem, c, W, mu, Hj, d_max, rng, sample_size)
+    if Hj is None:  # log det of the unscaled W
         value, certified = value - L * np.log(c), certified - L * np.log(c)
         history = [h - L * np.log(c) for h in history]
-    return ApproximateDesign(criterion, Q[support], F[support], w[support] / w[support].sum(), W / c, mu,
-                             value, certified, d_max, tuple(history), len(A), time.perf_counter() - t0)
+    return ApproximateDesign(criterion, Q[idx], F[idx], weights, W / c, mu, value, certified, d_max,
+                             tuple(history), len(A), time.perf_counter() - t0)
+
+
+def _distinct(Ap: np.ndarray, Aref: np.ndarray, rtol: float = DISTINCT_RTOL) -> np.ndarray:
+    """Which of the experiments of information ``Ap`` (p, L, L) differ from those of ``Aref``
+    (r, L, L) and from the ones before them by more than ``rtol`` (relative, Frobenius): local
+    searches from nearby starts end at the same maximum, and a pool of duplicates (equal for
+    the design, whatever their joint values) only slows the convex solves."""
+    keep = np.zeros(len(Ap), dtype=bool)
+    ref = list(Aref.reshape(len(Aref), -1))
+    for i, a in enumerate(Ap.reshape(len(Ap), -1)):
+        tol = rtol * np.linalg.norm(a)
+        if not ref or np.min(np.linalg.norm(np.asarray(ref) - a, axis=1)) > tol:
+            keep[i] = True
+            ref.append(a)
+    return keep
+
+
+def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray,
+              Hj: np.ndarray | None, d_max: float, rng: np.random.Generator,
+              size: int) -> tuple[float, float]:
+    """The certificate of ``W`` (scaled by c) and ``mu`` once more, with max_x d searched over a
+    fresh sample of ``size`` experiments and IPOPT from its ``VERIFY_STARTS`` best: a search
+    independent of the exchange, whose own maxima went into the pool. Returns the certified
+    value and d_max (the larger of ``d_max`` and the new search's)."""
+    L = len(W)
+    Wi = np.linalg.inv(W)
+    G = Wi if Hj is None else Wi @ np.einsum("j,jil->il", mu, Hj) @ Wi
+    Q, F = _sample(problem, size, rng)
+    A = c * _information(problem, Q, F)
+    d = np.einsum("kij,ij->k", A, G)
+    best = np.argsort(d)[::-1][:VERIFY_STARTS]
+    Qp, Fp = _maximise_d(problem, G, Q[best], F[best], d[best])
+    dp = np.einsum("kij,ij->k", c * _information(problem, Qp, Fp), G)
+    d_max = float(max(d_max, d.max(), dp.max(initial=0.0)))
+    if Hj is None:
+        return float(np.linalg.slogdet(W)[1] + d_max - L), d_max
+    return float(np.trace(np.einsum("j,jil->il", mu, Hj) @ Wi) ** 2 / d_max), d_max
 
 
 def apportion(weights: np.ndarray, m: int) -> np.ndarray:

@@ -6,14 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from casadi_design.bound import EXCHANGE_RTOL, apportion, approximate_design, bound, gap_percent, rounded_plans
+from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _information, _pool_optimum, _sample, apportion,
+                                 approximate_design, bound, gap_percent, rounded_plans)
 from casadi_design.build import load_problem
 from casadi_design.errors import DesignError
 from casadi_design.nlp import B0_at_test_poses
 from casadi_design.rules import plan_violations
 from casadi_design.solve import solve_design
 
-from conftest import PROBLEM_FILES, build, paper_raw
+from conftest import PROBLEM_FILES, ROOT, build, paper_raw
 
 #: Issue 10's figures for the paper case (mm): the relaxation (t* on a fine pool) and the
 #: certified form with max_x d over a 181^3 grid of (q1, q2, load angle), computed outside the
@@ -85,6 +86,67 @@ def test_certified_below_convex_solver(paper, paper_tp):
                + rows).solve(solver="CLARABEL")
     assert paper_tp.certified <= t.value
     assert paper_tp.value <= t.value * (1 + 1e-6)
+
+
+@pytest.fixture(scope="module")
+def ur10_pool():
+    """60 random feasible UR10 experiments in their cell, scaled as the exchange scales them."""
+    problem = load_problem(ROOT / "problems" / "ur10_drilling.toml")
+    Q, F = _sample(problem, 60, np.random.default_rng(1))
+    A = _information(problem, Q, F)
+    c = problem.model.L / np.mean(np.trace(A, axis1=1, axis2=2))
+    B0 = np.sqrt(c) * B0_at_test_poses(problem)
+    return c * A, np.einsum("jri,jrl->jil", B0, B0)
+
+
+def test_pool_optimum_equals_semidefinite_program(ur10_pool):
+    """IPOPT on the pool's convex problem (UR10, L = 27, 9 test poses) reaches the optimum of an
+    independent SDP (cvxpy + Clarabel); its multipliers mu are weights (sum 1) and certify it:
+    phi(W)^2 / max_k d_k = max_j f_j on the pool (the equivalence theorem, within IPOPT's
+    tolerance)."""
+    cp = pytest.importorskip("cvxpy")
+    A, Hj = ur10_pool
+    k, L = A.shape[:2]
+    w, mu = _pool_optimum(A, Hj, np.full(k, 1.0 / k))
+    N = np.linalg.inv(np.einsum("k,kij->ij", w, A))
+    f = np.einsum("jil,li->j", Hj, N)
+    H = np.einsum("j,jil->il", mu, Hj)
+    d = np.einsum("kij,ij->k", A, N @ H @ N)
+    assert w.min() >= 0 and w.sum() == pytest.approx(1) and mu.sum() == pytest.approx(1)
+    assert np.trace(H @ N) ** 2 / d.max() == pytest.approx(f.max(), rel=1e-6)
+    v, t = cp.Variable(k, nonneg=True), cp.Variable()
+    W = sum(v[i] * A[i] for i in range(k))
+    B0 = [np.linalg.cholesky(h + 1e-14 * np.eye(L)).T for h in Hj]  # Hj = B0^T B0
+    cp.Problem(cp.Minimize(t), [cp.sum(v) == 1] + [cp.matrix_frac(b.T, W) <= t for b in B0]).solve(solver="CLARABEL")
+    assert f.max() == pytest.approx(t.value, rel=1e-5)
+
+
+def test_pool_optimum_D_is_titterington_fixed_point(ur10_pool):
+    """D on the pool: Kiefer-Wolfowitz says max_k tr(W^-1 A_k) = L at the optimum, and the
+    support points are where it is reached."""
+    A, _ = ur10_pool
+    k, L = A.shape[:2]
+    w, mu = _pool_optimum(A, None, np.full(k, 1.0 / k))
+    d = np.einsum("kij,ji->k", A, np.linalg.inv(np.einsum("k,kij->ij", w, A)))
+    assert mu.tolist() == [1.0]
+    assert d.max() == pytest.approx(L, rel=1e-6)
+    assert np.all(np.abs(d[w > 1e-3 * w.max()] - L) < 1e-5 * L)
+
+
+def test_distinct_maxima():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(4, 3, 3))
+    Ap = np.concatenate([A[1:2] * (1 + 1e-9), rng.normal(size=(2, 3, 3)), A[:1]])
+    Ap[2] = Ap[1] * (1 - 1e-8)  # a duplicate of the new point before it
+    assert _distinct(Ap, A).tolist() == [False, True, False, False]
+
+
+def test_exchange_certificate_never_worsens(paper):
+    """Every step's certificate is valid, the best one is kept: the history never falls, and
+    the certified value is at most the relaxation's."""
+    a = approximate_design(paper, "test-pose", pool_size=50, sample_size=200, iterations=4, rtol=0.0)
+    assert np.all(np.diff(a.history) >= 0)
+    assert a.certified <= a.history[-1] + 1e-15 and a.certified <= a.value
 
 
 def test_bounds_hold_on_solved_plans(paper, paper_tp):
