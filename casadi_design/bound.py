@@ -22,8 +22,9 @@ best c; tight at the optimum, where ``max_x d = phi``). For D (``log det``): for
 
 and A (``tr M^-1``) is the test-pose form with ``B0 = I``. The maximum over x is a global
 search over ONE experiment: a dense random sample of feasible experiments, then IPOPT from the
-best of them. The bound is certified only as well as that maximum is found: a missed higher
-maximum of d makes the reported bound too optimistic by the same ratio.
+best of them and from the support points. The bound is certified only as well as that maximum
+is found: a missed higher maximum of d makes the reported bound too optimistic by the same
+ratio; a last search over a fresh sample checks the certificate that is reported.
 
 Units: M, W and A in the units of B (:meth:`casadi_design.models.CalibrationModel.B_stack`);
 errors in m; the test-pose values ``t`` in (m / unit of X)^2 per (unit of B)^2, i.e. ``rho =
@@ -68,7 +69,7 @@ VERIFY_STARTS = 16
 #: IPOPT on the convex problem of a pool: tolerance and iterations.
 POOL_TOL = 1e-10
 POOL_ITERATIONS = 200
-#: The exchange stops when the certified value moves by less than this (relative).
+#: The exchange stops when the certified value is within this of the relaxation (relative).
 EXCHANGE_RTOL = 1e-3
 EXCHANGE_ITERATIONS = 40
 #: Weights below this fraction of the largest are left out of the reported support.
@@ -95,13 +96,15 @@ class ApproximateDesign:
     weights : ndarray, shape (k,): their weights (sum 1).
     W : ndarray, shape (L, L): ``sum_k w_k B_k^T B_k``, the mean information per experiment.
     mu : ndarray, shape (s,): weights of the test poses (test-pose; ``[1]`` for D and A).
-    value : the relaxation on the final pool: ``max_j tr(B0_j W^-1 B0_j^T)`` (test-pose),
-        ``tr W^-1`` (A), ``log det W`` (D). An upper estimate of t* (lower for D).
+    value : the best relaxation on a pool over the steps: ``max_j tr(B0_j W^-1 B0_j^T)``
+        (test-pose), ``tr W^-1`` (A), ``log det W`` (D). An upper estimate of t* (lower for D).
     certified : ``phi^2 / d_max``, a lower bound of t* (test-pose, A), or
-        ``log det W + d_max - L``, an upper bound of ``log det Wbar`` of any plan (D).
+        ``log det W + d_max - L``, an upper bound of ``log det Wbar`` of any plan (D), for the
+        W, mu of the step with the best certificate (support, weights, W and mu are that
+        step's), with d_max from the exchange and a final independent search.
     d_max : the largest ``d(x, W)`` found over single experiments.
-    history : the certified value after each exchange step.
-    pool_size : candidates in the final pool; ``wall_s`` : time, s.
+    history : the best certified value after each exchange step (before the final search).
+    pool_size : candidates priced (random ones and local maxima); ``wall_s`` : time, s.
     """
 
     criterion: str

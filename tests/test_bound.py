@@ -90,13 +90,13 @@ def test_certified_below_convex_solver(paper, paper_tp):
 
 @pytest.fixture(scope="module")
 def ur10_pool():
-    """60 random feasible UR10 experiments in their cell, scaled as the exchange scales them."""
+    """40 random feasible UR10 experiments in their cell, scaled as the exchange scales them."""
     problem = load_problem(ROOT / "problems" / "ur10_drilling.toml")
-    Q, F = _sample(problem, 60, np.random.default_rng(1))
+    Q, F = _sample(problem, 40, np.random.default_rng(1))
     A = _information(problem, Q, F)
     c = problem.model.L / np.mean(np.trace(A, axis1=1, axis2=2))
     B0 = np.sqrt(c) * B0_at_test_poses(problem)
-    return c * A, np.einsum("jri,jrl->jil", B0, B0)
+    return c * A, B0
 
 
 def test_pool_optimum_equals_semidefinite_program(ur10_pool):
@@ -105,8 +105,9 @@ def test_pool_optimum_equals_semidefinite_program(ur10_pool):
     phi(W)^2 / max_k d_k = max_j f_j on the pool (the equivalence theorem, within IPOPT's
     tolerance)."""
     cp = pytest.importorskip("cvxpy")
-    A, Hj = ur10_pool
+    A, B0 = ur10_pool
     k, L = A.shape[:2]
+    Hj = np.einsum("jri,jrl->jil", B0, B0)
     w, mu = _pool_optimum(A, Hj, np.full(k, 1.0 / k))
     N = np.linalg.inv(np.einsum("k,kij->ij", w, A))
     f = np.einsum("jil,li->j", Hj, N)
@@ -114,10 +115,9 @@ def test_pool_optimum_equals_semidefinite_program(ur10_pool):
     d = np.einsum("kij,ij->k", A, N @ H @ N)
     assert w.min() >= 0 and w.sum() == pytest.approx(1) and mu.sum() == pytest.approx(1)
     assert np.trace(H @ N) ** 2 / d.max() == pytest.approx(f.max(), rel=1e-6)
-    v, t = cp.Variable(k, nonneg=True), cp.Variable()
-    W = sum(v[i] * A[i] for i in range(k))
-    B0 = [np.linalg.cholesky(h + 1e-14 * np.eye(L)).T for h in Hj]  # Hj = B0^T B0
-    cp.Problem(cp.Minimize(t), [cp.sum(v) == 1] + [cp.matrix_frac(b.T, W) <= t for b in B0]).solve(solver="CLARABEL")
+    v, t, W = cp.Variable(k, nonneg=True), cp.Variable(), cp.Variable((L, L), symmetric=True)
+    cp.Problem(cp.Minimize(t), [cp.sum(v) == 1, cp.vec(W, order="F") == A.reshape(k, L * L).T @ v]
+               + [cp.matrix_frac(b.T, W) <= t for b in B0]).solve(solver="CLARABEL")
     assert f.max() == pytest.approx(t.value, rel=1e-5)
 
 
