@@ -66,6 +66,8 @@ NEW_WEIGHT = 0.1
 DISTINCT_RTOL = 1e-6
 #: IPOPT starts of the final, independent search for max_x d.
 VERIFY_STARTS = 16
+#: Smallest eigenvalue of the first pool's mean information, relative to the largest.
+POOL_RCOND = 1e-12
 #: IPOPT on the convex problem of a pool: tolerance and iterations.
 POOL_TOL = 1e-10
 POOL_ITERATIONS = 200
@@ -337,6 +339,12 @@ def approximate_design(
     A = _information(problem, Q, F)
     c = L / np.mean(np.trace(A, axis1=1, axis2=2))  # the weights see c A: W of order 1
     A = c * A
+    lam = np.linalg.eigvalsh(A[:pool_size].mean(axis=0))
+    if not lam[0] > POOL_RCOND * lam[-1]:
+        rank = int(np.sum(lam > POOL_RCOND * lam[-1]))
+        raise DesignError(f"approximate design: the first pool of {pool_size} random experiments "
+                          f"(--bound-pool) identifies {rank} of the {L} parameters; use a larger pool "
+                          f"(default {POOL_SIZE})")
     Hj = None if B0 is None else c * np.einsum("jri,jrl->jil", B0, B0)
     sense = 1.0 if Hj is None else -1.0  # D's certificate is an upper bound, the others' lower
     pool, w = np.arange(pool_size), np.full(pool_size, 1.0 / pool_size)
