@@ -326,7 +326,7 @@ def approximate_design(
     Raises
     ------
     DesignError
-        For a criterion without a bound.
+        For a criterion without a bound, or a first pool whose information is singular.
     """
     if criterion not in BOUND_CRITERIA:
         raise DesignError(f"approximate design: criterion '{criterion}' has no bound; "
