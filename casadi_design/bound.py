@@ -200,7 +200,7 @@ def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray) -> tuple
     last: dict = {}
 
     def inverse(x: np.ndarray) -> np.ndarray:
-        if last.get("x") is None or not np.array_equal(last["x"], x):
+        if "x" not in last or not np.array_equal(last["x"], x):
             N = np.linalg.inv((x[:k] @ Av).reshape(L, L))
             last.update(x=x.copy(), N=(N + N.T) / 2)
         return last["N"]
@@ -352,23 +352,15 @@ def approximate_design(
     for _ in range(iterations):
         w, mu = _pool_optimum(A[pool], Hj, w)
         W = np.einsum("k,kij->ij", w, A[pool])
-        Wi = np.linalg.inv(W)
-        if Hj is None:
-            G, phi, step_value = Wi, float(L), float(np.linalg.slogdet(W)[1])
-        else:
-            H = np.einsum("j,jil->il", mu, Hj)
-            G, phi = Wi @ H @ Wi, float(np.trace(H @ Wi))
-            step_value = float(np.einsum("jil,li->j", Hj, Wi).max())
+        G, phi, step_value = _linearised(W, mu, Hj)
         value = max(value, step_value) if Hj is None else min(value, step_value)
         d = np.einsum("kij,ij->k", A, G)
         support = w > WEIGHT_RTOL * w.max()
         heavy = pool[np.argsort(w)[::-1][:min(support.sum(), POLISH_SUPPORT)]]
         starts = np.union1d(heavy, np.argsort(d)[::-1][:POLISH_STARTS])
-        Qp, Fp = _maximise_d(problem, G, Q[starts], F[starts], d[starts])
-        Ap = c * _information(problem, Qp, Fp)
-        dp = np.einsum("kij,ij->k", Ap, G)
+        Qp, Fp, Ap, dp = _maxima(problem, G, c, Q[starts], F[starts], d[starts])
         d_max = float(max(d.max(), dp.max(initial=0.0)))
-        certified = float(step_value + d_max - L if Hj is None else phi**2 / d_max)
+        certified = _certificate(Hj, phi, step_value, d_max)
         if best is None or sense * (certified - best[0]) < 0:
             best = (certified, pool[support], w[support] / w[support].sum(), W, mu, d_max)
         history.append(best[0])
@@ -408,6 +400,33 @@ def _distinct(Ap: np.ndarray, Aref: np.ndarray, rtol: float = DISTINCT_RTOL) -> 
     return keep
 
 
+def _linearised(W: np.ndarray, mu: np.ndarray, Hj: np.ndarray | None) -> tuple[np.ndarray, float, float]:
+    """What the certificate of ``W`` (scaled, L x L) and ``mu`` needs: ``G`` with ``d(x, W) =
+    <A(x), G>``, ``phi`` and W's value. Test-pose and A: ``G = W^-1 H W^-1``, ``phi = tr(H
+    W^-1)``, value ``max_j tr(Hj_j W^-1)``, ``H = sum_j mu_j Hj_j``; D: ``G = W^-1``, ``phi =
+    L``, value ``log det W``."""
+    Wi = np.linalg.inv(W)
+    if Hj is None:
+        return Wi, float(len(W)), float(np.linalg.slogdet(W)[1])
+    H = np.einsum("j,jil->il", mu, Hj)
+    return Wi @ H @ Wi, float(np.trace(H @ Wi)), float(np.einsum("jil,li->j", Hj, Wi).max())
+
+
+def _certificate(Hj: np.ndarray | None, phi: float, value: float, d_max: float) -> float:
+    """``phi^2 / d_max`` (test-pose, A: a lower bound of t*) or ``log det W + d_max - L`` (D:
+    an upper bound of log det Wbar), from :func:`_linearised`'s phi and value."""
+    return float(value + d_max - phi if Hj is None else phi**2 / d_max)
+
+
+def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndarray,
+            d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The local maxima of d from the experiments ``Q``, ``F`` (values ``d``;
+    :func:`_maximise_d`) with their scaled information ``c A`` (p, L, L) and their d (p,)."""
+    Qp, Fp = _maximise_d(problem, G, Q, F, d)
+    Ap = c * _information(problem, Qp, Fp)
+    return Qp, Fp, Ap, np.einsum("kij,ij->k", Ap, G)
+
+
 def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray,
               Hj: np.ndarray | None, d_max: float, rng: np.random.Generator,
               size: int) -> tuple[float, float]:
@@ -415,19 +434,13 @@ def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray,
     fresh sample of ``size`` experiments and IPOPT from its ``VERIFY_STARTS`` best: a search
     independent of the exchange, whose own maxima went into the pool. Returns the certified
     value and d_max (the larger of ``d_max`` and the new search's)."""
-    L = len(W)
-    Wi = np.linalg.inv(W)
-    G = Wi if Hj is None else Wi @ np.einsum("j,jil->il", mu, Hj) @ Wi
+    G, phi, value = _linearised(W, mu, Hj)
     Q, F = _sample(problem, size, rng)
-    A = c * _information(problem, Q, F)
-    d = np.einsum("kij,ij->k", A, G)
+    d = np.einsum("kij,ij->k", c * _information(problem, Q, F), G)
     best = np.argsort(d)[::-1][:VERIFY_STARTS]
-    Qp, Fp = _maximise_d(problem, G, Q[best], F[best], d[best])
-    dp = np.einsum("kij,ij->k", c * _information(problem, Qp, Fp), G)
+    dp = _maxima(problem, G, c, Q[best], F[best], d[best])[3]
     d_max = float(max(d_max, d.max(), dp.max(initial=0.0)))
-    if Hj is None:
-        return float(np.linalg.slogdet(W)[1] + d_max - L), d_max
-    return float(np.trace(np.einsum("j,jil->il", mu, Hj) @ Wi) ** 2 / d_max), d_max
+    return _certificate(Hj, phi, value, d_max), d_max
 
 
 def apportion(weights: np.ndarray, m: int) -> np.ndarray:
