@@ -20,7 +20,10 @@ best c; tight at the optimum, where ``max_x d = phi``). For D (``log det``): for
 
     log det M <= L log m + log det W + max_x tr(W^-1 A(x)) - L,
 
-and A (``tr M^-1``) is the test-pose form with ``B0 = I``. The maximum over x is a global
+and A (``tr M^-1``) is the test-pose form with ``B0 = I``; I (the mean of ``rho_j``) is the
+test-pose form with the one matrix ``mean_j B0_j^T B0_j``, i.e. the same certificate with
+equal weights ``mu_j = 1/s``. Each criterion's form is its registry entry's
+:class:`~casadi_design.criteria.BoundForm`. The maximum over x is a global
 search over ONE experiment: a dense random sample of feasible experiments, then IPOPT from the
 best of them and from the support points. The bound is certified only as well as that maximum
 is found: a missed higher maximum of d makes the reported bound too optimistic by the same
@@ -33,7 +36,6 @@ sigma^2 t / m`` in m^2.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,15 +44,14 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem, per_model
+from .criteria import BOUND_CRITERIA, CRITERIA
+from .design import Bound
 from .errors import DesignError
+from .ipopt import QUIET, ipopt_call
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
-from .problem import spec_digest_blob
 from .reduced import NumericFunction, experiment_functions
 from .rules import joint_limits, load_variables, plan_violations
-from .solve import QUIET, Design, ipopt_call, random_plan
-
-#: Criteria with an approximate design and a bound.
-BOUND_CRITERIA = ("test-pose", "D", "A")
+from .sampling import random_plan
 #: Candidate experiments of the first pool, and of the dense sample searched for max_x d.
 POOL_SIZE = 300
 SAMPLE_SIZE = 3000
@@ -79,7 +80,7 @@ WEIGHT_RTOL = 1e-4
 #: Plans of :func:`rounded_plans`, and the step of the jittered ones (fraction of the joint range).
 ROUNDED_PLANS = 4
 ROUNDING_JITTER = 0.02
-#: Seed id of the bound's random numbers (beside the criteria's ids 0..5).
+#: Seed id of the bound's random numbers (beside the criteria's ids 0..6).
 SEED_ID = 100
 #: Exchange steps of the commands (``--bound-steps``; 0: no bound, no rounded starts).
 BOUND_STEPS = 40
@@ -93,14 +94,15 @@ class ApproximateDesign:
 
     Attributes
     ----------
-    criterion : "test-pose", "D" or "A".
+    criterion : a criterion with a bound form (:data:`casadi_design.criteria.BOUND_CRITERIA`).
     Q : ndarray, shape (k, n), rad: the support experiments; ``F`` shape (k, nF), N (N m).
     weights : ndarray, shape (k,): their weights (sum 1).
     W : ndarray, shape (L, L): ``sum_k w_k B_k^T B_k``, the mean information per experiment.
-    mu : ndarray, shape (s,): weights of the test poses (test-pose; ``[1]`` for D and A).
+    mu : ndarray, shape (s,): weights of the test poses (test-pose; ``[1]`` for D, A and I).
     value : the best relaxation on a pool over the steps: ``max_j tr(B0_j W^-1 B0_j^T)``
-        (test-pose), ``tr W^-1`` (A), ``log det W`` (D). An upper estimate of t* (lower for D).
-    certified : ``phi^2 / d_max``, a lower bound of t* (test-pose, A), or
+        (test-pose), ``tr W^-1`` (A), ``mean_j tr(B0_j W^-1 B0_j^T)`` (I), ``log det W`` (D).
+        An upper estimate of t* (lower for D).
+    certified : ``phi^2 / d_max``, a lower bound of t* (test-pose, A, I), or
         ``log det W + d_max - L``, an upper bound of ``log det Wbar`` of any plan (D), for the
         W, mu of the step with the best certificate (support, weights, W and mu are that
         step's), with d_max from the exchange and a final independent search.
@@ -123,46 +125,14 @@ class ApproximateDesign:
     wall_s: float
 
 
-@dataclass(frozen=True)
-class Bound:
-    """The bound of one criterion for m experiments, in the units of its score
-    (:class:`casadi_design.measures.Scores`).
-
-    ``value``: lower bound of ``max_rms_error_m`` (test-pose, m) or of ``trace_M_inv`` (A);
-    upper bound of ``log_det_M`` (D). ``relaxation``: the same quantity from the relaxation's
-    value on the pool (not certified). ``L``: number of parameters.
-    """
-
-    criterion: str
-    m: int
-    value: float
-    relaxation: float
-    L: int
-
-
-def _scores(criterion: str, constant: float, m: int, sigma: float, L: int) -> float:
-    """The score of the m-experiment bound from the per-experiment constant."""
-    if criterion == "test-pose":
-        return float(np.sqrt(sigma**2 * constant / m))
-    if criterion == "A":
-        return constant / m
-    return L * np.log(m) + constant
-
-
 def bound(problem: Problem, m: int, approx: ApproximateDesign) -> Bound:
-    """The bound for ``m`` experiments: ``sqrt(sigma^2 t / m)`` (m) for test-pose, ``t / m``
-    for A, ``L log m + log det W + d_max - L`` for D (see the module docstring)."""
-    L = problem.model.L
-    return Bound(approx.criterion, m, _scores(approx.criterion, approx.certified, m, problem.sigma_m, L),
-                 _scores(approx.criterion, approx.value, m, problem.sigma_m, L), L)
-
-
-def gap_percent(b: Bound, achieved: float) -> float:
-    """How far a plan's score ``achieved`` is from the bound, in percent: the excess of the
-    error (test-pose) or of ``tr M^-1`` (A) over the bound; for D, of ``det M^(-1/L)``."""
-    if b.criterion == "D":
-        return float(100.0 * np.expm1((b.value - achieved) / b.L))
-    return float(100.0 * (achieved / b.value - 1.0))
+    """The bound for ``m`` experiments in the units of the criterion's score
+    (:attr:`casadi_design.criteria.BoundForm.score`): ``sqrt(sigma^2 t / m)`` (m) for
+    test-pose and I, ``t / m`` for A, ``L log m + log det W + d_max - L`` for D (see the
+    module docstring)."""
+    L, score = problem.model.L, CRITERIA[approx.criterion].bound.score
+    return Bound(approx.criterion, m, score(approx.certified, m, problem.sigma_m, L),
+                 score(approx.value, m, problem.sigma_m, L), L)
 
 
 def _information(problem: Problem, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -173,8 +143,7 @@ def _information(problem: Problem, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 def _sample(problem: Problem, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """``size`` random feasible single experiments: Q (size, n), F (size, nF)."""
-    Q, F = random_plan(problem, size, rng)
-    return Q.T.copy(), F.T.copy()
+    return random_plan(problem, size, rng)
 
 
 def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -282,12 +251,12 @@ def _maximise_d(problem: Problem, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
     scale = 1.0 / np.max(d)  # IPOPT sees d of order 1
     found = []
     for q0, f0 in zip(Q, F):
-        z0 = np.concatenate([q0, loads.variables(f0[:, None]).ravel()])
+        z0 = np.concatenate([q0, loads.variables(f0[None]).ravel()])
         with ipopt_call():  # Ctrl-C stops the command, not just this search
             sol = solver(x0=z0, p=(scale * G).ravel(order="F"), lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         z = np.clip(np.asarray(sol["x"]).ravel(), lbx, ubx)
-        q, f = z[:n], loads.loads(z[n:, None]).ravel()
-        if not plan_violations(problem, q[:, None], f[:, None]):
+        q, f = z[:n], loads.load(z[n:])
+        if not plan_violations(problem, q[None], f[None]):
             found.append((q, f))
     return (np.array([q for q, _ in found]).reshape(len(found), n),
             np.array([f for _, f in found]).reshape(len(found), F.shape[1]))
@@ -332,9 +301,8 @@ def approximate_design(
         raise DesignError(f"approximate design: criterion '{criterion}' has no bound; "
                           f"allowed: {', '.join(BOUND_CRITERIA)}")
     t0 = time.perf_counter()
-    L = problem.model.L
-    B0 = None if criterion == "D" else B0_at_test_poses(problem) if criterion == "test-pose" else np.eye(L)[None]
-    rng = np.random.default_rng([problem.solver.seed, SEED_ID, BOUND_CRITERIA.index(criterion)])
+    L, form = problem.model.L, CRITERIA[criterion].bound
+    rng = np.random.default_rng([problem.solver.seed, SEED_ID, CRITERIA[criterion].seed_id])
     Q, F = _sample(problem, pool_size + sample_size, rng)
     A = _information(problem, Q, F)
     c = L / np.mean(np.trace(A, axis1=1, axis2=2))  # the weights see c A: W of order 1
@@ -345,7 +313,7 @@ def approximate_design(
         raise DesignError(f"approximate design: the first pool of {pool_size} random experiments "
                           f"(--bound-pool) identifies {rank} of the {L} parameters; use a larger pool "
                           f"(default {POOL_SIZE})")
-    Hj = None if B0 is None else c * np.einsum("jri,jrl->jil", B0, B0)
+    Hj = None if form.log_det else c * form.rows(B0_at_test_poses(problem))
     sense = 1.0 if Hj is None else -1.0  # D's certificate is an upper bound, the others' lower
     pool, w = np.arange(pool_size), np.full(pool_size, 1.0 / pool_size)
     best, value, history = None, -np.inf * sense, []
@@ -464,24 +432,24 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     The first repeats support point i ``n_i`` times (:func:`apportion`); the other ``count - 1``
     move each of its joint values by a normal step of ``ROUNDING_JITTER`` times the joint's
     range (seeded by ``problem.solver.seed`` and m), so repeated experiments can separate.
-    Returns ``(Q0, F0)`` pairs: Q0 shape (n, m), rad; F0 shape (nF, m), N.
+    Returns ``(Q0, F0)`` pairs: Q0 shape (m, n), rad; F0 shape (m, nF), N.
     """
     idx = np.repeat(np.arange(len(approx.weights)), apportion(approx.weights, m))
-    Q0, F0 = approx.Q[idx].T, approx.F[idx].T
+    Q0, F0 = approx.Q[idx], approx.F[idx]
     limits = joint_limits(problem)
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, m])
-    span = (limits.upper - limits.lower)[:, None]
+    span = limits.upper - limits.lower
     plans = [(Q0, F0)]
     for _ in range(count - 1):
-        Q = Q0 + ROUNDING_JITTER * span * rng.normal(size=Q0.shape)
-        plans.append((limits.wrap(Q), F0.copy()))
+        step = rng.normal(size=Q0.shape[::-1]).T  # drawn as (n, m): the streams of earlier versions
+        plans.append((limits.wrap(Q0 + ROUNDING_JITTER * span * step), F0.copy()))
     return plans
 
 
 #: Approximate designs computed in this process, by (the problem's checked data, criterion,
 #: steps, pool): a pure function of them, reused by the commands that run one after the other
 #: in one process (keyed like :func:`casadi_design.build.build_problem`'s problems).
-_COMPUTED: dict[tuple[bytes, str, int, int], ApproximateDesign] = {}
+_COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
 KEEP_COMPUTED = 32
 
 
@@ -490,11 +458,10 @@ def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,
     """The approximate design of each of ``criteria`` that has a bound, with ``steps`` exchange
     steps at most, a first pool of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE``
     times as many for the search of max d; none when ``steps`` is 0."""
-    blob = spec_digest_blob(problem.spec)
     out = {}
     for c in criteria:
         if c in BOUND_CRITERIA and steps > 0:
-            key = (blob, c, steps, pool)
+            key = (problem.digest, c, steps, pool)
             if key not in _COMPUTED:
                 _COMPUTED[key] = approximate_design(problem, c, iterations=steps, pool_size=pool,
                                                     sample_size=pool * SAMPLE_SIZE // POOL_SIZE)
@@ -502,19 +469,3 @@ def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,
                     _COMPUTED.pop(next(iter(_COMPUTED)))
             out[c] = _COMPUTED[key]
     return out
-
-
-def rounded_starts(problem: Problem, approx: dict[str, ApproximateDesign], criterion: str,
-                   m: int) -> list[tuple[np.ndarray, np.ndarray, str]]:
-    """The :func:`rounded_plans` of ``criterion`` as labelled extra starts of
-    :func:`casadi_design.solve.solve_design` (none without its approximate design)."""
-    a = approx.get(criterion)
-    return [] if a is None else [(Q, F, ROUNDED) for Q, F in rounded_plans(problem, a, m)]
-
-
-def with_bound(problem: Problem, design: Design, approx: dict[str, ApproximateDesign]) -> Design:
-    """``design`` with the bound of its criterion and m (unchanged without its approximate
-    design)."""
-    a = approx.get(design.criterion)
-    return design if a is None else dataclasses.replace(design, bound=bound(problem, design.m, a))
-

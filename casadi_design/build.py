@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,6 +130,12 @@ class Problem:
     @property
     def solver(self) -> SolverSettings:
         return self.spec.solver
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """SHA-256 (hex) of the problem's checked data: what a resumed sweep and a worker's
+        cache recognise a problem by."""
+        return hashlib.sha256(spec_digest_blob(self.spec)).hexdigest()
 
 
 def load_problem(path: str | Path) -> Problem:

@@ -39,7 +39,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
-import coal
 import numpy as np
 import pinocchio as pin
 
@@ -49,12 +48,14 @@ from .collision import (
     capsule_names,
     capsule_rows,
     capsules_from_geometry,
+    carrier,
     load_collision_geometry,
     obstacle_pairs,
     self_collision_pairs,
 )
 from .errors import ProblemError
-from .problem import Box, Capsule, CellSpec, HalfSpace, Workspace
+from .obstacles import Capsule, HalfSpace, Obstacle
+from .problem import CellSpec, Workspace
 from .robots import Robot, example_robot_data_dir, load_urdf, urdf_file
 
 #: Largest change (m, rad) of the offset between a DH joint frame and the same joint of
@@ -97,7 +98,7 @@ class Cell:
     spec: CellSpec
     capsules: tuple[Capsule, ...]
     pairs: PairSelection
-    obstacles: tuple[HalfSpace | Box | Capsule, ...]
+    obstacles: tuple[Obstacle, ...]
     near: tuple[tuple[int, int], ...]
     near_skipped: dict[tuple[str, str], str]
     sights: tuple[LineOfSight, ...]
@@ -141,7 +142,7 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
         raise ProblemError(f"{where}.capsules_per_link: the robot has no collision geometry to fit "
                            "capsules around; give them as numbers (capsules = [...]) and capsules_per_link = 0")
     for c in spec.capsules:
-        _carrier_joint(model, c.frame, f"{where}.capsules")
+        carrier(model, c.frame, f"{where}.capsules")
     capsules = tuple(fitted) + spec.capsules
     if not capsules and (spec.tracker is not None or spec.obstacles):
         raise ProblemError(f"{where}: obstacles and lines of sight need the robot's capsules; give "
@@ -182,17 +183,6 @@ def _package_dirs(urdf: str) -> list[Path]:
     if urdf.startswith("example-robot-data:"):
         dirs.append(example_robot_data_dir().parent.parent)
     return dirs
-
-
-def _carrier_joint(model: pin.Model, name: str, where: str) -> tuple[int, pin.SE3]:
-    """The joint carrying frame or joint ``name`` and the placement of ``name`` in it."""
-    if model.existFrame(name):
-        frame = model.frames[model.getFrameId(name)]
-        return frame.parentJoint, frame.placement
-    if model.existJointName(name):
-        return model.getJointId(name), pin.SE3.Identity()
-    names = sorted({f.name for f in model.frames if f.name != "universe"} | set(model.names[1:]))
-    raise ProblemError(f"{where}: no frame or joint '{name}'; the robot has: {', '.join(names)}")
 
 
 def _onto_chain(robot: Robot, urdf: str, per_link: int, where: str) -> tuple[pin.GeometryModel, list[str], tuple[Capsule, ...]]:
@@ -245,15 +235,11 @@ def _onto_chain(robot: Robot, urdf: str, per_link: int, where: str) -> tuple[pin
     return out, bodies, tuple(fitted)
 
 
-def _capsule_object(name: str, joint: int, placement: pin.SE3, capsule: Capsule) -> pin.GeometryObject:
-    """A coal capsule along ``[a, b]`` of ``capsule`` (placed by ``placement`` in ``joint``)."""
-    a, b = np.array(capsule.a_m), np.array(capsule.b_m)
-    axis = b - a
-    length = float(np.linalg.norm(axis))
-    R = (pin.Quaternion.FromTwoVectors(np.array([0.0, 0, 1]), axis / length).matrix() if length > 0
-         else np.eye(3))
-    return pin.GeometryObject(name, joint, 0, placement * pin.SE3(R, (a + b) / 2),
-                              coal.Capsule(capsule.radius_m, length))
+def _geometry_object(name: str, joint: int, placement: pin.SE3, body: Obstacle) -> pin.GeometryObject:
+    """The coal shape of ``body`` (:meth:`casadi_design.obstacles.Obstacle.coal_geometry`),
+    its frame placed by ``placement`` in ``joint``."""
+    shape, R, p = body.coal_geometry()
+    return pin.GeometryObject(name, joint, 0, placement * pin.SE3(R, p), shape)
 
 
 def _check_geometry(robot: Robot, capsules, fitted, geometry, bodies, pairs: PairSelection,
@@ -271,8 +257,8 @@ def _check_geometry(robot: Robot, capsules, fitted, geometry, bodies, pairs: Pai
             out.addGeometryObject(pin.GeometryObject(go.name, go.parentJoint, 0, go.placement, go.geometry))
             labels.append(body)
     for c in capsules[len(fitted):] if meshes else capsules:
-        jid, M = _carrier_joint(model, c.frame, "[cell].capsules")
-        out.addGeometryObject(_capsule_object(f"capsule:{c.frame}", jid, M, c))
+        jid, M = carrier(model, c.frame)
+        out.addGeometryObject(_geometry_object(f"capsule:{c.frame}", jid, M, c))
         labels.append(c.frame)
     robot_objects = len(labels)
     self_pairs = {frozenset((capsules[i].frame, capsules[j].frame)) for i, j in pairs.kept}
@@ -281,17 +267,8 @@ def _check_geometry(robot: Robot, capsules, fitted, geometry, bodies, pairs: Pai
             if frozenset((labels[i], labels[j])) in self_pairs:
                 out.addCollisionPair(pin.CollisionPair(i, j))
     for k, o in enumerate(obstacles):
-        if isinstance(o, HalfSpace):
-            n = np.array(o.normal) / np.linalg.norm(o.normal)
-            obj = pin.GeometryObject(o.name, 0, 0, pin.SE3.Identity(),
-                                     coal.Halfspace(n, o.offset_m / np.linalg.norm(o.normal)))
-        elif isinstance(o, Box):
-            obj = pin.GeometryObject(o.name, 0, 0, pin.SE3(o.rotation, np.array(o.center_m)),
-                                     coal.Box(*(2 * np.array(o.half_extents_m))))
-        else:
-            obj = _capsule_object(o.name, 0, pin.SE3.Identity(), o)
-        index = out.addGeometryObject(obj)
-        labels.append(o.name or "capsule obstacle")
+        index = out.addGeometryObject(_geometry_object(o.name, 0, pin.SE3.Identity(), o))
+        labels.append(o.label)
         frames = {capsules[c].frame for c, ob in near if ob == k}
         for i in range(robot_objects):
             if labels[i] in frames:
@@ -307,28 +284,24 @@ def _check_geometry(robot: Robot, capsules, fitted, geometry, bodies, pairs: Pai
                          "URDF collision meshes" if meshes else "capsules", partial)
 
 
-def _moved(robot: Robot, jid: int) -> bool:
-    return any(j in robot.joint_ids for j in robot.model.supports[jid])
-
-
 def clearances(cell: Cell, Q: np.ndarray) -> list[Clearance]:
-    """The :class:`Clearance` of each configuration of ``Q`` (n x m, rad) on the real geometry
+    """The :class:`Clearance` of each configuration of ``Q`` (m, n), rad, on the real geometry
     (coal reports crossing meshes as 0 apart). A plan's are computed once: the plan check,
     results, CSV and report ask for the same ones."""
     Q = np.ascontiguousarray(Q, dtype=float)
-    return list(_clearances(cell, Q.tobytes(), Q.shape[0]))
+    return list(_clearances(cell, Q.tobytes(), Q.shape[-1]))
 
 
 @functools.lru_cache(maxsize=256)
 def _clearances(cell: Cell, Q_bytes: bytes, n: int) -> tuple[Clearance, ...]:
-    Q = np.frombuffer(Q_bytes).reshape(n, -1)
+    Q = np.frombuffer(Q_bytes).reshape(-1, n)
     check = cell.check
     if not check.geometry.collisionPairs:
-        return tuple(Clearance(np.inf, ("", "")) for _ in Q.T)
+        return tuple(Clearance(np.inf, ("", "")) for _ in Q)
     data, gdata = check.model.createData(), check.geometry.createData()
     names = [(check.labels[cp.first], check.labels[cp.second]) for cp in check.geometry.collisionPairs]
     out = []
-    for q in Q.T:
+    for q in Q:
         pin.computeDistances(check.model, data, check.geometry, gdata, check.configuration(q))
         d = np.array([max(float(r.min_distance), 0.0) for r in gdata.distanceResults])
         full = np.where(check.partial, np.inf, d)
@@ -378,7 +351,7 @@ def world_capsules(cell: Cell, robot: Robot, q: np.ndarray) -> list[tuple[np.nda
     pin.forwardKinematics(robot.model, data, robot.full_q(np.asarray(q, dtype=float)))
     out = []
     for c in cell.capsules:
-        jid, M = _carrier_joint(robot.model, c.frame, "[cell].capsules")
+        jid, M = carrier(robot.model, c.frame)
         oMc = data.oMi[jid] * M
         out.append((oMc.act(np.array(c.a_m)), oMc.act(np.array(c.b_m)), c.radius_m, c.frame))
     return out

@@ -10,7 +10,8 @@ with ``dist`` the segment-segment distance (:func:`segment_distance`). The rows 
 :func:`capsule_rows` are of that form, ``g(q) >= 0`` (m), for
 
 * self-collision: every pair of capsules that can meet (:func:`self_collision_pairs`);
-* obstacles fixed in the world: half-spaces (the floor), boxes and capsules;
+* obstacles fixed in the world, each kind giving its rows (:mod:`casadi_design.obstacles`:
+  half-spaces such as the floor, boxes, capsules);
 * lines of sight: the beam from a tracker to a reflector carried by the robot against every
   capsule, except those of the link carrying the reflector (the beam ends on that link).
 
@@ -36,7 +37,7 @@ import pinocchio as pin
 from scipy.optimize import minimize
 
 from .errors import ProblemError
-from .problem import Box, Capsule, HalfSpace
+from .obstacles import Capsule, Obstacle, vector3
 from .robots import Robot
 from .symbolic import compose, joint_axis, rotation_about
 
@@ -47,13 +48,6 @@ SMOOTHING_M = 1e-6
 PARALLEL_TOL = 1e-10
 #: Configurations sampled by :func:`self_collision_pairs` to find the pairs that can separate.
 PAIR_SAMPLES = 200
-
-
-def _vector(value, name: str) -> tuple[float, float, float]:
-    v = np.asarray(value, dtype=float)
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise ProblemError(f"{name}: needs 3 finite numbers (m); got {value!r}")
-    return tuple(float(x) for x in v)
 
 
 @dataclass(frozen=True)
@@ -76,11 +70,8 @@ class LineOfSight:
     spread_m: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "tracker_m", _vector(self.tracker_m, "line of sight: tracker_m"))
-        object.__setattr__(self, "point_m", _vector(self.point_m, f"line of sight to '{self.frame}': point_m"))
-
-
-Obstacle = HalfSpace | Box | Capsule
+        object.__setattr__(self, "tracker_m", vector3(self.tracker_m, "line of sight: tracker_m"))
+        object.__setattr__(self, "point_m", vector3(self.point_m, f"line of sight to '{self.frame}': point_m"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -327,15 +318,16 @@ def load_collision_geometry(model: pin.Model, urdf_path, package_dirs: Sequence[
 # kinematics of the capsules
 
 
-def _carrier(model: pin.Model, name: str) -> tuple[int, pin.SE3]:
-    """Joint carrying frame or joint ``name`` and the placement of ``name`` in that joint."""
+def carrier(model: pin.Model, name: str, where: str = "[cell].capsules") -> tuple[int, pin.SE3]:
+    """The joint carrying frame or joint ``name`` and the placement of ``name`` in it; an
+    unknown name is refused naming the field ``where``."""
     if model.existFrame(name):
         frame = model.frames[model.getFrameId(name)]
         return frame.parentJoint, frame.placement
     if model.existJointName(name):
         return model.getJointId(name), pin.SE3.Identity()
-    names = [f.name for f in model.frames if f.name != "universe"]
-    raise ProblemError(f"capsule on '{name}': no such frame or joint; the model has: {', '.join(names)}")
+    names = sorted({f.name for f in model.frames if f.name != "universe"} | set(model.names[1:]))
+    raise ProblemError(f"{where}: no frame or joint '{name}'; the robot has: {', '.join(names)}")
 
 
 def _symbolic_joint_placement(robot: Robot, q: ca.SX, jid: int, memo: dict) -> tuple[ca.SX, ca.SX]:
@@ -371,7 +363,7 @@ def _ends_symbolic(robot: Robot, capsules: Sequence[Capsule], q: ca.SX) -> Calla
     memo: dict = {}
 
     def ends(capsule: Capsule):
-        jid, M = _carrier(robot.model, capsule.frame)
+        jid, M = carrier(robot.model, capsule.frame)
         R, p = _symbolic_joint_placement(robot, q, jid, memo)
         return tuple(p + R @ ca.DM(M.act(np.array(x))) for x in (capsule.a_m, capsule.b_m))
 
@@ -383,7 +375,7 @@ def _ends_numeric(robot: Robot, q: np.ndarray) -> Callable:
     pin.forwardKinematics(robot.model, data, robot.full_q(q))
 
     def ends(capsule: Capsule):
-        jid, M = _carrier(robot.model, capsule.frame)
+        jid, M = carrier(robot.model, capsule.frame)
         oMc = data.oMi[jid] * M
         return tuple(oMc.act(np.array(x)) for x in (capsule.a_m, capsule.b_m))
 
@@ -434,7 +426,7 @@ def self_collision_pairs(robot: Robot, capsules: Sequence[Capsule], clearance_m:
     ``disable_collisions``: links that the user knows never meet) are skipped.
     """
     model = robot.model
-    jids = [_carrier(model, c.frame)[0] for c in capsules]
+    jids = [carrier(model, c.frame)[0] for c in capsules]
     rng = np.random.default_rng(seed)
     Q = rng.uniform(robot.q_min, robot.q_max, size=(samples, robot.n))
     ends = [_ends_numeric(robot, q) for q in Q]
@@ -467,7 +459,7 @@ def self_collision_pairs(robot: Robot, capsules: Sequence[Capsule], clearance_m:
 
 def _near_all(robot: Robot, capsules: Sequence[Capsule], obstacles: Sequence[Obstacle]) -> list[tuple[int, int]]:
     """Every (moving capsule, obstacle) pair, obstacle by obstacle."""
-    moving = [k for k, c in enumerate(capsules) if _moves(robot, _carrier(robot.model, c.frame)[0])]
+    moving = [k for k, c in enumerate(capsules) if _moves(robot, carrier(robot.model, c.frame)[0])]
     return [(k, o) for o in range(len(obstacles)) for k in moving]
 
 
@@ -494,7 +486,7 @@ def obstacle_pairs(robot: Robot, capsules: Sequence[Capsule], obstacles: Sequenc
     G = np.column_stack([G[:, [i for i, lb in enumerate(labels) if lb == label]].min(axis=1) for label in groups])
     names, kept, skipped = capsule_names(capsules), [], {}
     for (k, o), g in zip(near, G.T):
-        key = (names[k], obstacles[o].name or "capsule obstacle")
+        key = (names[k], obstacles[o].label)
         if np.ptp(g) < 1e-9 and g[0] > 0:
             skipped[key] = "constant distance, positive"
         elif np.all(g <= 0):
@@ -512,36 +504,26 @@ def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: 
     ``near``: the (capsule, obstacle) index pairs constrained (None: :func:`_near_all`)."""
     model, names = robot.model, capsule_names(capsules)
     world = [ends(c) for c in capsules]
-    jids = [_carrier(model, c.frame)[0] for c in capsules]
+    jids = [carrier(model, c.frame)[0] for c in capsules]
     mm = f"{clearance_m * 1e3:g} mm"
     out = []
     for i, j in pairs:
         g = dist(*world[i], *world[j]) - capsules[i].radius_m - capsules[j].radius_m - clearance_m
         out.append((g, f"links {names[i]} and {names[j]} closer than {mm}"))
+
+    def place(segment: Capsule):
+        """World ends of a segment of an obstacle (m); it must not move with the robot."""
+        if _moves(robot, carrier(model, segment.frame)[0]):
+            raise ProblemError(f"obstacle capsule on '{segment.frame}': it moves with the robot; "
+                               "give obstacles in a fixed frame such as 'universe'")
+        return ends(segment)
+
     for k, o in (_near_all(robot, capsules, obstacles) if near is None else near):
-        obstacle = obstacles[o]
-        (a, b), r, name = world[k], capsules[k].radius_m, names[k]
-        if isinstance(obstacle, HalfSpace):
-            n = np.array(obstacle.normal) / np.linalg.norm(obstacle.normal)
-            off = obstacle.offset_m / np.linalg.norm(obstacle.normal)
-            # min(n . a, n . b) >= c as two smooth rows
-            out += [(ops.dot(n, e) - off - r - clearance_m, f"link {name} closer than {mm} to {obstacle.name}")
-                    for e in (a, b)]
-        elif isinstance(obstacle, Box):
-            N, off = obstacle.faces()
-            gaps = [ops.fmin(ops.dot(N[f], a), ops.dot(N[f], b)) - off[f] for f in range(6)]
-            g = gaps[0]
-            for gap in gaps[1:]:
-                g = ops.fmax(g, gap)
-            out.append((g - r - clearance_m, f"link {name} closer than {mm} to {obstacle.name}"))
-        else:
-            if _moves(robot, _carrier(model, obstacle.frame)[0]):
-                raise ProblemError(f"obstacle capsule on '{obstacle.frame}': it moves with the robot; "
-                                   "give obstacles in a fixed frame such as 'universe'")
-            g = dist(a, b, *ends(obstacle)) - r - obstacle.radius_m - clearance_m
-            out.append((g, f"link {name} closer than {mm} to {obstacle.name or 'the capsule obstacle'}"))
+        (a, b), obstacle = world[k], obstacles[o]
+        out += [(g - clearance_m, f"link {names[k]} closer than {mm} to {obstacle.label}")
+                for g in obstacle.rows(a, b, capsules[k].radius_m, ops, dist, place)]
     for sight in sights:
-        jid, M = _carrier(model, sight.frame)
+        jid, M = carrier(model, sight.frame, "line of sight")
         excluded = (set(sight.excluded) if sight.excluded is not None
                     else {c.frame for c, j in zip(capsules, jids) if j == jid})
         reflector = ends(Capsule(sight.frame, sight.point_m, sight.point_m, 0.0))[0]
@@ -563,16 +545,9 @@ def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_
     * self-collision, for ``pairs`` of capsule indices (default :func:`self_collision_pairs`):
       ``dist(s_i, s_j) - r_i - r_j - clearance_m``;
     * for each (capsule, obstacle) index pair of ``near`` (default: every capsule moving with
-      ``q`` and every obstacle; :func:`obstacle_pairs` selects those that can meet):
-      half-space ``n . x >= o`` (unit n): ``n . a - o - r - clearance_m`` and the same for b,
-      two smooth rows (their minimum is the exact signed distance of the capsule from the
-      plane);
-      box ``{x : N x <= o}``: ``max_f [min(N_f . a, N_f . b) - o_f] - r - clearance_m``, the
-      largest gap between the capsule and a face plane: when positive, that plane separates
-      the capsule from the box by at least the clearance. Conservative: a capsule passing
-      diagonally near an edge or corner may be reported too close though it is not (the exact
-      distance is larger); kinks where two faces or two ends tie;
-      capsule (in a fixed frame): ``dist(s, s_o) - r - r_o - clearance_m``;
+      ``q`` and every obstacle; :func:`obstacle_pairs` selects those that can meet): each row
+      of the obstacle (:meth:`casadi_design.obstacles.Obstacle.rows`, a lower bound of the
+      distance between the capsule and the obstacle) ``- clearance_m``;
     * for each line of sight, every capsule not excluded (see :class:`LineOfSight`):
       ``dist([tracker, reflector(q)], s_k) - r_k - spread - clearance_m``.
 

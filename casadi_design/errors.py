@@ -11,3 +11,7 @@ class ProblemError(ValueError):
 
 class DesignError(RuntimeError):
     """A design could not be produced: infeasible constraints, no converged start, ..."""
+
+
+class OutputError(ValueError):
+    """An output folder or file cannot be written (or a results file read back) as asked."""

@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from .build import Problem
-from .cell import clearances
+from .cell import Clearance
+from .design import Design
 from .errors import ProblemError
+from .files import write_atomic
 from .problem import WRENCH_ROWS
-from .results import write_atomic
-from .solve import Design
 
 #: Largest disagreement (rad or m) between the two unit columns of one joint in a plan CSV.
 UNIT_AGREEMENT_TOL = 1e-6
@@ -56,11 +56,13 @@ def force_columns(problem: Problem) -> list[str]:
             for r in problem.model.force_rows]
 
 
-def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[list[str], list[list]]:
+def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray,
+               near: tuple[Clearance, ...] | None = None) -> tuple[list[str], list[list]]:
     """Header and rows of a plan: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m).
 
     With a ``[cell]``, each row also gives the experiment's clearance on the real geometry
-    (:func:`casadi_design.cell.clearances`, mm) and the two bodies at that distance.
+    (``near``: :attr:`casadi_design.design.Design.clearances`, mm) and the two bodies at that
+    distance.
     """
     joints = problem.robot.joints
     units = [joint_units(problem, k) for k in range(len(joints))]
@@ -68,7 +70,7 @@ def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[list[str
               + [f"{j}_{u[0]}" for j, u in zip(joints, units)] + force_columns(problem)
               + list(POSITION_COLUMNS) + (list(CLEARANCE_COLUMNS) if problem.cell else []))
     Q = np.asarray(Q, float)
-    near = clearances(problem.cell, Q.T) if problem.cell else [None] * len(Q)
+    near = near if problem.cell and near else [None] * len(Q)
     rows = []
     for i, (q, f, c) in enumerate(zip(Q, np.asarray(F, float).reshape(len(Q), -1), near)):
         p = np.asarray(problem.model.position(q), dtype=float).ravel() * 1e3
@@ -89,7 +91,7 @@ def csv_text(header: list[str], rows: list[list]) -> str:
 
 def write_plan_csv(path: Path, problem: Problem, design: Design) -> None:
     """The design's plan, one row per experiment, atomically."""
-    write_atomic(Path(path), csv_text(*plan_table(problem, design.Q, design.F)).encode())
+    write_atomic(Path(path), csv_text(*plan_table(problem, design.Q, design.F, design.clearances)).encode())
 
 
 def write_table_csv(path: Path, columns: tuple[str, ...] | list[str], rows: list[dict]) -> None:
@@ -150,7 +152,7 @@ def _csv_cells(line: str) -> list[str]:
 
 
 def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.ndarray]:
-    """A plan from a CSV file: ``Q`` shape (n, m), rad (m); ``F`` shape (nF, m), N (N m).
+    """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m).
 
     UTF-8 text, with or without a byte-order mark. Trailing empty cells (as Excel writes
     them) are dropped, and so are lines of empty cells and lines starting with ``#``. Row
@@ -229,7 +231,7 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
         return v
 
     m = len(rows)
-    Q = np.full((robot.n, m), np.nan)
+    Q = np.full((m, robot.n), np.nan)
     for k, j in enumerate(robot.joints):
         given = [(c, columns[h][1]) for c, h in enumerate(header) if h in columns and columns[h][0] == k]
         if not given:
@@ -243,18 +245,18 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
                 f"{path}: the columns {', '.join(header[c] for c, _ in given)} of joint {j} "
                 f"disagree by {spread:.3g} (rad or m); give one of them or fix the values")
         # the SI column when given (exact), else the people's unit converted
-        Q[k] = values[next((i for i, (_, scale) in enumerate(given) if scale == 1.0), 0)]
+        Q[:, k] = values[next((i for i, (_, scale) in enumerate(given) if scale == 1.0), 0)]
     nF = problem.model.nF
     if nF == 0:
-        return Q, np.zeros((0, m))
+        return Q, np.zeros((m, 0))
     present = [h in header for h in forces]
     if not any(present) and problem.force is not None and problem.force.mode == "fixed":
-        return Q, np.tile(np.array(problem.force.vector_N)[:, None], (1, m))
+        return Q, np.tile(np.array(problem.force.vector_N), (m, 1))
     if not all(present):
         missing = [h for h, p in zip(forces, present) if not p]
         raise ProblemError(f"{path}: missing force column '{missing[0]}'; the plan needs the "
                            f"calibration load of each experiment: {', '.join(forces)} (N, N m)")
-    F = np.array([[number(r, header.index(h)) for r in range(m)] for h in forces])
+    F = np.array([[number(r, header.index(h)) for r in range(m)] for h in forces]).T  # checked column by column
     return Q, F
 
 
@@ -268,7 +270,7 @@ def _md_table(header: list[str], rows: list[list[str]]) -> str:
 def plan_markdown(problem: Problem, design: Design) -> str:
     """A plan as a Markdown table: joints (deg or mm), load (N), measured point (mm), with a
     ``[cell]`` the clearance (mm) and the closest bodies."""
-    header, rows = plan_table(problem, design.Q, design.F)
+    header, rows = plan_table(problem, design.Q, design.F, design.clearances)
     n = problem.robot.n
     keep = [0, *range(1, 1 + n), *range(1 + 2 * n, len(header))]
     return _md_table([header[c] for c in keep],

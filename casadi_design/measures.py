@@ -6,13 +6,14 @@ information matrix is ``M = sum_i B_i^T B_i = S^T S`` and ``cov(X) = sigma^2 M^-
 * test-pose measure (paper eq. 12 and 15): ``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)``, the
   expected mean square error (m^2) at test pose j after compensation; reported as the RMS error
   ``sqrt(rho_j)`` (m) and its maximum over the test poses.
-* D: ``log det M``; A: ``trace M^-1``; E (the paper's "SVD approach"): ``s_L``, the smallest
-  singular value of S; T: ``trace M``; condition: ``s_1 / s_L``.
+* the score of every criterion of :data:`casadi_design.criteria.CRITERIA` (D: ``log det M``,
+  A: ``trace M^-1``, E: ``s_L``, T: ``trace M``, condition: ``s_1 / s_L``, I: ``sqrt(mean_j
+  rho_j)``), each computed by its registry entry from the plan's spectrum and rho.
 * observability indices: O1 = (s_1...s_L)^(1/L) / sqrt(m), O2 = s_L / s_1, O3 = s_L,
   O4 = s_L^2 / s_1, O5 = 1 / sum(1 / s_l).
 
-These numpy functions are the twins of the NLP objectives of :mod:`casadi_design.nlp`; tests
-check that both agree.
+These numpy functions are the twins of the NLP objectives of :mod:`casadi_design.objectives`;
+tests check that both agree.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .criteria import CRITERIA
+from .criteria import CRITERIA, PlanSpectrum
 
 #: Relative eigenvalue threshold below which M counts as singular.
 SINGULAR_RTOL = 1e-12
@@ -29,33 +30,30 @@ SINGULAR_RTOL = 1e-12
 
 @dataclass(frozen=True)
 class Scores:
-    """Every measure of one plan. Values in SI units of B (lengths in m)."""
+    """Every measure of one plan, in SI units of B (lengths in m).
+
+    ``rms_error_m`` (s,): ``sqrt(rho_j)`` at each test pose; ``values``: the score of every
+    criterion, by its :attr:`~casadi_design.criteria.Criterion.score` key (the registry's
+    order); ``observability``: O1..O5.
+    """
 
     rms_error_m: np.ndarray
-    max_rms_error_m: float
-    log_det_M: float
-    trace_M_inv: float
-    s_min: float
-    trace_M: float
-    condition: float
+    values: dict[str, float]
     observability: dict[str, float]
     identifiable: bool
 
     def value(self, criterion: str) -> float:
-        return float(getattr(self, CRITERIA[criterion].score))
+        """The score of ``criterion``."""
+        return float(self.values[CRITERIA[criterion].score])
+
+    @property
+    def max_rms_error_m(self) -> float:
+        """``max_j sqrt(rho_j)`` (m), the test-pose score."""
+        return self.value("test-pose")
 
     def as_dict(self) -> dict:
-        return {
-            "rms_error_m": [float(v) for v in self.rms_error_m],
-            "max_rms_error_m": self.max_rms_error_m,
-            "log_det_M": self.log_det_M,
-            "trace_M_inv": self.trace_M_inv,
-            "s_min": self.s_min,
-            "trace_M": self.trace_M,
-            "condition": self.condition,
-            "observability": self.observability,
-            "identifiable": self.identifiable,
-        }
+        return {"rms_error_m": [float(v) for v in self.rms_error_m], **self.values,
+                "observability": self.observability, "identifiable": self.identifiable}
 
 
 def information_matrix(B: np.ndarray) -> np.ndarray:
@@ -108,23 +106,11 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
     lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
     sv = np.sqrt(lam)
     identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
-    if identifiable:
-        rho = rho_at_test_poses(M, B0, sigma)
-        log_det = float(np.sum(np.log(lam)))
-        trace_inv = float(np.sum(1.0 / lam))
-        condition = float(sv[0] / sv[-1])
-    else:
-        rho = np.full(np.shape(B0)[0], np.inf)
-        log_det, trace_inv, condition = -np.inf, np.inf, np.inf
-    rms = np.sqrt(rho)
+    rho = rho_at_test_poses(M, B0, sigma) if identifiable else np.full(np.shape(B0)[0], np.inf)
+    spectrum = PlanSpectrum(lam, sv, rho, float(np.trace(M)), identifiable)
     return Scores(
-        rms_error_m=rms,
-        max_rms_error_m=float(np.max(rms)),
-        log_det_M=log_det,
-        trace_M_inv=trace_inv,
-        s_min=float(sv[-1]),
-        trace_M=float(np.trace(M)),
-        condition=condition,
+        rms_error_m=np.sqrt(rho),
+        values={c.score: c.score_of(spectrum) for c in CRITERIA.values()},
         observability=observability_indices(sv, B.shape[0]),
         identifiable=identifiable,
     )

@@ -1,9 +1,10 @@
 """The design NLP: choose the plan ``{(q_i, F_i)}, i = 1..m`` that optimises a criterion.
 
-Decision variables: ``Q`` (n x m, rad), the load variables ``V`` (nv x m, see
+Decision variables: ``Q`` (m, n), rad, the load variables ``V`` (m, nv; see
 :class:`~casadi_design.rules.LoadVariables`: ``Fbar = F / |F|_max``, a magnitude ``a`` for a
 load of fixed direction, none for fixed loads and geometric cases), and the criterion's own
-bound ``t`` of the test-pose criterion: ``x = (vec Q, vec V, t)``. The test-pose criterion is the min-max of
+bound ``t`` of the test-pose criterion: ``x = (Q, V, t)`` row by row, so that the variables of
+one experiment are contiguous. The test-pose criterion is the min-max of
 the paper (eq. 15) in epigraph form:
 
     minimise t  subject to  trace(B0_j M^-1 B0_j^T) <= t,  j = 1..s
@@ -44,7 +45,7 @@ class DesignNLP:
     ----------
     scale : the constant factor of M inside the NLP (``information(x)`` returns ``scale M``).
     oracle : ``(x, p) -> (f, g)`` with ``p`` empty, the NLP as ``casadi.nlpsol`` takes it.
-    plan : ``x -> (Q, F)``, joint values (n x m, rad) and loads (nF x m, N).
+    plan : ``x -> (Q, F)``, joint values (m, n), rad, and loads (m, nF), N.
     information : ``x -> scale M`` (L x L).
     start : ``(Q, F) -> x0``, a plan completed with the auxiliary variables.
     options : ``nlpsol`` options of the formulation: its own derivative functions.
@@ -92,7 +93,7 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     oracle, options = nlp.functions()
     lbx, ubx = plan_bounds(problem, m, loads)
     lbg, ubg = rule_bounds(problem, m, loads)
-    if criterion == "test-pose":  # t >= 0; rho_j - t <= 0
+    if nlp.n_rows:  # the epigraph: t >= 0; rho_j - t <= 0
         lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
         s = nlp.n_rows
         lbg, ubg = np.concatenate([np.full(s, -np.inf), lbg]), np.concatenate([np.zeros(s), ubg])
@@ -100,15 +101,15 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
 
     def plan(x) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(x, dtype=float).ravel()
-        return x[: n * m].reshape(m, n).T, loads.loads(x[n * m: n_plan].reshape(m, loads.nv).T)
+        return x[: n * m].reshape(m, n), loads.loads(x[n * m: n_plan].reshape(m, loads.nv))
 
     def information(x) -> np.ndarray:
         return nlp.at(np.asarray(x, dtype=float).ravel()).M
 
     def start(Q0: np.ndarray, F0: np.ndarray) -> np.ndarray:
-        x0 = np.concatenate([np.asarray(Q0).ravel(order="F"),
-                             loads.variables(F0).ravel(order="F"), np.zeros(nlp.nx - n_plan)])
-        if criterion == "test-pose":  # t0 = 1.01 max_j rho_j, strictly feasible
+        x0 = np.concatenate([np.asarray(Q0).ravel(), loads.variables(F0).ravel(),
+                             np.zeros(nlp.nx - n_plan)])
+        if nlp.n_rows:  # t0 = 1.01 max_j rho_j, strictly feasible
             x0[-1] = 1.01 * np.max(nlp.at(x0).g[: nlp.n_rows])
         return x0
 
@@ -116,7 +117,7 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
 
 
 def plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of ``(vec Q, vec V)``: joint limits (rad, m; :meth:`JointLimits.bounds`) and the
+    """Bounds of ``(Q, V)``: joint limits (rad, m; :meth:`JointLimits.bounds`) and the
     load variables."""
     lower, upper = joint_limits(problem).bounds()
     return (np.concatenate([np.tile(lower, m), np.full(loads.nv * m, loads.lower)]),

@@ -2,7 +2,7 @@
 
 An executor sends each start to a worker as plain data: the problem's checked data
 (:class:`~casadi_design.problem.ProblemSpec`), the criterion, ``m``, ``B0`` and the start plan
-``(Q0, F0)``. The worker builds the problem and the design NLP once (cached per process) and runs
+``(Q0, F0)`` (Q0 (m, n), rad; F0 (m, nF), N). The worker builds the problem and the design NLP once (cached per process) and runs
 :func:`casadi_design.solve.solve_start`, the same code the serial loop runs, so a start gives
 the same numbers wherever it runs. The seeded start plans are drawn by the caller
 (:func:`casadi_design.solve.solve_design`), never by a worker, so results do not depend on
@@ -29,31 +29,19 @@ from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from concurrent.futures import InvalidStateError, ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Protocol, Self
+from typing import Any, Self
 
 import numpy as np
 
 from .build import Problem, build_problem
 from .errors import DesignError
-from .measures import Scores
-from .problem import ProblemSpec, spec_digest_blob
-from .solve import StartRecord, make_design_solver, solve_start
+from .problem import ProblemSpec
+from .solve import StartPlan, StartResult, make_design_solver, solve_start
 
 #: Seconds to wait for a Dask scheduler before giving up.
 DASK_CONNECT_TIMEOUT_S = 5.0
 #: Problems (and their solvers) kept per worker process.
 CACHE_PROBLEMS = 4
-
-StartResult = tuple[StartRecord, np.ndarray, np.ndarray, Scores]
-Plan = tuple[np.ndarray, np.ndarray]
-
-
-class StartExecutor(Protocol):
-    """Runs the starts of one design and yields their results in the order of ``plans``."""
-
-    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                   plans: Sequence[Plan], verbose: bool) -> Iterator[StartResult]: ...
-
 
 def cpu_count() -> int:
     """CPUs this process may use (the default of ``--jobs``)."""
@@ -72,7 +60,7 @@ class ProblemRef:
 
     @classmethod
     def of(cls, problem: Problem) -> ProblemRef:
-        return cls(problem.spec, hashlib.sha256(spec_digest_blob(problem.spec)).hexdigest())
+        return cls(problem.spec, problem.digest)
 
 
 # Worker-side state. One lock per process: CasADi building and IPOPT (MUMPS) are not safe to
@@ -132,7 +120,7 @@ class ProcessExecutor:
             self._pool.submit(int)
 
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                   plans: Sequence[Plan], verbose: bool) -> Iterator[StartResult]:
+                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
         ref = ProblemRef.of(problem)
         futures = [self._pool.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose)
                    for Q0, F0 in plans]
@@ -208,7 +196,7 @@ class DaskExecutor:
             self._own = True
 
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                   plans: Sequence[Plan], verbose: bool) -> Iterator[StartResult]:
+                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
         ref = ProblemRef.of(problem)
         futures = [self.client.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose, pure=False)
                    for Q0, F0 in plans]

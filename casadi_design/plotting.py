@@ -14,8 +14,8 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter, NullLocator
 
 from .criteria import CRITERIA
-from .results import write_atomic
-from .solve import Design
+from .design import Design
+from .files import write_atomic
 
 if TYPE_CHECKING:
     from .sweep import Sweep
@@ -188,20 +188,13 @@ def validation_figure(validation) -> Figure:
     return fig
 
 
-def _box_edges(box) -> list[np.ndarray]:
-    """The 12 edges (2 x 3, m) of a :class:`casadi_design.problem.Box`."""
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
-    corners = np.array(box.center_m) + (signs * np.array(box.half_extents_m)) @ box.rotation.T
-    return [corners[[i, j]] for i in range(8) for j in range(i + 1, 8)
-            if np.sum(signs[i] != signs[j]) == 1]
-
-
 def poses_figure(problem, designs: list[Design]) -> Figure:
     """The robot in every experiment of each design (one 3-D panel each, mm): its capsules as
     thick lines (one colour per experiment), the obstacles, the tracker and its beams to the
-    reflectors, and the test path."""
+    reflectors, and the test path. The view holds the robot, the tracker and the test path
+    (5 % more each way); each obstacle draws itself in it
+    (:meth:`casadi_design.obstacles.Obstacle.draw`: the floor becomes its bottom)."""
     from .cell import world_capsules
-    from .problem import Box, HalfSpace
 
     cell, robot = problem.cell, problem.robot
     fig = Figure(figsize=(6.0 * len(designs), 6.0), layout="constrained")
@@ -223,12 +216,6 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
                 t = np.array(cell.spec.tracker.position_m) * 1e3
                 for p in P:
                     ax.plot(*np.array([t, p]).T, color=colour, lw=0.6, ls="--")
-        for o in cell.obstacles:
-            if isinstance(o, Box):
-                for e in _box_edges(o):
-                    ax.plot(*(e * 1e3).T, color="0.35", lw=0.8)
-            elif not isinstance(o, HalfSpace):
-                ax.plot(*(np.array([o.a_m, o.b_m]) * 1e3).T, color="0.35", lw=max(1.0, 60 * o.radius_m), alpha=0.5)
         if cell.spec.tracker is not None:
             t = np.array(cell.spec.tracker.position_m) * 1e3
             ax.scatter(*t, marker="*", s=120, color="k", label="tracker")
@@ -236,15 +223,10 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
         ax.plot(*path.T, color="k", lw=1.0, marker=".", ms=5, label="test poses")
         allp = np.vstack(points)
         lo, hi = allp.min(axis=0), allp.max(axis=0)
-        floor = next((o.offset_m for o in cell.obstacles if isinstance(o, HalfSpace) and o.normal == (0.0, 0.0, 1.0)), None)
-        if floor is not None:  # the floor as a grid under everything
-            X, Y = np.meshgrid(np.linspace(lo[0], hi[0], 6), np.linspace(lo[1], hi[1], 6))
-            ax.plot_wireframe(X, Y, np.full_like(X, floor * 1e3), color="0.8", lw=0.5)
-            lo[2] = min(lo[2], floor * 1e3)
         pad = 0.05 * (hi - lo).max()
         lo, hi = lo - pad, hi + pad
-        if floor is not None:
-            lo[2] = floor * 1e3
+        for o in cell.obstacles:
+            lo, hi = o.draw(ax, lo, hi)
         for setter, a, b in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), lo, hi):
             setter(a, b)
         ax.set_box_aspect(hi - lo)  # true proportions

@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
+from .criteria import CRITERIA
 from .errors import ProblemError
+from .obstacles import OBSTACLE_KINDS, Capsule, HalfSpace, Obstacle
 
 CASES = ("geometric", "elastostatic", "both")
-#: Criteria names; the registry itself is :data:`casadi_design.criteria.CRITERIA`.
-CRITERION_NAMES = ("test-pose", "D", "A", "E", "T", "condition")
 FORCE_MODES = ("equal", "bound", "fixed", "direction")
 #: Components of a twist (measured / required rows) and of a wrench, in the order used everywhere.
 TWIST_ROWS = ("x", "y", "z", "rx", "ry", "rz")
@@ -64,8 +64,7 @@ SECTIONS: dict[str, set[str] | None] = {
     "cell": {"clearance_m", "capsules_per_link", "capsules", "disabled_pairs", "obstacles", "tracker",
              "collision_urdf"},
     "cell.capsules": {"frame", "a_m", "b_m", "radius_m"},
-    "cell.obstacles": {"name", "kind", "normal", "offset_m", "center_m", "half_extents_m", "rpy_deg",
-                       "a_m", "b_m", "radius_m"},
+    "cell.obstacles": {"name", "kind"}.union(*(kind.KEYS for kind in OBSTACLE_KINDS.values())),
     "cell.tracker": {"position_m", "reflector_axis", "acceptance_deg"},
     "solver": {"starts", "seed", "max_iter", "tol", "ipopt"},
     "solver.ipopt": None,  # passed through to IPOPT unchanged
@@ -186,90 +185,6 @@ class ForceSpec:
     load_point_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
-def _vector3(value, name: str) -> tuple[float, float, float]:
-    v = np.asarray(value, dtype=float)
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise ProblemError(f"{name}: needs 3 finite numbers; got {value!r}")
-    return tuple(float(x) for x in v)
-
-
-@dataclass(frozen=True)
-class HalfSpace:
-    """The free side ``{x : normal . x >= offset_m}`` of a plane (m; ``normal`` need not be unit).
-
-    In ``[experiments.workspace]`` it bounds the measured points; as an obstacle of the cell
-    (the floor at height h is ``HalfSpace((0, 0, 1), h)``) it bounds every moving capsule.
-    """
-
-    normal: tuple[float, float, float]
-    offset_m: float
-    name: str = "half-space"
-
-    def __post_init__(self):
-        n = _vector3(self.normal, f"{self.name}: normal")
-        if not np.linalg.norm(n) > 0 or not np.isfinite(self.offset_m):
-            raise ProblemError(f"{self.name}: needs a non-zero normal and a finite offset_m; got "
-                               f"{self.normal!r}, {self.offset_m!r}")
-        object.__setattr__(self, "normal", n)
-        object.__setattr__(self, "offset_m", float(self.offset_m))
-
-
-@dataclass(frozen=True)
-class Capsule:
-    """Points within ``radius_m`` of the segment ``[a_m, b_m]`` (m, in the frame ``frame``).
-
-    ``frame`` names a frame (a link) or a joint of the robot model; the segment moves with it.
-    A capsule in the world frame (``"universe"``) is an obstacle; ``name`` names it in messages.
-    """
-
-    frame: str
-    a_m: tuple[float, float, float]
-    b_m: tuple[float, float, float]
-    radius_m: float
-    name: str = ""
-
-    def __post_init__(self):
-        object.__setattr__(self, "a_m", _vector3(self.a_m, f"capsule on '{self.frame}': a_m"))
-        object.__setattr__(self, "b_m", _vector3(self.b_m, f"capsule on '{self.frame}': b_m"))
-        r = float(self.radius_m)
-        if not (np.isfinite(r) and r >= 0):
-            raise ProblemError(f"capsule on '{self.frame}': radius_m must be finite and >= 0; got {self.radius_m!r}")
-        object.__setattr__(self, "radius_m", r)
-
-
-@dataclass(frozen=True)
-class Box:
-    """Box centred at ``center_m``, half sizes ``half_extents_m`` along its axes (m), turned
-    by ``rpy_rad`` (roll, pitch, yaw, URDF convention) from the world axes."""
-
-    center_m: tuple[float, float, float]
-    half_extents_m: tuple[float, float, float]
-    rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    name: str = "box"
-
-    def __post_init__(self):
-        object.__setattr__(self, "center_m", _vector3(self.center_m, f"{self.name}: center_m"))
-        object.__setattr__(self, "rpy_rad", _vector3(self.rpy_rad, f"{self.name}: rpy_rad"))
-        h = _vector3(self.half_extents_m, f"{self.name}: half_extents_m")
-        if min(h) < 0:
-            raise ProblemError(f"{self.name}: half_extents_m must be >= 0; got {self.half_extents_m!r}")
-        object.__setattr__(self, "half_extents_m", h)
-
-    @property
-    def rotation(self) -> np.ndarray:
-        """World rotation of the box's axes: ``Rz(yaw) Ry(pitch) Rx(roll)``."""
-        (cr, cp, cy), (sr, sp, sy) = np.cos(self.rpy_rad), np.sin(self.rpy_rad)
-        return (np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-                @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]]))
-
-    def faces(self) -> tuple[np.ndarray, np.ndarray]:
-        """Outward unit normals ``N`` (6 x 3) and offsets ``o`` (6, m): the box is
-        ``{x : N x <= o}``."""
-        R = self.rotation
-        N = np.vstack([R.T, -R.T])
-        return N, N @ np.array(self.center_m) + np.tile(self.half_extents_m, 2)
-
-
 @dataclass(frozen=True)
 class TrackerSpec:
     """The laser tracker: at ``position_m`` (world, m); each reflector (SMR) opens along the
@@ -296,7 +211,7 @@ class CellSpec:
     capsules_per_link: int = 0
     capsules: tuple[Capsule, ...] = ()
     disabled_pairs: tuple[tuple[str, str], ...] = ()
-    obstacles: tuple[HalfSpace | Box | Capsule, ...] = ()
+    obstacles: tuple[Obstacle, ...] = ()
     tracker: TrackerSpec | None = None
     collision_urdf: str = ""
 
@@ -552,7 +467,7 @@ def _parse(raw: dict, path: str) -> ProblemSpec:
         force = None
     workspace = _workspace(exp.sub("workspace"))
     design = top.sub("design", required=True)
-    criteria = design.names("criteria", CRITERION_NAMES, hint="e.g. criteria = [\"test-pose\", \"D\", \"E\"]")
+    criteria = design.names("criteria", tuple(CRITERIA), hint="e.g. criteria = [\"test-pose\", \"D\", \"E\"]")
     scaling = design.get("parameter_scaling", str, "column")
     if scaling not in ("column", "none"):
         raise design.error(f"'{scaling}'", "allowed: column, none", "parameter_scaling")
@@ -864,16 +779,10 @@ def _entries(c: _Reader, key: str, example: str) -> list[_Reader]:
     return out
 
 
-def _capsule(r: _Reader, frame: str, name: str = "") -> Capsule:
-    return Capsule(frame, _vec(r.array("a_m", (3,), hint="one end of the segment, m")),
-                   _vec(r.array("b_m", (3,), hint="the other end of the segment, m")),
-                   r.number("radius_m", hint="the capsule's radius, m", nonnegative=True), name)
-
-
 def _cell(c: _Reader | None, robot: RobotSpec) -> CellSpec | None:
     if c is None:
         return None
-    capsules = tuple(_capsule(r, r.get("frame", str, hint="a link frame or joint name of the robot"))
+    capsules = tuple(Capsule.parse(r, "", r.get("frame", str, hint="a link frame or joint name of the robot"))
                      for r in _entries(c, "capsules", "{ frame = \"link\", a_m = [...], b_m = [...], radius_m = r }"))
     per_link = c.integer("capsules_per_link", 3 if robot.source == "urdf" else 0,
                          "capsules fitted around each link's collision meshes, 1 to 8 (0: none)", low=0, high=8)
@@ -890,28 +799,16 @@ def _cell(c: _Reader | None, robot: RobotSpec) -> CellSpec | None:
         name = r.get("name", str, hint="a name for messages, e.g. name = \"table\"")
         if not name.strip() or name in [o.name for o in obstacles] or name == "the floor":
             raise r.error(f"'{name}' is empty, repeated or reserved", "give each obstacle its own name", "name")
-        kind = r.get("kind", str, hint="half_space, box or capsule")
-        keys = {"half_space": {"normal", "offset_m"}, "box": {"center_m", "half_extents_m", "rpy_deg"},
-                "capsule": {"a_m", "b_m", "radius_m"}}
-        if kind not in keys:
-            raise r.error(f"'{kind}'", "allowed: half_space, box, capsule", "kind")
-        extra = sorted(set(r.table) - keys[kind] - {"name", "kind"})
+        kinds = list(OBSTACLE_KINDS)
+        kind = r.get("kind", str, hint=f"{', '.join(kinds[:-1])} or {kinds[-1]}")
+        if kind not in OBSTACLE_KINDS:
+            raise r.error(f"'{kind}'", f"allowed: {', '.join(kinds)}", "kind")
+        shape = OBSTACLE_KINDS[kind]
+        extra = sorted(set(r.table) - shape.KEYS - {"name", "kind"})
         if extra:
-            raise r.error(f"'{extra[0]}' is not a key of a {kind}", f"a {kind} takes {', '.join(sorted(keys[kind]))}", extra[0])
-        if kind == "half_space":
-            normal = r.array("normal", (3,), hint="the plane's normal, towards the free side")
-            if not np.linalg.norm(normal) > 0:
-                raise r.error("is zero", "give a non-zero 3-vector", "normal")
-            obstacles.append(HalfSpace(_vec(normal), r.number("offset_m", hint="b in normal . x >= b, m"), name))
-        elif kind == "box":
-            half = r.array("half_extents_m", (3,), hint="half sizes along the box's axes, m")
-            if not np.all(half > 0):
-                raise r.error(f"{half.tolist()}", "give positive half sizes (m)", "half_extents_m")
-            rpy = r.array("rpy_deg", (3,), np.zeros(3), hint="roll, pitch, yaw of the box, deg")
-            obstacles.append(Box(_vec(r.array("center_m", (3,), hint="the box's centre, m")), _vec(half),
-                                 _vec(np.deg2rad(rpy)), name))
-        else:
-            obstacles.append(_capsule(r, "universe", name))
+            raise r.error(f"'{extra[0]}' is not a key of a {kind}", f"a {kind} takes {', '.join(sorted(shape.KEYS))}",
+                          extra[0])
+        obstacles.append(shape.parse(r, name))
     t = c.sub("tracker")
     tracker = None
     if t is not None:

@@ -1,6 +1,6 @@
 """The reduced-space NLP of every criterion: numeric derivatives.
 
-IPOPT's variables are the plan and the test-pose bound only, ``x = (vec Q, vec V, t)`` in the
+IPOPT's variables are the plan and the test-pose bound only, ``x = (Q, V, t)`` in the
 layout of :mod:`casadi_design.nlp`. Experiment i enters through its ``p = n + nv`` variables
 ``z_i = (q_i, v_i)`` and ``B_i = B(q_i, F(v_i))``; the criterion through the scaled information
 matrix ``M = c sum_i B_i^T B_i`` (c: the NLP's ``scale``) and ``N = M^-1``. Small CasADi
@@ -13,38 +13,16 @@ derivatives); the rest is matrix calculus in numpy. For a variable a of experime
 
 for a, b of experiment i (0 for variables of two experiments).
 
-The criterion's part ``phi(M)`` of the Lagrangian and its derivatives:
+The criterion's part ``phi(M)`` of the Lagrangian, its gradient ``G = dphi/dM`` and its
+curvature come from the criterion's registry entry (:mod:`casadi_design.objectives`; this
+module never asks which criterion it solves). For an epigraph criterion (test-pose) the rows
+are ``rho_j - t <= 0``, ``rho_j = tr(H_j N)``, ``H_j = c B0_j^T B0_j`` (mu_j their
+multipliers, sigma_f the objective's multiplier), and with ``Gbar = sigma_f G`` (or
+``-sum_j mu_j N H_j N`` for the epigraph)
 
-=========  ================================================  ================  =====
-criterion  phi(M)                                            Gbar = dphi/dM    kappa
-=========  ================================================  ================  =====
-test-pose  sum_j mu_j rho_j = tr(P N),  P = sum_j mu_j H_j   -N P N            2
-A          sigma_f tr(N)                                     -sigma_f N N      2
-D          -sigma_f log det M                                -sigma_f N        1
-T          -sigma_f tr(M)                                    -sigma_f I        0
-=========  ================================================  ================  =====
+    d phi = tr(Gbar dM_a),   d2 phi[a, b] = curvature[a, b] + tr(Gbar d2M_ab),
 
-E and condition, whose criteria (``lambda_min``, ``lambda_max / lambda_min``) are not smooth
-where eigenvalues repeat, use smooth spectral surrogates of the eigenvalues ``lambda_i`` of M,
-the log power means
-
-    l_p(M) = (1/p) log( (1/L) sum_i lambda_i^p ),   l_{-r} -> log lambda_min,  l_r -> log lambda_max
-
-as r -> infinity (``log lambda_min <= l_{-r} <= log lambda_min + log(L)/r``; Kiefer's phi_p
-criteria): ``phi = -sigma_f l_{-r}`` for E and ``sigma_f (l_r - l_{-r})`` for condition, solved
-for a rising sequence of r (:data:`casadi_design.criteria.Criterion.powers`). With
-``M = U diag(lambda) U^T``, ``w_i = lambda_i^p / sum_k lambda_k^p`` and ``b_i = w_i / lambda_i``:
-
-    dl_p = tr(U diag(b) U^T dM),
-    d2l_p[E1, E2] = sum_ij Gamma_ij E1~_ij E2~_ij - p (b . diag E1~)(b . diag E2~),
-
-with ``E~ = U^T E U`` and ``Gamma_ij = (b_i - b_j) / (lambda_i - lambda_j)`` (``(p - 1) b_i /
-lambda_i`` for equal eigenvalues; Daleckii-Krein), which replaces the kappa term above.
-
-with ``rho_j = tr(H_j N)``, ``H_j = c B0_j^T B0_j`` the test-pose rows ``rho_j - t <= 0`` (mu_j
-their multipliers, sigma_f the objective's), and
-
-    d phi = tr(Gbar dM_a),   d2 phi[a, b] = kappa tr(-Gbar dM_a N dM_b) + tr(Gbar d2M_ab).
+the curvature being ``kappa tr(-Gbar dM_a N dM_b)`` for the smooth criteria.
 
 (For ``tr(P N)``: ``d2 = 2 tr(G dM_a N dM_b) - tr(G d2M_ab)``, ``G = N P N``; for
 ``-log det M``: ``d2 = tr(N dM_a N dM_b) - tr(N d2M_ab)``.) The Jacobian of the test-pose rows
@@ -70,60 +48,9 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dtrtri
 
 from .build import Problem, per_model
+from .criteria import CRITERIA
+from .objectives import EpigraphRows, Local, Objective, trace_curvature
 from .rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
-
-#: kappa of each criterion of the reduced space (see the module docstring).
-CURVATURE = {"test-pose": 2.0, "D": 1.0, "A": 2.0, "T": 0.0}
-#: The spectral criteria as ``(c_k, s_k)``: ``phi = sum_k c_k l_{s_k r}`` (module docstring).
-SPECTRAL = {"E": ((-1.0, -1.0),), "condition": ((1.0, 1.0), (-1.0, -1.0))}
-
-
-class Spectrum(NamedTuple):
-    """A spectral surrogate ``phi(M) = sum_k c_k l_{p_k}(M)`` at one M and its derivatives:
-    ``grad = dphi/dM`` (L x L), ``Gamma`` (L x L) and ``R`` (L x L) such that
-    ``d2phi[E1, E2] = sum_ij Gamma_ij E1~_ij E2~_ij + diag(E1~) . R diag(E2~)``,
-    ``E~ = U^T E U``."""
-
-    value: float
-    U: np.ndarray
-    grad: np.ndarray
-    Gamma: np.ndarray
-    R: np.ndarray
-
-
-def log_power_mean(lam: np.ndarray, p: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """``l_p = (1/p) log(mean lambda^p)`` of positive ``lam`` (p != 0), its gradient ``b`` with
-    respect to the eigenvalues and the divided differences ``Gamma`` of ``b`` (see the module
-    docstring), computed without overflow for any p."""
-    loglam = np.log(lam)
-    z = p * loglam
-    e = np.exp(z - z.max())
-    S = e.sum()
-    value = float((z.max() + np.log(S / len(lam))) / p)
-    b = e / S / lam
-    # Gamma_ij = (b_j / lam_j) expm1((p - 1) delta) / expm1(delta), delta = log(lam_i / lam_j),
-    # taken from the side where (p - 1) delta <= 0 (no overflow; Gamma is symmetric)
-    delta = loglam[:, None] - loglam[None, :]
-    x = (p - 1) * delta
-    base = (b / lam)[None, :]
-    with np.errstate(all="ignore"):  # the branch np.where does not take may overflow
-        A = np.where(delta == 0, (p - 1) * base, base * np.expm1(x) / np.expm1(delta))
-    return value, b, np.where(x <= 0, A, A.T)
-
-
-def spectrum(M: np.ndarray, criterion: str, r: float) -> Spectrum:
-    """The surrogate of ``criterion`` (a key of :data:`SPECTRAL`) at positive definite M."""
-    lam, U = np.linalg.eigh(M)
-    value, b_sum = 0.0, np.zeros(len(lam))
-    Gamma, R = np.zeros((len(lam),) * 2), np.zeros((len(lam),) * 2)
-    for c, sign in SPECTRAL[criterion]:
-        p = sign * r
-        v, b, G = log_power_mean(lam, p)
-        value += c * v
-        b_sum += c * b
-        Gamma += c * G
-        R -= (c * p) * np.outer(b, b)
-    return Spectrum(value, U, (U * b_sum) @ U.T, Gamma, R)
 
 
 class NumericFunction(ca.Callback):
@@ -269,7 +196,7 @@ def experiment_functions(problem: Problem) -> ExperimentFunctions:
     n = model.n
     q, v = ca.SX.sym("q", n), ca.SX.sym("v", loads.nv)
     z = ca.vertcat(q, v)
-    B = model.B(q, loads.loads(v))
+    B = model.B(q, loads.load(v))
     c = ca.vertcat(*([ca.sumsqr(v)] if loads.norm_lb is not None else []), rules.g(q))
     W, lam = ca.SX.sym("W", *B.shape), ca.SX.sym("lam", c.numel())
     second = ca.hessian(ca.dot(W, B) + ca.dot(lam, c), z)[0]
@@ -298,9 +225,11 @@ class ReducedNLP:
     rule_rows : ndarray, shape (m, nc): index in g of each experiment's rule rows.
     pairs : ndarray, shape (P, 2): the experiments (a < b) of each joint-distance row.
     pair_rows : ndarray, shape (P,): their index in g.
-    n_rows : number of criterion rows (s for test-pose, 0 otherwise), first in g.
+    n_rows : number of criterion rows (s for an epigraph criterion, 0 otherwise), first in g.
     nx, ng : sizes of x and g.
-    power : r of the spectral surrogates of E and condition (module docstring); 0 otherwise.
+    objective : the criterion's part (:mod:`casadi_design.objectives`).
+    P : its weight matrix (:meth:`~casadi_design.objectives.Objective.weights`), or None.
+    power : r of the spectral surrogates of E and condition; 0 otherwise.
     last : the quantities of the last x: ``[x bytes, _Values, _Slopes or None]``.
     """
 
@@ -316,6 +245,8 @@ class ReducedNLP:
     n_rows: int
     nx: int
     ng: int
+    objective: Objective
+    P: np.ndarray | None
     power: float = 0.0
     last: list = field(default_factory=list)
 
@@ -351,10 +282,10 @@ class ReducedNLP:
     @cached_property
     def hessian_pattern(self) -> np.ndarray:
         """Structural nonzeros of the upper triangle of the Hessian of the Lagrangian (nx x nx,
-        bool): dense over the plan variables where M^-1 couples every experiment (kappa > 0);
-        for T, the blocks of each experiment and of each pair."""
+        bool): dense over the plan variables where M^-1 couples every experiment (a curvature
+        term); for T, the blocks of each experiment and of each pair."""
         H = np.zeros((self.nx, self.nx), dtype=bool)
-        if self.criterion in SPECTRAL or CURVATURE[self.criterion]:
+        if self.objective.couples:
             H[np.ix_(self.cols.ravel(), self.cols.ravel())] = True
         else:
             H[self.cols[:, :, None], self.cols[:, None, :]] = True
@@ -460,8 +391,8 @@ class _Values(NamedTuple):
     """f, g and what they are made of at one x.
 
     Z : (p, m) the experiments' variables; B : (m, d, L) unscaled; M : (L, L) scaled;
-    Cinv : ``C^-1`` for ``M = C C^T`` (C lower triangular), None when M is not positive definite.
-    spectrum : the surrogate of E or condition at M, else None.
+    Cinv : ``C^-1`` for ``M = C C^T`` (C lower triangular), None when M is not positive definite;
+    local : the objective at M (None for an epigraph criterion or a singular M).
     """
 
     x: np.ndarray
@@ -469,14 +400,14 @@ class _Values(NamedTuple):
     B: np.ndarray
     M: np.ndarray
     Cinv: np.ndarray | None
-    spectrum: Spectrum | None
+    local: Local | None
     f: float
     g: np.ndarray
 
 
 class _Slopes(NamedTuple):
     """First derivatives at one x: dB (m, p, d, L) unscaled, dM (m p, L, L) in the order of
-    ``cols``, ``N = M^-1``, ``Y_j = N H_j N`` (s, L, L; test-pose) or ``G_f = df/dM`` (the
+    ``cols``, ``N = M^-1``, ``Y_j = N H_j N`` (s, L, L; epigraph) or ``G_f = df/dM`` (the
     other criteria), and the gradient of f and the dense Jacobian of g."""
 
     dB: np.ndarray
@@ -499,33 +430,25 @@ def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
     C, info = dpotrf(M, lower=1, clean=1)
     Cinv = dtrtri(C, lower=1)[0] if info == 0 else None
     g = np.empty(nlp.ng)
-    crit, spec = nlp.criterion, None
+    local = None
     if Cinv is None:
         f = np.nan
         g[: nlp.n_rows] = np.nan
-    elif crit in SPECTRAL:
-        spec = spectrum(M, crit, nlp.power)
-        f = spec.value
-    elif crit == "test-pose":
+    elif nlp.n_rows:
         f = float(x[-1])
-        s, r = nlp.B0s.shape[:2]
-        K = nlp.B0s.reshape(s * r, L) @ Cinv.T
-        g[: nlp.n_rows] = np.sum((K * K).reshape(s, r * L), axis=1) - x[-1]
-    elif crit == "D":
-        f = float(-2 * np.sum(np.log(np.diag(C))))
-    elif crit == "A":
-        f = float(np.sum(Cinv * Cinv))
+        g[: nlp.n_rows] = EpigraphRows.rows(nlp.B0s, Cinv) - x[-1]
     else:
-        f = float(-np.trace(M))
+        local = nlp.objective.at(M, C, Cinv, nlp.P, nlp.power)
+        f = local.value
     g[nlp.rule_rows] = rules.T
     if len(nlp.pairs):
         g[nlp.pair_rows] = nlp.mapped["pair"](x[nlp.pair_cols.T])[0].ravel()
-    return _Values(x, Z, B, M, Cinv, spec, f, g)
+    return _Values(x, Z, B, M, Cinv, local, f, g)
 
 
 def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
     m, p, c = nlp.m, nlp.fns.p, nlp.scale
-    (d, L), crit = v.B.shape[1:], nlp.criterion
+    d, L = v.B.shape[1:]
     dB, dc = nlp.mapped["first"](v.Z)
     dB = dB.reshape(L, d, m, p).transpose(2, 3, 1, 0)
     grad, J = np.zeros(nlp.nx), np.zeros((nlp.ng, nlp.nx))
@@ -534,7 +457,7 @@ def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
         P, n2 = nlp.pair_cols.shape
         J[nlp.pair_rows[:, None], nlp.pair_cols] = nlp.mapped["pair_first"](
             v.x[nlp.pair_cols.T])[0].reshape(P, n2)
-    if crit == "test-pose":
+    if nlp.n_rows:
         grad[-1] = 1.0
         J[: nlp.n_rows, -1] = -1.0
     if v.Cinv is None:
@@ -547,13 +470,11 @@ def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
     dM = (T + T.transpose(0, 1, 3, 2)).reshape(m * p, L * L)
     cols = nlp.cols.ravel()
     Y = G_f = None
-    if crit == "test-pose":
-        E = nlp.B0s @ N
-        Y = E.transpose(0, 2, 1) @ E
+    if nlp.n_rows:
+        Y = EpigraphRows.row_gradients(nlp.B0s, N)
         J[: nlp.n_rows, cols] = -Y.reshape(-1, L * L) @ dM.T
     else:
-        G_f = (v.spectrum.grad if v.spectrum is not None else -N if crit == "D"
-               else -N @ N if crit == "A" else -np.eye(L))
+        G_f = nlp.objective.gradient(v.local, N, nlp.P)
         grad[cols] = dM @ G_f.ravel()
     return _Slopes(dB, dM.reshape(m * p, L, L), N, Y, G_f, grad, J)
 
@@ -566,22 +487,12 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
     V, L = m * p, len(v.M)
     if v.Cinv is None:
         return np.full((V, V), np.nan)
-    if nlp.criterion == "test-pose":
+    if nlp.n_rows:
         Gbar = -(lam_g[: nlp.n_rows] @ sl.Y.reshape(-1, L * L)).reshape(L, L)
+        H = trace_curvature(Gbar, sl.dM, sl.N, nlp.objective.kappa)
     else:
         Gbar = lam_f * sl.G_f
-    kappa = CURVATURE.get(nlp.criterion, 0.0)
-    if v.spectrum is not None:  # lam_f d2phi[dM_a, dM_b], every pair of plan variables
-        sp = v.spectrum
-        E = sp.U.T @ sl.dM @ sp.U
-        diag = np.diagonal(E, axis1=1, axis2=2)
-        H = lam_f * ((E * sp.Gamma).reshape(V, L * L) @ E.reshape(V, L * L).T
-                     + diag @ sp.R @ diag.T)
-    elif kappa:  # kappa tr(-Gbar dM_a N dM_b), every pair of plan variables
-        T = (-Gbar) @ sl.dM @ sl.N
-        H = kappa * (T.reshape(V, L * L) @ sl.dM.reshape(V, L * L).T)
-    else:
-        H = np.zeros((V, V))
+        H = nlp.objective.curvature(v.local, Gbar, sl.dM, sl.N, lam_f)
     # tr(Gbar d2M_ab) = c (2 <B Gbar, d2B_ab> + 2 <dB_a Gbar, dB_b>), and the rules' rows
     W = (2 * c) * (v.B @ Gbar)
     d = W.shape[1]
@@ -603,12 +514,12 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     """The reduced-space NLP of ``criterion`` for m experiments (``power``: r of E and
     condition).
 
-    x = (vec Q, vec V, t for test-pose); g = (test-pose rows, load rows, workspace rows of
+    x = (Q, V, t for an epigraph criterion); g = (epigraph rows, load rows, workspace rows of
     each experiment, joint-distance rows of each pair a < b), as in :mod:`casadi_design.nlp`.
     """
-    fns = experiment_functions(problem)
+    fns, objective = experiment_functions(problem), CRITERIA[criterion].objective
     n, nv = fns.n, fns.nv
-    n_rows = B0.shape[0] if criterion == "test-pose" else 0
+    n_rows = B0.shape[0] if objective.epigraph else 0
     idx = np.arange(m)[:, None]
     cols = np.concatenate([idx * n + np.arange(n), n * m + idx * nv + np.arange(nv)], axis=1)
     has_norm = int(load_variables(problem).norm_lb is not None)
@@ -618,7 +529,8 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     distance = problem.workspace.min_joint_distance_rad > 0
     pairs = np.array([(a, b) for a in range(m) for b in range(a + 1, m) if distance], dtype=int)
     first_pair = n_rows + fns.nc * m
-    nx = (n + nv) * m + (criterion == "test-pose")
-    return ReducedNLP(criterion, m, scale, fns, np.sqrt(scale) * B0, cols, rule_rows,
-                      pairs.reshape(-1, 2), first_pair + np.arange(len(pairs)), n_rows, nx,
-                      first_pair + len(pairs), power)
+    nx = (n + nv) * m + objective.epigraph
+    B0s = np.sqrt(scale) * B0
+    return ReducedNLP(criterion, m, scale, fns, B0s, cols, rule_rows, pairs.reshape(-1, 2),
+                      first_pair + np.arange(len(pairs)), n_rows, nx, first_pair + len(pairs),
+                      objective, objective.weights(B0s), power)

@@ -64,12 +64,12 @@ class JointLimits:
         return (np.where(self.periodic, -np.inf, self.lower), np.where(self.periodic, np.inf, self.upper))
 
     def wrap(self, Q: np.ndarray) -> np.ndarray:
-        """``Q`` (n x m) with each periodic angle moved by whole turns to
+        """``Q`` (m, n) with each periodic angle moved by whole turns to
         ``[middle - pi, middle + pi)``, the others clipped to the limits."""
         Q = np.asarray(Q, dtype=float)
-        c = self.middle[:, None]
+        c = self.middle
         wrapped = c + np.mod(Q - c + np.pi, 2 * np.pi) - np.pi
-        return np.where(self.periodic[:, None], wrapped, np.clip(Q, self.lower[:, None], self.upper[:, None]))
+        return np.where(self.periodic, wrapped, np.clip(Q, self.lower, self.upper))
 
     def sample(self, rng: np.random.Generator, size: int | None = None) -> np.ndarray:
         """A configuration (n), or ``size`` of them (size x n), drawn uniformly within the
@@ -149,10 +149,9 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
         if ws.box_min_m is not None:
             rows += [(p[a], ws.box_min_m[a], ws.box_max_m[a], f"{name}: {'xyz'[a]} outside the box", "m")
                      for a in range(3)]
-        for k, hs in enumerate(ws.half_spaces):
-            n = np.array(hs.normal) / np.linalg.norm(hs.normal)
-            rows.append((ca.dot(ca.DM(n), p), hs.offset_m / np.linalg.norm(hs.normal), np.inf,
-                         f"{name}: outside half-space {k + 1}", "m"))
+        for k, hs in enumerate(ws.half_spaces):  # unit normals (casadi_design.obstacles.HalfSpace)
+            rows.append((ca.dot(ca.DM(hs.normal), p), hs.offset_m, np.inf, f"{name}: outside half-space {k + 1}",
+                         "m"))
         if ws.sphere_center_m is not None:
             rows.append((ca.sqrt(ca.sumsqr(p - ca.DM(ws.sphere_center_m)) + 1e-12), -np.inf, ws.sphere_radius_m,
                          f"{name}: out of the tracker's range", "m"))
@@ -201,17 +200,20 @@ class LoadVariables:
     def nv(self) -> int:
         return self.U.shape[1]
 
-    def loads(self, V):
-        """``F`` (nF x m, N) of the variables ``V`` (nv x m; numpy or CasADi)."""
-        m = V.shape[1]
-        if isinstance(V, np.ndarray):
-            return self.magnitude_N * (self.U @ V) + self.fixed_N[:, None]
-        return self.magnitude_N * (ca.DM(self.U) @ V) + ca.repmat(ca.DM(self.fixed_N), 1, m)
+    def load(self, v):
+        """The load ``F`` (nF, N) of one experiment's variables ``v`` (nv; numpy or CasADi)."""
+        if isinstance(v, np.ndarray):
+            return self.magnitude_N * (self.U @ v) + self.fixed_N
+        return self.magnitude_N * (ca.DM(self.U) @ v) + ca.DM(self.fixed_N)
+
+    def loads(self, V: np.ndarray) -> np.ndarray:
+        """``F`` (m, nF), N, of the variables ``V`` (m, nv)."""
+        return self.magnitude_N * (np.asarray(V, dtype=float) @ self.U.T) + self.fixed_N
 
     def variables(self, F: np.ndarray) -> np.ndarray:
-        """``V`` (nv x m) of loads ``F`` (nF x m, N) that satisfy the rule."""
+        """``V`` (m, nv) of loads ``F`` (m, nF), N, that satisfy the rule."""
         F = np.asarray(F, dtype=float)
-        return self.U.T @ F.reshape(self.U.shape[0], F.shape[-1]) / self.magnitude_N
+        return F.reshape(F.shape[0], self.U.shape[0]) @ self.U / self.magnitude_N
 
 
 def load_variables(problem: Problem) -> LoadVariables:
@@ -246,14 +248,14 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
 
     Parameters
     ----------
-    Q : ndarray, shape (n, m), rad (m for prismatic joints)
-    F : ndarray, shape (nF, m), N (N m)
+    Q : ndarray, shape (m, n), rad (m for prismatic joints)
+    F : ndarray, shape (m, nF), N (N m)
     """
     robot, force, ws = problem.robot, problem.force, problem.workspace
     Q = np.asarray(Q, dtype=float)
-    F = np.asarray(F, dtype=float).reshape(problem.model.nF, Q.shape[1])
+    F = np.asarray(F, dtype=float).reshape(len(Q), problem.model.nF)
     out, rules, limits = [], pose_constraints(problem), joint_limits(problem)
-    for i, q in enumerate(Q.T):
+    for i, q in enumerate(Q):
         for k, j in enumerate(robot.joints):
             if not limits.lower[k] - FEASIBILITY_TOL <= q[k] <= limits.upper[k] + FEASIBILITY_TOL:
                 margin = f" (limits less the {ws.joint_limit_margin_rad:g} margin)" if ws.joint_limit_margin_rad else ""
@@ -273,7 +275,7 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
                 out.append(f"experiment {i + 1}: {near.touching[0]} and {near.touching[1]} touch or cross "
                            f"on the {problem.cell.check.source}")
     if force is not None and F.size:
-        for i, f in enumerate(F.T):
+        for i, f in enumerate(F):
             norm = float(np.linalg.norm(f))
             ratio = norm / force.magnitude_N
             if force.mode == "fixed" and not np.allclose(f, force.vector_N, rtol=LOAD_RTOL, atol=0):
@@ -287,10 +289,10 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
                 if np.linalg.norm(f - u * (u @ f)) > LOAD_RTOL * force.magnitude_N or u @ f < -LOAD_RTOL * force.magnitude_N:
                     out.append(f"experiment {i + 1}: load {f.tolist()} is not along the direction {list(u)}")
     dmin = ws.min_joint_distance_rad
-    m = Q.shape[1]
+    m = len(Q)
     for i in range(m):
         for j in range(i + 1, m):
-            dist = float(np.sqrt(joint_distance_sq(limits, Q[:, i], Q[:, j])))
+            dist = float(np.sqrt(joint_distance_sq(limits, Q[i], Q[j])))
             if dist < dmin - FEASIBILITY_TOL:
                 out.append(f"experiments {i + 1} and {j + 1}: joint distance {dist:.4g} rad below "
                            f"min_joint_distance_rad = {dmin:g}")

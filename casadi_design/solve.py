@@ -1,4 +1,4 @@
-"""Multi-start IPOPT solution of the design NLP: the only module that runs a solver.
+"""Multi-start IPOPT solution of the design NLP.
 
 Each design (criterion, m) is solved from ``starts`` random feasible plans drawn from a
 generator seeded by ``(seed, m, criterion)``, so a design is reproducible on its own (a sweep
@@ -10,113 +10,42 @@ solve is a status, not an exception.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import casadi as ca
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
-from . import interrupt
 from .build import Problem
+from .cell import clearances
 from .criteria import CRITERIA
+from .design import CONVERGED, SEEDED, Design, StartRecord
 from .errors import DesignError, ProblemError
+from .ipopt import QUIET, WARM_START, ipopt_call
 from .measures import Scores, score_plan
 from .nlp import B0_at_test_poses, DesignNLP, build_nlp
-from .rules import joint_limits, plan_violations, pose_constraints
+from .rules import joint_limits, plan_violations
+from .sampling import random_plan
 
-if TYPE_CHECKING:
-    from .bound import Bound
-    from .parallel import StartExecutor
-
-#: IPOPT return statuses accepted as converged.
-CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 #: For criteria marked ``polished``: the threshold on lambda_min / lambda_max of M below which
 #: a start first gets a few D-optimal iterations, and their number.
 POLISH_RCOND = 1e-6
 POLISH_ITERATIONS = 30
-#: Random configurations tried per experiment to satisfy the workspace constraints, drawn one
-#: first, then in batches of ``SAMPLING_BATCH`` doubling up to ``SAMPLING_BATCH_MAX``.
-SAMPLING_TRIES = 20000
-SAMPLING_BATCH = 16
-SAMPLING_BATCH_MAX = 1024
+
+#: A start plan ``(Q0 (m, n), F0 (m, nF))`` and what a start gives back.
+StartPlan = tuple[np.ndarray, np.ndarray]
+StartResult = tuple[StartRecord, np.ndarray, np.ndarray, Scores]
 
 
-#: ``StartRecord.origin`` of the seeded random starts.
-SEEDED = "seeded"
+class StartExecutor(Protocol):
+    """Runs the starts of one design and yields their results in the order of ``plans``
+    (:mod:`casadi_design.parallel`)."""
 
-
-@dataclass(frozen=True)
-class StartRecord:
-    """One IPOPT start: its status, iterations, criterion score and test-pose error (m), and
-    where its start plan came from (``origin``: "seeded", or the label of an initial plan, e.g.
-    "warm start" or "rounded approximate design")."""
-
-    status: str
-    iterations: int
-    value: float
-    max_rms_error_m: float
-    feasible: bool
-    origin: str = SEEDED
-
-    @property
-    def converged(self) -> bool:
-        return self.status in CONVERGED and self.feasible
-
-
-@dataclass(frozen=True, eq=False)
-class Design:
-    """The best plan found for one criterion and number of experiments.
-
-    Attributes
-    ----------
-    Q : ndarray, shape (m, n), rad
-    F : ndarray, shape (m, nF), N (N m)
-    scores : every measure of the plan.
-    status : IPOPT status of the winning start.
-    starts : every start, in the order run.
-    wall_s : wall time of the multi-start solve, s.
-    bound : the certified bound of the criterion for m experiments
-        (:func:`casadi_design.bound.bound`), when it was computed.
-    """
-
-    criterion: str
-    m: int
-    Q: np.ndarray
-    F: np.ndarray
-    scores: Scores
-    status: str
-    starts: tuple[StartRecord, ...]
-    wall_s: float
-    seed: int
-    bound: Bound | None = None
-
-    @property
-    def gap_percent(self) -> float | None:
-        """How far the plan is from its bound, % (:func:`casadi_design.bound.gap_percent`)."""
-        from .bound import gap_percent
-
-        return None if self.bound is None else gap_percent(self.bound, self.scores.value(self.criterion))
-
-    @property
-    def converged_starts(self) -> int:
-        return sum(st.converged for st in self.starts)
-
-    @property
-    def iterations(self) -> int:
-        return sum(st.iterations for st in self.starts)
-
-    @property
-    def winner(self) -> StartRecord | None:
-        """The start whose plan this is: the first to reach the best value (a later start wins
-        only when strictly better); None for a design read without its starts' values."""
-        best = self.scores.value(self.criterion)
-        return next((st for st in self.starts if st.converged and st.value == best), None)
+    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]: ...
 
 
 def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
@@ -124,53 +53,9 @@ def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
     return np.random.default_rng([seed, m, CRITERIA[criterion].seed_id])
 
 
-def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """A random feasible plan: ``Q`` (n x m, rad) within the limits and workspace, ``F`` (nF x m, N)."""
-    robot, model, force = problem.robot, problem.model, problem.force
-    rules, limits = pose_constraints(problem), joint_limits(problem)
-    Q = np.empty((robot.n, m))
-    for i in range(m):
-        # one configuration, then growing batches (one CasADi call each) until one is feasible
-        tried, batch, q = 0, 1, None
-        while q is None and tried < SAMPLING_TRIES:
-            size = min(batch, SAMPLING_TRIES - tried)
-            candidates = limits.sample(rng, size)
-            ok = np.flatnonzero(rules.feasible(candidates))
-            q = candidates[ok[0]] if ok.size else None
-            tried, batch = tried + size, SAMPLING_BATCH if batch == 1 else min(2 * batch, SAMPLING_BATCH_MAX)
-        if q is None:
-            broken = np.sum([rules.violation(c) > 0 for c in candidates], axis=0)
-            worst = [rules.labels[k] for k in np.argsort(-broken)[:3] if broken[k]]
-            where = "[experiments.workspace] and [cell] leave" if problem.cell else "[experiments.workspace] leaves"
-            raise DesignError(
-                f"{problem.path}: {where} no feasible pose: none of {SAMPLING_TRIES} random "
-                f"configurations within the joint limits satisfies them (most often broken: "
-                f"{'; '.join(worst)}); enlarge the workspace, move the obstacles or the tracker, or "
-                "widen the joint limits"
-            )
-        Q[:, i] = q
-    if model.nF == 0:
-        return Q, np.zeros((0, m))
-    if force.mode == "fixed":
-        return Q, np.tile(np.array(force.vector_N)[:, None], (1, m))
-    if force.mode == "direction":
-        return Q, force.magnitude_N * np.outer(force.direction, rng.uniform(0.5, 1.0, m))
-    d = rng.normal(size=(model.nF, m))
-    return Q, force.magnitude_N * d / np.linalg.norm(d, axis=0)
-
-
 def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) -> Scores:
-    """Scores of a plan given as ``Q`` (n x m, rad) and ``F`` (nF x m, N)."""
-    return score_plan(problem.model.B_stack(Q.T, F.T), B0, problem.sigma_m)
-
-
-#: nlpsol options of a silent IPOPT whose failures are statuses, not exceptions.
-QUIET = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False, "error_on_fail": False,
-         "show_eval_warnings": False}
-
-
-#: nlpsol options of a run that continues from the primal and dual point of the previous one.
-WARM_START = {"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-6}
+    """Scores of a plan given as ``Q`` (m, n), rad, and ``F`` (m, nF), N."""
+    return score_plan(problem.model.B_stack(Q, F), B0, problem.sigma_m)
 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False,
@@ -199,25 +84,9 @@ def check_ipopt_options(problem: Problem) -> None:
         status = solver.stats()["return_status"]
     except RuntimeError as exc:
         status = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
-    if status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded"):
+    if status not in (*CONVERGED, "Maximum_Iterations_Exceeded"):
         raise ProblemError(f"{problem.path}: [solver].ipopt: IPOPT rejected the options {dict(options)} "
                            f"({status}); check the names and values against the IPOPT options reference")
-
-
-@functools.cache
-def _blas() -> ThreadpoolController:
-    """The BLAS libraries loaded in this process (found once: a search costs ~2 ms)."""
-    return ThreadpoolController()
-
-
-@contextlib.contextmanager
-def ipopt_call() -> Iterator[None]:
-    """Run an IPOPT solve: Ctrl-C stops it (:func:`casadi_design.interrupt.solver_call`), and BLAS
-    runs on one thread. The reduced-space derivatives multiply small matrices (L x L): BLAS
-    threads cost more than they give there (10x slower on a busy 2-core machine), and the
-    rounding, hence a start's outcome, would depend on the thread count (and so on ``--jobs``)."""
-    with interrupt.solver_call(), _blas().limit(limits=1, user_api="blas"):
-        yield
 
 
 @dataclass(frozen=True, eq=False)
@@ -264,11 +133,11 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
 def solve_start(
     problem: Problem, ds: DesignSolver, B0: np.ndarray, Q0: np.ndarray, F0: np.ndarray
 ) -> tuple[StartRecord, np.ndarray, np.ndarray, Scores]:
-    """One IPOPT start of the design solver from ``Q0`` (n x m, rad), ``F0`` (nF x m, N).
+    """One IPOPT start of the design solver from ``Q0`` (m, n), rad, ``F0`` (m, nF), N.
 
     The unit of work of the multi-start, run here or in worker processes
-    (:mod:`casadi_design.parallel`). Returns the start's record, its plan ``Q`` (n x m, rad),
-    ``F`` (nF x m, N) and the plan's scores.
+    (:mod:`casadi_design.parallel`). Returns the start's record, its plan ``Q`` (m, n), rad,
+    ``F`` (m, nF), N, and the plan's scores.
     """
     Q0, F0 = _polished(problem, ds, Q0, F0)
     x, iterations, duals = ds.stages[0][0].start(Q0, F0), 0, {}
@@ -312,8 +181,8 @@ def solve_design(
 
     Parameters
     ----------
-    initial_plans : extra starts ``(Q0, F0)`` or ``(Q0, F0, origin)``: ``Q0`` shape (n, m), rad;
-        ``F0`` shape (nF, m), N; ``origin`` labels the start's record ("initial plan" if not
+    initial_plans : extra starts ``(Q0, F0)`` or ``(Q0, F0, origin)``: ``Q0`` shape (m, n), rad;
+        ``F0`` shape (m, nF), N; ``origin labels the start's record ("initial plan" if not
         given).
     executor : runs the starts elsewhere (:mod:`casadi_design.parallel`); None runs them here,
         one after the other. The result is the same either way.
@@ -332,11 +201,11 @@ def solve_design(
     for k, (Q0, F0, *origin) in enumerate(initial_plans):
         origins.append(origin[0] if origin else "initial plan")
         Q0, F0 = np.asarray(Q0, dtype=float), np.asarray(F0, dtype=float)
-        F0 = F0.reshape(0, m) if F0.size == 0 and problem.model.nF == 0 else F0
-        if Q0.shape != (problem.robot.n, m) or F0.shape != (problem.model.nF, m):
+        F0 = F0.reshape(m, 0) if F0.size == 0 and problem.model.nF == 0 else F0
+        if Q0.shape != (m, problem.robot.n) or F0.shape != (m, problem.model.nF):
             raise ValueError(
                 f"solve_design: initial plan {k} has Q of shape {Q0.shape} and F of shape "
-                f"{F0.shape}; expected ({problem.robot.n}, {m}) and ({problem.model.nF}, {m})"
+                f"{F0.shape}; expected ({m}, {problem.robot.n}) and ({m}, {problem.model.nF})"
             )
         plans.append((Q0, F0))
     if executor is None:
@@ -365,5 +234,6 @@ def solve_design(
             "raise [solver].starts or max_iter, or relax the constraints"
         )
     rec, Q, F, scores = best
-    return Design(criterion, m, Q.T.copy(), F.T.copy(), scores, rec.status, tuple(records),
-                  time.perf_counter() - t0, problem.solver.seed)
+    return Design(criterion, m, Q, F, scores, rec.status, tuple(records),
+                  time.perf_counter() - t0, problem.solver.seed,
+                  clearances=tuple(clearances(problem.cell, Q)) if problem.cell else None)

@@ -1,7 +1,7 @@
 """Sweeps over the number of experiments ``m`` and the criteria: how accuracy grows with m.
 
-For each (criterion, m) the sweep runs :func:`casadi_design.solve.solve_design` with the same
-seeded starts as a single solve, plus, for every m after the first, one *warm start*: the
+A sweep is a campaign (:func:`casadi_design.campaign.run_campaign`: the same seeded and rounded
+starts and bounds as a single solve) plus, for every m after the first, one *warm start*: the
 sweep's plan for the previous m (``m_prev``) completed with ``m - m_prev`` random
 experiments drawn from their own generator (:func:`warm_start_rng`). The warm start runs
 after the seeded starts and wins only when strictly better, so a sweep's design equals the
@@ -17,66 +17,27 @@ repetition (the paper: factor 2.5 from 1 to 5 experiments against sqrt(5) = 2.24
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .bound import ROUNDED_PLANS, ApproximateDesign, rounded_starts, with_bound
-from .errors import ProblemError
-from .criteria import CRITERIA
-from .nlp import B0_at_test_poses
+from .bound import ApproximateDesign
 from .build import Problem
-from .problem import spec_digest_blob
-from .solve import SEEDED, Design, StartRecord, random_plan, solve_design
-
-if TYPE_CHECKING:
-    from .parallel import StartExecutor
+from .campaign import Settings, check_m_values, run_campaign, total_starts
+from .criteria import CRITERIA
+from .design import Design
+from .errors import OutputError
+from .files import write_json
+from .results import design_from_record, design_record, results_dict
+from .sampling import random_plan
+from .solve import StartExecutor
 
 #: The 4th entry of the warm-start generator's seed (start_rng uses 3 entries).
 WARM_STREAM = 1
-
-
-def parse_m_values(text: str) -> list[int]:
-    """``"1:10"`` (inclusive range), ``"1:10:3"`` (with a step) or ``"1,2,5"``; sorted, unique.
-
-    Raises ``ValueError`` with a message for people.
-    """
-    text = text.strip()
-    try:
-        if ":" in text:
-            parts = [int(p) for p in text.split(":")]
-            if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] < 1):
-                raise ValueError
-            values = list(range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1))
-        else:
-            values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise ValueError(
-            f"--m takes a range first:last[:step] (e.g. 1:10) or integers separated by commas "
-            f"(e.g. 1,2,5), got '{text}'") from None
-    if not values or any(v < 1 for v in values):
-        raise ValueError(f"--m takes positive numbers of experiments, got '{text}'")
-    return sorted(set(values))
-
-
-def check_m_values(problem: Problem, m_values: Iterable[int]) -> None:
-    small = [m for m in m_values if m < problem.m_min]
-    if small:
-        raise ProblemError(
-            f"{problem.path}: --m {small[0]} is too small: {problem.model.L} parameters need "
-            f"m >= {problem.m_min} experiments; start the range at {problem.m_min}")
-
-
-def check_criteria(problem: Problem, criteria: Iterable[str]) -> None:
-    for c in criteria:
-        if c not in CRITERIA:
-            raise ProblemError(f"{problem.path}: --criteria has '{c}'; allowed: {', '.join(CRITERIA)}")
 
 
 def warm_start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
@@ -87,27 +48,17 @@ def warm_start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
 def warm_start_plan(problem: Problem, previous: Design, m: int) -> tuple[np.ndarray, np.ndarray]:
     """The plan of ``previous`` (m_prev experiments) plus ``m - m_prev`` random experiments.
 
-    Returns ``Q0`` (n x m, rad) and ``F0`` (nF x m, N), a start for :func:`solve_design`.
+    Returns ``Q0`` (m, n), rad, and ``F0`` (m, nF), N: a start of the design of m.
     """
     k = m - previous.m
     if k < 1:
         raise ValueError(f"warm start for m = {m} from a plan of {previous.m} experiments")
     Q_new, F_new = random_plan(problem, k, warm_start_rng(problem.solver.seed, previous.criterion, m))
-    return np.hstack([previous.Q.T, Q_new]), np.hstack([previous.F.T, F_new])
+    return np.vstack([previous.Q, Q_new]), np.vstack([previous.F, F_new])
 
 
 #: ``StartRecord.origin`` of the warm start of a sweep.
 WARM_ORIGIN = "warm start"
-
-
-def best_seeded(design: Design) -> StartRecord | None:
-    """The record that wins among the seeded starts (the rule of solve_design)."""
-    crit = CRITERIA[design.criterion]
-    best = None
-    for rec in design.starts:
-        if rec.origin == SEEDED and rec.converged and (best is None or crit.better(rec.value, best.value)):
-            best = rec
-    return best
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,70 +96,52 @@ def run_sweep(
     problem: Problem,
     criteria: Iterable[str],
     m_values: Iterable[int],
-    starts: int | None = None,
+    settings: Settings,
     *,
     warm_start: bool = True,
     done: dict[tuple[str, int], Design] | None = None,
     executor: StartExecutor | None = None,
     progress: Callable[[int], object] | None = None,
     on_design: Callable[[Design], object] | None = None,
-    verbose: bool = False,
     approx: dict[str, ApproximateDesign] | None = None,
 ) -> Sweep:
-    """Solve every (criterion, m), m ascending; ``done`` designs (a resumed sweep) are kept.
-
-    ``on_design`` is called with each design as soon as it is solved (to save it); the order
-    is m ascending, then criteria in the given order. ``approx``: the approximate designs
-    (:func:`casadi_design.bound.approximate_designs`) whose rounded plans are extra starts and
-    whose bounds the designs carry.
-    """
-    approx = approx or {}
+    """The campaign of every (criterion, m), m ascending, with the warm starts; ``done``
+    designs (a resumed sweep) are kept. ``on_design`` is called with each design as soon as it
+    is solved (to save it); ``approx``: the approximate designs
+    (:func:`casadi_design.campaign.approximate`), computed when None."""
     criteria, ms = tuple(criteria), tuple(sorted(set(m_values)))
-    check_criteria(problem, criteria)
     check_m_values(problem, ms)
-    n_seeded = starts or problem.solver.starts
-    designs: dict[tuple[str, int], Design] = dict(done or {})
-    B0 = B0_at_test_poses(problem)
-    for i, m in enumerate(ms):
-        for c in criteria:
-            if (c, m) in designs:
-                if progress is not None:
-                    progress(len(designs[c, m].starts))
-                continue
-            extra = [(*warm_start_plan(problem, designs[c, ms[i - 1]], m), WARM_ORIGIN)] if warm_start and i else []
-            d = solve_design(problem, c, m, B0, starts=n_seeded, verbose=verbose,
-                             initial_plans=extra + rounded_starts(problem, approx, c, m),
-                             executor=executor, progress=progress)
-            d = designs[c, m] = with_bound(problem, d, approx)
-            if on_design is not None:
-                on_design(d)
-    m_ref = problem.m_min
-    reference = designs.get(("test-pose", m_ref))
+
+    def warm(c: str, m: int, designs: dict) -> list[tuple]:
+        i = ms.index(m)
+        return [(*warm_start_plan(problem, designs[c, ms[i - 1]], m), WARM_ORIGIN)] if warm_start and i else []
+
+    campaign = run_campaign(problem, criteria, ms, settings, approx=approx, executor=executor,
+                            done=done, extra_starts=warm, on_design=on_design, progress=progress)
+    reference = campaign.designs.get(("test-pose", problem.m_min))
     if reference is None and "test-pose" in criteria:
-        reference = solve_design(problem, "test-pose", m_ref, B0, starts=n_seeded, verbose=verbose,
-                                 executor=executor, progress=progress)
-    return Sweep(ms, criteria, {k: designs[k] for k in ((c, m) for m in ms for c in criteria)},
-                 n_seeded, warm_start, reference)
+        reference = run_campaign(problem, ("test-pose",), (problem.m_min,), settings, approx=campaign.approx,
+                                 executor=executor, progress=progress).designs["test-pose", problem.m_min]
+    return Sweep(ms, criteria, campaign.designs, settings.starts, warm_start, reference)
 
 
 def sweep_total_starts(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],
-                       starts: int | None = None, warm_start: bool = True,
-                       bounded: Iterable[str] = ()) -> int:
-    """Number of IPOPT starts a sweep runs (for progress bars), reference design included;
-    ``bounded``: the criteria with rounded starts."""
-    criteria, ms = tuple(criteria), sorted(set(m_values))
-    n = (starts or problem.solver.starts)
-    total = len(criteria) * (len(ms) * n + (len(ms) - 1 if warm_start else 0))
-    total += len(ms) * ROUNDED_PLANS * len(set(bounded) & set(criteria))
+                       settings: Settings, warm_start: bool = True,
+                       approx: dict[str, ApproximateDesign] | None = None) -> int:
+    """Number of IPOPT starts a sweep runs (for progress bars), reference design included."""
+    criteria, ms, approx = tuple(criteria), sorted(set(m_values)), approx or {}
+    total = total_starts(criteria, ms, settings, approx) + (len(ms) - 1) * len(criteria) * warm_start
     if "test-pose" in criteria and problem.m_min not in ms:
-        total += n
+        total += total_starts(("test-pose",), (problem.m_min,), settings, approx)
     return total
 
 
-#: Columns of the sweep table (CSV and JSON), in order, with units.
+#: Columns of the sweep table (CSV and JSON), in order, with units: one per criterion (its
+#: :attr:`~casadi_design.criteria.Criterion.column`, mm for errors) after the repeat line.
 COLUMNS = (
-    "criterion", "m", "max_error_mm", "repeat_best_single_pose_mm", "log_det_M", "trace_M_inv",
-    "s_min", "trace_M", "condition", "O1", "O2", "O3", "O4", "O5", "identifiable", "status",
+    "criterion", "m", CRITERIA["test-pose"].column, "repeat_best_single_pose_mm",
+    *(c.column for c in CRITERIA.values() if c.name != "test-pose"),
+    "O1", "O2", "O3", "O4", "O5", "identifiable", "status",
     "starts", "converged", "iterations", "wall_s", "warm_start_won", "seeded_best_max_error_mm",
     "starts_at_optimum", "bound", "gap_percent", "won_by",
 )
@@ -217,24 +150,18 @@ COLUMNS = (
 def sweep_rows(sweep: Sweep) -> list[dict]:
     """One row per (criterion, m): the plan's measures and its solve statistics.
 
-    Errors in mm; the other measures in the SI units of B (see :mod:`casadi_design.measures`).
+    Errors in mm; the other measures in the SI units of B (see :mod:`casadi_design.measures`);
+    ``bound`` in the units of the criterion's column.
     """
-    from .results import optimum_spread
-
     rows = []
     for (c, m), d in sweep.designs.items():
-        scores = d.scores
-        seeded = best_seeded(d)
+        scores, crit = d.scores, CRITERIA[c]
+        seeded = d.best_seeded()
         rows.append({
             "criterion": c,
             "m": m,
-            "max_error_mm": scores.max_rms_error_m * 1e3,
+            **{k.column: scores.value(k.name) * k.per_mm for k in CRITERIA.values()},
             "repeat_best_single_pose_mm": sweep.repeat_reference_m(m) * 1e3,
-            "log_det_M": scores.log_det_M,
-            "trace_M_inv": scores.trace_M_inv,
-            "s_min": scores.s_min,
-            "trace_M": scores.trace_M,
-            "condition": scores.condition,
             **{k: scores.observability.get(k, math.nan) for k in ("O1", "O2", "O3", "O4", "O5")},
             "identifiable": scores.identifiable,
             "status": d.status,
@@ -244,70 +171,33 @@ def sweep_rows(sweep: Sweep) -> list[dict]:
             "wall_s": d.wall_s,
             "warm_start_won": sweep.warm_start_won(c, m),
             "seeded_best_max_error_mm": seeded.max_rms_error_m * 1e3 if seeded else math.nan,
-            "starts_at_optimum": optimum_spread(d)["starts_at_optimum"],
-            # the bound in the units of the criterion's score (max error in mm for test-pose)
-            "bound": None if d.bound is None else d.bound.value * (1e3 if c == "test-pose" else 1.0),
+            "starts_at_optimum": d.optimum_spread()["starts_at_optimum"],
+            "bound": None if d.bound is None else d.bound.value * crit.per_mm,
             "gap_percent": None if d.bound is None else d.gap_percent,
             "won_by": "" if d.winner is None else d.winner.origin,
         })
     return rows
 
 
-def format_sweep_table(sweep: Sweep) -> str:
-    """Max error (mm) along the test poses: rows m, columns criteria and the repeat line.
-
-    ``*`` marks a design whose warm start beat every seeded start.
-    """
-    repeat = sweep.reference is not None  # solved when test-pose is among the criteria
-    bounded = ("test-pose" in sweep.criteria
-               and all(sweep.designs["test-pose", m].bound for m in sweep.m_values))
-    head = (f"{'m':>4}" + "".join(f"{c:>12}" for c in sweep.criteria)
-            + (f"{'repeat best':>14}" if repeat else "") + (f"{'bound':>10}" if bounded else ""))
-    ref = "" if not repeat else (
-        f" (repeat best: the best test-pose plan of {sweep.reference.m} experiment"
-        f"{'s' if sweep.reference.m > 1 else ''} repeated, e / sqrt(m / {sweep.reference.m}))")
-    lines = ["max over test poses of sqrt(rho), mm" + ref, head, "-" * len(head)]
-    for m in sweep.m_values:
-        cells = []
-        for c in sweep.criteria:
-            d = sweep.designs[c, m]
-            mark = "*" if sweep.warm_start_won(c, m) else " "
-            cells.append(f"{d.scores.max_rms_error_m * 1e3:>11.4f}{mark}")
-        lines.append(f"{m:>4}" + "".join(cells)
-                     + (f"{sweep.repeat_reference_m(m) * 1e3:>14.4f}" if repeat else "")
-                     + (f"{sweep.designs['test-pose', m].bound.value * 1e3:>10.4f}" if bounded else ""))
-    if bounded:
-        lines.append("bound: no plan of m experiments has a smaller max error (certified lower bound)")
-    if any(sweep.warm_start_won(c, m) for c, m in sweep.designs):
-        lines.append("* the warm start (previous m's plan plus new poses) beat the seeded starts: "
-                     "better than `solve` with the same seed")
-    return "\n".join(lines)
-
-
 # --------------------------------------------------------------------------- files
 
-#: Name of the file that keeps the finished designs of an unfinished sweep.
+#: Name of the file that keeps the finished designs of an unfinished sweep, and the files a
+#: sweep resumes from (:func:`load_partial`).
 PARTIAL_NAME = "sweep.partial.json"
-
-
-def problem_digest(problem: Problem) -> str:
-    """SHA-256 of the problem's checked data: a resumed sweep must be of the same problem."""
-    return hashlib.sha256(spec_digest_blob(problem.spec)).hexdigest()
+RESUME_FILES = (PARTIAL_NAME, "sweep.json")
 
 
 def sweep_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int], starts: int,
               warm_start: bool, bound: tuple[int, int] = (0, 0)) -> dict:
     """What a sweep's designs depend on (``bound``: exchange steps and pool of the approximate
     designs); a resume must match it."""
-    return {"problem_sha256": problem_digest(problem), "seed": problem.solver.seed,
+    return {"problem_sha256": problem.digest, "seed": problem.solver.seed,
             "starts": starts, "warm_start": warm_start, "m": sorted(set(m_values)),
             "criteria": list(criteria), "bound_steps_pool": list(bound)}
 
 
 def partial_record(path: Path, problem: Problem, key: dict, designs: list[Design]) -> None:
     """Save the finished designs of a sweep, atomically (called after each design)."""
-    from .results import design_record, write_json
-
     write_json(Path(path), {"format": "casadi-design sweep partial", "problem": problem.name,
                             "key": key, "designs": [design_record(d) for d in designs]})
 
@@ -317,8 +207,6 @@ def load_partial(out: Path, key: dict) -> dict[tuple[str, int], Design]:
 
     Raises OutputError when the saved sweep was made with another problem or options.
     """
-    from .results import OutputError, design_from_record
-
     for name, where in ((PARTIAL_NAME, "key"), ("sweep.json", "sweep")):
         path = Path(out) / name
         if not path.is_file():
@@ -348,8 +236,6 @@ def sweep_record(problem: Problem, sweep: Sweep, key: dict,
                  approx: dict[str, ApproximateDesign] | None = None) -> dict:
     """``sweep.json``: the results record of every design (and the approximate designs of
     the bounds) plus the sweep's table and settings (``key``: :func:`sweep_key`)."""
-    from .results import design_record, results_dict
-
     record = results_dict(problem, list(sweep.designs.values()), approx)
     record["sweep"] = {
         "key": key,
@@ -358,8 +244,8 @@ def sweep_record(problem: Problem, sweep: Sweep, key: dict,
         "seeded_starts": sweep.seeded_starts,
         "warm_start": sweep.warm_start,
         "units": {"max_error_mm": "mm", "repeat_best_single_pose_mm": "mm",
-                  "bound": "mm for test-pose (lower bound of max_error_mm); log det M for D, "
-                           "trace M^-1 for A (upper and lower bounds)",
+                  "bound": "in the unit of the criterion's column: mm for test-pose and I (lower "
+                           "bounds), log det M for D (upper), trace M^-1 for A (lower)",
                   "seeded_best_max_error_mm": "mm", "wall_s": "s",
                   "other measures": "SI units of B (lengths in m)"},
         "columns": list(COLUMNS),
@@ -371,8 +257,6 @@ def sweep_record(problem: Problem, sweep: Sweep, key: dict,
 
 def sweep_from_record(record: dict) -> Sweep:
     """The :class:`Sweep` of a ``sweep.json`` record (for redrawing its figures)."""
-    from .results import design_from_record
-
     saved = record["sweep"]
     designs = {(d["criterion"], d["m"]): design_from_record(d) for d in record["designs"]}
     reference = None if saved["reference"] is None else design_from_record(saved["reference"])

@@ -46,7 +46,8 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
     from casadi_design.criteria import CRITERIA
     from casadi_design.nlp import B0_at_test_poses
     from casadi_design.problem import parse_problem
-    from casadi_design.solve import make_design_solver, random_plan, solve_start, start_rng
+    from casadi_design.sampling import random_plan
+    from casadi_design.solve import make_design_solver, solve_start, start_rng
 
     raw = tomllib.loads(Path(problem_file).read_text())
     if grid is not None:

@@ -105,7 +105,7 @@ def lifted_nlp(problem: Problem, criterion: str,
     loads = load_variables(problem)
     Q = ca.SX.sym("Q", robot.n, m)
     V = ca.SX.sym("V", loads.nv, m)
-    F = loads.loads(V)
+    F = ca.horzcat(*[loads.load(V[:, i]) for i in range(m)])
     scale = information_scale(model.L, B0)
     M = ca.SX.zeros(model.L, model.L)
     for i in range(m):
@@ -125,13 +125,12 @@ def lifted_nlp(problem: Problem, criterion: str,
     x = ca.vertcat(ca.vec(Q), ca.vec(V), obj.w)
     oracle = ca.Function("nlp", [x, ca.SX(0, 1)], [obj.f, ca.vertcat(*g)], ["x", "p"],
                          ["f", "g"])
-    plan = ca.Function("plan", [x], [Q, F], ["x"], ["Q", "F"])
+    plan = ca.Function("plan", [x], [Q.T, F.T], ["x"], ["Q", "F"])  # one experiment per row
     information = ca.Function("M", [x], [M], ["x"], ["M"])
     n_aux = obj.w.numel()
 
     def start(Q0: np.ndarray, F0: np.ndarray) -> np.ndarray:
-        x_plan = np.concatenate([np.asarray(Q0).ravel(order="F"),
-                                 loads.variables(F0).ravel(order="F")])
+        x_plan = np.concatenate([np.asarray(Q0).ravel(), loads.variables(F0).ravel()])
         M0 = np.asarray(information(np.concatenate([x_plan, np.zeros(n_aux)])))
         return np.concatenate([x_plan, obj.init(M0)])
 

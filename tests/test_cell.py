@@ -18,7 +18,7 @@ from casadi_design.export import read_plan_csv
 from casadi_design.problem import parse_problem, read_problem
 from casadi_design.reduced import experiment_functions
 from casadi_design.rules import joint_distance_sq, joint_limits, plan_violations, pose_constraints
-from casadi_design.solve import random_plan
+from casadi_design.sampling import random_plan
 from tests.conftest import ROOT
 
 UR10 = ROOT / "problems" / "ur10_drilling.toml"
@@ -60,7 +60,7 @@ def test_old_plan_through_the_floor_is_rejected(ur10):
 def test_random_plans_satisfy_every_row_and_the_mesh_check(ur10):
     Q, F = random_plan(ur10, 3, np.random.default_rng(4))
     rules = pose_constraints(ur10)
-    assert all(np.all(rules.violation(q) == 0) for q in Q.T)
+    assert all(np.all(rules.violation(q) == 0) for q in Q)
     # capsules are conservative: rows satisfied means the meshes keep the clearance on every
     # pair the rows constrain; the forearm and the second wrist link, some of whose capsules
     # always overlap, are 18 to 20 mm apart by construction: only checked for touching
@@ -92,7 +92,7 @@ def test_cell_rows_hessian_equals_finite_differences(ur10):
     fns = experiment_functions(ur10)
     rng = np.random.default_rng(6)
     Q, F = random_plan(ur10, 2, rng)
-    for q in Q.T:
+    for q in Q:
         z = np.concatenate([q, np.zeros(fns.nv)])
         W = np.zeros(np.asarray(fns.values(z)[0]).shape)
         lam = rng.normal(size=fns.nc)
@@ -111,13 +111,13 @@ def test_periodic_joints_are_free_and_wrapped(ur10):
     assert np.all(np.isinf(lb[limits.periodic])) and np.all(np.isinf(ub[limits.periodic]))
     np.testing.assert_allclose(limits.lower[2], -np.pi + 0.05)  # the margin
     rng = np.random.default_rng(7)
-    Q = rng.uniform(-15, 15, size=(robot.n, 20))
+    Q = rng.uniform(-15, 15, size=(20, robot.n))
     W = limits.wrap(Q)
-    assert np.all(W >= limits.lower[:, None] - 1e-12) and np.all(W <= limits.upper[:, None] + 1e-12)
-    turns = (W - Q)[limits.periodic] / (2 * np.pi)
+    assert np.all(W >= limits.lower - 1e-12) and np.all(W <= limits.upper + 1e-12)
+    turns = (W - Q)[:, limits.periodic] / (2 * np.pi)
     np.testing.assert_allclose(turns, np.round(turns), atol=1e-12)  # whole turns only
     # the same pose: same measured point
-    for q, w in zip(Q.T, W.T):
+    for q, w in zip(Q, W):
         q = np.where(limits.periodic, q, w)
         np.testing.assert_allclose(np.asarray(ur10.model.position(q)).ravel(),
                                    np.asarray(ur10.model.position(w)).ravel(), atol=1e-12)
@@ -133,7 +133,7 @@ def test_periodic_joints_are_free_and_wrapped(ur10):
 
 def test_margin_keeps_plans_off_the_limits(ur10):
     Q, F = random_plan(ur10, 2, np.random.default_rng(8))
-    Q[2, 0] = -np.pi + 0.01  # the elbow 10 mrad from its limit, inside the 50 mrad margin
+    Q[0, 2] = -np.pi + 0.01  # the elbow 10 mrad from its limit, inside the 50 mrad margin
     lines = plan_violations(ur10, Q, F)
     assert any(ln.startswith("experiment 1: elbow_joint") and "margin" in ln for ln in lines)
 

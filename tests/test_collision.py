@@ -14,6 +14,7 @@ import pytest
 
 from casadi_design import collision as C
 from casadi_design.errors import ProblemError
+from casadi_design.obstacles import Box, HalfSpace
 from casadi_design.cell import _fitted
 from casadi_design.robots import example_robot_data_dir, make_robot
 
@@ -190,7 +191,7 @@ def test_box_row_is_below_the_exact_distance():
     for _ in range(50):
         a, b = rng.normal(size=(2, 3))
         capsule = C.Capsule("j", a, b, rng.uniform(0.0, 0.3))
-        box = C.Box(rng.normal(size=3) * 2, rng.uniform(0.1, 1.0, 3), rng.uniform(-np.pi, np.pi, 3))
+        box = Box(rng.normal(size=3) * 2, rng.uniform(0.1, 1.0, 3), rng.uniform(-np.pi, np.pi, 3))
         q = rng.uniform(-np.pi, np.pi, 1)
         (g,), _ = C.capsule_clearances(robot, [capsule], q, obstacles=[box], pairs=())
         wa, wb = C._ends_numeric(robot, q)(capsule)
@@ -206,7 +207,7 @@ def test_box_row_is_below_the_exact_distance():
 
 def test_rows_match_twin_and_finite_differences(ur10):
     _, _, capsules, robot, pairs = ur10
-    obstacles = [C.HalfSpace((0, 0, 1), -0.2, "floor"), C.Box((0.8, 0.0, 0.3), (0.2, 0.3, 0.3)),
+    obstacles = [HalfSpace((0, 0, 1), -0.2, "floor"), Box((0.8, 0.0, 0.3), (0.2, 0.3, 0.3)),
                  C.Capsule("universe", (-0.8, -0.5, 0.0), (-0.8, 0.5, 1.0), 0.1)]
     sights = [C.LineOfSight((2.0, 1.0, 1.5), "tool0")]
     q = ca.SX.sym("q", robot.n)

@@ -61,7 +61,7 @@ def test_elbow_branch_gives_the_same_figures(paper, designs):
     assert np.all(down.test_poses.q[:, 1] > 0) and np.all(paper.test_poses.q[:, 1] < 0)
     for c in ("test-pose", "D", "E"):
         d = designs[c, 1]
-        again = plan_scores(down, d.Q.T, d.F.T, B0_at_test_poses(down))
+        again = plan_scores(down, d.Q, d.F, B0_at_test_poses(down))
         np.testing.assert_allclose(again.rms_error_m[::-1], d.scores.rms_error_m, rtol=1e-9)
     assert solve_design(down, "test-pose", 1).scores.max_rms_error_m == pytest.approx(
         designs["test-pose", 1].scores.max_rms_error_m, rel=1e-6)

@@ -6,6 +6,7 @@ each as ``<file>: <what is wrong>; <what to do>``.
 
 import copy
 import json
+import math
 import os
 
 import numpy as np
@@ -15,16 +16,12 @@ from casadi_design.cli import main
 from casadi_design.errors import ProblemError
 from casadi_design.export import read_plan_csv
 from casadi_design.nlp import B0_at_test_poses
-from casadi_design.results import (
-    OutputError,
-    design_from_record,
-    prepare_out,
-    read_json,
-    results_dict,
-    write_atomic,
-    write_json,
-)
-from casadi_design.solve import Design, StartRecord, plan_scores
+from casadi_design.design import Design, StartRecord
+from casadi_design.errors import OutputError
+from casadi_design.files import prepare_out, read_results, write_atomic, write_json
+from casadi_design.results import design_from_record, results_dict
+from casadi_design.solve import plan_scores
+from casadi_design.sweep import RESUME_FILES, Sweep, sweep_from_record, sweep_key, sweep_record
 from tests.conftest import PAPER
 
 HEADER = "q1_deg,q2_deg,fx_N,fy_N"
@@ -176,17 +173,24 @@ def test_bad_plan_is_one_error_line_and_exit_2_through_the_command(tmp_path, cap
 # --------------------------------------------------------------------------- results files
 
 @pytest.fixture(scope="module")
-def record(paper):
-    """A results record of two designs, made without the solver (scores of fixed plans)."""
+def designs(paper):
+    """Two designs (D and test-pose, m = 2) made without the solver: scores of fixed plans, each
+    with a winning start and a failed one (infinite value and error)."""
     B0 = B0_at_test_poses(paper)
     designs = []
     for criterion, deg, load in (("D", [[0, 90], [45, -120]], [[0, 100], [-60, 80]]),
                                  ("test-pose", [[90, -90], [45, -120]], [[100, 0], [-60, 80]])):
         Q, F = np.radians(deg), np.array(load, dtype=float)
-        scores = plan_scores(paper, Q.T, F.T, B0)
+        scores = plan_scores(paper, Q, F, B0)
         won = StartRecord("Solve_Succeeded", 12, scores.value(criterion), scores.max_rms_error_m, True)
         failed = StartRecord("Restoration_Failed", 3, float("inf"), float("inf"), False)
         designs.append(Design(criterion, 2, Q, F, scores, won.status, (won, failed), 0.5, 2024))
+    return designs
+
+
+@pytest.fixture(scope="module")
+def record(paper, designs):
+    """A results record of the two designs."""
     return json.loads(json.dumps(results_dict(paper, designs)))  # JSON types, Infinity as float
 
 
@@ -198,11 +202,11 @@ def _results_file(tmp_path, record, name="results.json"):
 def test_results_file_reads_back_with_infinite_values_of_failed_starts(tmp_path, record):
     path = _results_file(tmp_path, record)
     assert "Infinity" in path.read_text()  # the failed start, as Python's json writes it
-    got = read_json(path)
+    got = read_results(path)
     assert got["_path"] == str(path)
     d = design_from_record(got["designs"][1])
     assert d.criterion == "test-pose" and d.Q.shape == (2, 2) and d.starts[1].value == float("inf")
-    assert read_json(tmp_path)["_path"] == str(path)  # the folder holding it
+    assert read_results(tmp_path)["_path"] == str(path)  # the folder holding it
 
 
 def test_our_results_files_are_standard_json_with_null_for_failed_starts(tmp_path, record):
@@ -211,15 +215,77 @@ def test_our_results_files_are_standard_json_with_null_for_failed_starts(tmp_pat
     text = path.read_text()
     assert "Infinity" not in text and "NaN" not in text and "null" in text
     json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
-    d = design_from_record(read_json(path)["designs"][1])
+    d = design_from_record(read_results(path)["designs"][1])
     assert d.starts[1].status == "Restoration_Failed" and np.isnan(d.starts[1].value)
 
 
-def test_sweep_record_with_nan_in_its_table_reads_back(tmp_path, record):
-    sweep = dict(copy.deepcopy(record), sweep={
-        "m": [2], "criteria": ["D", "test-pose"], "seeded_starts": 1, "warm_start": False,
-        "reference": record["designs"][1], "rows": [{"seeded_best_max_error_mm": float("nan")}]})
-    read_json(_results_file(tmp_path, sweep, "sweep.json"))
+def _assert_cell(got, want, nulls: bool, where: str) -> None:
+    """A value read back is the value written: NaN as NaN, or as None when written as ``null``
+    (``nulls``); anything else equal and of the same JSON type."""
+    if isinstance(want, float) and math.isnan(want):
+        if nulls:
+            assert got is None, f"{where}: NaN written as null, read back as {got!r}"
+        else:
+            assert isinstance(got, float) and math.isnan(got), f"{where}: NaN written, read back {got!r}"
+    else:
+        assert got == want and _json_type(got) == _json_type(want), f"{where}: wrote {want!r}, read back {got!r}"
+
+
+def _json_type(value) -> str:
+    if value is None or isinstance(value, (bool, str)):
+        return type(value).__name__
+    return "number" if isinstance(value, (int, float)) else "other"
+
+
+def _assert_same_design(got: Design, want: Design, nulls: bool, where: str) -> None:
+    """``got`` (read back) is ``want`` exactly (JSON floats round-trip); the infinite value and
+    error of a failed start come back infinite, or NaN when written as ``null`` (``nulls``)."""
+    assert ((got.criterion, got.m, got.status, got.wall_s, got.seed, got.bound)
+            == (want.criterion, want.m, want.status, want.wall_s, want.seed, want.bound)), where
+    np.testing.assert_array_equal(got.Q, want.Q, err_msg=f"{where}.Q")
+    np.testing.assert_array_equal(got.F, want.F, err_msg=f"{where}.F")
+    assert got.scores.as_dict() == want.scores.as_dict(), f"{where}.scores"
+    assert len(got.starts) == len(want.starts), f"{where}.starts"
+    for k, (g, w) in enumerate(zip(got.starts, want.starts)):
+        assert (g.status, g.iterations, g.feasible, g.origin) == (w.status, w.iterations, w.feasible, w.origin)
+        for name in ("value", "max_rms_error_m"):
+            value = getattr(w, name)
+            _assert_cell(getattr(g, name), math.nan if nulls and not math.isfinite(value) else value, False,
+                         f"{where}.starts[{k}].{name}")
+
+
+@pytest.mark.parametrize("nulls", [False, True], ids=["NaN-as-written-by-python-json", "null-by-write_json"])
+def test_sweep_record_with_nan_in_its_table_reads_back(tmp_path, paper, designs, nulls):
+    """A sweep.json whose table has NaN cells reads back cell by cell, and its designs and
+    reference design as they were, written by other tools (NaN, Infinity) or by us (null)."""
+    sweep = Sweep((2,), ("D", "test-pose"), {(d.criterion, d.m): d for d in designs}, 1, False, designs[1])
+    written = sweep_record(paper, sweep, sweep_key(paper, sweep.criteria, sweep.m_values, 1, False))
+    rows = written["sweep"]["rows"]
+    rows[0]["seeded_best_max_error_mm"] = math.nan  # as when every seeded start failed
+    rows[1]["repeat_best_single_pose_mm"] = math.nan  # as without a test-pose reference
+    assert rows[0]["bound"] is None and rows[0]["max_error_mm"] > 0  # null and finite cells too
+    path = tmp_path / "sweep.json"
+    if nulls:
+        write_json(path, written)
+    else:
+        _write(path, json.dumps(written))
+    got = read_results(path)
+    assert got["_path"] == str(path)
+    assert len(got["sweep"]["rows"]) == len(rows)
+    for i, (want_row, got_row) in enumerate(zip(rows, got["sweep"]["rows"])):
+        assert list(got_row) == list(want_row), f"rows[{i}]: columns"
+        for column, want in want_row.items():
+            _assert_cell(got_row[column], want, nulls, f"rows[{i}].{column}")
+    back = sweep_from_record(got)
+    assert ((back.m_values, back.criteria, back.seeded_starts, back.warm_start)
+            == (sweep.m_values, sweep.criteria, sweep.seeded_starts, sweep.warm_start))
+    assert list(back.designs) == list(sweep.designs)
+    for key, want in sweep.designs.items():
+        _assert_same_design(back.designs[key], want, nulls, f"designs{key}")
+    for i, d in enumerate(got["designs"]):
+        _assert_same_design(design_from_record(d), designs[i], nulls, f"designs[{i}]")
+    _assert_same_design(back.reference, sweep.reference, nulls, "reference")
+    assert back.repeat_reference_m(2) == sweep.repeat_reference_m(2)
 
 
 def _set(path, value):
@@ -280,7 +346,7 @@ def test_damaged_results_record(tmp_path, record, change, match):
     damaged = copy.deepcopy(record)
     change(damaged)
     with pytest.raises(OutputError, match=match) as err:
-        read_json(_results_file(tmp_path, damaged))
+        read_results(_results_file(tmp_path, damaged))
     assert str(err.value).startswith(f"{tmp_path / 'results.json'}: ")
     assert str(err.value).endswith(RESULTS_HINT)
     _one_line_with_hint(err.value)
@@ -295,26 +361,26 @@ def test_damaged_results_record(tmp_path, record, change, match):
 ])
 def test_results_file_that_is_not_a_record(tmp_path, text, match):
     with pytest.raises(OutputError, match=match) as err:
-        read_json(_write(tmp_path / "results.json", text))
+        read_results(_write(tmp_path / "results.json", text))
     _one_line_with_hint(err.value)
 
 
 @pytest.mark.parametrize("data", [b"\x89PNG\r\n\x1a\n\x00\x00", b'{"problem": "\xe9"}'])
 def test_results_file_not_utf8(tmp_path, data):
     with pytest.raises(OutputError, match=r"is not UTF-8 text \(byte at offset \d+\)") as err:
-        read_json(_write(tmp_path / "results.json", data))
+        read_results(_write(tmp_path / "results.json", data))
     assert str(err.value).endswith(RESULTS_HINT)
 
 
 def test_missing_results_file(tmp_path):
     with pytest.raises(OutputError, match="none.json: no such results file; check the path"):
-        read_json(tmp_path / "none.json")
+        read_results(tmp_path / "none.json")
 
 
 def test_results_path_that_is_a_pipe_does_not_hang(tmp_path):
     os.mkfifo(tmp_path / "results.json")
     with pytest.raises(OutputError, match="is not a regular file"):
-        read_json(tmp_path / "results.json")
+        read_results(tmp_path / "results.json")
 
 
 # --------------------------------------------------------------------------- output folders
@@ -368,9 +434,9 @@ def test_resume_with_nothing_to_resume_keeps_the_folder(tmp_path):
     _write(tmp_path / "report.md", "mine")
     with pytest.raises(OutputError, match=f"^{tmp_path}: nothing to resume \\(no sweep.partial.json or "
                                           "sweep.json\\); run without --resume$"):
-        prepare_out(tmp_path, resume=True)
+        prepare_out(tmp_path, resume=True, resume_files=RESUME_FILES)
     with pytest.raises(OutputError, match="nothing to resume"):
-        prepare_out(tmp_path / "new", resume=True)
+        prepare_out(tmp_path / "new", resume=True, resume_files=RESUME_FILES)
     assert (tmp_path / "report.md").read_text() == "mine"
 
 
@@ -378,7 +444,7 @@ def test_resume_with_nothing_to_resume_keeps_the_folder(tmp_path):
 def test_resume_of_a_saved_sweep_is_allowed(tmp_path, name):
     _write(tmp_path / name, "{}")
     _write(tmp_path / "report.md", "old")
-    assert prepare_out(tmp_path, resume=True) == tmp_path
+    assert prepare_out(tmp_path, resume=True, resume_files=RESUME_FILES) == tmp_path
 
 
 def test_existing_out_messages_are_kept(tmp_path):

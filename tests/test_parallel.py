@@ -15,6 +15,7 @@ from casadi_design.parallel import (
     run_start,
 )
 from casadi_design.solve import solve_design
+from casadi_design.campaign import Settings
 from casadi_design.sweep import run_sweep
 from tests.conftest import PAPER
 
@@ -55,7 +56,7 @@ def test_dask_local_cluster_equals_serial(paper, serial, processes):
 
 
 def test_sweep_on_processes_equals_serial_sweep(paper):
-    args = (paper, ["test-pose", "D"], [1, 2, 3], 2)
+    args = (paper, ["test-pose", "D"], [1, 2, 3], Settings(2, bound_steps=0))
     plain = run_sweep(*args)
     with ProcessExecutor(2) as ex:
         pooled = run_sweep(*args, executor=ex)
@@ -68,7 +69,8 @@ def test_worker_builds_the_problem_from_its_plain_data(paper, serial):
     """What a worker runs, called here with a copy of the problem's data only."""
     from casadi_design.nlp import B0_at_test_poses
     from casadi_design.parallel import ProblemRef
-    from casadi_design.solve import random_plan, start_rng
+    from casadi_design.sampling import random_plan
+    from casadi_design.solve import start_rng
 
     d = serial["test-pose", 1]
     Q0, F0 = random_plan(paper, 1, start_rng(paper.solver.seed, "test-pose", 1))
@@ -83,10 +85,10 @@ def test_extra_starts_run_after_the_seeded_ones_and_only_improve(paper):
     few = solve_design(paper, "test-pose", 5, starts=1)
     good = solve_design(paper, "test-pose", 5, starts=8)
     assert good.scores.max_rms_error_m < few.scores.max_rms_error_m  # the test needs a gap
-    both = solve_design(paper, "test-pose", 5, starts=1, initial_plans=[(good.Q.T, good.F.T)])
+    both = solve_design(paper, "test-pose", 5, starts=1, initial_plans=[(good.Q, good.F)])
     assert both.starts[0] == few.starts[0] and len(both.starts) == 2
     assert both.scores.max_rms_error_m == pytest.approx(good.scores.max_rms_error_m, rel=1e-6)
-    again = solve_design(paper, "test-pose", 5, starts=8, initial_plans=[(few.Q.T, few.F.T)])
+    again = solve_design(paper, "test-pose", 5, starts=8, initial_plans=[(few.Q, few.F)])
     assert again.starts[:8] == good.starts
     if not again.starts[8].value < good.scores.max_rms_error_m:  # the extra start did not win
         np.testing.assert_array_equal(again.Q, good.Q)
@@ -94,8 +96,8 @@ def test_extra_starts_run_after_the_seeded_ones_and_only_improve(paper):
 
 
 def test_initial_plan_of_the_wrong_shape(paper):
-    with pytest.raises(ValueError, match=r"initial plan 0 has Q of shape \(2, 4\).*expected \(2, 5\)"):
-        solve_design(paper, "D", 5, starts=1, initial_plans=[(np.zeros((2, 4)), np.zeros((2, 4)))])
+    with pytest.raises(ValueError, match=r"initial plan 0 has Q of shape \(4, 2\).*expected \(5, 2\)"):
+        solve_design(paper, "D", 5, starts=1, initial_plans=[(np.zeros((4, 2)), np.zeros((4, 2)))])
 
 
 def test_executor_choice():

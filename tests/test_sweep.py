@@ -8,13 +8,16 @@ import math
 import numpy as np
 import pytest
 
-from casadi_design.bound import BOUND_CRITERIA, ROUNDED_PLANS
+from casadi_design.bound import ROUNDED_PLANS
+from casadi_design.criteria import BOUND_CRITERIA
 
+import casadi_design.campaign as campaign_module
 import casadi_design.sweep as sweep_module
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
 from casadi_design.build import load_problem
-from casadi_design.sweep import parse_m_values, sweep_from_record, sweep_rows
+from casadi_design.cli.common import parse_m_values
+from casadi_design.sweep import sweep_from_record, sweep_rows
 from tests.conftest import CLI_STARTS, PAPER, ROOT
 
 #: Seeded starts per design in these tests: few (fast), yet with the warm start the sweep
@@ -159,7 +162,7 @@ SMALL = ["--m", "1:3", "--starts", "3", "--criteria", "test-pose,D", "--jobs", "
          "--bound-steps", "0"]
 
 
-SOLVE_DESIGN = sweep_module.solve_design
+SOLVE_DESIGN = campaign_module.solve_design
 
 
 def _interrupt_after(monkeypatch, n):
@@ -172,7 +175,7 @@ def _interrupt_after(monkeypatch, n):
         calls.append(args[1:3])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(sweep_module, "solve_design", solve_design)
+    monkeypatch.setattr(campaign_module, "solve_design", solve_design)
     return calls
 
 
@@ -240,14 +243,14 @@ def test_too_few_experiments_for_the_parameters_is_one_line(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--m 1 is too small: 4 parameters need m >= 2 experiments; start the range at 2" in err[0]
     with pytest.raises(ProblemError, match="--criteria has 'F'; allowed: test-pose, D"):
-        sweep_module.run_sweep(load_problem(PAPER), ["F"], [1])
+        sweep_module.run_sweep(load_problem(PAPER), ["F"], [1], campaign_module.Settings(1))
 
 
 def test_warm_start_adds_new_poses_to_the_previous_plan(paper):
-    prev = sweep_module.solve_design(paper, "D", 2, starts=2)
+    prev = SOLVE_DESIGN(paper, "D", 2, starts=2)
     Q0, F0 = sweep_module.warm_start_plan(paper, prev, 4)
-    assert Q0.shape == (2, 4) and F0.shape == (2, 4)
-    np.testing.assert_array_equal(Q0[:, :2], prev.Q.T)
-    np.testing.assert_allclose(np.linalg.norm(F0, axis=0), 100.0)
+    assert Q0.shape == (4, 2) and F0.shape == (4, 2)
+    np.testing.assert_array_equal(Q0[:2], prev.Q)
+    np.testing.assert_allclose(np.linalg.norm(F0, axis=1), 100.0)
     again = sweep_module.warm_start_plan(paper, prev, 4)
     np.testing.assert_array_equal(again[0], Q0)  # seeded by (seed, criterion, m)

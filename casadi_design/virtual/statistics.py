@@ -48,13 +48,13 @@ def rms_interval(mean_square: np.ndarray, dof: np.ndarray, trials: np.ndarray | 
             np.sqrt(T * mean_square / chi2_quantile((1 - confidence) / 2, T)))
 
 
-class _Plan(Protocol):
+class _Validated(Protocol):
     criterion: str
     m: int
 
 
 class _Result(Protocol):
-    plan: _Plan
+    plan: _Validated
     predicted_rms_m: np.ndarray
     empirical_rms_m: np.ndarray
 

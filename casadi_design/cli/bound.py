@@ -1,0 +1,41 @@
+"""``casadi-design bound``: what no plan of m experiments can beat."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..bound import bound
+from ..campaign import Settings, approximate, check_m_values
+from ..tables import format_bounds
+from . import common
+
+HELP = "certified lower bound of the test-pose error (and upper bound of log det M)"
+DESCRIPTION = ("From the approximate design over single experiments, print per m the certified lower "
+               "bound of the max error along the test poses (mm) that no plan of m experiments can "
+               "beat, the relaxation's value, and the upper bound of log det M. No design NLP is solved.")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bound", help=HELP, description=DESCRIPTION)
+    p.add_argument("problem", help="problem file (TOML), e.g. problems/paper_planar_2r.toml")
+    p.add_argument("--m", type=common.m_values, metavar="RANGE",
+                   help="numbers of experiments, e.g. 1:10 or 1,5 (default: the smallest "
+                        "identifiable m to the largest [experiments].m)")
+    common.add_bound_steps(p, minimum=1)
+    common.add_common(p)
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    problem = common.load(args, check_solver=False)
+    ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
+    check_m_values(problem, ms)
+    settings = Settings(problem.solver.starts, args.bound_steps, args.bound_pool)
+    approx = approximate(problem, ("test-pose", "D"), settings)
+    print(common.case_line(problem))
+    print(format_bounds([bound(problem, m, approx["test-pose"]) for m in ms],
+                        [bound(problem, m, approx["D"]) for m in ms]))
+    for a in approx.values():
+        common.say(args, f"{a.criterion}: {len(a.weights)} support points, pool {a.pool_size}, "
+                         f"{len(a.history)} exchange steps, {a.wall_s:.2f} s")
+    return 0

@@ -1,0 +1,278 @@
+"""What every command shares: option types, the problem and its campaign, figures and plans.
+
+A command handler reads its arguments, calls the package once (:func:`campaign` for the
+commands that design plans), prints and writes. Nothing here computes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from ..build import Problem
+from ..campaign import Campaign, Settings, approximate, check_criteria, check_m_values, run_campaign, total_starts
+from ..criteria import BOUND_CRITERIA, CRITERIA
+from ..design import Design
+from ..errors import OutputError
+from ..parallel import cpu_count
+
+#: Figure formats ``plot --format`` writes.
+FIGURE_FORMATS = ("png", "pdf", "svg")
+
+
+# --------------------------------------------------------------------------- option types
+
+def integer(what: str, minimum: int = 1):
+    """An option's integer ``>= minimum`` (1: "a positive integer")."""
+    kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = minimum - 1
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"{what} takes {kind}, got '{text}'")
+        return v
+    return parse
+
+
+def parse_m_values(text: str) -> list[int]:
+    """``"1:10"`` (inclusive range), ``"1:10:3"`` (with a step) or ``"1,2,5"``; sorted, unique.
+
+    Raises ``ValueError`` with a message for people.
+    """
+    text = text.strip()
+    try:
+        if ":" in text:
+            parts = [int(p) for p in text.split(":")]
+            if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] < 1):
+                raise ValueError
+            values = list(range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1))
+        else:
+            values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(
+            f"--m takes a range first:last[:step] (e.g. 1:10) or integers separated by commas "
+            f"(e.g. 1,2,5), got '{text}'") from None
+    if not values or any(v < 1 for v in values):
+        raise ValueError(f"--m takes positive numbers of experiments, got '{text}'")
+    return sorted(set(values))
+
+
+def m_values(text: str) -> list[int]:
+    try:
+        return parse_m_values(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def names(text: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def formats(text: str) -> list[str]:
+    given = names(text)
+    unknown = [f for f in given if f not in FIGURE_FORMATS]
+    if unknown or not given:
+        raise argparse.ArgumentTypeError(f"unknown figure format '{unknown[0] if unknown else text}'; "
+                                         f"allowed: {', '.join(FIGURE_FORMATS)}")
+    return given
+
+
+def ipopt_option(text: str) -> tuple[str, int | float | str]:
+    """``KEY=VALUE`` of ``--ipopt``: the value as an int, a float or a string."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip() or not value.strip():
+        raise argparse.ArgumentTypeError(f"--ipopt takes KEY=VALUE (e.g. max_cpu_time=60), got '{text}'")
+    for kind in (int, float):
+        try:
+            return key.strip(), kind(value)
+        except ValueError:
+            pass
+    return key.strip(), value.strip()
+
+
+# --------------------------------------------------------------------------- options
+
+def add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress bars and no per-design lines; tables and errors still print")
+    p.add_argument("--verbose", action="store_true",
+                   help="show IPOPT's own output for every start (hidden by default)")
+
+
+def add_bound_steps(p: argparse.ArgumentParser, minimum: int = 0) -> None:
+    """``--bound-steps`` (at least ``minimum``; 0 turns the bound off) and ``--bound-pool``."""
+    from ..bound import BOUND_STEPS, POOL_SIZE, SAMPLE_SIZE
+
+    p.add_argument("--bound-steps", type=integer("--bound-steps", minimum), default=BOUND_STEPS,
+                   metavar="K",
+                   help=f"exchange steps of the approximate design behind the certified bound of "
+                        f"{', '.join(BOUND_CRITERIA)} and their rounded starts (default {BOUND_STEPS}: "
+                        "more steps tighten the bound"
+                        + ("; 0: no bound, no rounded starts)" if minimum == 0 else ")"))
+    p.add_argument("--bound-pool", type=integer("--bound-pool"), default=POOL_SIZE, metavar="N",
+                   help=f"random feasible experiments in the approximate design's first pool (default "
+                        f"{POOL_SIZE}; {SAMPLE_SIZE // POOL_SIZE}x as many are searched for the bound's "
+                        "certificate): fewer is faster and looser")
+
+
+def add_campaign(p: argparse.ArgumentParser, m_help: str) -> None:
+    """The options of the commands that design plans: what is solved and how (the same
+    options give the same plans in every command)."""
+    p.add_argument("problem", help="problem file (TOML), e.g. problems/paper_planar_2r.toml")
+    p.add_argument("--m", type=m_values, metavar="LIST", help=m_help)
+    p.add_argument("--ipopt", type=ipopt_option, action="append", metavar="KEY=VALUE",
+                   help="an IPOPT option over [solver.ipopt] of the problem, e.g. --ipopt "
+                        "hessian_approximation=limited-memory (quick trials on large cases); repeatable")
+    p.add_argument("--criteria", type=names, metavar="LIST",
+                   help=f"criteria, comma separated, among {', '.join(CRITERIA)} "
+                        "(default: [design].criteria of the problem)")
+    p.add_argument("--starts", type=integer("--starts"), metavar="N",
+                   help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
+    p.add_argument("--jobs", "-j", type=integer("--jobs"), metavar="N",
+                   help=f"local worker processes for the starts (default: the number of CPUs, "
+                        f"here {cpu_count()}; 1 = serial in this process). Results do not depend on it")
+    p.add_argument("--dask-scheduler", metavar="ADDRESS",
+                   help="run the starts on a Dask cluster, e.g. tcp://10.0.0.1:8786 (overrides "
+                        "--jobs; needs pip install casadi-design[dask]; start workers with "
+                        "--nthreads 1)")
+    add_bound_steps(p)
+    add_common(p)
+
+
+def add_output(p: argparse.ArgumentParser, out_help: str) -> None:
+    p.add_argument("--out", metavar="DIR", help=out_help)
+    p.add_argument("--force", action="store_true",
+                   help="write into --out even if it exists and is not empty (overwrites our files)")
+    p.add_argument("--fig-m", type=m_values, metavar="LIST",
+                   help="m of the Fig. 1 panels, e.g. 1,5 (default: [experiments].m of the problem "
+                        "when solved, else the first and last m)")
+
+
+# --------------------------------------------------------------------------- the problem and its campaign
+
+def say(args: argparse.Namespace, *lines: str) -> None:
+    if not args.quiet:
+        print(*lines, sep="\n")
+
+
+def load(args: argparse.Namespace, check_solver: bool = True) -> Problem:
+    """Read and build the problem file of ``args``, with the ``--ipopt`` options over its
+    [solver.ipopt]; with ``check_solver``, also try the IPOPT options."""
+    from dataclasses import replace
+
+    from ..build import build_problem
+    from ..problem import read_problem
+    from ..solve import check_ipopt_options
+
+    spec = read_problem(args.problem)
+    if getattr(args, "ipopt", None):
+        options = {**dict(spec.solver.ipopt), **dict(args.ipopt)}
+        spec = replace(spec, solver=replace(spec.solver, ipopt=tuple(sorted(options.items()))))
+    problem = build_problem(spec)
+    if check_solver:
+        check_ipopt_options(problem)
+    return problem
+
+
+def executor(args: argparse.Namespace):
+    """The executor of ``--jobs`` / ``--dask-scheduler`` (a context manager)."""
+    from ..parallel import make_executor
+
+    return make_executor(args.jobs, args.dask_scheduler)
+
+
+def where(args: argparse.Namespace) -> str:
+    if args.dask_scheduler:
+        return f"on the Dask cluster at {args.dask_scheduler}"
+    jobs = args.jobs or cpu_count()
+    return "in this process" if jobs == 1 else f"on {jobs} processes"
+
+
+def case_line(problem: Problem) -> str:
+    line = (f"{problem.name}: {problem.model.case} calibration of "
+            f"{', '.join(problem.model.parameter_names)}; {problem.test_poses.s} test poses; "
+            f"sigma = {problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
+    return line if problem.base_set is None else line + "\n" + problem.base_set.report()
+
+
+def plan_request(args: argparse.Namespace, problem: Problem, all_m: bool = False) -> tuple[list[str], list[int], Settings]:
+    """The criteria, m values and campaign settings of ``args`` (defaults: the problem file's;
+    ``all_m``: every m from the smallest identifiable to the largest of the file)."""
+    criteria = args.criteria or list(problem.criteria)
+    default_m = list(range(problem.m_min, max(problem.m_values) + 1)) if all_m else sorted(problem.m_values)
+    ms = args.m or default_m
+    check_criteria(problem, criteria)
+    check_m_values(problem, ms)
+    settings = Settings(args.starts or problem.solver.starts, args.bound_steps, args.bound_pool, args.verbose)
+    return criteria, ms, settings
+
+
+def approximate_timed(args: argparse.Namespace, problem: Problem, criteria: list[str], settings: Settings) -> dict:
+    """The approximate designs (:func:`casadi_design.campaign.approximate`), with a line saying
+    how long they took."""
+    t0 = time.perf_counter()
+    approx = approximate(problem, criteria, settings)
+    if approx:
+        say(args, f"approximate designs of {', '.join(approx)}: {time.perf_counter() - t0:.1f} s "
+                  f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})")
+    return approx
+
+
+def campaign(args: argparse.Namespace, label: str,
+             check: Callable[[Problem, list[int]], object] | None = None) -> tuple[Problem, Campaign]:
+    """Load the problem of ``args`` and run its campaign (:func:`run_campaign`) with the
+    command line's criteria, m, starts, bound settings and executor, with a progress bar;
+    ``check(problem, m_values)`` runs before anything is solved (the command's own options)."""
+    from ..progress import progress_bar
+
+    with executor(args) as ex:  # first: worker processes start while the problem loads
+        problem = load(args)
+        criteria, ms, settings = plan_request(args, problem)
+        if check is not None:
+            check(problem, ms)
+        approx = approximate_timed(args, problem, criteria, settings)
+        bar = progress_bar(total_starts(criteria, ms, settings, approx), label, args.quiet)
+        try:
+            done = run_campaign(problem, criteria, ms, settings, approx=approx, executor=ex,
+                                progress=bar.update)
+        finally:
+            bar.close()
+    return problem, done
+
+
+# --------------------------------------------------------------------------- figures and plans
+
+def fig_m(requested: list[int] | None, available: list[int], preferred: tuple[int, ...]) -> list[int]:
+    """m values of the Fig. 1 panels: requested, else the problem's m that were solved, else
+    the first and last m (at most two panels by default)."""
+    if requested:
+        missing = [m for m in requested if m not in available]
+        if missing:
+            raise OutputError(f"--fig-m {missing[0]} was not solved; choose among {available}")
+        return requested
+    chosen = [m for m in preferred if m in available][:2]
+    return chosen or sorted({available[0], available[-1]})
+
+
+def write_figures(out: Path, stem: str, fig, suffixes: tuple[str, ...] = ("png", "pdf")) -> list[str]:
+    from ..plotting import save_figures
+
+    save_figures(fig, [out / f"{stem}.{suffix}" for suffix in suffixes])
+    return [f"{stem}.{suffix}" for suffix in suffixes]
+
+
+def write_plans(out: Path, problem: Problem, designs: list[Design]) -> list[str]:
+    from ..export import write_plan_csv
+
+    (out / "plans").mkdir(exist_ok=True)
+    written = []
+    for d in designs:
+        name = f"plans/{d.criterion}_m{d.m}.csv"
+        write_plan_csv(out / name, problem, d)
+        written.append(name)
+    return written

@@ -1,0 +1,98 @@
+"""``casadi-design evaluate``: score a user's plan with every measure and check its rules."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import OutputError
+from ..files import prepare_out, read_results, write_json
+from ..tables import format_measures
+from . import common
+
+HELP = "score your own plan with every measure"
+DESCRIPTION = ("Score a plan given as CSV (one row per experiment) with every measure: max and mean "
+               "error along the test poses (mm), the score of every criterion, O1..O5 (SI units of "
+               "B), and check it against the problem's joint limits, load and workspace. Columns: "
+               "q1_deg or q1_rad ... (or joint names, e.g. joint1_deg; prismatic joints _mm or _m), "
+               "the load fx_N, fy_N ... (mx_Nm ...; optional for a fixed load); experiment, x_mm, "
+               "y_mm, z_mm are ignored, so the plans/*.csv files of solve and sweep can be read back.")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help=HELP, description=DESCRIPTION)
+    p.add_argument("problem", help="problem file (TOML) the plan is for")
+    p.add_argument("--plan", required=True, metavar="CSV", help="the plan, one row per experiment")
+    p.add_argument("--compare", metavar="RESULTS",
+                   help="results.json or sweep.json (or its folder): add the optimal plans with the "
+                        "same m as columns")
+    p.add_argument("--out", metavar="DIR",
+                   help="folder for evaluation.json (SI units) and evaluation.png/pdf (error bands)")
+    p.add_argument("--force", action="store_true", help="write into --out even if it is not empty")
+    common.add_common(p)
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..cell import clearances
+    from ..export import read_plan_csv
+    from ..nlp import B0_at_test_poses
+    from ..results import design_from_record, experiment_records
+    from ..rules import plan_violations
+    from ..solve import plan_scores
+
+    out = prepare_out(args.out, args.force) if args.out is not None else None
+    problem = common.load(args, check_solver=False)
+    Q, F = read_plan_csv(problem, args.plan)
+    m = len(Q)
+    others = []
+    if args.compare:
+        record = read_results(Path(args.compare))
+        if record.get("problem") != problem.name:
+            raise OutputError(f"{record['_path']}: results of problem '{record.get('problem')}', "
+                              f"not '{problem.name}'; compare with results of the same problem")
+        others = [design_from_record(d) for d in record["designs"] if d["m"] == m]
+        if not others:
+            raise OutputError(f"{record['_path']}: no design with m = {m} experiments (the plan's "
+                              f"rows); solve or sweep that m first")
+    scores = plan_scores(problem, Q, F, B0_at_test_poses(problem))
+    violations = plan_violations(problem, Q, F)
+    print(common.case_line(problem))
+    print(f"plan {args.plan}: {m} experiment{'s' if m > 1 else ''}"
+          + ("" if scores.identifiable else "; M is singular: the parameters are NOT identifiable"))
+    print(format_measures(["your plan"] + [f"{d.criterion} m={d.m}" for d in others],
+                          [scores] + [d.scores for d in others]))
+    if violations:
+        print(f"the plan breaks {len(violations)} constraint(s) of the problem:")
+        for v in violations:
+            print(f"  {v}")
+    else:
+        print("the plan satisfies the problem's joint limits, load"
+              + (", workspace and cell" if problem.cell else " and workspace"))
+    near = clearances(problem.cell, Q) if problem.cell else []
+    if near:
+        print(f"clearance on the {problem.cell.check.source} (mm), per experiment: "
+              + ", ".join(f"{c.distance_m * 1e3:.0f}" for c in near)
+              + f"; smallest {min(c.distance_m for c in near) * 1e3:.1f} mm between "
+              + " and ".join(min(near, key=lambda c: c.distance_m).between))
+    if out:
+        from ..plotting import USER_STYLE, Band, bands_figure
+
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "evaluation.json", {
+            "problem": problem.name, "problem_file": problem.path, "plan_file": str(args.plan),
+            "m": m, "units": {"q": "rad", "force": "N (N m for moments)", "errors": "m"},
+            "experiments": experiment_records(Q, F, near),
+            **scores.as_dict(), "violations": violations,
+        })
+        # a singular plan has no finite error band: draw the others, or no figure at all
+        bands = ([Band(f"Your plan ({Path(args.plan).name})", USER_STYLE, scores.rms_error_m)]
+                 if scores.identifiable else []) + others
+        files = [out / "evaluation.json"]
+        if bands:
+            common.write_figures(out, "evaluation", bands_figure(
+                problem.test_poses.position_m, bands, f"{m} calibration experiment{'s' if m > 1 else ''}"))
+            files += [out / "evaluation.png", out / "evaluation.pdf"]
+        common.say(args, "wrote " + ", ".join(map(str, files))
+                   + ("" if scores.identifiable else " (no error band of your plan: M is singular)"))
+    return 0

@@ -1,0 +1,69 @@
+"""``casadi-design solve``: the optimal plans of a problem file, Table 4 and Fig. 1."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ..build import Problem
+from ..campaign import Campaign
+from ..files import prepare_out, write_atomic
+from ..tables import format_solver_lines, format_table
+from . import common
+
+HELP = "optimal plans for each criterion and m, and how accurate each is"
+DESCRIPTION = ("Design the optimal plans of a problem file for each criterion and number of "
+               "experiments m; print the max error along the test poses (mm, Table 4) and solve "
+               "statistics; with --out write results.json (SI units), fig1.png/pdf, "
+               "plans/<criterion>_m<m>.csv (joint values in deg and rad, load in N, measured point "
+               "in mm) and report.md.")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("solve", help=HELP, description=DESCRIPTION)
+    common.add_campaign(p, "numbers of experiments: 1,5 or a range 1:10 (default: [experiments].m)")
+    common.add_output(p, "folder for results.json, fig1.png/pdf, plans/*.csv, report.md (created if missing)")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    out = prepare_out(args.out, args.force) if args.out is not None else None
+    problem, done = common.campaign(
+        args, "solve", check=lambda problem, ms: common.fig_m(args.fig_m, ms, problem.m_values))
+    designs = list(done.designs.values())
+    wall = time.perf_counter() - t0
+    print(common.case_line(problem))
+    print(format_table(designs))
+    common.say(args, "", format_solver_lines(designs),
+               f"total {wall:.2f} s for {len(designs)} designs {common.where(args)} (after imports)")
+    if out:
+        files = write_solve(out, problem, done, common.fig_m(args.fig_m, list(done.m_values), problem.m_values))
+        common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
+                         f"and {len(designs)} plans in {out / 'plans'}")
+    return 0
+
+
+def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -> list[str]:
+    """results.json, fig1, the poses figure (with a [cell]), the plans and report.md."""
+    from ..export import report_markdown
+    from ..files import write_results
+    from ..plotting import fig1, poses_figure
+
+    designs, first = list(done.designs.values()), done.criteria[0]
+    out.mkdir(parents=True, exist_ok=True)
+    write_results(out / "results.json", problem, designs, done.approx)
+    files = ["results.json"]
+    files += common.write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
+    figures = [("Fig. 1: +/- sqrt(rho) along the test poses", "fig1.png")]
+    if problem.cell is not None:  # the robot in the cell, in each experiment of the first criterion's plans
+        shown = [d for d in designs if d.criterion == first and d.m in fig_m]
+        files += common.write_figures(out, "poses", poses_figure(problem, shown), ("png",))  # 3-D: no PDF
+        figures.append((f"The robot in the cell in every experiment ({first} plans), the "
+                        "tracker's beams and the test poses", "poses.png"))
+    files += common.write_plans(out, problem, designs)
+    report = report_markdown(problem, designs, table=format_table(designs), figures=figures,
+                             plans_for=fig_m, files=files, starts=done.settings.starts)
+    write_atomic(out / "report.md", report.encode())
+    return files + ["report.md"]

@@ -1,0 +1,140 @@
+"""``casadi-design sweep``: accuracy vs the number of experiments m, for each criterion."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+from ..build import Problem
+from ..files import prepare_out, write_atomic
+from ..sweep import (
+    PARTIAL_NAME,
+    RESUME_FILES,
+    Sweep,
+    load_partial,
+    partial_record,
+    run_sweep,
+    sweep_key,
+    sweep_total_starts,
+)
+from ..tables import format_sweep_table
+from . import common
+
+EXIT_INTERRUPTED = 130
+HELP = "accuracy vs number of experiments m for each criterion"
+DESCRIPTION = ("Solve every (criterion, m) of a range of m with the seeded starts of `solve` plus a "
+               "warm start from the previous m's plan; print max error (mm) vs m with the reference "
+               "'best single pose repeated m times' (e1/sqrt(m)); with --out write sweep.csv/json, "
+               "sweep_max_error.png/pdf, fig1.png/pdf, plans/*.csv, report.md. Each finished design "
+               "is saved at once in sweep.partial.json: after Ctrl-C, run the same command with --resume.")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("sweep", help=HELP, description=DESCRIPTION)
+    common.add_campaign(p, "numbers of experiments: a range first:last[:step], e.g. 1:10, or a list "
+                           "1,2,5 (default: the smallest identifiable m to the largest [experiments].m)")
+    common.add_output(p, "folder for sweep.csv/json, figures, plans/*.csv, report.md (created if missing)")
+    p.add_argument("--log", action="store_true",
+                   help="logarithmic axes in sweep_max_error (the repeat line is then straight)")
+    p.add_argument("--no-warm-start", action="store_true",
+                   help="only the seeded starts: every row then equals `solve` exactly")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted sweep saved in --out (same problem and options)")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..progress import progress_bar
+
+    t0 = time.perf_counter()
+    if args.resume and args.out is None:
+        raise common.OutputError("--resume needs the --out folder of the interrupted sweep; add --out DIR")
+    out = prepare_out(args.out, args.force, args.resume, RESUME_FILES) if args.out is not None else None
+    problem = common.load(args)
+    criteria, ms, settings = common.plan_request(args, problem, all_m=True)
+    warm = not args.no_warm_start
+    fig_m = common.fig_m(args.fig_m, ms, problem.m_values)
+    key = sweep_key(problem, criteria, ms, settings.starts, warm, (settings.bound_steps, settings.bound_pool))
+    done = load_partial(out, key) if args.resume else {}
+    if args.resume:
+        common.say(args, f"resuming: {len(done)} of {len(ms) * len(criteria)} designs already in {out}")
+    saved = dict(done)
+    partial = out / PARTIAL_NAME if out else None
+
+    def save(design) -> None:
+        saved[design.criterion, design.m] = design
+        bar.set_postfix_str(f"done: {design.criterion}, m = {design.m}")
+        if partial is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            partial_record(partial, problem, key, list(saved.values()))
+
+    approx = common.approximate_timed(args, problem, criteria, settings)
+    bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm, approx), "sweep", args.quiet)
+    try:
+        with common.executor(args) as executor:
+            sweep = run_sweep(problem, criteria, ms, settings, warm_start=warm, done=done,
+                              executor=executor, progress=bar.update, on_design=save, approx=approx)
+    except KeyboardInterrupt:
+        bar.close()
+        kept = (f"kept in {partial}; continue with the same command and --resume" if partial
+                else "not kept (no --out)")
+        print(f"interrupted: {len(saved)} of {len(ms) * len(criteria)} designs {kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    print(common.case_line(problem))
+    print(format_sweep_table(sweep))
+    common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({settings.starts} seeded starts each"
+                     f"{', plus one warm start for m after the first' if warm else ''}) {common.where(args)}")
+    if out:
+        files = write_sweep(out, problem, sweep, fig_m, args.log, key, approx)
+        if partial.exists():
+            partial.unlink()
+        common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
+                         f"and {sum(f.startswith('plans/') for f in files)} plans in {out / 'plans'}")
+    return 0
+
+
+def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log: bool, key: dict,
+                approx: dict) -> list[str]:
+    """sweep.json, sweep.csv, the figures, the plans and report.md."""
+    from ..export import report_markdown, write_table_csv
+    from ..files import write_json
+    from ..plotting import fig1, sweep_figure
+    from ..sweep import COLUMNS, sweep_record, sweep_rows
+
+    out.mkdir(parents=True, exist_ok=True)
+    designs = list(sweep.designs.values())
+    write_json(out / "sweep.json", sweep_record(problem, sweep, key, approx))
+    write_table_csv(out / "sweep.csv", COLUMNS, sweep_rows(sweep))
+    files = ["sweep.json", "sweep.csv"]
+    files += common.write_figures(out, "sweep_max_error", sweep_figure(sweep, log))
+    files += common.write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
+    files += common.write_plans(out, problem, designs)
+    notes = [
+        ("Each design uses the seeded starts of `casadi-design solve` (same seed, same plans); "
+         "for every m after the first, one more start begins from the previous m's plan plus "
+         "new random poses. It wins only when strictly better, so a row can be better than "
+         "`solve`, never worse (`warm_start_won` in sweep.csv)."),
+    ]
+    if sweep.reference is not None:
+        e_ref = sweep.reference.scores.max_rms_error_m
+        notes.append(f"Repeat line: the best test-pose plan of {sweep.reference.m} experiment(s) "
+                     f"({e_ref * 1e3:.4f} mm) repeated, e / sqrt(m / {sweep.reference.m}).")
+        m_last = sweep.m_values[-1]
+        e_last = sweep.designs["test-pose", m_last].scores.max_rms_error_m
+        notes.append(f"Test-pose plans: {e_ref / e_last:.2f} times more accurate at m = {m_last} "
+                     f"than at m = {sweep.reference.m}; repetition alone gives "
+                     f"{math.sqrt(m_last / sweep.reference.m):.2f}.")
+    report = report_markdown(
+        problem, designs, table=format_sweep_table(sweep), starts=sweep.seeded_starts,
+        figures=[("Max error along the test poses vs m", "sweep_max_error.png"),
+                 (f"Fig. 1: +/- sqrt(rho) along the test poses, m = {', '.join(map(str, fig_m))}",
+                  "fig1.png")],
+        plans_for=fig_m, files=files, title="Calibration sweep", notes=notes)
+    write_atomic(out / "report.md", report.encode())
+    return files + ["report.md"]

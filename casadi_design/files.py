@@ -1,0 +1,164 @@
+"""Files: the output folder, atomic writes, and JSON in and out.
+
+Everything the commands write goes through :func:`write_atomic` (a temporary file and a rename:
+never a half-written file); the output folder is checked by :func:`prepare_out` before any
+work starts. The package's computing layers never write files; the commands do, through this
+module.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .bound import ApproximateDesign
+from .build import Problem
+from .design import Design
+from .errors import OutputError
+from .results import MalformedRecord, check_results, results_dict
+
+def prepare_out(out: Path | str, force: bool = False, resume: bool = False,
+                resume_files: tuple[str, ...] = ()) -> Path:
+    """Check, before anything is solved, that the output folder ``out`` may be written.
+
+    ``out`` may be missing (its parent folder must exist: it is not created), empty, or hold
+    files when ``force`` (overwrite them) or ``resume`` is given; ``resume`` needs one of
+    ``resume_files`` (e.g. the ``sweep.partial.json`` of an interrupted sweep) in it. Nothing is created
+    here, so an error later leaves no folder behind.
+
+    Raises
+    ------
+    OutputError
+        Empty name, missing or not writable parent, not a folder, not empty, nothing to resume
+        (one line each).
+    """
+    if not str(out).strip():  # checked on the string: Path("") is "."
+        raise OutputError("--out is empty; give a folder name")
+    out = Path(out)
+    try:
+        if out.exists() and not out.is_dir():
+            raise OutputError(f"{out}: exists and is not a folder; choose another --out")
+        if not out.exists() and not out.parent.is_dir():
+            what = "is not a folder" if out.parent.exists() else "does not exist"
+            raise OutputError(f"{out}: its parent folder {out.parent} {what}; create it first or "
+                              "choose another --out")
+        folder = out if out.exists() else out.parent
+        if not os.access(folder, os.W_OK | os.X_OK | (os.R_OK if folder == out else 0)):
+            raise OutputError(f"{out}: no permission to write in {folder}; choose another --out "
+                              "or change the folder's permissions")
+        if out.is_dir() and any(out.iterdir()) and not (force or resume):
+            raise OutputError(f"{out}: folder exists and is not empty; add --force to overwrite "
+                              "its files (or choose another --out)")
+        if resume and not any((out / n).is_file() for n in resume_files):
+            raise OutputError(f"{out}: nothing to resume (no {' or '.join(resume_files)}); run "
+                              "without --resume")
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot be checked ({exc.strerror}); choose another "
+                          "--out") from None
+    return out
+
+
+def json_ready(value: object) -> object:
+    """``value`` with every non-finite float (a singular plan's error, a failed start) as None,
+    so that the file is standard JSON (``null``), readable by any tool."""
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def write_json(path: Path, record: dict) -> None:
+    """``record`` as indented standard JSON (non-finite numbers as ``null``), atomically."""
+    write_atomic(path, (json.dumps(json_ready(record), indent=2, allow_nan=False) + "\n").encode())
+
+
+def _umask() -> int:
+    """The process's umask (read by setting it and setting it back: process-global)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename (never half-written).
+
+    The file gets the mode a plain ``open(path, "wb")`` gives a new file, ``0o666`` less the
+    umask (the temporary file of :func:`tempfile.mkstemp` is ``0o600``).
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+#: What to do with a results file that cannot be read back.
+_RESULTS_HINT = "give a results file written by casadi-design solve or sweep"
+
+
+def read_results(path: Path | str) -> dict:
+    """A results.json / sweep.json file, or the one inside a folder (sweep.json first).
+
+    The record is checked (:func:`casadi_design.results.check_results`) before it is returned,
+    so its designs can be given to :func:`~casadi_design.results.design_from_record`;
+    ``record["_path"]`` is the file read.
+
+    Raises
+    ------
+    OutputError
+        No such file, not UTF-8 JSON, or a record of another shape (one line, naming the field).
+    """
+    path = Path(path)
+    try:
+        if path.is_dir():
+            found = [path / n for n in ("sweep.json", "results.json") if (path / n).is_file()]
+            if not found:
+                raise OutputError(f"{path}: no sweep.json or results.json in this folder; "
+                                  "give the file written by `casadi-design solve` or `sweep`")
+            path = found[0]
+        if path.exists() and not path.is_file():
+            raise OutputError(f"{path}: is not a regular file (a device or a pipe); "
+                              f"{_RESULTS_HINT}")
+        record = json.loads(path.read_bytes().decode("utf-8-sig"))
+    except FileNotFoundError:
+        raise OutputError(f"{path}: no such results file; check the path") from None
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot be read ({exc.strerror}); check the path and its "
+                          "permissions") from None
+    except UnicodeDecodeError as exc:
+        raise OutputError(f"{path}: is not UTF-8 text (byte at offset {exc.start}), so not a "
+                          f"results file; {_RESULTS_HINT}") from None
+    except json.JSONDecodeError as exc:
+        raise OutputError(f"{path}: not valid JSON ({exc}); give a results.json or sweep.json") from None
+    except RecursionError:
+        raise OutputError(f"{path}: JSON nested too deeply; {_RESULTS_HINT}") from None
+    try:
+        check_results(record)
+    except MalformedRecord as exc:
+        raise OutputError(f"{path}: {exc}; {_RESULTS_HINT}") from None
+    record["_path"] = str(path)
+    return record
+
+
+def write_results(path: Path, problem: Problem, designs: list[Design],
+                  approx: dict[str, ApproximateDesign] | None = None) -> dict:
+    """``results.json`` of ``designs`` (:func:`casadi_design.results.results_dict`), atomically;
+    returns the record."""
+    record = results_dict(problem, designs, approx)
+    write_json(path, record)
+    return record
