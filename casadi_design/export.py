@@ -94,6 +94,15 @@ def write_plan_csv(path: Path, problem: Problem, design: Design) -> None:
     write_atomic(Path(path), csv_text(*plan_table(problem, design.Q, design.F, design.clearances)).encode())
 
 
+def write_plans(out: Path, problem: Problem, designs: list[Design]) -> list[str]:
+    """Each design's plan as ``out/plans/<criterion>_m<m>.csv``; returns the file names."""
+    (out / "plans").mkdir(exist_ok=True)
+    names = [f"plans/{d.criterion}_m{d.m}.csv" for d in designs]
+    for name, d in zip(names, designs):
+        write_plan_csv(out / name, problem, d)
+    return names
+
+
 def write_table_csv(path: Path, columns: tuple[str, ...] | list[str], rows: list[dict]) -> None:
     """Rows (dicts) as CSV with the given columns, atomically."""
     write_atomic(Path(path), csv_text(list(columns), [[r[c] for c in columns] for r in rows]).encode())

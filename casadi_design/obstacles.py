@@ -20,7 +20,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -30,7 +30,17 @@ if TYPE_CHECKING:
     import coal
     from matplotlib.axes import Axes
 
-    from .problem import _Reader
+
+class FieldReader(Protocol):
+    """What a shape's :meth:`Obstacle.parse` reads its table with: the problem file's field
+    reader (:mod:`casadi_design.problem`), whose messages name the file and the field."""
+
+    def array(self, key: str, shape: tuple, default: Any = ..., hint: str = "") -> np.ndarray | Any: ...
+
+    def number(self, key: str, default: Any = ..., hint: str = "", positive: bool = False,
+               nonnegative: bool = False) -> float: ...
+
+    def error(self, what: str, hint: str, key: str | None = None) -> ProblemError: ...
 
 #: The obstacle classes by their ``kind`` in a problem file, in the order they were defined.
 OBSTACLE_KINDS: dict[str, type[Obstacle]] = {}
@@ -76,7 +86,7 @@ class Obstacle(ABC):
 
     @classmethod
     @abstractmethod
-    def parse(cls, r: _Reader, name: str) -> Obstacle:
+    def parse(cls, r: FieldReader, name: str) -> Obstacle:
         """The obstacle ``name`` of the entry read by ``r`` (only :attr:`KEYS` besides name
         and kind, checked by the caller); errors name the file and the field."""
 
@@ -130,7 +140,7 @@ class HalfSpace(Obstacle, kind="half_space"):
         object.__setattr__(self, "offset_m", float(self.offset_m / length))
 
     @classmethod
-    def parse(cls, r: _Reader, name: str) -> HalfSpace:
+    def parse(cls, r: FieldReader, name: str) -> HalfSpace:
         normal = r.array("normal", (3,), hint="the plane's normal, towards the free side")
         if not np.linalg.norm(normal) > 0:
             raise r.error("is zero", "give a non-zero 3-vector", "normal")
@@ -179,7 +189,7 @@ class Box(Obstacle, kind="box"):
         object.__setattr__(self, "half_extents_m", h)
 
     @classmethod
-    def parse(cls, r: _Reader, name: str) -> Box:
+    def parse(cls, r: FieldReader, name: str) -> Box:
         half = r.array("half_extents_m", (3,), hint="half sizes along the box's axes, m")
         if not np.all(half > 0):
             raise r.error(f"{half.tolist()}", "give positive half sizes (m)", "half_extents_m")
@@ -259,7 +269,7 @@ class Capsule(Obstacle, kind="capsule"):
         return self.name or "capsule obstacle"
 
     @classmethod
-    def parse(cls, r: _Reader, name: str, frame: str = "universe") -> Capsule:
+    def parse(cls, r: FieldReader, name: str, frame: str = "universe") -> Capsule:
         """As :meth:`Obstacle.parse`; ``frame``: where the segment is given (a robot's capsule
         names its link)."""
         return cls(frame, tuple(r.array("a_m", (3,), hint="one end of the segment, m")),

@@ -158,6 +158,13 @@ def save_figures(fig: Figure, paths: list[Path]) -> None:
         write_atomic(Path(path), buf.getvalue())
 
 
+def write_figures(out: Path, stem: str, fig: Figure, suffixes: tuple[str, ...] = ("png", "pdf")) -> list[str]:
+    """``fig`` as ``out/stem.<suffix>`` for each of ``suffixes`` (:func:`save_figures`); returns
+    the file names."""
+    save_figures(fig, [out / f"{stem}.{suffix}" for suffix in suffixes])
+    return [f"{stem}.{suffix}" for suffix in suffixes]
+
+
 def validation_figure(validation) -> Figure:
     """Predicted ``sqrt(rho)`` (lines) and simulated RMS error with its interval (markers), mm,
     along the test poses of a virtual calibration (a :class:`casadi_design.virtual.Validation`):

@@ -175,13 +175,21 @@ def a_objective(M: ca.SX, B0: np.ndarray) -> Objective:
     return _no_aux(ca.sumsqr(Rinv_T))
 
 
+def i_objective(M: ca.SX, B0: np.ndarray) -> Objective:
+    """``min mean_j trace(B0_j M^-1 B0_j^T) = mean_j |R^-T B0_j^T|_F^2`` (I-optimality)."""
+    s, r, L = B0.shape
+    Y = ca.solve(ca.chol(M).T, ca.DM(B0.transpose(2, 0, 1).reshape(L, s * r)))
+    return _no_aux(ca.sumsqr(Y) / s)
+
+
 def t_objective(M: ca.SX, B0: np.ndarray) -> Objective:
     """``min -trace M``."""
     return _no_aux(-ca.trace(M))
 
 
 OBJECTIVES = {"test-pose": test_pose_objective, "D": d_objective, "A": a_objective,
-              "T": t_objective, "E": e_objective, "condition": condition_objective}
+              "T": t_objective, "E": e_objective, "condition": condition_objective,
+              "I": i_objective}
 
 
 def symbolic_nlp(problem, criterion: str, m: int, B0: np.ndarray | None = None) -> DesignNLP:

@@ -24,7 +24,7 @@ from casadi_design.solve import make_solver, solve_design
 from tests.conftest import ROOT, build, paper_raw
 from tests.symbolic_oracle import symbolic_nlp
 
-CRITERIA = ("test-pose", "D", "A", "T")
+CRITERIA = ("test-pose", "D", "A", "T", "I")
 #: E and condition at the highest power of their surrogates (the steepest), and at the lowest
 #: (slow: the same formulas).
 SPECTRAL = [(c, REGISTRY[c].powers[-1]) for c in ("E", "condition")] + [

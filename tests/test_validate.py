@@ -399,3 +399,24 @@ def test_validate_subcommand_and_script(tmp_path, paper, paper_designs, capsys):
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("error: --results") and err.count("\n") == 1
+
+
+def test_validate_without_results_validates_the_plans_of_solve(tmp_path):
+    """``validate CASE OPTIONS`` simulates exactly the plans ``solve CASE OPTIONS`` writes (one
+    campaign for both, rounded starts and bounds included): its validation.json equals the one
+    of ``validate --results`` on solve's results.json, number for number."""
+    import casadi_design.cli as command
+
+    opts = ["--starts", "2", "--bound-steps", "1", "--bound-pool", "60", "--jobs", "1", "--quiet"]
+    assert command.main(["solve", PAPER_FILE, *opts, "--out", str(tmp_path / "solved")]) == 0
+    trials = ["--trials", "20", "--seed", "3"]
+    assert command.main(["validate", PAPER_FILE, *opts, *trials, "--out", str(tmp_path / "direct")]) == 0
+    assert command.main(["validate", PAPER_FILE, "--results", str(tmp_path / "solved" / "results.json"),
+                         *trials, "--out", str(tmp_path / "read")]) == 0
+    direct, read = (json.loads((tmp_path / d / "validation.json").read_text()) for d in ("direct", "read"))
+    solved = json.loads((tmp_path / "solved" / "results.json").read_text())["designs"]
+    assert [(p["criterion"], p["m"]) for p in direct["plans"]] == [(d["criterion"], d["m"]) for d in solved]
+    for a, b, d in zip(direct["plans"], read["plans"], solved):
+        assert a["predicted_rms_m"] == b["predicted_rms_m"] == d["rms_error_m"]
+        assert a["empirical_rms_m"] == b["empirical_rms_m"]
+    assert any(st["origin"] == "rounded approximate design" for d in solved for st in d["solver"]["per_start"])

@@ -8,13 +8,10 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
-from pathlib import Path
 
 from ..build import Problem
 from ..campaign import Campaign, Settings, approximate, check_criteria, check_m_values, run_campaign, total_starts
 from ..criteria import BOUND_CRITERIA, CRITERIA
-from ..design import Design
 from ..errors import OutputError
 from ..parallel import cpu_count
 
@@ -223,18 +220,17 @@ def approximate_timed(args: argparse.Namespace, problem: Problem, criteria: list
     return approx
 
 
-def campaign(args: argparse.Namespace, label: str,
-             check: Callable[[Problem, list[int]], object] | None = None) -> tuple[Problem, Campaign]:
+def campaign(args: argparse.Namespace, label: str) -> tuple[Problem, Campaign, list[int]]:
     """Load the problem of ``args`` and run its campaign (:func:`run_campaign`) with the
-    command line's criteria, m, starts, bound settings and executor, with a progress bar;
-    ``check(problem, m_values)`` runs before anything is solved (the command's own options)."""
+    command line's criteria, m, starts, bound settings and executor, with a progress bar.
+    Returns the problem, the campaign and the m of the Fig. 1 panels (``--fig-m``, checked
+    before anything is solved)."""
     from ..progress import progress_bar
 
     with executor(args) as ex:  # first: worker processes start while the problem loads
         problem = load(args)
         criteria, ms, settings = plan_request(args, problem)
-        if check is not None:
-            check(problem, ms)
+        panels = fig_m(getattr(args, "fig_m", None), ms, problem.m_values)
         approx = approximate_timed(args, problem, criteria, settings)
         bar = progress_bar(total_starts(criteria, ms, settings, approx), label, args.quiet)
         try:
@@ -242,10 +238,10 @@ def campaign(args: argparse.Namespace, label: str,
                                 progress=bar.update)
         finally:
             bar.close()
-    return problem, done
+    return problem, done, panels
 
 
-# --------------------------------------------------------------------------- figures and plans
+# --------------------------------------------------------------------------- figures
 
 def fig_m(requested: list[int] | None, available: list[int], preferred: tuple[int, ...]) -> list[int]:
     """m values of the Fig. 1 panels: requested, else the problem's m that were solved, else
@@ -257,22 +253,3 @@ def fig_m(requested: list[int] | None, available: list[int], preferred: tuple[in
         return requested
     chosen = [m for m in preferred if m in available][:2]
     return chosen or sorted({available[0], available[-1]})
-
-
-def write_figures(out: Path, stem: str, fig, suffixes: tuple[str, ...] = ("png", "pdf")) -> list[str]:
-    from ..plotting import save_figures
-
-    save_figures(fig, [out / f"{stem}.{suffix}" for suffix in suffixes])
-    return [f"{stem}.{suffix}" for suffix in suffixes]
-
-
-def write_plans(out: Path, problem: Problem, designs: list[Design]) -> list[str]:
-    from ..export import write_plan_csv
-
-    (out / "plans").mkdir(exist_ok=True)
-    written = []
-    for d in designs:
-        name = f"plans/{d.criterion}_m{d.m}.csv"
-        write_plan_csv(out / name, problem, d)
-        written.append(name)
-    return written

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
               + f"; smallest {min(c.distance_m for c in near) * 1e3:.1f} mm between "
               + " and ".join(min(near, key=lambda c: c.distance_m).between))
     if out:
-        from ..plotting import USER_STYLE, Band, bands_figure
+        from ..plotting import USER_STYLE, Band, bands_figure, write_figures
 
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "evaluation.json", {
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                  if scores.identifiable else []) + others
         files = [out / "evaluation.json"]
         if bands:
-            common.write_figures(out, "evaluation", bands_figure(
+            write_figures(out, "evaluation", bands_figure(
                 problem.test_poses.position_m, bands, f"{m} calibration experiment{'s' if m > 1 else ''}"))
             files += [out / "evaluation.png", out / "evaluation.pdf"]
         common.say(args, "wrote " + ", ".join(map(str, files))

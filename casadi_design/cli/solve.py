@@ -30,8 +30,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = prepare_out(args.out, args.force) if args.out is not None else None
-    problem, done = common.campaign(
-        args, "solve", check=lambda problem, ms: common.fig_m(args.fig_m, ms, problem.m_values))
+    problem, done, fig_m = common.campaign(args, "solve")
     designs = list(done.designs.values())
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
@@ -39,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     common.say(args, "", format_solver_lines(designs),
                f"total {wall:.2f} s for {len(designs)} designs {common.where(args)} (after imports)")
     if out:
-        files = write_solve(out, problem, done, common.fig_m(args.fig_m, list(done.m_values), problem.m_values))
+        files = write_solve(out, problem, done, fig_m)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {len(designs)} plans in {out / 'plans'}")
     return 0
@@ -47,22 +46,22 @@ def run(args: argparse.Namespace) -> int:
 
 def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -> list[str]:
     """results.json, fig1, the poses figure (with a [cell]), the plans and report.md."""
-    from ..export import report_markdown
+    from ..export import report_markdown, write_plans
     from ..files import write_results
-    from ..plotting import fig1, poses_figure
+    from ..plotting import fig1, poses_figure, write_figures
 
     designs, first = list(done.designs.values()), done.criteria[0]
     out.mkdir(parents=True, exist_ok=True)
     write_results(out / "results.json", problem, designs, done.approx)
     files = ["results.json"]
-    files += common.write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
+    files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
     figures = [("Fig. 1: +/- sqrt(rho) along the test poses", "fig1.png")]
     if problem.cell is not None:  # the robot in the cell, in each experiment of the first criterion's plans
         shown = [d for d in designs if d.criterion == first and d.m in fig_m]
-        files += common.write_figures(out, "poses", poses_figure(problem, shown), ("png",))  # 3-D: no PDF
+        files += write_figures(out, "poses", poses_figure(problem, shown), ("png",))  # 3-D: no PDF
         figures.append((f"The robot in the cell in every experiment ({first} plans), the "
                         "tracker's beams and the test poses", "poses.png"))
-    files += common.write_plans(out, problem, designs)
+    files += write_plans(out, problem, designs)
     report = report_markdown(problem, designs, table=format_table(designs), figures=figures,
                              plans_for=fig_m, files=files, starts=done.settings.starts)
     write_atomic(out / "report.md", report.encode())

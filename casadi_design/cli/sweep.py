@@ -102,9 +102,9 @@ def run(args: argparse.Namespace) -> int:
 def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log: bool, key: dict,
                 approx: dict) -> list[str]:
     """sweep.json, sweep.csv, the figures, the plans and report.md."""
-    from ..export import report_markdown, write_table_csv
+    from ..export import report_markdown, write_plans, write_table_csv
     from ..files import write_json
-    from ..plotting import fig1, sweep_figure
+    from ..plotting import fig1, sweep_figure, write_figures
     from ..sweep import COLUMNS, sweep_record, sweep_rows
 
     out.mkdir(parents=True, exist_ok=True)
@@ -112,9 +112,9 @@ def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log
     write_json(out / "sweep.json", sweep_record(problem, sweep, key, approx))
     write_table_csv(out / "sweep.csv", COLUMNS, sweep_rows(sweep))
     files = ["sweep.json", "sweep.csv"]
-    files += common.write_figures(out, "sweep_max_error", sweep_figure(sweep, log))
-    files += common.write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
-    files += common.write_plans(out, problem, designs)
+    files += write_figures(out, "sweep_max_error", sweep_figure(sweep, log))
+    files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
+    files += write_plans(out, problem, designs)
     notes = [
         ("Each design uses the seeded starts of `casadi-design solve` (same seed, same plans); "
          "for every m after the first, one more start begins from the previous m's plan plus "
