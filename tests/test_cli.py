@@ -124,7 +124,7 @@ def test_validate_subcommand_runs_the_virtual_calibration(tmp_path, capsys):
     bad.write_text(PAPER.read_text().replace("sigma_m = 1.0e-4", "sigma_m = 0.0"))
     assert main(["validate", str(bad)]) == 2
     assert "[measurement].sigma_m: must be positive" in capsys.readouterr().err
-    assert main(["validate", str(PAPER), "--starts", "2", "--trials", "50", "--out", str(tmp_path / "v")]) == 0
+    assert main(["validate", str(PAPER), "--starts", "2", "--jobs", "1", "--bound-steps", "0", "--trials", "50", "--out", str(tmp_path / "v")]) == 0
     out = capsys.readouterr().out
     assert "ranking by the measure ['test-pose', 'D', 'E'], by simulation" in out
     assert (tmp_path / "v" / "validation.json").exists()
