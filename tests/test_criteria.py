@@ -23,8 +23,8 @@ from tests.test_bound import SMALL_POOL, planar_A
 
 #: Relative slack of "a plan optimal for I is at least as good for I as any other plan".
 OPTIMAL_RTOL = 1e-6
-#: The solver's single-experiment I optimum against a 0.25 deg grid of (q2, load angle).
-GRID_RTOL = 1e-4
+#: The solver's single-experiment I optimum against a 0.5 deg grid of (q2, load angle).
+GRID_RTOL = 2e-4
 
 
 @pytest.fixture(scope="module")
@@ -59,9 +59,9 @@ def test_every_table_column_and_option_comes_from_the_registry():
 
 def test_I_optimum_of_one_experiment_equals_a_brute_force_grid(paper):
     """m = 1 on the paper's arm: the multi-start's I plan against every (q2, load angle) of a
-    0.25 deg grid (q1 = 0: turning the arm and the load together leaves M unchanged) scored
+    0.5 deg grid (q1 = 0: turning the arm and the load together leaves M unchanged) scored
     with the hand-written B. The grid's best is no better than the solver's, and close."""
-    g = np.radians(np.arange(-180.0, 180.0, 0.25))
+    g = np.radians(np.arange(-180.0, 180.0, 0.5))
     q2, a = np.meshgrid(g, g, indexing="ij")
     B = planar_A(np.zeros_like(q2), q2, 100.0 * np.stack([np.cos(a), np.sin(a)], -1))
     grid_best = np.sqrt(np.min(_mean_rho_m2(paper, B)))

@@ -407,7 +407,8 @@ def test_validate_without_results_validates_the_plans_of_solve(tmp_path):
     of ``validate --results`` on solve's results.json, number for number."""
     import casadi_design.cli as command
 
-    opts = ["--starts", "2", "--bound-steps", "1", "--bound-pool", "60", "--jobs", "1", "--quiet"]
+    opts = ["--m", "2", "--criteria", "test-pose,D", "--starts", "2", "--bound-steps", "1",
+            "--bound-pool", "60", "--jobs", "1", "--quiet"]
     assert command.main(["solve", PAPER_FILE, *opts, "--out", str(tmp_path / "solved")]) == 0
     trials = ["--trials", "20", "--seed", "3"]
     assert command.main(["validate", PAPER_FILE, *opts, *trials, "--out", str(tmp_path / "direct")]) == 0
