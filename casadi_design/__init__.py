@@ -1,11 +1,22 @@
 """casadi_design: optimal design of robot calibration experiments with test-pose measures.
 
 Read a problem file, build it, solve its designs: see ``casadi_design.cli`` and the README.
+The names below are imported when first used, so that ``import casadi_design`` (and the
+command's start, :mod:`casadi_design.launch`) costs nothing before Ctrl-C is handled.
 """
 
-from .build import Problem, build_problem, load_problem
-from .errors import DesignError, ProblemError
-from .problem import ProblemSpec, read_problem
+import importlib
 
-__all__ = ["DesignError", "Problem", "ProblemError", "ProblemSpec", "build_problem", "load_problem", "read_problem"]
+#: The package's own names and the module that defines each.
+_NAMES = {"DesignError": "errors", "ProblemError": "errors", "Problem": "build",
+          "build_problem": "build", "load_problem": "build", "ProblemSpec": "problem",
+          "read_problem": "problem"}
+
+__all__ = sorted(_NAMES)
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name not in _NAMES:
+        raise AttributeError(f"module 'casadi_design' has no attribute '{name}'")
+    return getattr(importlib.import_module(f".{_NAMES[name]}", __name__), name)

@@ -76,6 +76,16 @@ class Campaign:
     approx: dict[str, ApproximateDesign]
 
 
+def campaign_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],
+                 settings: Settings, warm_start: bool = False) -> dict:
+    """What a campaign's designs depend on (a resumed command must match it): the problem's
+    checked data, seed, starts, the sweep's warm start, m, criteria and the bound's steps and
+    pool."""
+    return {"problem_sha256": problem.digest, "seed": problem.solver.seed,
+            "starts": settings.starts, "warm_start": warm_start, "m": sorted(set(m_values)),
+            "criteria": list(criteria), "bound_steps_pool": [settings.bound_steps, settings.bound_pool]}
+
+
 def check_criteria(problem: Problem, criteria: Iterable[str]) -> None:
     for c in criteria:
         if c not in CRITERIA:

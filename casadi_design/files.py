@@ -20,7 +20,22 @@ from .bound import ApproximateDesign
 from .build import Problem
 from .design import Design
 from .errors import OutputError
-from .results import MalformedRecord, check_results, results_dict
+from .results import MalformedRecord, check_results, design_from_record, design_record, results_dict
+
+#: The files written by :func:`write_atomic` since the command started (:func:`start_log`):
+#: what an error names as already written.
+_WRITTEN: list[Path] = []
+
+
+def start_log() -> None:
+    """Forget the files written so far (a command starts)."""
+    _WRITTEN.clear()
+
+
+def _already_written() -> str:
+    names = list(dict.fromkeys(str(p) for p in _WRITTEN))
+    return f"already written: {', '.join(names)}" if names else "nothing was written"
+
 
 def prepare_out(out: Path | str, force: bool = False, resume: bool = False,
                 resume_files: tuple[str, ...] = ()) -> Path:
@@ -28,8 +43,9 @@ def prepare_out(out: Path | str, force: bool = False, resume: bool = False,
 
     ``out`` may be missing (its parent folder must exist: it is not created), empty, or hold
     files when ``force`` (overwrite them) or ``resume`` is given; ``resume`` needs one of
-    ``resume_files`` (e.g. the ``sweep.partial.json`` of an interrupted sweep) in it. Nothing is created
-    here, so an error later leaves no folder behind.
+    ``resume_files`` (e.g. the ``sweep.partial.json`` of an interrupted sweep) in it. A missing
+    folder is created and removed again (a parent that takes no folder, as ``/proc``, fails
+    here, not after the work), so an error later leaves no folder behind.
 
     Raises
     ------
@@ -60,7 +76,31 @@ def prepare_out(out: Path | str, force: bool = False, resume: bool = False,
     except OSError as exc:
         raise OutputError(f"{out}: cannot be checked ({exc.strerror}); choose another "
                           "--out") from None
+    if not out.exists():
+        try:
+            out.mkdir()
+            out.rmdir()
+        except OSError as exc:
+            raise OutputError(f"{out}: the folder cannot be created ({exc.strerror}); choose "
+                              "another --out") from None
     return out
+
+
+def make_folder(folder: Path) -> Path:
+    """Create ``folder`` (and its parents) if missing, with a one-line error.
+
+    Raises
+    ------
+    OutputError
+        The folder cannot be created (removed parent, permissions, full disk).
+    """
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{folder}: the folder cannot be created ({exc.strerror}); "
+                          f"{_already_written()}; fix the folder or its permissions, then run the "
+                          "command again") from None
+    return folder
 
 
 def json_ready(value: object) -> object:
@@ -94,17 +134,33 @@ def write_atomic(path: Path, data: bytes) -> None:
 
     The file gets the mode a plain ``open(path, "wb")`` gives a new file, ``0o666`` less the
     umask (the temporary file of :func:`tempfile.mkstemp` is ``0o600``).
+
+    Raises
+    ------
+    OutputError
+        The file cannot be written (full disk, permissions changed, folder removed): one line
+        naming it, the files already written by the command, and what to do; no temporary
+        file is left.
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = None
     try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except OSError as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"{path}: could not be written ({exc.strerror}); {_already_written()}; "
+                          "free some disk space or fix the folder's permissions, then run the "
+                          "command again") from None
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
         raise
+    _WRITTEN.append(path)
 
 
 #: What to do with a results file that cannot be read back.
@@ -153,6 +209,48 @@ def read_results(path: Path | str) -> dict:
         raise OutputError(f"{path}: {exc}; {_RESULTS_HINT}") from None
     record["_path"] = str(path)
     return record
+
+
+def partial_record(path: Path, problem: Problem, key: dict, designs: list[Design]) -> None:
+    """Save the finished designs of an unfinished campaign (``key``: what they depend on,
+    :func:`casadi_design.campaign.campaign_key`), atomically; called after each design."""
+    write_json(Path(path), {"format": "casadi-design partial", "problem": problem.name,
+                            "key": key, "designs": [design_record(d) for d in designs]})
+
+
+def load_partial(out: Path, key: dict, sources: tuple[tuple[str, tuple[str, ...]], ...]
+                 ) -> dict[tuple[str, int], Design]:
+    """Finished designs saved in ``out``: from the first file of ``sources`` that exists
+    (``(name, path of its key in the record)``), {} when none does.
+
+    Raises OutputError when the saved designs were made with another problem or options, or
+    the file is damaged.
+    """
+    for name, where in sources:
+        path = Path(out) / name
+        if not path.is_file():
+            continue
+        damaged = OutputError(f"{path}: not a file saved by casadi-design, or damaged; use --force "
+                              "to start over")
+        try:
+            record = json.loads(path.read_bytes().decode("utf-8"))
+            saved = record
+            for k in where:
+                saved = saved[k]
+            diff = [k for k in key if saved.get(k) != key[k]]
+        except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError):
+            raise damaged from None
+        if diff:
+            k = diff[0]
+            what = "the problem file changed" if k == "problem_sha256" else (
+                f"{k} was {saved.get(k)}, now {key[k]}")
+            raise OutputError(f"{path}: saved with other settings ({what}); resume with the same "
+                              "problem and options, or use --force to start over")
+        try:
+            return {(d["criterion"], d["m"]): design_from_record(d) for d in record["designs"]}
+        except (KeyError, TypeError, ValueError, AttributeError):
+            raise damaged from None
+    return {}
 
 
 def write_results(path: Path, problem: Problem, designs: list[Design],

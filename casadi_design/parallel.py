@@ -28,6 +28,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from concurrent.futures import InvalidStateError, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Self
 
@@ -42,6 +43,31 @@ from .solve import StartPlan, StartResult, make_design_solver, solve_start
 DASK_CONNECT_TIMEOUT_S = 5.0
 #: Problems (and their solvers) kept per worker process.
 CACHE_PROBLEMS = 4
+#: Times the starts of a design run again on fresh workers after a worker process was lost
+#: (a start is a pure function of its plan: the result is the same).
+RETRIES = 1
+
+
+class WorkerLost(DesignError):
+    """A worker process died (killed by a signal, out of memory, a crashed native library)
+    again after its starts were run once more; the message names the design."""
+
+
+def _signal_name(code: int | None) -> str:
+    """What an exit code of a worker process says (negative: the signal that killed it)."""
+    if code is None or code >= 0:
+        return "ended abruptly" if code is None else f"exited with code {code}"
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        name = f"signal {-code}"
+    memory = " (the kernel's out-of-memory killer sends it when memory runs out)" if -code == signal.SIGKILL else ""
+    return f"was killed by {name}{memory}"
+
+
+def _lost(criterion: str, m: int, what: str) -> WorkerLost:
+    return WorkerLost(f"criterion {criterion}, m = {m}: a worker process {what} while running this "
+                      "design's starts; give the workers more memory or fewer --jobs")
 
 def cpu_count() -> int:
     """CPUs this process may use (the default of ``--jobs``)."""
@@ -112,24 +138,44 @@ class ProcessExecutor:
         self._saved_env = {k: os.environ.get(k) for k in THREAD_VARIABLES}
         for k in THREAD_VARIABLES:
             os.environ.setdefault(k, "1")
-        self._pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_ignore_sigint)
+        self._pool = self._new_pool()
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_ignore_sigint)
         # Start the workers now (each imports this package, ~0.5 s) while the caller loads
         # the problem: one submit spawns one process.
-        for _ in range(jobs):
-            self._pool.submit(int)
+        for _ in range(self.jobs):
+            pool.submit(int)
+        return pool
+
+    def _exit_codes(self) -> list[int | None]:
+        return [p.exitcode for p in list((getattr(self._pool, "_processes", None) or {}).values())]
 
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
-        ref = ProblemRef.of(problem)
-        futures = [self._pool.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose)
-                   for Q0, F0 in plans]
-        try:
-            for f in futures:
-                yield f.result()
-        finally:
-            for f in futures:
-                f.cancel()
+        """The starts' results in the order of ``plans``. When a worker process dies, the pool
+        is started again and the starts not yet returned run once more (``RETRIES``); when it
+        dies again, :class:`WorkerLost`."""
+        ref, done, lost = ProblemRef.of(problem), 0, 0
+        while done < len(plans):
+            futures = [self._pool.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose)
+                       for Q0, F0 in plans[done:]]
+            try:
+                for f in futures:
+                    result = f.result()
+                    done += 1
+                    yield result
+            except BrokenProcessPool:
+                lost += 1
+                codes = [c for c in self._exit_codes() if c not in (None, 0)]
+                self._pool.shutdown(wait=True, cancel_futures=True)
+                if lost > RETRIES:
+                    raise _lost(criterion, m, _signal_name(codes[0] if codes else None) + ", twice") from None
+                self._pool = self._new_pool()
+            finally:
+                for f in futures:
+                    f.cancel()
 
     def close(self, interrupted: bool = False) -> None:
         """Shut the pool down; after Ctrl-C, end the workers at once (their starts are lost
@@ -197,12 +243,21 @@ class DaskExecutor:
 
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
+        """The starts' results in the order of ``plans``. The scheduler runs the start of a
+        worker that went away on another one; a start whose workers keep dying
+        (``distributed.scheduler.allowed-failures``) is :class:`WorkerLost`."""
+        from distributed import KilledWorker
+
         ref = ProblemRef.of(problem)
         futures = [self.client.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose, pure=False)
                    for Q0, F0 in plans]
         try:
             for f in futures:
-                yield f.result()
+                try:
+                    yield f.result()
+                except KilledWorker:
+                    raise _lost(criterion, m, "went away each time the Dask scheduler gave it one of "
+                                "the starts") from None
         finally:
             self.client.cancel([f for f in futures if not f.done()])
 

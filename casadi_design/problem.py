@@ -40,6 +40,11 @@ BYTES_PER_EXPERIMENT_L2 = 160_000
 BYTES_PER_TEST_POSE_L2 = 4_000
 #: Relative asymmetry accepted in a covariance matrix.
 SYMMETRY_RTOL = 1e-9
+#: Largest measurement noise std (m) and calibration load (N, N m) accepted: beyond them the
+#: value is a typing error (no tracker is that noisy, no rig that strong), and its square
+#: overflows the arithmetic.
+MAX_SIGMA_M = 1.0
+MAX_LOAD_N = 1e6
 
 SECTIONS: dict[str, set[str] | None] = {
     "": {"name", "description", "robot", "calibration", "measurement", "test_poses",
@@ -582,6 +587,9 @@ def _calibration(cal: _Reader) -> CalibrationSpec:
 def _measurement(meas: _Reader) -> MeasurementSpec:
     measured = meas.names("components", TWIST_ROWS, hint="e.g. components = [\"x\", \"y\", \"z\"]")
     sigma = meas.number("sigma_m", hint="the measurement noise std in m, e.g. 1e-4", positive=True)
+    if sigma > MAX_SIGMA_M:
+        raise meas.error(f"is {sigma:g} m, above {MAX_SIGMA_M:g} m (no tracker is that noisy)",
+                         "give the noise std in m, e.g. 1e-4 for 0.1 mm", "sigma_m")
     markers = meas.array("markers_m", (None, 3), None, hint="one row (x, y, z) in m per marker, in the measured frame")
     if markers is not None and len(markers) == 0:
         raise meas.error("is empty", "give one row (x, y, z) in m per marker, or remove it", "markers_m")
@@ -619,8 +627,9 @@ def _whitening(meas: _Reader, measured: tuple[str, ...], markers, sigma: float) 
     srad = meas.number("sigma_rad", None, hint="the orientation noise std in rad", positive=True)
     if axes is None and srad is None:
         return None
-    if axes is not None and not np.all(axes > 0):
-        raise meas.error(f"must be positive, got {axes.tolist()}", "give standard deviations in m", "sigma_axes_m")
+    if axes is not None and not np.all((axes > 0) & (axes <= MAX_SIGMA_M)):
+        raise meas.error(f"must be positive and at most {MAX_SIGMA_M:g} m, got {axes.tolist()}",
+                         "give standard deviations in m", "sigma_axes_m")
     std = [axes["xyz".index(c)] if axes is not None else sigma for _ in range(k) for c in pos] + [srad] * len(rot)
     return np.diag(sigma / np.array(std, dtype=float))
 
@@ -719,10 +728,16 @@ def _force(f: _Reader, nF: int) -> ForceSpec:
         vec = f.array("vector_N", (nF,), hint=f"{nF} wrench components, N (N m)")
         if not np.any(vec):
             raise f.error("is zero: a zero load identifies no compliance", "give the applied load", "vector_N")
+        if np.max(np.abs(vec)) > MAX_LOAD_N:
+            raise f.error(f"has {np.max(np.abs(vec)):g}, above {MAX_LOAD_N:g} N (N m)",
+                          "give the applied load in N and N m", "vector_N")
         if "magnitude_N" in f.table:
             raise f.error("is not used with mode = \"fixed\"", "remove it", "magnitude_N")
         return ForceSpec(mode, float(np.linalg.norm(vec)), _vec(vec), (), load_point)
     magnitude = f.number("magnitude_N", hint="the largest load the rig applies, N", positive=True)
+    if magnitude > MAX_LOAD_N:
+        raise f.error(f"is {magnitude:g} N, above {MAX_LOAD_N:g} N (100 t)", "give the largest load "
+                      "the rig applies in N, e.g. 100.0", "magnitude_N")
     if "vector_N" in f.table:
         raise f.error(f"is only used with mode = \"fixed\", not \"{mode}\"", "remove it", "vector_N")
     direction: Vec = ()

@@ -30,6 +30,8 @@ from .nlp import B0_at_test_poses, DesignNLP, build_nlp
 from .rules import joint_limits, plan_violations
 from .sampling import random_plan
 
+#: IPOPT statuses of a run stopped by one of its limits: the options were taken.
+LIMITS = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded", "Maximum_WallTime_Exceeded")
 #: For criteria marked ``polished``: the threshold on lambda_min / lambda_max of M below which
 #: a start first gets a few D-optimal iterations, and their number.
 POLISH_RCOND = 1e-6
@@ -84,7 +86,7 @@ def check_ipopt_options(problem: Problem) -> None:
         status = solver.stats()["return_status"]
     except RuntimeError as exc:
         status = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
-    if status not in (*CONVERGED, "Maximum_Iterations_Exceeded"):
+    if status not in (*CONVERGED, *LIMITS):
         raise ProblemError(f"{problem.path}: [solver].ipopt: IPOPT rejected the options {dict(options)} "
                            f"({status}); check the names and values against the IPOPT options reference")
 
@@ -228,10 +230,13 @@ def solve_design(
         counts: dict[str, int] = {}
         for r, reason in zip(records, why):
             counts[r.status + reason] = counts.get(r.status + reason, 0) + 1
+        timed_out = any("Time_Exceeded" in r.status for r in records)
         raise DesignError(
             f"{problem.path}: criterion {criterion}, m = {m}: none of {len(records)} starts converged "
             f"to a feasible plan (IPOPT: {', '.join(f'{k} x {v}' for k, v in counts.items())}); "
-            "raise [solver].starts or max_iter, or relax the constraints"
+            + ("raise [solver.ipopt] max_cpu_time / max_wall_time (or --ipopt max_cpu_time=...), "
+               "or remove them" if timed_out else
+               "raise [solver].starts or max_iter, or relax the constraints")
         )
     rec, Q, F, scores = best
     return Design(criterion, m, Q, F, scores, rec.status, tuple(records),

@@ -17,11 +17,9 @@ repetition (the paper: factor 2.5 from 1 to 5 experiments against sqrt(5) = 2.24
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -30,8 +28,6 @@ from .build import Problem
 from .campaign import Settings, check_m_values, run_campaign, total_starts
 from .criteria import CRITERIA
 from .design import Design
-from .errors import OutputError
-from .files import write_json
 from .results import design_from_record, design_record, results_dict
 from .sampling import random_plan
 from .solve import StartExecutor
@@ -182,60 +178,16 @@ def sweep_rows(sweep: Sweep) -> list[dict]:
 # --------------------------------------------------------------------------- files
 
 #: Name of the file that keeps the finished designs of an unfinished sweep, and the files a
-#: sweep resumes from (:func:`load_partial`).
+#: sweep resumes from (:func:`casadi_design.files.load_partial`: where their key is).
 PARTIAL_NAME = "sweep.partial.json"
 RESUME_FILES = (PARTIAL_NAME, "sweep.json")
-
-
-def sweep_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int], starts: int,
-              warm_start: bool, bound: tuple[int, int] = (0, 0)) -> dict:
-    """What a sweep's designs depend on (``bound``: exchange steps and pool of the approximate
-    designs); a resume must match it."""
-    return {"problem_sha256": problem.digest, "seed": problem.solver.seed,
-            "starts": starts, "warm_start": warm_start, "m": sorted(set(m_values)),
-            "criteria": list(criteria), "bound_steps_pool": list(bound)}
-
-
-def partial_record(path: Path, problem: Problem, key: dict, designs: list[Design]) -> None:
-    """Save the finished designs of a sweep, atomically (called after each design)."""
-    write_json(Path(path), {"format": "casadi-design sweep partial", "problem": problem.name,
-                            "key": key, "designs": [design_record(d) for d in designs]})
-
-
-def load_partial(out: Path, key: dict) -> dict[tuple[str, int], Design]:
-    """Finished designs of a sweep in ``out``: from ``sweep.partial.json``, else ``sweep.json``.
-
-    Raises OutputError when the saved sweep was made with another problem or options.
-    """
-    for name, where in ((PARTIAL_NAME, "key"), ("sweep.json", "sweep")):
-        path = Path(out) / name
-        if not path.is_file():
-            continue
-        damaged = OutputError(f"{path}: not a sweep saved by casadi-design, or damaged; use --force "
-                              "to start over")
-        try:
-            record = json.loads(path.read_bytes().decode("utf-8"))
-            saved = record[where] if where == "key" else record["sweep"]["key"]
-            diff = [k for k in key if saved.get(k) != key[k]]
-        except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError):
-            raise damaged from None
-        if diff:
-            k = diff[0]
-            what = "the problem file changed" if k == "problem_sha256" else (
-                f"{k} was {saved.get(k)}, now {key[k]}")
-            raise OutputError(f"{path}: saved with other settings ({what}); resume with the same "
-                              "problem and options, or use --force to start over")
-        try:
-            return {(d["criterion"], d["m"]): design_from_record(d) for d in record["designs"]}
-        except (KeyError, TypeError, ValueError, AttributeError):
-            raise damaged from None
-    return {}
+RESUME_KEYS = ((PARTIAL_NAME, ("key",)), ("sweep.json", ("sweep", "key")))
 
 
 def sweep_record(problem: Problem, sweep: Sweep, key: dict,
                  approx: dict[str, ApproximateDesign] | None = None) -> dict:
     """``sweep.json``: the results record of every design (and the approximate designs of
-    the bounds) plus the sweep's table and settings (``key``: :func:`sweep_key`)."""
+    the bounds) plus the sweep's table and settings (``key``: :func:`casadi_design.campaign.campaign_key`)."""
     record = results_dict(problem, list(sweep.designs.values()), approx)
     record["sweep"] = {
         "key": key,

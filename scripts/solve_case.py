@@ -2,7 +2,7 @@
 
 import sys
 
-from casadi_design.cli import main
+from casadi_design.launch import main
 
 if __name__ == "__main__":
     sys.exit(main(["solve", *sys.argv[1:]]))

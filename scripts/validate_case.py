@@ -5,7 +5,7 @@ A thin wrapper over ``casadi-design validate`` (see ``--help``).
 
 import sys
 
-from casadi_design.cli import main
+from casadi_design.launch import main
 
 if __name__ == "__main__":
     sys.exit(main(["validate", *sys.argv[1:]]))

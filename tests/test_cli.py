@@ -99,11 +99,11 @@ def test_console_script_is_declared_and_scripts_stay_thin():
     import tomllib
 
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert project["scripts"] == {"casadi-design": "casadi_design.cli:main"}
+    assert project["scripts"] == {"casadi-design": "casadi_design.launch:main"}
     assert any(d.startswith("tqdm") for d in project["dependencies"])
     assert project["optional-dependencies"]["dask"] == ["dask[distributed]>=2023.1"]
     src = (ROOT / "scripts" / "solve_case.py").read_text()
-    assert "from casadi_design.cli import main" in src and len(src.splitlines()) < 12
+    assert "from casadi_design.launch import main" in src and len(src.splitlines()) < 12
 
 
 def test_python_dash_m_runs_the_command():

@@ -21,7 +21,8 @@ from casadi_design.errors import OutputError
 from casadi_design.files import prepare_out, read_results, write_atomic, write_json
 from casadi_design.results import design_from_record, results_dict
 from casadi_design.solve import plan_scores
-from casadi_design.sweep import RESUME_FILES, Sweep, sweep_from_record, sweep_key, sweep_record
+from casadi_design.campaign import Settings, campaign_key
+from casadi_design.sweep import RESUME_FILES, Sweep, sweep_from_record, sweep_record
 from tests.conftest import PAPER
 
 HEADER = "q1_deg,q2_deg,fx_N,fy_N"
@@ -259,7 +260,7 @@ def test_sweep_record_with_nan_in_its_table_reads_back(tmp_path, paper, designs,
     """A sweep.json whose table has NaN cells reads back cell by cell, and its designs and
     reference design as they were, written by other tools (NaN, Infinity) or by us (null)."""
     sweep = Sweep((2,), ("D", "test-pose"), {(d.criterion, d.m): d for d in designs}, 1, False, designs[1])
-    written = sweep_record(paper, sweep, sweep_key(paper, sweep.criteria, sweep.m_values, 1, False))
+    written = sweep_record(paper, sweep, campaign_key(paper, sweep.criteria, sweep.m_values, Settings(1)))
     rows = written["sweep"]["rows"]
     rows[0]["seeded_best_max_error_mm"] = math.nan  # as when every seeded start failed
     rows[1]["repeat_best_single_pose_mm"] = math.nan  # as without a test-pose reference

@@ -23,13 +23,13 @@ import argparse
 import sys
 import threading
 
-from .. import interrupt
+from .. import files, interrupt
 from ..errors import DesignError, OutputError, ProblemError
+from ..launch import EXIT_INTERRUPTED
 from ..parallel import MissingExtraError
-from . import bound, evaluate, plot, solve, sweep, validate
+from . import bound, common, evaluate, plot, solve, sweep, validate
 
 EXIT_ERROR = 2
-EXIT_INTERRUPTED = 130
 #: The commands, in the order of ``--help``.
 COMMANDS = (solve, sweep, evaluate, plot, bound, validate)
 
@@ -61,12 +61,21 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if threading.current_thread() is threading.main_thread():
         interrupt.install()
+    files.start_log()
     try:
         args = build_parser().parse_args(argv)
         return args.run(args)
     except (ArgumentError, ProblemError, DesignError, OutputError, MissingExtraError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    except OSError as exc:  # a file operation the commands do not name themselves
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {where}{exc.strerror or exc}; check the path, the free space and the "
+              "permissions, then run the command again", file=sys.stderr)
+        return EXIT_ERROR
+    except common.Interrupted as exc:
+        print(exc, file=sys.stderr)
+        return EXIT_INTERRUPTED
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -7,13 +7,28 @@ commands that design plans), prints and writes. Nothing here computes.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 from ..build import Problem
-from ..campaign import Campaign, Settings, approximate, check_criteria, check_m_values, run_campaign, total_starts
+from ..campaign import (
+    Campaign,
+    Settings,
+    approximate,
+    campaign_key,
+    check_criteria,
+    check_m_values,
+    run_campaign,
+    total_starts,
+)
+from ..design import Design
+from ..files import make_folder
 from ..criteria import BOUND_CRITERIA, CRITERIA
-from ..errors import OutputError
-from ..parallel import cpu_count
+from ..errors import DesignError, OutputError
+from ..parallel import WorkerLost, cpu_count
+from ..problem import MAX_EXPERIMENTS
 
 #: Figure formats ``plot --format`` writes.
 FIGURE_FORMATS = ("png", "pdf", "svg")
@@ -47,13 +62,17 @@ def parse_m_values(text: str) -> list[int]:
             parts = [int(p) for p in text.split(":")]
             if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] < 1):
                 raise ValueError
-            values = list(range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1))
+            ends = parts[:2]
         else:
-            values = [int(v) for v in text.split(",") if v.strip()]
+            parts = ends = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise ValueError(
             f"--m takes a range first:last[:step] (e.g. 1:10) or integers separated by commas "
             f"(e.g. 1,2,5), got '{text}'") from None
+    if ends and max(ends) > MAX_EXPERIMENTS:  # before a range of that length is made
+        raise ValueError(f"--m {max(ends)} is above {MAX_EXPERIMENTS}, the most experiments a plan "
+                         f"may have; give fewer, e.g. --m 1:20")
+    values = list(range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1)) if ":" in text else parts
     if not values or any(v < 1 for v in values):
         raise ValueError(f"--m takes positive numbers of experiments, got '{text}'")
     return sorted(set(values))
@@ -220,25 +239,64 @@ def approximate_timed(args: argparse.Namespace, problem: Problem, criteria: list
     return approx
 
 
-def campaign(args: argparse.Namespace, label: str) -> tuple[Problem, Campaign, list[int]]:
+def campaign(args: argparse.Namespace, label: str,
+             partial: Path | None = None) -> tuple[Problem, Campaign, list[int]]:
     """Load the problem of ``args`` and run its campaign (:func:`run_campaign`) with the
     command line's criteria, m, starts, bound settings and executor, with a progress bar.
+    With ``partial``, each finished design is saved there at once (the command removes it
+    once its files are written) and ``--resume`` continues from it.
     Returns the problem, the campaign and the m of the Fig. 1 panels (``--fig-m``, checked
     before anything is solved)."""
+    from ..files import load_partial, partial_record
     from ..progress import progress_bar
 
     with executor(args) as ex:  # first: worker processes start while the problem loads
         problem = load(args)
         criteria, ms, settings = plan_request(args, problem)
         panels = fig_m(getattr(args, "fig_m", None), ms, problem.m_values)
+        key = campaign_key(problem, criteria, ms, settings)
+        resume = partial is not None and getattr(args, "resume", False)
+        saved = load_partial(partial.parent, key, ((partial.name, ("key",)),)) if resume else {}
+        if saved:
+            say(args, f"resuming: {len(saved)} of {len(ms) * len(criteria)} designs already in {partial}")
+        done = dict(saved)
+
+        def save(design: Design) -> None:
+            done[design.criterion, design.m] = design
+            if partial is not None:
+                make_folder(partial.parent)
+                partial_record(partial, problem, key, list(done.values()))
+
         approx = approximate_timed(args, problem, criteria, settings)
         bar = progress_bar(total_starts(criteria, ms, settings, approx), label, args.quiet)
-        try:
-            done = run_campaign(problem, criteria, ms, settings, approx=approx, executor=ex,
-                                progress=bar.update)
-        finally:
-            bar.close()
-    return problem, done, panels
+        with keeping(partial, lambda: len(done), len(ms) * len(criteria)), bar:
+            result = run_campaign(problem, criteria, ms, settings, approx=approx, executor=ex,
+                                  done=saved, on_design=save, progress=bar.update)
+    return problem, result, panels
+
+
+# --------------------------------------------------------------------------- stopped with designs kept
+
+class Interrupted(Exception):
+    """Ctrl-C stopped a command; the message says what was kept (exit code 130)."""
+
+
+@contextlib.contextmanager
+def keeping(partial: Path | None, finished: Callable[[], int], total: int) -> Iterator[None]:
+    """Run a campaign whose finished designs are saved in ``partial`` (None: without ``--out``):
+    Ctrl-C and a lost worker end the command with one line saying how many of ``total``
+    designs are kept there and how to continue."""
+    def kept() -> str:
+        where = (f"kept in {partial}; continue with the same command and --resume" if partial
+                 else "not kept (no --out)")
+        return f"{finished()} of {total} designs {where}"
+
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise Interrupted(f"interrupted: {kept()}") from None
+    except WorkerLost as exc:
+        raise DesignError(f"{exc}; {kept()}") from None
 
 
 # --------------------------------------------------------------------------- figures

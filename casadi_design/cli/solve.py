@@ -8,11 +8,13 @@ from pathlib import Path
 
 from ..build import Problem
 from ..campaign import Campaign
-from ..files import prepare_out, write_atomic
+from ..files import make_folder, prepare_out, write_atomic
 from ..tables import format_solver_lines, format_table
 from . import common
 
 HELP = "optimal plans for each criterion and m, and how accurate each is"
+#: The file that keeps the finished designs of an unfinished solve (``--resume``).
+PARTIAL_NAME = "solve.partial.json"
 DESCRIPTION = ("Design the optimal plans of a problem file for each criterion and number of "
                "experiments m; print the max error along the test poses (mm, Table 4) and solve "
                "statistics; with --out write results.json (SI units), fig1.png/pdf, "
@@ -24,13 +26,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("solve", help=HELP, description=DESCRIPTION)
     common.add_campaign(p, "numbers of experiments: 1,5 or a range 1:10 (default: [experiments].m)")
     common.add_output(p, "folder for results.json, fig1.png/pdf, plans/*.csv, report.md (created if missing)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted solve saved in --out (solve.partial.json; same "
+                        "problem and options)")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    out = prepare_out(args.out, args.force) if args.out is not None else None
-    problem, done, fig_m = common.campaign(args, "solve")
+    if args.resume and args.out is None:
+        raise common.OutputError("--resume needs the --out folder of the interrupted solve; add --out DIR")
+    out = prepare_out(args.out, args.force, args.resume, (PARTIAL_NAME,)) if args.out is not None else None
+    problem, done, fig_m = common.campaign(args, "solve", out / PARTIAL_NAME if out else None)
     designs = list(done.designs.values())
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
@@ -39,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
                f"total {wall:.2f} s for {len(designs)} designs {common.where(args)} (after imports)")
     if out:
         files = write_solve(out, problem, done, fig_m)
+        (out / PARTIAL_NAME).unlink(missing_ok=True)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {len(designs)} plans in {out / 'plans'}")
     return 0
@@ -51,7 +59,7 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
     from ..plotting import fig1, poses_figure, write_figures
 
     designs, first = list(done.designs.values()), done.criteria[0]
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     write_results(out / "results.json", problem, designs, done.approx)
     files = ["results.json"]
     files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))

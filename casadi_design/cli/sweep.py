@@ -4,26 +4,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
 from ..build import Problem
-from ..files import prepare_out, write_atomic
-from ..sweep import (
-    PARTIAL_NAME,
-    RESUME_FILES,
-    Sweep,
-    load_partial,
-    partial_record,
-    run_sweep,
-    sweep_key,
-    sweep_total_starts,
-)
+from ..campaign import campaign_key
+from ..files import load_partial, make_folder, partial_record, prepare_out, write_atomic
+from ..sweep import PARTIAL_NAME, RESUME_FILES, RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
 from ..tables import format_sweep_table
 from . import common
 
-EXIT_INTERRUPTED = 130
 HELP = "accuracy vs number of experiments m for each criterion"
 DESCRIPTION = ("Solve every (criterion, m) of a range of m with the seeded starts of `solve` plus a "
                "warm start from the previous m's plan; print max error (mm) vs m with the reference "
@@ -57,8 +47,10 @@ def run(args: argparse.Namespace) -> int:
     criteria, ms, settings = common.plan_request(args, problem, all_m=True)
     warm = not args.no_warm_start
     fig_m = common.fig_m(args.fig_m, ms, problem.m_values)
-    key = sweep_key(problem, criteria, ms, settings.starts, warm, (settings.bound_steps, settings.bound_pool))
-    done = load_partial(out, key) if args.resume else {}
+    common.say(args, f"sweep of {len(ms) * len(criteria)} designs ({len(criteria)} criteria x "
+                     f"{len(ms)} values of m, {ms[0]} to {ms[-1]})")
+    key = campaign_key(problem, criteria, ms, settings, warm)
+    done = load_partial(out, key, RESUME_KEYS) if args.resume else {}
     if args.resume:
         common.say(args, f"resuming: {len(done)} of {len(ms) * len(criteria)} designs already in {out}")
     saved = dict(done)
@@ -68,23 +60,15 @@ def run(args: argparse.Namespace) -> int:
         saved[design.criterion, design.m] = design
         bar.set_postfix_str(f"done: {design.criterion}, m = {design.m}")
         if partial is not None:
-            out.mkdir(parents=True, exist_ok=True)
+            make_folder(out)
             partial_record(partial, problem, key, list(saved.values()))
 
     approx = common.approximate_timed(args, problem, criteria, settings)
     bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm, approx), "sweep", args.quiet)
-    try:
+    with common.keeping(partial, lambda: len(saved), len(ms) * len(criteria)), bar:
         with common.executor(args) as executor:
             sweep = run_sweep(problem, criteria, ms, settings, warm_start=warm, done=done,
                               executor=executor, progress=bar.update, on_design=save, approx=approx)
-    except KeyboardInterrupt:
-        bar.close()
-        kept = (f"kept in {partial}; continue with the same command and --resume" if partial
-                else "not kept (no --out)")
-        print(f"interrupted: {len(saved)} of {len(ms) * len(criteria)} designs {kept}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    finally:
-        bar.close()
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
     print(format_sweep_table(sweep))
@@ -107,7 +91,7 @@ def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log
     from ..plotting import fig1, sweep_figure, write_figures
     from ..sweep import COLUMNS, sweep_record, sweep_rows
 
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     designs = list(sweep.designs.values())
     write_json(out / "sweep.json", sweep_record(problem, sweep, key, approx))
     write_table_csv(out / "sweep.csv", COLUMNS, sweep_rows(sweep))

@@ -1,0 +1,21 @@
+"""The ``casadi-design`` command's first instructions: from here on Ctrl-C ends the command
+with exit code 130 and one line, also while the package is still being imported (about a
+second: CasADi, Pinocchio, numpy)."""
+
+from __future__ import annotations
+
+import sys
+
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT).
+EXIT_INTERRUPTED = 130
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Import the command line and run it (:func:`casadi_design.cli.main`)."""
+    try:
+        from .cli import main as run
+
+        return run(argv)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
