@@ -4,6 +4,7 @@ second: CasADi, Pinocchio, numpy)."""
 
 from __future__ import annotations
 
+import os
 import sys
 
 #: Exit code of a command stopped by Ctrl-C (128 + SIGINT).
@@ -14,8 +15,11 @@ def main(argv: list[str] | None = None) -> int:
     """Import the command line and run it (:func:`casadi_design.cli.main`)."""
     try:
         from .cli import main as run
-
-        return run(argv)
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        print("interrupted", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        # Ctrl-C inside a native library's import can leave Python believing the signal went
+        # unhandled, and it would then end the process by SIGINT (status -2), not 130: nothing
+        # is open yet, so end here.
+        os._exit(EXIT_INTERRUPTED)
+    return run(argv)

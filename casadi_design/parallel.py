@@ -149,8 +149,9 @@ class ProcessExecutor:
             pool.submit(int)
         return pool
 
-    def _exit_codes(self) -> list[int | None]:
-        return [p.exitcode for p in list((getattr(self._pool, "_processes", None) or {}).values())]
+    def _processes(self) -> list:
+        """The pool's worker processes (``multiprocessing.Process``), to read how one ended."""
+        return list((getattr(self._pool, "_processes", None) or {}).values())
 
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
@@ -161,6 +162,7 @@ class ProcessExecutor:
         while done < len(plans):
             futures = [self._pool.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose)
                        for Q0, F0 in plans[done:]]
+            workers = self._processes()
             try:
                 for f in futures:
                     result = f.result()
@@ -168,8 +170,10 @@ class ProcessExecutor:
                     yield result
             except BrokenProcessPool:
                 lost += 1
-                codes = [c for c in self._exit_codes() if c not in (None, 0)]
                 self._pool.shutdown(wait=True, cancel_futures=True)
+                # the pool ends the other workers with SIGTERM once one is lost: name the first cause
+                codes = sorted((p.exitcode for p in workers if p.exitcode not in (None, 0)),
+                               key=lambda c: c == -signal.SIGTERM)
                 if lost > RETRIES:
                     raise _lost(criterion, m, _signal_name(codes[0] if codes else None) + ", twice") from None
                 self._pool = self._new_pool()

@@ -299,6 +299,17 @@ def keeping(partial: Path | None, finished: Callable[[], int], total: int) -> It
         raise DesignError(f"{exc}; {kept()}") from None
 
 
+@contextlib.contextmanager
+def kept_on_error(partial: Path) -> Iterator[None]:
+    """Write a command's files; when one cannot be written, the error also says that the
+    designs are kept in ``partial`` and how to continue."""
+    try:
+        yield
+    except OutputError as exc:
+        raise OutputError(f"{exc}; the designs are kept in {partial}: once fixed, run the same "
+                          "command with --resume to write the files without solving again") from None
+
+
 # --------------------------------------------------------------------------- figures
 
 def fig_m(requested: list[int] | None, available: list[int], preferred: tuple[int, ...]) -> list[int]:

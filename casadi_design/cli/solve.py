@@ -45,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     common.say(args, "", format_solver_lines(designs),
                f"total {wall:.2f} s for {len(designs)} designs {common.where(args)} (after imports)")
     if out:
-        files = write_solve(out, problem, done, fig_m)
+        with common.kept_on_error(out / PARTIAL_NAME):
+            files = write_solve(out, problem, done, fig_m)
         (out / PARTIAL_NAME).unlink(missing_ok=True)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {len(designs)} plans in {out / 'plans'}")

@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
     common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({settings.starts} seeded starts each"
                      f"{', plus one warm start for m after the first' if warm else ''}) {common.where(args)}")
     if out:
-        files = write_sweep(out, problem, sweep, fig_m, args.log, key, approx)
+        with common.kept_on_error(partial):
+            files = write_sweep(out, problem, sweep, fig_m, args.log, key, approx)
         if partial.exists():
             partial.unlink()
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "

@@ -1,0 +1,215 @@
+"""Faults a long study meets: a killed worker, a full disk, Ctrl-C at start-up, absurd ranges.
+
+Each ends the command with one line (exit 2, or 130 for Ctrl-C), names what is kept and how to
+continue, and leaves no half-written file. The killed workers are real: a start that kills its
+own process with SIGKILL, as the kernel's out-of-memory killer does.
+"""
+
+import errno
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from casadi_design import parallel
+from casadi_design.cli import main
+from casadi_design.errors import DesignError
+from casadi_design.parallel import DaskExecutor, ProcessExecutor, WorkerLost, run_start
+from casadi_design.solve import solve_design
+from tests.conftest import PAPER, ROOT
+
+#: A file whose absence makes the next start kill its worker (then the file exists).
+MARKER = "CASADI_DESIGN_TEST_KILL_MARKER"
+TINY = ["--starts", "2", "--bound-steps", "0", "--quiet"]
+
+
+def _die_once(*args):
+    """``run_start``, but the first start of the test kills its worker process."""
+    marker = Path(os.environ[MARKER])
+    if not marker.exists():
+        marker.touch()
+        os.kill(os.getpid(), signal.SIGKILL)
+    return run_start(*args)
+
+
+#: The m whose every start kills its worker process (:func:`_die_at_m`).
+KILL_M = "CASADI_DESIGN_TEST_KILL_M"
+
+
+def _die_at_m(ref, criterion, m, *args):
+    """``run_start``, but every start of a design with m = $KILL_M kills its worker process."""
+    if str(m) == os.environ[KILL_M]:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return run_start(ref, criterion, m, *args)
+
+
+@pytest.fixture
+def kill_at_m(monkeypatch):
+    """Every start of the designs with the m set by the returned function kills its worker."""
+    monkeypatch.setattr(parallel, "run_start", _die_at_m)
+    return lambda m: monkeypatch.setenv(KILL_M, str(m))
+
+
+def _same(a, b):
+    np.testing.assert_array_equal(a.Q, b.Q)
+    np.testing.assert_array_equal(a.F, b.F)
+    assert a.starts == b.starts
+
+
+@pytest.fixture
+def kill_once(tmp_path, monkeypatch):
+    monkeypatch.setenv(MARKER, str(tmp_path / "killed"))
+    monkeypatch.setattr(parallel, "run_start", _die_once)
+    return tmp_path / "killed"
+
+
+def test_a_killed_worker_is_replaced_and_its_starts_give_the_same_design(paper, kill_once):
+    serial = solve_design(paper, "D", 2, starts=4)
+    with ProcessExecutor(2) as ex:
+        again = solve_design(paper, "D", 2, starts=4, executor=ex)
+    assert kill_once.exists()  # a worker was killed
+    _same(again, serial)
+
+
+def test_a_worker_killed_twice_names_the_design_the_signal_and_what_is_kept(tmp_path, kill_at_m, capsys):
+    kill_at_m(2)
+    out = tmp_path / "sweep"
+    args = ["sweep", str(PAPER), "--m", "1:2", "--criteria", "test-pose,D", "--jobs", "2", *TINY]
+    assert main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert "criterion test-pose, m = 2: a worker process was killed by SIGKILL" in err[0]
+    assert "out-of-memory" in err[0] and "twice" in err[0]
+    assert f"2 of 4 designs kept in {out / 'sweep.partial.json'}; continue with the same command and --resume" in err[0]
+    kept = json.loads((out / "sweep.partial.json").read_text())["designs"]
+    assert [(d["criterion"], d["m"]) for d in kept] == [("test-pose", 1), ("D", 1)]
+    kill_at_m(1)  # the resumed sweep solves m = 2 only: m = 1 is kept
+    assert main([*args, "--out", str(out), "--resume"]) == 0
+    assert not (out / "sweep.partial.json").exists() and (out / "sweep.json").exists()
+
+
+def test_a_solve_keeps_what_it_finished_and_resumes(tmp_path, kill_at_m, capsys):
+    kill_at_m(2)
+    out = tmp_path / "solve"
+    args = ["solve", str(PAPER), "--m", "1,2", "--criteria", "D", "--jobs", "2", *TINY]
+    assert main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "criterion D, m = 2" in err and f"1 of 2 designs kept in {out / 'solve.partial.json'}" in err
+    kill_at_m(1)  # the resumed solve solves m = 2 only: m = 1 is kept
+    assert main([*args, "--out", str(out), "--resume"]) == 0
+    assert not (out / "solve.partial.json").exists()
+    kill_at_m(0)
+    fresh = tmp_path / "fresh"
+    assert main([*args, "--out", str(fresh)]) == 0
+    a, b = (json.loads((d / "results.json").read_text())["designs"] for d in (out, fresh))
+    assert [x["experiments"] for x in a] == [y["experiments"] for y in b]
+
+
+def test_dask_reschedules_the_start_of_a_worker_that_went_away(paper, kill_once):
+    distributed = pytest.importorskip("distributed")
+    serial = solve_design(paper, "D", 2, starts=4)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        again = solve_design(paper, "D", 2, starts=4, executor=DaskExecutor(client))
+    assert kill_once.exists()
+    _same(again, serial)
+
+
+def test_dask_workers_that_keep_dying_are_one_error(paper, kill_at_m):
+    distributed = pytest.importorskip("distributed")
+    kill_at_m(2)
+    import dask
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}), \
+            distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                     dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        with pytest.raises(WorkerLost, match="criterion D, m = 2: a worker process went away"):
+            solve_design(paper, "D", 2, starts=2, executor=DaskExecutor(client))
+    assert issubclass(WorkerLost, DesignError)  # the command prints it as one line
+
+
+_FDOPEN = os.fdopen
+
+
+class _FullDisk:
+    """A file object whose writes fail with ENOSPC from the ``after``-th file on (the disk
+    fills up while the command writes)."""
+
+    opened = 0
+
+    def __init__(self, fd, mode, after):
+        self.fh, self.fail = _FDOPEN(fd, mode), _FullDisk.opened >= after
+        _FullDisk.opened += 1
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.fh.close()
+
+    def write(self, data):
+        if self.fail:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return self.fh.write(data)
+
+
+def test_a_full_disk_is_one_line_naming_the_file_and_what_was_written(tmp_path, monkeypatch, capsys):
+    _FullDisk.opened = 0
+    # the disk fills up after solve.partial.json and results.json
+    monkeypatch.setattr(os, "fdopen", lambda fd, mode="r", *a, **k: _FullDisk(fd, mode, after=2))
+    out = tmp_path / "out"
+    assert main(["solve", str(PAPER), "--m", "1", "--criteria", "D", "--jobs", "1", *TINY, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    partial = out / "solve.partial.json"
+    assert err[0].startswith(f"error: {out / 'fig1.png'}: could not be written (No space left on device); "
+                             f"already written: {partial}, {out / 'results.json'}; free some disk space")
+    assert err[0].endswith(f"the designs are kept in {partial}: once fixed, run the same command with "
+                           "--resume to write the files without solving again")
+    assert not list(out.glob(".*.tmp"))  # no temporary file left
+    json.loads((out / "results.json").read_text())  # what was written is whole
+    monkeypatch.setattr(os, "fdopen", _FDOPEN)
+    assert main(["solve", str(PAPER), "--m", "1", "--criteria", "D", "--jobs", "1", *TINY, "--out", str(out),
+                 "--resume"]) == 0
+    assert (out / "fig1.png").exists() and not partial.exists()
+
+
+@pytest.mark.parametrize("delay_s", [0.2, 0.4, 0.7, 1.2])
+def test_ctrl_c_during_start_up_exits_130_with_one_line(tmp_path, delay_s):
+    """SIGINT while the package is still being imported (about a second), or just after."""
+    proc = subprocess.Popen([sys.executable, "-m", "casadi_design", "solve", str(PAPER), "--out",
+                             str(tmp_path / "out")], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(delay_s)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("interrupted"), err
+    assert len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("edit, option, match", [
+    (("sigma_m = 1.0e-4", "sigma_m = 1e300"), [], r"\[measurement\]\.sigma_m: is 1e\+300 m, above 1 m"),
+    (("magnitude_N = 100.0", "magnitude_N = 1e300"), [], r"\[experiments.force\]\.magnitude_N: is 1e\+300 N"),
+    (None, ["--out", "/proc/some_dir"], r"/proc/some_dir: the folder cannot be created .*; choose another --out"),
+    (None, ["--m", "1:100000"], r"--m 100000 is above 500, the most experiments a plan may have; give fewer"),
+    (None, ["--ipopt", "max_cpu_time=1e-9"], r"Maximum_CpuTime_Exceeded x 2\); raise \[solver.ipopt\] max_cpu_time"),
+])
+def test_absurd_ranges_are_one_line(tmp_path, capsys, edit, option, match):
+    path = PAPER
+    if edit is not None:
+        path = tmp_path / "case.toml"
+        text = PAPER.read_text()
+        assert edit[0] in text
+        path.write_text(text.replace(*edit))
+    assert main(["solve", str(path), "--jobs", "1", *TINY, *option]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    assert re.search(match, err[0]), err[0]
