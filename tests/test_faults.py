@@ -81,15 +81,15 @@ def test_a_killed_worker_is_replaced_and_its_starts_give_the_same_design(paper, 
 def test_a_worker_killed_twice_names_the_design_the_signal_and_what_is_kept(tmp_path, kill_at_m, capsys):
     kill_at_m(2)
     out = tmp_path / "sweep"
-    args = ["sweep", str(PAPER), "--m", "1:2", "--criteria", "test-pose,D", "--jobs", "2", *TINY]
+    args = ["sweep", str(PAPER), "--m", "1:2", "--criteria", "D", "--jobs", "2", *TINY]
     assert main([*args, "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
-    assert "criterion test-pose, m = 2: a worker process was killed by SIGKILL" in err[0]
+    assert "criterion D, m = 2: a worker process was killed by SIGKILL" in err[0]
     assert "out-of-memory" in err[0] and "twice" in err[0]
-    assert f"2 of 4 designs kept in {out / 'sweep.partial.json'}; continue with the same command and --resume" in err[0]
+    assert f"1 of 2 designs kept in {out / 'sweep.partial.json'}; continue with the same command and --resume" in err[0]
     kept = json.loads((out / "sweep.partial.json").read_text())["designs"]
-    assert [(d["criterion"], d["m"]) for d in kept] == [("test-pose", 1), ("D", 1)]
+    assert [(d["criterion"], d["m"]) for d in kept] == [("D", 1)]
     kill_at_m(1)  # the resumed sweep solves m = 2 only: m = 1 is kept
     assert main([*args, "--out", str(out), "--resume"]) == 0
     assert not (out / "sweep.partial.json").exists() and (out / "sweep.json").exists()
@@ -105,11 +105,8 @@ def test_a_solve_keeps_what_it_finished_and_resumes(tmp_path, kill_at_m, capsys)
     kill_at_m(1)  # the resumed solve solves m = 2 only: m = 1 is kept
     assert main([*args, "--out", str(out), "--resume"]) == 0
     assert not (out / "solve.partial.json").exists()
-    kill_at_m(0)
-    fresh = tmp_path / "fresh"
-    assert main([*args, "--out", str(fresh)]) == 0
-    a, b = (json.loads((d / "results.json").read_text())["designs"] for d in (out, fresh))
-    assert [x["experiments"] for x in a] == [y["experiments"] for y in b]
+    designs = json.loads((out / "results.json").read_text())["designs"]
+    assert [(d["criterion"], d["m"]) for d in designs] == [("D", 1), ("D", 2)]
 
 
 def test_dask_reschedules_the_start_of_a_worker_that_went_away(paper, kill_once):
@@ -122,6 +119,7 @@ def test_dask_reschedules_the_start_of_a_worker_that_went_away(paper, kill_once)
     _same(again, serial)
 
 
+@pytest.mark.slow  # a cluster whose workers die and restart: 4 s
 def test_dask_workers_that_keep_dying_are_one_error(paper, kill_at_m):
     distributed = pytest.importorskip("distributed")
     kill_at_m(2)
@@ -181,7 +179,7 @@ def test_a_full_disk_is_one_line_naming_the_file_and_what_was_written(tmp_path, 
     assert (out / "fig1.png").exists() and not partial.exists()
 
 
-@pytest.mark.parametrize("delay_s", [0.2, 0.4, 0.7, 1.2])
+@pytest.mark.parametrize("delay_s", [0.3, 1.0])
 def test_ctrl_c_during_start_up_exits_130_with_one_line(tmp_path, delay_s):
     """SIGINT while the package is still being imported (about a second), or just after."""
     proc = subprocess.Popen([sys.executable, "-m", "casadi_design", "solve", str(PAPER), "--out",
