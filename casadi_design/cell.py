@@ -229,9 +229,9 @@ def _onto_chain(robot: Robot, urdf: str, per_link: int, where: str) -> tuple[pin
     for c in capsules_from_geometry(urdf_model, geometry, per_link) if per_link else ():
         frame = urdf_model.frames[urdf_model.getFrameId(c.frame)]
         if frame.parentJoint in to_robot:
-            M = offsets[frame.parentJoint] * frame.placement
-            fitted.append(Capsule(robot.model.names[to_robot[frame.parentJoint]], M.act(np.array(c.a_m)),
-                                  M.act(np.array(c.b_m)), c.radius_m))
+            jMc = offsets[frame.parentJoint] * frame.placement
+            fitted.append(Capsule(robot.model.names[to_robot[frame.parentJoint]], jMc.act(np.array(c.a_m)),
+                                  jMc.act(np.array(c.b_m)), c.radius_m))
     return out, bodies, tuple(fitted)
 
 
@@ -257,8 +257,8 @@ def _check_geometry(robot: Robot, capsules, fitted, geometry, bodies, pairs: Pai
             out.addGeometryObject(pin.GeometryObject(go.name, go.parentJoint, 0, go.placement, go.geometry))
             labels.append(body)
     for c in capsules[len(fitted):] if meshes else capsules:
-        jid, M = carrier(model, c.frame)
-        out.addGeometryObject(_geometry_object(f"capsule:{c.frame}", jid, M, c))
+        jid, jMc = carrier(model, c.frame)
+        out.addGeometryObject(_geometry_object(f"capsule:{c.frame}", jid, jMc, c))
         labels.append(c.frame)
     robot_objects = len(labels)
     self_pairs = {frozenset((capsules[i].frame, capsules[j].frame)) for i, j in pairs.kept}
@@ -351,7 +351,7 @@ def world_capsules(cell: Cell, robot: Robot, q: np.ndarray) -> list[tuple[np.nda
     pin.forwardKinematics(robot.model, data, robot.full_q(np.asarray(q, dtype=float)))
     out = []
     for c in cell.capsules:
-        jid, M = carrier(robot.model, c.frame)
-        oMc = data.oMi[jid] * M
+        jid, jMc = carrier(robot.model, c.frame)
+        oMc = data.oMi[jid] * jMc
         out.append((oMc.act(np.array(c.a_m)), oMc.act(np.array(c.b_m)), c.radius_m, c.frame))
     return out

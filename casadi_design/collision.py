@@ -338,8 +338,8 @@ def _symbolic_joint_placement(robot: Robot, q: ca.SX, jid: int, memo: dict) -> t
     if jid not in memo:
         model = robot.model
         R, p = _symbolic_joint_placement(robot, q, model.parents[jid], memo)
-        M = model.jointPlacements[jid]
-        R, p = compose(R, p, ca.SX(M.rotation), ca.SX(M.translation))
+        pMj = model.jointPlacements[jid]
+        R, p = compose(R, p, ca.SX(pMj.rotation), ca.SX(pMj.translation))
         if jid in robot.joint_ids:
             axis, kind = joint_axis(model.joints[jid])
             qk = q[robot.joint_ids.index(jid)]
@@ -363,9 +363,9 @@ def _ends_symbolic(robot: Robot, capsules: Sequence[Capsule], q: ca.SX) -> Calla
     memo: dict = {}
 
     def ends(capsule: Capsule):
-        jid, M = carrier(robot.model, capsule.frame)
+        jid, jMc = carrier(robot.model, capsule.frame)
         R, p = _symbolic_joint_placement(robot, q, jid, memo)
-        return tuple(p + R @ ca.DM(M.act(np.array(x))) for x in (capsule.a_m, capsule.b_m))
+        return tuple(p + R @ ca.DM(jMc.act(np.array(x))) for x in (capsule.a_m, capsule.b_m))
 
     return ends
 
@@ -375,8 +375,8 @@ def _ends_numeric(robot: Robot, q: np.ndarray) -> Callable:
     pin.forwardKinematics(robot.model, data, robot.full_q(q))
 
     def ends(capsule: Capsule):
-        jid, M = carrier(robot.model, capsule.frame)
-        oMc = data.oMi[jid] * M
+        jid, jMc = carrier(robot.model, capsule.frame)
+        oMc = data.oMi[jid] * jMc
         return tuple(oMc.act(np.array(x)) for x in (capsule.a_m, capsule.b_m))
 
     return ends
@@ -523,7 +523,7 @@ def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: 
         out += [(g - clearance_m, f"link {names[k]} closer than {mm} to {obstacle.label}")
                 for g in obstacle.rows(a, b, capsules[k].radius_m, ops, dist, place)]
     for sight in sights:
-        jid, M = carrier(model, sight.frame, "line of sight")
+        jid, _ = carrier(model, sight.frame, "line of sight")
         excluded = (set(sight.excluded) if sight.excluded is not None
                     else {c.frame for c, j in zip(capsules, jids) if j == jid})
         reflector = ends(Capsule(sight.frame, sight.point_m, sight.point_m, 0.0))[0]
