@@ -16,6 +16,9 @@ import sys
 import threading
 from collections.abc import Iterator
 
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT).
+EXIT_INTERRUPTED = 130
+
 _HIT = threading.Event()
 
 

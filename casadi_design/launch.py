@@ -7,8 +7,7 @@ from __future__ import annotations
 import os
 import sys
 
-#: Exit code of a command stopped by Ctrl-C (128 + SIGINT).
-EXIT_INTERRUPTED = 130
+from .interrupt import EXIT_INTERRUPTED
 
 
 def main(argv: list[str] | None = None) -> int:

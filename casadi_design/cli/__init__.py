@@ -24,8 +24,8 @@ import sys
 import threading
 
 from .. import files, interrupt
+from ..interrupt import EXIT_INTERRUPTED
 from ..errors import DesignError, OutputError, ProblemError
-from ..launch import EXIT_INTERRUPTED
 from ..parallel import MissingExtraError
 from . import bound, common, evaluate, plot, solve, sweep, validate
 
