@@ -28,7 +28,7 @@ from .build import Problem
 from .cell import Clearance
 from .design import Design
 from .errors import ProblemError
-from .files import make_folder, write_atomic
+from .files import write_atomic
 from .problem import WRENCH_ROWS
 
 #: Largest disagreement (rad or m) between the two unit columns of one joint in a plan CSV.
@@ -96,7 +96,6 @@ def write_plan_csv(path: Path, problem: Problem, design: Design) -> None:
 
 def write_plans(out: Path, problem: Problem, designs: list[Design]) -> list[str]:
     """Each design's plan as ``out/plans/<criterion>_m<m>.csv``; returns the file names."""
-    make_folder(out / "plans")
     names = [f"plans/{d.criterion}_m{d.m}.csv" for d in designs]
     for name, d in zip(names, designs):
         write_plan_csv(out / name, problem, d)

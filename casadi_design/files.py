@@ -130,7 +130,8 @@ def _umask() -> int:
 
 
 def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename (never half-written).
+    """Write ``data`` to ``path`` through a temporary file and a rename (never half-written),
+    creating its folder when missing (:func:`make_folder`).
 
     The file gets the mode a plain ``open(path, "wb")`` gives a new file, ``0o666`` less the
     umask (the temporary file of :func:`tempfile.mkstemp` is ``0o600``).
@@ -143,6 +144,7 @@ def write_atomic(path: Path, data: bytes) -> None:
         file is left.
     """
     path = Path(path)
+    make_folder(path.parent)
     tmp = None
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

@@ -24,7 +24,6 @@ from ..campaign import (
     total_starts,
 )
 from ..design import Design
-from ..files import make_folder
 from ..criteria import BOUND_CRITERIA, CRITERIA
 from ..errors import DesignError, OutputError
 from ..parallel import WorkerLost, cpu_count
@@ -264,7 +263,6 @@ def campaign(args: argparse.Namespace, label: str,
         def save(design: Design) -> None:
             done[design.criterion, design.m] = design
             if partial is not None:
-                make_folder(partial.parent)
                 partial_record(partial, problem, key, list(done.values()))
 
         approx = approximate_timed(args, problem, criteria, settings)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import OutputError
-from ..files import make_folder, prepare_out, read_results, write_json
+from ..files import prepare_out, read_results, write_json
 from ..tables import format_measures
 from . import common
 
@@ -78,7 +78,6 @@ def run(args: argparse.Namespace) -> int:
     if out:
         from ..plotting import USER_STYLE, Band, bands_figure, write_figures
 
-        make_folder(out)
         write_json(out / "evaluation.json", {
             "problem": problem.name, "problem_file": problem.path, "plan_file": str(args.plan),
             "m": m, "units": {"q": "rad", "force": "N (N m for moments)", "errors": "m"},

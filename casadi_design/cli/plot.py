@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import OutputError
-from ..files import make_folder, read_results
+from ..files import read_results
 from . import common
 
 HELP = "redraw the figures from results.json or sweep.json"
@@ -50,7 +50,6 @@ def run(args: argparse.Namespace) -> int:
     existing = [t for t in targets if t.exists()]
     if existing and not args.force:
         raise OutputError(f"{existing[0]}: exists; add --force to overwrite it (or choose another --out)")
-    make_folder(out)
     for stem, fig in figures.items():
         save_figures(fig, [out / f"{stem}.{fmt}" for fmt in args.format])
     common.say(args, "wrote " + ", ".join(str(t) for t in targets))

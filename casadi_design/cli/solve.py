@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..build import Problem
 from ..campaign import Campaign
-from ..files import make_folder, prepare_out, write_atomic
+from ..files import prepare_out, write_atomic
 from ..tables import format_solver_lines, format_table
 from . import common
 
@@ -60,7 +60,6 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
     from ..plotting import fig1, poses_figure, write_figures
 
     designs, first = list(done.designs.values()), done.criteria[0]
-    make_folder(out)
     write_results(out / "results.json", problem, designs, done.approx)
     files = ["results.json"]
     files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))

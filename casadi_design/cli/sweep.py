@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..build import Problem
 from ..campaign import campaign_key
-from ..files import load_partial, make_folder, partial_record, prepare_out, write_atomic
+from ..files import load_partial, partial_record, prepare_out, write_atomic
 from ..sweep import PARTIAL_NAME, RESUME_FILES, RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
 from ..tables import format_sweep_table
 from . import common
@@ -60,7 +60,6 @@ def run(args: argparse.Namespace) -> int:
         saved[design.criterion, design.m] = design
         bar.set_postfix_str(f"done: {design.criterion}, m = {design.m}")
         if partial is not None:
-            make_folder(out)
             partial_record(partial, problem, key, list(saved.values()))
 
     approx = common.approximate_timed(args, problem, criteria, settings)
@@ -92,7 +91,6 @@ def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log
     from ..plotting import fig1, sweep_figure, write_figures
     from ..sweep import COLUMNS, sweep_record, sweep_rows
 
-    make_folder(out)
     designs = list(sweep.designs.values())
     write_json(out / "sweep.json", sweep_record(problem, sweep, key, approx))
     write_table_csv(out / "sweep.csv", COLUMNS, sweep_rows(sweep))

@@ -7,7 +7,7 @@ import argparse
 import math
 import time
 
-from ..files import make_folder, prepare_out
+from ..files import prepare_out
 from ..virtual import (
     ErrorSpreads,
     format_report,
@@ -103,7 +103,6 @@ def run(args: argparse.Namespace) -> int:
     if out is not None:
         from ..plotting import save_figures, validation_figure
 
-        make_folder(out)
         write_validation(out / "validation.json", validation, study)
         save_figures(validation_figure(validation), [out / f"validation.{suffix}" for suffix in ("png", "pdf")])
         print(f"wrote {out / 'validation.json'}, {out / 'validation.png'}, {out / 'validation.pdf'}")
