@@ -119,12 +119,14 @@ def test_solve_refuses_a_non_empty_output_folder(tmp_path, capsys):
     assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
 
 
-def test_validate_subcommand_runs_the_virtual_calibration(tmp_path, capsys):
+def test_validate_subcommand_runs_the_virtual_calibration(tmp_path, paper_solve_out, capsys):
+    """(validate without --results simulates solve's plans: tests/test_validate.py)"""
     bad = tmp_path / "bad.toml"
     bad.write_text(PAPER.read_text().replace("sigma_m = 1.0e-4", "sigma_m = 0.0"))
     assert main(["validate", str(bad)]) == 2
     assert "[measurement].sigma_m: must be positive" in capsys.readouterr().err
-    assert main(["validate", str(PAPER), "--starts", "2", "--jobs", "1", "--bound-steps", "0", "--trials", "50", "--out", str(tmp_path / "v")]) == 0
+    assert main(["validate", str(PAPER), "--results", str(paper_solve_out / "results.json"), "--trials", "50",
+                 "--out", str(tmp_path / "v")]) == 0
     out = capsys.readouterr().out
     assert "ranking by the measure ['test-pose', 'D', 'E'], by simulation" in out
     assert (tmp_path / "v" / "validation.json").exists()
