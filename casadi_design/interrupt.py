@@ -33,6 +33,12 @@ def install() -> None:
     signal.signal(signal.SIGINT, _handler)
 
 
+def pressed() -> bool:
+    """Whether Ctrl-C was pressed since :func:`install` (CasADi may have turned the
+    ``KeyboardInterrupt`` of a Python callback into its own ``RuntimeError``)."""
+    return _HIT.is_set()
+
+
 @contextlib.contextmanager
 def solver_call() -> Iterator[None]:
     """Run a CasADi solver call; raise ``KeyboardInterrupt`` after it if Ctrl-C was pressed.

@@ -7,18 +7,26 @@ from __future__ import annotations
 import os
 import sys
 
+from . import interrupt
 from .interrupt import EXIT_INTERRUPTED
+
+
+def _interrupted() -> None:
+    print("interrupted", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    # Ctrl-C inside a native library's import can leave Python believing the signal went
+    # unhandled, and it would then end the process by SIGINT (status -2), not 130: nothing
+    # is open yet, so end here.
+    os._exit(EXIT_INTERRUPTED)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Import the command line and run it (:func:`casadi_design.cli.main`)."""
+    interrupt.install()  # records Ctrl-C: Python drops the KeyboardInterrupt of some import hooks
     try:
         from .cli import main as run
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr, flush=True)
-        sys.stdout.flush()
-        # Ctrl-C inside a native library's import can leave Python believing the signal went
-        # unhandled, and it would then end the process by SIGINT (status -2), not 130: nothing
-        # is open yet, so end here.
-        os._exit(EXIT_INTERRUPTED)
+        _interrupted()
+    if interrupt.pressed():
+        _interrupted()
     return run(argv)

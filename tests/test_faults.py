@@ -177,7 +177,7 @@ def test_a_full_disk_is_one_line_naming_the_file_and_what_was_written(tmp_path, 
     assert (out / "fig1.png").exists() and not partial.exists()
 
 
-@pytest.mark.parametrize("delay_s", [0.3, 1.0])
+@pytest.mark.parametrize("delay_s", [0.3, 0.8, 1.1])
 def test_ctrl_c_during_start_up_exits_130_with_one_line(tmp_path, delay_s):
     """SIGINT while the package is still being imported (about a second), or just after."""
     proc = subprocess.Popen([sys.executable, "-m", "casadi_design", "solve", str(PAPER), "--out",
@@ -189,6 +189,7 @@ def test_ctrl_c_during_start_up_exits_130_with_one_line(tmp_path, delay_s):
     assert proc.returncode == 130, err
     assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("interrupted"), err
     assert len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out" / "results.json").exists()
 
 
 @pytest.mark.parametrize("edit, option, match", [

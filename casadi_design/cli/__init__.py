@@ -79,6 +79,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except Exception:
+        if not interrupt.pressed():  # a bug: its traceback is the report
+            raise
+        # Ctrl-C inside a CasADi call outside a solve (building a solver runs Python callbacks)
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":
