@@ -45,7 +45,7 @@ def solve_all(problem):
 
 
 def cli(argv):
-    """``casadi-design validate ARGV`` as cli.py runs it: parse with :func:`add_arguments`, then
+    """``casadi-design validate ARGV`` as the command line runs it: parse with :func:`add_arguments`, then
     :func:`run` (which raises ProblemError / DesignError / OutputError for the CLI to print)."""
     parser = argparse.ArgumentParser(prog="casadi-design validate")
     add_arguments(parser)
