@@ -144,9 +144,17 @@ class ProcessExecutor:
         pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_ignore_sigint)
         # Start the workers now (each imports this package, ~0.5 s) while the caller loads
-        # the problem: one submit spawns one process.
-        for _ in range(self.jobs):
-            pool.submit(int)
+        # the problem: one submit spawns one process. Ctrl-C waits until every worker is the
+        # pool's (one caught half-started would be left behind, printing a traceback).
+        blocked = threading.current_thread() is threading.main_thread()
+        if blocked:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            for _ in range(self.jobs):
+                pool.submit(int)
+        finally:
+            if blocked:
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         return pool
 
     def _processes(self) -> list:
@@ -193,8 +201,11 @@ class ProcessExecutor:
             threading.excepthook = lambda args: (None if issubclass(args.exc_type, InvalidStateError)
                                                  else hook(args))
             try:
-                for proc in list(getattr(self._pool, "_processes", {}).values()):
-                    proc.terminate()
+                workers = self._processes()
+                for proc in workers:  # ended before the pool's queues go (a worker still
+                    proc.kill()       # starting would read them and print a traceback)
+                for proc in workers:
+                    proc.join(timeout=5)
                 self._pool.shutdown(wait=True, cancel_futures=True)
             finally:
                 threading.excepthook = hook
