@@ -25,6 +25,7 @@ from ..campaign import (
 )
 from ..design import Design
 from ..criteria import BOUND_CRITERIA, CRITERIA
+from .. import interrupt
 from ..errors import DesignError, OutputError
 from ..parallel import WorkerLost, cpu_count
 from ..problem import MAX_EXPERIMENTS
@@ -295,6 +296,11 @@ def keeping(partial: Path | None, finished: Callable[[], int], total: int) -> It
         raise Interrupted(f"interrupted: {kept()}") from None
     except WorkerLost as exc:
         raise DesignError(f"{exc}; {kept()}") from None
+    except Exception:
+        if not interrupt.pressed():
+            raise
+        # Ctrl-C while CasADi built a solver: its callbacks' KeyboardInterrupt became a RuntimeError
+        raise Interrupted(f"interrupted: {kept()}") from None
 
 
 @contextlib.contextmanager
