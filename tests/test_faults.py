@@ -219,6 +219,7 @@ def test_ctrl_c_turned_into_a_casadi_error_still_keeps_the_designs(tmp_path):
     from casadi_design.cli import common
 
     partial = tmp_path / "sweep.partial.json"
+    handler = signal.getsignal(signal.SIGINT)
     interrupt.install()
     try:
         interrupt._HIT.set()
@@ -231,4 +232,4 @@ def test_ctrl_c_turned_into_a_casadi_error_still_keeps_the_designs(tmp_path):
                 raise RuntimeError("Error in Function::factory")
     finally:
         interrupt._HIT.clear()
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, handler)
