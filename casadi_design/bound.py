@@ -453,19 +453,28 @@ _COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
 KEEP_COMPUTED = 32
 
 
-def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS,
-                        pool: int = POOL_SIZE) -> dict[str, ApproximateDesign]:
-    """The approximate design of each of ``criteria`` that has a bound, with ``steps`` exchange
-    steps at most, a first pool of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE``
-    times as many for the search of max d; none when ``steps`` is 0."""
-    out = {}
-    for c in criteria:
-        if c in BOUND_CRITERIA and steps > 0:
-            key = (problem.digest, c, steps, pool)
-            if key not in _COMPUTED:
-                _COMPUTED[key] = approximate_design(problem, c, iterations=steps, pool_size=pool,
-                                                    sample_size=pool * SAMPLE_SIZE // POOL_SIZE)
-                while len(_COMPUTED) > KEEP_COMPUTED:
-                    _COMPUTED.pop(next(iter(_COMPUTED)))
-            out[c] = _COMPUTED[key]
-    return out
+def approximate_one(problem: Problem, criterion: str, steps: int, pool: int) -> ApproximateDesign:
+    """The approximate design of ``criterion`` with ``steps`` exchange steps at most, a first
+    pool of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE`` times as many for
+    the search of max d."""
+    return approximate_design(problem, criterion, iterations=steps, pool_size=pool,
+                              sample_size=pool * SAMPLE_SIZE // POOL_SIZE)
+
+
+def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,
+                        executor=None) -> dict[str, ApproximateDesign]:
+    """The approximate design (:func:`approximate_one`) of each of ``criteria`` that has a
+    bound; none when ``steps`` is 0. ``executor`` (:mod:`casadi_design.parallel`) computes
+    those not computed yet in this process at the same time, one per worker; None: here, one
+    after the other. The result is the same either way."""
+    wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
+    key = {c: (problem.digest, c, steps, pool) for c in wanted}
+    missing = [c for c in wanted if key[c] not in _COMPUTED]
+    if missing:
+        found = (executor.map_approximate(problem, missing, steps, pool) if executor is not None
+                 else (approximate_one(problem, c, steps, pool) for c in missing))
+        for c, a in zip(missing, found):
+            _COMPUTED[key[c]] = a
+        while len(_COMPUTED) > KEEP_COMPUTED:
+            _COMPUTED.pop(next(iter(_COMPUTED)))
+    return {c: _COMPUTED[key[c]] for c in wanted}

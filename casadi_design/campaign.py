@@ -100,10 +100,11 @@ def check_m_values(problem: Problem, m_values: Iterable[int]) -> None:
             f"m >= {problem.m_min} experiments; start the range at {problem.m_min}")
 
 
-def approximate(problem: Problem, criteria: Iterable[str], settings: Settings) -> dict[str, ApproximateDesign]:
+def approximate(problem: Problem, criteria: Iterable[str], settings: Settings,
+                executor: StartExecutor | None = None) -> dict[str, ApproximateDesign]:
     """The approximate designs of the criteria that have a bound (none when
-    ``settings.bound_steps`` is 0)."""
-    return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool)
+    ``settings.bound_steps`` is 0), one per worker of ``executor`` at the same time."""
+    return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool, executor)
 
 
 def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings,
@@ -141,7 +142,7 @@ def run_campaign(
     criteria, ms = tuple(criteria), tuple(sorted(set(m_values)))
     check_criteria(problem, criteria)
     check_m_values(problem, ms)
-    approx = approximate(problem, criteria, settings) if approx is None else approx
+    approx = approximate(problem, criteria, settings, executor) if approx is None else approx
     designs: dict[tuple[str, int], Design] = dict(done or {})
     B0 = B0_at_test_poses(problem)
     for m in ms:

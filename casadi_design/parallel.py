@@ -26,7 +26,7 @@ import os
 import signal
 import threading
 from collections import OrderedDict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import InvalidStateError, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -34,9 +34,11 @@ from typing import Any, Self
 
 import numpy as np
 
+from .bound import ApproximateDesign, approximate_one
 from .build import Problem, build_problem
 from .errors import DesignError
 from .problem import ProblemSpec
+from .threads import single_threaded
 from .solve import StartPlan, StartResult, make_design_solver, solve_start
 
 #: Seconds to wait for a Dask scheduler before giving up.
@@ -65,9 +67,9 @@ def _signal_name(code: int | None) -> str:
     return f"was killed by {name}{memory}"
 
 
-def _lost(criterion: str, m: int, what: str) -> WorkerLost:
-    return WorkerLost(f"criterion {criterion}, m = {m}: a worker process {what} while running this "
-                      "design's starts; give the workers more memory or fewer --jobs")
+def _lost(what: str, how: str) -> WorkerLost:
+    return WorkerLost(f"{what}: a worker process {how} while running it; give the workers more "
+                      "memory or fewer --jobs")
 
 def cpu_count() -> int:
     """CPUs this process may use (the default of ``--jobs``)."""
@@ -104,6 +106,12 @@ def _cached(ref: ProblemRef) -> tuple[Problem, dict]:
     return _PROBLEMS[ref.key]
 
 
+def run_approximate(ref: ProblemRef, criterion: str, steps: int, pool: int) -> ApproximateDesign:
+    """One approximate design, in a worker (:func:`casadi_design.bound.approximate_one`)."""
+    with _LOCK:
+        return approximate_one(_cached(ref)[0], criterion, steps, pool)
+
+
 def run_start(ref: ProblemRef, criterion: str, m: int, B0: np.ndarray, Q0: np.ndarray,
               F0: np.ndarray, verbose: bool = False) -> StartResult:
     """One start, in a worker: rebuild (or reuse) the problem and NLP, then solve."""
@@ -121,10 +129,6 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-#: Thread counts of the BLAS/OpenMP libraries, set to 1 in worker processes unless the user set
-#: them: the parallelism is across starts, and BLAS threads of several processes fighting for
-#: the same cores made a 2-process run no faster than a serial one.
-THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 class ProcessExecutor:
@@ -134,10 +138,9 @@ class ProcessExecutor:
         if jobs < 1:
             raise ValueError(f"--jobs: expected a positive number of processes, got {jobs}")
         self.jobs = jobs
-        # Workers are spawned on demand and inherit os.environ then: keep the setting until close.
-        self._saved_env = {k: os.environ.get(k) for k in THREAD_VARIABLES}
-        for k in THREAD_VARIABLES:
-            os.environ.setdefault(k, "1")
+        # Workers are spawned on demand and inherit os.environ then: keep the setting until close
+        # (the command set it already: casadi_design.launch; a library caller may not have).
+        self._saved_env = single_threaded()
         self._pool = self._new_pool()
 
     def _new_pool(self) -> ProcessPoolExecutor:
@@ -161,15 +164,13 @@ class ProcessExecutor:
         """The pool's worker processes (``multiprocessing.Process``), to read how one ended."""
         return list((getattr(self._pool, "_processes", None) or {}).values())
 
-    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
-        """The starts' results in the order of ``plans``. When a worker process dies, the pool
-        is started again and the starts not yet returned run once more (``RETRIES``); when it
-        dies again, :class:`WorkerLost`."""
-        ref, done, lost = ProblemRef.of(problem), 0, 0
-        while done < len(plans):
-            futures = [self._pool.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose)
-                       for Q0, F0 in plans[done:]]
+    def _map(self, fn: Callable, calls: Sequence[tuple], what: str) -> Iterator[Any]:
+        """``fn(*args)`` for each of ``calls`` on the workers, results in their order. When a
+        worker process dies, the pool is started again and the calls not yet returned run
+        once more (``RETRIES``); when it dies again, :class:`WorkerLost` naming ``what``."""
+        done, lost = 0, 0
+        while done < len(calls):
+            futures = [self._pool.submit(fn, *args) for args in calls[done:]]
             workers = self._processes()
             try:
                 for f in futures:
@@ -183,11 +184,25 @@ class ProcessExecutor:
                 codes = sorted((p.exitcode for p in workers if p.exitcode not in (None, 0)),
                                key=lambda c: c == -signal.SIGTERM)
                 if lost > RETRIES:
-                    raise _lost(criterion, m, _signal_name(codes[0] if codes else None) + ", twice") from None
+                    raise _lost(what, _signal_name(codes[0] if codes else None) + ", twice") from None
                 self._pool = self._new_pool()
             finally:
                 for f in futures:
                     f.cancel()
+
+    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
+        """The starts' results in the order of ``plans`` (a lost worker: :meth:`_map`)."""
+        ref = ProblemRef.of(problem)
+        yield from self._map(run_start, [(ref, criterion, m, B0, Q0, F0, verbose) for Q0, F0 in plans],
+                             f"criterion {criterion}, m = {m}")
+
+    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
+                        pool: int) -> Iterator[ApproximateDesign]:
+        """The approximate design of each of ``criteria``, one per worker at the same time."""
+        ref = ProblemRef.of(problem)
+        yield from self._map(run_approximate, [(ref, c, steps, pool) for c in criteria],
+                             f"the approximate designs of {', '.join(criteria)}")
 
     def close(self, interrupted: bool = False) -> None:
         """Shut the pool down; after Ctrl-C, end the workers at once (their starts are lost
@@ -261,18 +276,28 @@ class DaskExecutor:
         """The starts' results in the order of ``plans``. The scheduler runs the start of a
         worker that went away on another one; a start whose workers keep dying
         (``distributed.scheduler.allowed-failures``) is :class:`WorkerLost`."""
+        ref = ProblemRef.of(problem)
+        yield from self._map(run_start, [(ref, criterion, m, B0, Q0, F0, verbose) for Q0, F0 in plans],
+                             f"criterion {criterion}, m = {m}")
+
+    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
+                        pool: int) -> Iterator[ApproximateDesign]:
+        """The approximate design of each of ``criteria``, one per worker at the same time."""
+        ref = ProblemRef.of(problem)
+        yield from self._map(run_approximate, [(ref, c, steps, pool) for c in criteria],
+                             f"the approximate designs of {', '.join(criteria)}")
+
+    def _map(self, fn: Callable, calls: Sequence[tuple], what: str) -> Iterator[Any]:
+        """``fn(*args)`` for each of ``calls`` on the cluster, results in their order."""
         from distributed import KilledWorker
 
-        ref = ProblemRef.of(problem)
-        futures = [self.client.submit(run_start, ref, criterion, m, B0, Q0, F0, verbose, pure=False)
-                   for Q0, F0 in plans]
+        futures = [self.client.submit(fn, *args, pure=False) for args in calls]
         try:
             for f in futures:
                 try:
                     yield f.result()
                 except KilledWorker:
-                    raise _lost(criterion, m, "went away each time the Dask scheduler gave it one of "
-                                "the starts") from None
+                    raise _lost(what, "went away each time the Dask scheduler gave it this work") from None
         finally:
             self.client.cancel([f for f in futures if not f.done()])
 

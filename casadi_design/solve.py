@@ -49,6 +49,9 @@ class StartExecutor(Protocol):
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]: ...
 
+    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
+                        pool: int) -> Iterator: ...
+
 
 def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
     """The generator of a design's starts: depends on ``seed``, ``criterion`` and ``m`` only."""

@@ -8,8 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from casadi_design.build import build_problem, load_problem
-from casadi_design.problem import parse_problem
+from casadi_design.threads import single_threaded
+
+single_threaded()  # as the command does, before numpy and CasADi load (casadi_design.launch)
+
+from casadi_design.build import build_problem, load_problem  # noqa: E402
+from casadi_design.problem import parse_problem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "problems" / "paper_planar_2r.toml"

@@ -132,3 +132,27 @@ def test_dask_scheduler_option_of_the_command_equals_a_serial_run(tmp_path):
     a, b = (json.loads((tmp_path / d / "results.json").read_text())["designs"] for d in ("serial", "dask"))
     for x, y in zip(a, b):
         assert x["experiments"] == y["experiments"] and x["solver"]["per_start"] == y["solver"]["per_start"]
+
+
+def test_the_command_gives_the_same_numbers_for_any_jobs(tmp_path, monkeypatch):
+    """``--jobs 1`` (everything in this process) and ``--jobs 2`` (starts and approximate
+    designs on workers) write the same results.json, bounds included: one thread for BLAS and
+    OpenMP in every process (casadi_design.threads)."""
+    import json
+
+    from casadi_design import bound
+
+    args = ["solve", str(PAPER), "--m", "1,3", "--criteria", "test-pose,D", "--starts", "3",
+            "--bound-steps", "2", "--quiet"]
+    records = []
+    for jobs in (1, 2):
+        monkeypatch.setattr(bound, "_COMPUTED", {})  # the approximate designs computed again
+        assert main([*args, "--jobs", str(jobs), "--out", str(tmp_path / f"jobs{jobs}")]) == 0
+        records.append(json.loads((tmp_path / f"jobs{jobs}" / "results.json").read_text()))
+
+    def numbers(record):
+        designs = [{k: v for k, v in d.items() if k != "solver"} | {"per_start": d["solver"]["per_start"]}
+                   for d in record["designs"]]
+        return designs, [{k: v for k, v in a.items() if k != "wall_s"} for a in record["approximate_designs"]]
+
+    assert numbers(records[0]) == numbers(records[1])

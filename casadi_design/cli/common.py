@@ -228,11 +228,12 @@ def plan_request(args: argparse.Namespace, problem: Problem, all_m: bool = False
     return criteria, ms, settings
 
 
-def approximate_timed(args: argparse.Namespace, problem: Problem, criteria: list[str], settings: Settings) -> dict:
-    """The approximate designs (:func:`casadi_design.campaign.approximate`), with a line saying
-    how long they took."""
+def approximate_timed(args: argparse.Namespace, problem: Problem, criteria: list[str], settings: Settings,
+                      ex=None) -> dict:
+    """The approximate designs (:func:`casadi_design.campaign.approximate`, on the workers of
+    the executor ``ex``), with a line saying how long they took."""
     t0 = time.perf_counter()
-    approx = approximate(problem, criteria, settings)
+    approx = approximate(problem, criteria, settings, ex)
     if approx:
         say(args, f"approximate designs of {', '.join(approx)}: {time.perf_counter() - t0:.1f} s "
                   f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})")
@@ -266,7 +267,7 @@ def campaign(args: argparse.Namespace, label: str,
             if partial is not None:
                 partial_record(partial, problem, key, list(done.values()))
 
-        approx = approximate_timed(args, problem, criteria, settings)
+        approx = approximate_timed(args, problem, criteria, settings, ex)
         bar = progress_bar(total_starts(criteria, ms, settings, approx), label, args.quiet)
         with keeping(partial, lambda: len(done), len(ms) * len(criteria)), bar:
             result = run_campaign(problem, criteria, ms, settings, approx=approx, executor=ex,

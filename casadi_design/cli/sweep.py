@@ -62,10 +62,10 @@ def run(args: argparse.Namespace) -> int:
         if partial is not None:
             partial_record(partial, problem, key, list(saved.values()))
 
-    approx = common.approximate_timed(args, problem, criteria, settings)
-    bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm, approx), "sweep", args.quiet)
-    with common.keeping(partial, lambda: len(saved), len(ms) * len(criteria)), bar:
-        with common.executor(args) as executor:
+    with common.keeping(partial, lambda: len(saved), len(ms) * len(criteria)), common.executor(args) as executor:
+        approx = common.approximate_timed(args, problem, criteria, settings, executor)
+        bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm, approx), "sweep", args.quiet)
+        with bar:
             sweep = run_sweep(problem, criteria, ms, settings, warm_start=warm, done=done,
                               executor=executor, progress=bar.update, on_design=save, approx=approx)
     wall = time.perf_counter() - t0
