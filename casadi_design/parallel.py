@@ -129,9 +129,30 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+class _Workers:
+    """What an executor runs on its workers, through its own ``_map(fn, calls, what)``:
+    ``fn(*args)`` for each of ``calls``, results in their order (``what`` names the work in the
+    message of a lost worker)."""
+
+    def _map(self, fn: Callable, calls: Sequence[tuple], what: str) -> Iterator[Any]:
+        raise NotImplementedError
+
+    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
+        """The starts' results in the order of ``plans``."""
+        ref = ProblemRef.of(problem)
+        yield from self._map(run_start, [(ref, criterion, m, B0, Q0, F0, verbose) for Q0, F0 in plans],
+                             f"criterion {criterion}, m = {m}")
+
+    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
+                        pool: int) -> Iterator[ApproximateDesign]:
+        """The approximate design of each of ``criteria``, one per worker at the same time."""
+        ref = ProblemRef.of(problem)
+        yield from self._map(run_approximate, [(ref, c, steps, pool) for c in criteria],
+                             f"the approximate designs of {', '.join(criteria)}")
 
 
-class ProcessExecutor:
+class ProcessExecutor(_Workers):
     """Starts on ``jobs`` local worker processes (spawned, single-threaded BLAS)."""
 
     def __init__(self, jobs: int):
@@ -190,20 +211,6 @@ class ProcessExecutor:
                 for f in futures:
                     f.cancel()
 
-    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
-        """The starts' results in the order of ``plans`` (a lost worker: :meth:`_map`)."""
-        ref = ProblemRef.of(problem)
-        yield from self._map(run_start, [(ref, criterion, m, B0, Q0, F0, verbose) for Q0, F0 in plans],
-                             f"criterion {criterion}, m = {m}")
-
-    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
-                        pool: int) -> Iterator[ApproximateDesign]:
-        """The approximate design of each of ``criteria``, one per worker at the same time."""
-        ref = ProblemRef.of(problem)
-        yield from self._map(run_approximate, [(ref, c, steps, pool) for c in criteria],
-                             f"the approximate designs of {', '.join(criteria)}")
-
     def close(self, interrupted: bool = False) -> None:
         """Shut the pool down; after Ctrl-C, end the workers at once (their starts are lost
         anyway) instead of waiting for the starts they run."""
@@ -252,7 +259,7 @@ def _import_distributed() -> Any:
     return distributed
 
 
-class DaskExecutor:
+class DaskExecutor(_Workers):
     """Starts on a Dask cluster: ``address`` of its scheduler (``tcp://host:8786``) or a
     ``distributed.Client`` (left open on close when given)."""
 
@@ -270,22 +277,6 @@ class DaskExecutor:
                     f"{DASK_CONNECT_TIMEOUT_S:g} s ({reason}); check the address (tcp://host:8786) "
                     "or start one with `dask scheduler`") from None
             self._own = True
-
-    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                   plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
-        """The starts' results in the order of ``plans``. The scheduler runs the start of a
-        worker that went away on another one; a start whose workers keep dying
-        (``distributed.scheduler.allowed-failures``) is :class:`WorkerLost`."""
-        ref = ProblemRef.of(problem)
-        yield from self._map(run_start, [(ref, criterion, m, B0, Q0, F0, verbose) for Q0, F0 in plans],
-                             f"criterion {criterion}, m = {m}")
-
-    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
-                        pool: int) -> Iterator[ApproximateDesign]:
-        """The approximate design of each of ``criteria``, one per worker at the same time."""
-        ref = ProblemRef.of(problem)
-        yield from self._map(run_approximate, [(ref, c, steps, pool) for c in criteria],
-                             f"the approximate designs of {', '.join(criteria)}")
 
     def _map(self, fn: Callable, calls: Sequence[tuple], what: str) -> Iterator[Any]:
         """``fn(*args)`` for each of ``calls`` on the cluster, results in their order."""
