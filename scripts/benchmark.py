@@ -46,8 +46,12 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
     from casadi_design.criteria import CRITERIA
     from casadi_design.nlp import B0_at_test_poses
     from casadi_design.problem import parse_problem
-    from casadi_design.sampling import random_plan
     from casadi_design.solve import make_design_solver, solve_start, start_rng
+
+    try:
+        from casadi_design.sampling import random_plan
+    except ImportError:  # a checkout from before casadi_design/sampling.py (--compare-with)
+        from casadi_design.solve import random_plan
 
     raw = tomllib.loads(Path(problem_file).read_text())
     if grid is not None:
