@@ -48,9 +48,11 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
     from casadi_design.problem import parse_problem
     from casadi_design.solve import make_design_solver, solve_start, start_rng
 
-    try:
+    import casadi_design
+
+    if (Path(casadi_design.__file__).parent / "sampling.py").exists():
         from casadi_design.sampling import random_plan
-    except ImportError:  # a checkout from before casadi_design/sampling.py (--compare-with)
+    else:  # a checkout from before casadi_design/sampling.py (--compare-with)
         from casadi_design.solve import random_plan
 
     raw = tomllib.loads(Path(problem_file).read_text())
