@@ -108,9 +108,9 @@ def approximate(problem: Problem, criteria: Iterable[str], settings: Settings,
 
 
 def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings,
-                 approx: dict[str, ApproximateDesign], extra_per_design: int = 0) -> int:
-    """IPOPT starts of a campaign (for progress bars); ``extra_per_design``: the caller's."""
-    per_m = sum(settings.starts + extra_per_design + (ROUNDED_PLANS if c in approx else 0) for c in criteria)
+                 approx: dict[str, ApproximateDesign]) -> int:
+    """IPOPT starts of a campaign (for progress bars), the caller's extra starts left out."""
+    per_m = sum(settings.starts + (ROUNDED_PLANS if c in approx else 0) for c in criteria)
     return len(m_values) * per_m
 
 

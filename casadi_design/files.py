@@ -152,16 +152,14 @@ def write_atomic(path: Path, data: bytes) -> None:
             fh.write(data)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
-    except OSError as exc:
+    except BaseException as exc:  # Ctrl-C included: never a temporary file left
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
+        if not isinstance(exc, OSError):
+            raise
         raise OutputError(f"{path}: could not be written ({exc.strerror}); {_already_written()}; "
                           "free some disk space or fix the folder's permissions, then run the "
                           "command again") from None
-    except BaseException:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
-        raise
     _WRITTEN.append(path)
 
 

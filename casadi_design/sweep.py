@@ -180,8 +180,8 @@ def sweep_rows(sweep: Sweep) -> list[dict]:
 #: Name of the file that keeps the finished designs of an unfinished sweep, and the files a
 #: sweep resumes from (:func:`casadi_design.files.load_partial`: where their key is).
 PARTIAL_NAME = "sweep.partial.json"
-RESUME_FILES = (PARTIAL_NAME, "sweep.json")
 RESUME_KEYS = ((PARTIAL_NAME, ("key",)), ("sweep.json", ("sweep", "key")))
+RESUME_FILES = tuple(name for name, _ in RESUME_KEYS)
 
 
 def sweep_record(problem: Problem, sweep: Sweep, key: dict,

@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..build import Problem
@@ -27,6 +28,7 @@ from ..design import Design
 from ..criteria import BOUND_CRITERIA, CRITERIA
 from .. import interrupt
 from ..errors import DesignError, OutputError
+from ..files import load_partial, partial_record, prepare_out
 from ..parallel import WorkerLost, cpu_count
 from ..problem import MAX_EXPERIMENTS
 
@@ -240,6 +242,43 @@ def approximate_timed(args: argparse.Namespace, problem: Problem, criteria: list
     return approx
 
 
+def output_folder(args: argparse.Namespace, command: str, resume_files: tuple[str, ...] = ()) -> Path | None:
+    """``--out`` checked before any work (:func:`casadi_design.files.prepare_out`; None
+    without it); ``--resume`` needs it and one of ``resume_files`` in it."""
+    resume = getattr(args, "resume", False)
+    if resume and args.out is None:
+        raise OutputError(f"--resume needs the --out folder of the interrupted {command}; add --out DIR")
+    return None if args.out is None else prepare_out(args.out, args.force, resume, resume_files)
+
+
+@dataclass(eq=False)
+class Finished:
+    """The designs a command has finished, ``{(criterion, m): Design}``, each saved at once in
+    ``partial`` (None: without ``--out``) for ``--resume``; ``key``: what they depend on
+    (:func:`casadi_design.campaign.campaign_key`)."""
+
+    problem: Problem
+    key: dict
+    partial: Path | None
+    designs: dict[tuple[str, int], Design]
+
+    @classmethod
+    def resumed(cls, args: argparse.Namespace, problem: Problem, key: dict, partial: Path | None,
+                sources: tuple[tuple[str, tuple[str, ...]], ...], total: int) -> Finished:
+        """The designs saved by the interrupted command (``--resume``: the first file of
+        ``sources`` in the folder of ``partial``), else none."""
+        designs = {}
+        if partial is not None and getattr(args, "resume", False):
+            designs = load_partial(partial.parent, key, sources)
+            say(args, f"resuming: {len(designs)} of {total} designs already in {partial.parent}")
+        return cls(problem, key, partial, designs)
+
+    def save(self, design: Design) -> None:
+        self.designs[design.criterion, design.m] = design
+        if self.partial is not None:
+            partial_record(self.partial, self.problem, self.key, list(self.designs.values()))
+
+
 def campaign(args: argparse.Namespace, label: str,
              partial: Path | None = None) -> tuple[Problem, Campaign, list[int]]:
     """Load the problem of ``args`` and run its campaign (:func:`run_campaign`) with the
@@ -248,30 +287,21 @@ def campaign(args: argparse.Namespace, label: str,
     once its files are written) and ``--resume`` continues from it.
     Returns the problem, the campaign and the m of the Fig. 1 panels (``--fig-m``, checked
     before anything is solved)."""
-    from ..files import load_partial, partial_record
     from ..progress import progress_bar
 
     with executor(args) as ex:  # first: worker processes start while the problem loads
         problem = load(args)
         criteria, ms, settings = plan_request(args, problem)
         panels = fig_m(getattr(args, "fig_m", None), ms, problem.m_values)
-        key = campaign_key(problem, criteria, ms, settings)
-        resume = partial is not None and getattr(args, "resume", False)
-        saved = load_partial(partial.parent, key, ((partial.name, ("key",)),)) if resume else {}
-        if saved:
-            say(args, f"resuming: {len(saved)} of {len(ms) * len(criteria)} designs already in {partial}")
-        done = dict(saved)
-
-        def save(design: Design) -> None:
-            done[design.criterion, design.m] = design
-            if partial is not None:
-                partial_record(partial, problem, key, list(done.values()))
-
+        total = len(ms) * len(criteria)
+        done = Finished.resumed(args, problem, campaign_key(problem, criteria, ms, settings), partial,
+                                () if partial is None else ((partial.name, ("key",)),), total)
+        saved = dict(done.designs)
         approx = approximate_timed(args, problem, criteria, settings, ex)
         bar = progress_bar(total_starts(criteria, ms, settings, approx), label, args.quiet)
-        with keeping(partial, lambda: len(done), len(ms) * len(criteria)), bar:
+        with keeping(partial, lambda: len(done.designs), total), bar:
             result = run_campaign(problem, criteria, ms, settings, approx=approx, executor=ex,
-                                  done=saved, on_design=save, progress=bar.update)
+                                  done=saved, on_design=done.save, progress=bar.update)
     return problem, result, panels
 
 

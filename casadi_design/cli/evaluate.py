@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import OutputError
-from ..files import prepare_out, read_results, write_json
+from ..files import read_results, write_json
 from ..tables import format_measures
 from . import common
 
@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from ..rules import plan_violations
     from ..solve import plan_scores
 
-    out = prepare_out(args.out, args.force) if args.out is not None else None
+    out = common.output_folder(args, "evaluate")
     problem = common.load(args, check_solver=False)
     Q, F = read_plan_csv(problem, args.plan)
     m = len(Q)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..build import Problem
 from ..campaign import Campaign
-from ..files import prepare_out, write_atomic
+from ..files import write_atomic
 from ..tables import format_solver_lines, format_table
 from . import common
 
@@ -34,9 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    if args.resume and args.out is None:
-        raise common.OutputError("--resume needs the --out folder of the interrupted solve; add --out DIR")
-    out = prepare_out(args.out, args.force, args.resume, (PARTIAL_NAME,)) if args.out is not None else None
+    out = common.output_folder(args, "solve", (PARTIAL_NAME,))
     problem, done, fig_m = common.campaign(args, "solve", out / PARTIAL_NAME if out else None)
     designs = list(done.designs.values())
     wall = time.perf_counter() - t0

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..build import Problem
 from ..campaign import campaign_key
-from ..files import load_partial, partial_record, prepare_out, write_atomic
+from ..files import write_atomic
 from ..sweep import PARTIAL_NAME, RESUME_FILES, RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
 from ..tables import format_sweep_table
 from . import common
@@ -40,9 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from ..progress import progress_bar
 
     t0 = time.perf_counter()
-    if args.resume and args.out is None:
-        raise common.OutputError("--resume needs the --out folder of the interrupted sweep; add --out DIR")
-    out = prepare_out(args.out, args.force, args.resume, RESUME_FILES) if args.out is not None else None
+    out = common.output_folder(args, "sweep", RESUME_FILES)
     problem = common.load(args)
     criteria, ms, settings = common.plan_request(args, problem, all_m=True)
     warm = not args.no_warm_start
@@ -50,19 +48,16 @@ def run(args: argparse.Namespace) -> int:
     common.say(args, f"sweep of {len(ms) * len(criteria)} designs ({len(criteria)} criteria x "
                      f"{len(ms)} values of m, {ms[0]} to {ms[-1]})")
     key = campaign_key(problem, criteria, ms, settings, warm)
-    done = load_partial(out, key, RESUME_KEYS) if args.resume else {}
-    if args.resume:
-        common.say(args, f"resuming: {len(done)} of {len(ms) * len(criteria)} designs already in {out}")
-    saved = dict(done)
     partial = out / PARTIAL_NAME if out else None
+    finished = common.Finished.resumed(args, problem, key, partial, RESUME_KEYS, len(ms) * len(criteria))
+    done = dict(finished.designs)
 
     def save(design) -> None:
-        saved[design.criterion, design.m] = design
+        finished.save(design)
         bar.set_postfix_str(f"done: {design.criterion}, m = {design.m}")
-        if partial is not None:
-            partial_record(partial, problem, key, list(saved.values()))
 
-    with common.keeping(partial, lambda: len(saved), len(ms) * len(criteria)), common.executor(args) as executor:
+    with common.keeping(partial, lambda: len(finished.designs), len(ms) * len(criteria)), \
+            common.executor(args) as executor:
         approx = common.approximate_timed(args, problem, criteria, settings, executor)
         bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm, approx), "sweep", args.quiet)
         with bar:
