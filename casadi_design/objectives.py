@@ -101,14 +101,6 @@ class Local(NamedTuple):
     spectrum: Spectrum | None = None
 
 
-def trace_curvature(G: np.ndarray, dM: np.ndarray, N: np.ndarray, kappa: float) -> np.ndarray:
-    """``kappa tr(-G dM_a N dM_b)`` for every pair of plan variables a, b: ``dM`` (V, L, L);
-    returns V x V."""
-    V, L = dM.shape[0], N.shape[0]
-    T = (-G) @ dM @ N
-    return kappa * (T.reshape(V, L * L) @ dM.reshape(V, L * L).T)
-
-
 @dataclass(frozen=True)
 class Objective:
     """phi(M) of one criterion in the reduced space (module docstring).
@@ -142,9 +134,13 @@ class Objective:
     def curvature(self, local: Local, G: np.ndarray, dM: np.ndarray, N: np.ndarray,
                   lam_f: float) -> np.ndarray:
         """The part of ``d2(lam_f phi)[dM_a, dM_b]`` besides ``tr(G d2M_ab)`` (V x V), with
-        ``G = lam_f dphi/dM``."""
-        V = dM.shape[0]
-        return trace_curvature(G, dM, N, self.kappa) if self.kappa else np.zeros((V, V))
+        ``G = lam_f dphi/dM`` (for the epigraph ``-sum_j mu_j N H_j N``): ``kappa tr(-G dM_a N
+        dM_b)`` for every pair of plan variables, ``dM`` (V, L, L)."""
+        V, L = dM.shape[0], N.shape[0]
+        if not self.kappa:
+            return np.zeros((V, V))
+        T = (-G) @ dM @ N
+        return self.kappa * (T.reshape(V, L * L) @ dM.reshape(V, L * L).T)
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ from scipy.linalg.lapack import dpotrf, dtrtri
 
 from .build import Problem, per_model
 from .criteria import CRITERIA
-from .objectives import EpigraphRows, Local, Objective, trace_curvature
+from .objectives import EpigraphRows, Local, Objective
 from .rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
 
 
@@ -487,12 +487,9 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
     V, L = m * p, len(v.M)
     if v.Cinv is None:
         return np.full((V, V), np.nan)
-    if nlp.n_rows:
-        Gbar = -(lam_g[: nlp.n_rows] @ sl.Y.reshape(-1, L * L)).reshape(L, L)
-        H = trace_curvature(Gbar, sl.dM, sl.N, nlp.objective.kappa)
-    else:
-        Gbar = lam_f * sl.G_f
-        H = nlp.objective.curvature(v.local, Gbar, sl.dM, sl.N, lam_f)
+    Gbar = (-(lam_g[: nlp.n_rows] @ sl.Y.reshape(-1, L * L)).reshape(L, L) if nlp.n_rows
+            else lam_f * sl.G_f)
+    H = nlp.objective.curvature(v.local, Gbar, sl.dM, sl.N, lam_f)
     # tr(Gbar d2M_ab) = c (2 <B Gbar, d2B_ab> + 2 <dB_a Gbar, dB_b>), and the rules' rows
     W = (2 * c) * (v.B @ Gbar)
     d = W.shape[1]
