@@ -1,4 +1,5 @@
-"""What every command shares: option types, the problem and its campaign, figures and plans.
+"""What every command shares: option types, the output folder, the problem and its campaign,
+the designs kept for ``--resume``, the panels of Fig. 1.
 
 A command handler reads its arguments, calls the package once (:func:`campaign` for the
 commands that design plans), prints and writes. Nothing here computes.
