@@ -1,0 +1,1 @@
+"""Identify a robot from measured data: read, register, fit, compensate, export."""
