@@ -52,8 +52,10 @@ def perturbed(problem, rng, first_joint: bool = True, k: np.ndarray | None = Non
     frame = model.frames[fid]
     frame.placement = frame.placement * pin.SE3(np.eye(3), rng.normal(0, LENGTH_M, 3))
     model.frames[fid] = frame
-    R = pin.exp3(rng.normal(size=3) * 0.0 + np.array([0.3, -0.5, 2.2]))  # about 2.4 rad = 137 deg
-    tracker = pin.SE3(R, np.array([2.7, -1.4, 0.8]))
+    if len(measured_axes(problem)) == 3:  # about 2.3 rad = 133 deg, metres away
+        tracker = pin.SE3(pin.exp3(np.array([0.3, -0.5, 2.2])), np.array([2.7, -1.4, 0.8]))
+    else:  # a planar arm: the tracker's plane is the arm's
+        tracker = pin.SE3(pin.exp3(np.array([0.0, 0.0, 2.2])), np.array([2.7, -1.4, 0.0]))
     return TrueRobot(model, fid, np.zeros(robot.n) if k is None else np.asarray(k, float), tracker)
 
 

@@ -90,6 +90,7 @@ class Calibration:
     q_compensated: np.ndarray
     compensation_converged: np.ndarray
     validation: PoseErrors | None
+    validation_path: str | None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -219,4 +220,5 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
         problem, meas, f, tuple(outliers), std, correlation,
         float(np.sqrt(ssr / dof)) if dof > 0 else float("nan"), ssr / sigma**2, dof, interval,
         pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done,
-        None if validation is None else validate_rows(problem, f, validation))
+        None if validation is None else validate_rows(problem, f, validation),
+        None if validation is None else validation.path)

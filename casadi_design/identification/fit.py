@@ -82,9 +82,12 @@ def fit_model(problem: Problem, frame: str) -> FitModel:
     case = "both" if compliant else "geometric"
 
     def build(names: tuple[str, ...]) -> CalibrationModel:
-        return calibration_model(kin, case, **model_arguments(problem.spec, names))
+        """The model of the parameters ``names`` (geometric errors and ``k.<joint>``)."""
+        args = model_arguments(problem.spec, tuple(p for p in names if not p.startswith("k.")))
+        args["compliant"] = tuple(p[2:] for p in names if p.startswith("k.")) or None
+        return calibration_model(kin, case, **args)
 
-    candidates = build(FRAME_PARAMETERS + geometric)
+    candidates = build(FRAME_PARAMETERS + geometric + compliant)
     S = stacked_jacobian(candidates, np.random.default_rng(ABSORB_SEED))
     norms = np.linalg.norm(S, axis=0)
     live = norms > RANK_RTOL * norms.max()
@@ -103,8 +106,7 @@ def fit_model(problem: Problem, frame: str) -> FitModel:
                                    "placement and the parameters kept)"))
     names = tuple(candidates.parameter_names[i] for i in kept)
     frame_names = tuple(p for p in names if p in FRAME_PARAMETERS)
-    robot_geometric = tuple(p for p in names if p not in FRAME_PARAMETERS)
-    return FitModel(build(names), frame, frame_names, robot_geometric + compliant, tuple(absorbed))
+    return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed))
 
 
 def frame_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -232,7 +234,9 @@ def measured_values(problem: Problem, fm: FitModel, meas: Measurements,
     ref = nominal_poses(model, meas.Q, meas.F)
     R, p = ref[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), ref[:, 9:]
     nominal = p[:, None, :] + np.einsum("tij,kj->tki", R, model.markers_m)
-    base = (meas.P_m - T0[:3, 3]) @ T0[:3, :3]  # T0^-1 P
+    P = meas.P_m.copy()
+    P[:, :, [a for a in range(3) if a not in axes]] = 0.0  # not measured: left alone by T0
+    base = (P - T0[:3, 3]) @ T0[:3, :3]  # T0^-1 P
     dev = (base - nominal)[:, :, axes].reshape(meas.m, -1)  # the order of model.measurement
     mask = np.isfinite(dev)
     Wh = whitening(problem)
