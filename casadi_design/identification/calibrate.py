@@ -38,6 +38,8 @@ from .registration import rigid_fit
 OUTLIER_SIGMA = 4.0
 #: Parameter pairs correlated beyond this are reported.
 CORRELATION_LIMIT = 0.9
+#: A validation pose is a test pose when their joints agree within this (rad or m).
+SAME_POSE_RAD = 1e-6
 #: Level of the chi-square test of the noise.
 CONFIDENCE = 0.95
 
@@ -91,6 +93,7 @@ class Calibration:
     compensation_converged: np.ndarray
     validation: PoseErrors | None
     validation_path: str | None
+    validation_Q: np.ndarray | None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -100,6 +103,21 @@ class Calibration:
     def noise_consistent(self) -> bool:
         low, high = self.chi2_interval
         return low <= self.chi2 <= high
+
+    @property
+    def test_pose_errors_m(self) -> np.ndarray | None:
+        """The calibrated model's validation error at each test pose that is also a validation
+        pose (joints within ``SAME_POSE_RAD``), NaN at the others; None when there are none."""
+        if self.validation is None:
+            return None
+        q0, qv = self.problem.test_poses.q, self.validation_Q
+        same = np.all(np.abs(q0[:, None, :] - qv[None, :, :]) <= SAME_POSE_RAD, axis=2)
+        if not same.any():
+            return None
+        e = np.full(len(q0), np.nan)
+        j, i = np.nonzero(same)
+        e[j] = self.validation.calibrated_m[i]
+        return e
 
     def correlated_pairs(self) -> list[tuple[str, str, float]]:
         C, out = self.correlation, []
@@ -221,4 +239,4 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
         float(np.sqrt(ssr / dof)) if dof > 0 else float("nan"), ssr / sigma**2, dof, interval,
         pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done,
         None if validation is None else validate_rows(problem, f, validation),
-        None if validation is None else validation.path)
+        None if validation is None else validation.path, None if validation is None else validation.Q)
