@@ -30,14 +30,14 @@ class TrueRobot:
     tracker: pin.SE3       # base -> tracker
 
 
-def perturbed(problem, rng, first_joint: bool = True, k: np.ndarray | None = None) -> TrueRobot:
-    """The true robot (module docstring); ``first_joint``: also perturb joint 1 (whose errors
-    the tracker frame absorbs)."""
+def perturbed(problem, rng, base_like: bool = True, k: np.ndarray | None = None) -> TrueRobot:
+    """The true robot (module docstring). Without ``base_like`` the placements of joints 1 and
+    2 and the zero of joint 1 stay nominal: on a chain whose first two axes are orthogonal,
+    their errors that act as a motion of the whole robot (the tracker frame absorbs them) are
+    among these."""
     robot = problem.robot
     model = pin.Model(robot.model)
     for idx, jid in enumerate(robot.joint_ids):
-        if idx == 0 and not first_joint:
-            continue
         joint = model.joints[jid]
         kind = joint.shortname()
         axis = {"X": np.eye(3)[0], "Y": np.eye(3)[1], "Z": np.eye(3)[2]}.get(kind[-1])
@@ -45,6 +45,8 @@ def perturbed(problem, rng, first_joint: bool = True, k: np.ndarray | None = Non
             axis = np.asarray(joint.extract().axis, float)
         error = pin.SE3(pin.exp3(rng.normal(0, ANGLE_RAD, 3)), rng.normal(0, LENGTH_M, 3))
         offset = rng.normal(0, ANGLE_RAD)
+        if not base_like and idx < 2:
+            error, offset = pin.SE3.Identity(), offset if idx else 0.0
         zero = (pin.SE3(pin.exp3(axis * offset), np.zeros(3)) if "R" in kind[len("JointModel"):][:1]
                 else pin.SE3(np.eye(3), axis * offset * LENGTH_M / ANGLE_RAD))
         model.jointPlacements[jid] = model.jointPlacements[jid] * error * zero

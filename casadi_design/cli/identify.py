@@ -9,7 +9,6 @@ import time
 
 from ..errors import ProblemError
 from ..files import prepare_out, write_atomic, write_json
-from . import common
 
 HELP = "identify the robot from tracker measurements, export the calibrated model (casadi-design identify --help)"
 DESCRIPTION = (
@@ -20,7 +19,7 @@ DESCRIPTION = (
     "parameters and the frame are fitted together by weighted nonlinear least squares "
     "(Levenberg-Marquardt, the code of casadi-design validate); outliers are excluded one at a "
     "time. Writes to --out: identification.json (SI units), identification.md and "
-    "identification.png/pdf, compensated_test_poses.csv, calibrated.urdf, calibrated.toml (a "
+    "identification.png, compensated_test_poses.csv, calibrated.urdf, calibrated.toml (a "
     "problem file of the calibrated robot) and, with compliances, identified_compliances.toml.")
 
 
@@ -32,6 +31,17 @@ def _positive(text: str) -> float:
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"--outlier-sigma takes a positive number, got '{text}'")
     return v
+
+
+def load_without_cell(path: str):
+    """The problem of ``path`` built without its ``[cell]``: the identification does not check
+    plans, and fitting the cell's capsules takes seconds (``calibrated.toml`` keeps the cell)."""
+    from dataclasses import replace
+
+    from ..build import build_problem
+    from ..problem import read_problem
+
+    return build_problem(replace(read_problem(path), cell=None))
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -82,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = prepare_out(args.out, args.force)
     t0 = time.perf_counter()
-    problem = common.load(args, check_solver=False)
+    problem = load_without_cell(args.problem)
     meas = read_measurements(problem, args.measurements)
     valid = None if args.validation is None else read_measurements(problem, args.validation)
     if valid is not None and valid.path == meas.path:
@@ -110,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         write_atomic(out / files["compliances"], toml_text(record, header + "\nidentified joint "
                                                             "compliances (a URDF cannot hold them)").encode())
     write_atomic(out / "compensated_test_poses.csv", compensated_csv(cal).encode())
-    figures = write_figures(out, "identification", identification_figure(cal))
+    figures = write_figures(out, "identification", identification_figure(cal), ("png",))  # a pdf: +1 s
     files["figures"] = figures
     write_atomic(out / "identification.md",
                  report_markdown(cal, figures, ["identification.json", *[v for v in files.values() if isinstance(v, str)],
