@@ -13,7 +13,6 @@ import numpy as np
 
 from .parallel import cpu_count
 
-
 #: Largest number of cases one mapped CasADi call evaluates: longer stacks run in chunks of
 #: this size, shorter ones in the next power of two, so that a few mapped functions serve
 #: every size (building one takes ~30 ms, as long as evaluating ~20000 cases).

@@ -300,9 +300,9 @@ def identification_figure(calibration) -> Figure:
     fig = Figure(figsize=(16, 4.5), layout="constrained")
     ax_r, ax_v, ax_t = fig.subplots(1, 3)
     axes = [a for a in range(3) if np.isfinite(c.residual_axes_m[:, :, a]).any()]
-    per_axis = np.sqrt(np.nanmean(c.residual_axes_m ** 2, axis=1)) * 1e3
+    per_axis = {a: np.sqrt(np.nanmean(c.residual_axes_m[:, :, a] ** 2, axis=1)) * 1e3 for a in axes}
     rows = [str(line) + ("*" if not used else "") for line, used in zip(c.measurements.lines, c.fit.used)]
-    draw_errors_per_pose(ax_r, [(f"{'xyz'[a]} residual", AXIS_STYLES[a], per_axis[:, a]) for a in axes],
+    draw_errors_per_pose(ax_r, [(f"{'xyz'[a]} residual", AXIS_STYLES[a], per_axis[a]) for a in axes],
                          "residual, RMS over the points (mm)", rows)
     ax_r.set_xlabel("experiment (row of the file; * outlier, not in the fit)")
     ax_r.set_title(f"(a) residuals: RMS {np.sqrt(np.mean(c.residual_rms_m[c.fit.used] ** 2)) * 1e3:.4f} mm")

@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pinocchio as pin
 import pytest
-
 from scipy.stats import chi2
 
 from casadi_design.cli import main
@@ -21,7 +20,7 @@ from casadi_design.robots import frame_placement, make_robot
 from casadi_design.sampling import random_plan
 from casadi_design.virtual import identify as virtual_identify
 from tests.conftest import ROOT
-from tests.identify_data import angle_between, measured, measurement_csv, perturbed
+from tests.identify_data import angle_between, measured, measurement_csv, perturbed, true_points
 
 UR10 = ROOT / "problems" / "ur10_drilling.toml"
 PAPER = ROOT / "problems" / "paper_planar_2r.toml"
@@ -223,3 +222,39 @@ def test_no_validation_set_warns(ur10_files, tmp_path, capsys):
     folder, _ = ur10_files
     assert main(["identify", str(UR10), "--measurements", str(folder / "meas.csv"), "--out", str(tmp_path / "o")]) == 0
     assert "warning: no validation set" in capsys.readouterr().out
+
+
+#: The issue's target: over 20 simulated campaigns, the calibrated UR10's RMS error at the 9
+#: test poses within this factor of the predicted sqrt(rho).
+CAMPAIGNS, TARGET_FACTOR = 20, 1.3
+
+
+@pytest.mark.slow
+def test_ur10_campaigns_meet_the_predicted_accuracy(tmp_path):
+    """UR10 in its cell, the test-pose plan at m = 12 (4 seeded starts), sigma = 25 um, 20
+    campaigns on independently perturbed robots: the error of the compensated robot at the
+    test poses (in the tracker frame, where the holes are registered) against sqrt(rho)."""
+    from casadi_design.build import load_problem
+    from casadi_design.solve import solve_design
+
+    problem = load_without_cell(str(UR10))
+    design = solve_design(load_problem(UR10), "test-pose", 12, starts=4)
+    Q, F = design.Q, design.F
+    tp = problem.test_poses
+    square, predicted, nominal = [], [], []
+    for c in range(CAMPAIGNS):
+        true = perturbed(problem, np.random.default_rng(1000 + c))
+        P = measured(problem, true, Q, F, np.random.default_rng(2000 + c))
+        (tmp_path / "meas.csv").write_text(measurement_csv(problem, Q, F, P))
+        cal = calibrate(problem, read_measurements(problem, str(tmp_path / "meas.csv")))
+        T = cal.fit.tracker_from_base
+        reached = true_points(problem, true, cal.q_compensated, tp.F)[:, 0] @ true.tracker.rotation.T + true.tracker.translation
+        target = tp.position_m @ T[:3, :3].T + T[:3, 3]
+        square.append(np.sum((reached - target) ** 2, axis=1))
+        predicted.append(cal.predicted_rms_m**2)
+        at_q0 = true_points(problem, true, tp.q, tp.F)[:, 0] @ true.tracker.rotation.T + true.tracker.translation
+        nominal.append(np.sum((at_q0 - (tp.position_m @ cal.fit.T0[:3, :3].T + cal.fit.T0[:3, 3])) ** 2, axis=1))
+    rms_cal, rms_pred, rms_nom = (float(np.sqrt(np.mean(v))) for v in (square, predicted, nominal))
+    print(f"UR10, {CAMPAIGNS} campaigns: calibrated {rms_cal * 1e3:.4f} mm RMS at the test poses, "
+          f"predicted {rms_pred * 1e3:.4f} mm, nominal (registered) {rms_nom * 1e3:.4f} mm")
+    assert rms_cal <= TARGET_FACTOR * rms_pred and rms_nom > 0.1e-3

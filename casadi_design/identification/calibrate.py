@@ -10,8 +10,9 @@ Statistics of a fit with N measured values and L parameters (whitened residuals 
 * outliers: a row whose largest ``|r| / sigma`` exceeds ``threshold`` (default 4) is excluded,
   the worst first, and the rest refitted, one at a time;
 * predicted accuracy at the test poses of the plan that was measured:
-  ``sqrt(rho_j) = sqrt(sigma^2 trace(B0_j M^-1 B0_j^T))`` (the frame's columns of ``B0`` are 0:
-  the tracker does not move the robot);
+  ``sqrt(rho_j) = sqrt(sigma^2 trace(B0_j M^-1 B0_j^T))``, the error of the compensated robot
+  in the frame of the measurements (where the workpiece is registered: the frame's
+  uncertainty included, as the design's base errors are);
 * validation rows (not in the fit): the nominal model after its own best rigid registration,
   and the calibrated one with the identified tracker frame; the error per pose is the RMS over
   its points of ``|P - T p(X)|`` (mm for people), predicted
@@ -230,7 +231,6 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
 
     tp = problem.test_poses
     B0 = fm.model.B_stack(tp.q, tp.F, accuracy=True)
-    B0[:, :, : len(fm.frame_names)] = 0.0
     predicted = np.sqrt(rho_at_test_poses(f.information, B0, sigma))
     target = nominal_poses(fm.model, tp.q, tp.F)
     qc, done, _ = compensate(fm.model, tp.q, tp.F, target, np.tile(f.robot_X, (tp.s, 1)), sigma)

@@ -43,6 +43,8 @@ FRAME_PARAMETERS = tuple(f"base.{e}" for e in PLACEMENT_ERRORS)
 #: Measurements whose best rigid fit to the nominal model leaves a larger RMS (m) are not of
 #: this robot (or not in mm, or the joint columns are in another order).
 REGISTRATION_TOL_M = 0.02
+#: Why a robot parameter is left out of the fit in the tracker frame.
+ABSORBED = "absorbed by the tracker frame (acts as a combination of its placement and the parameters kept)"
 #: Seed of the random poses that decide what the frame absorbs (a property of the model).
 ABSORB_SEED = 0
 
@@ -102,8 +104,7 @@ def fit_model(problem: Problem, frame: str) -> FitModel:
         if sv[-1] > RANK_RTOL * sv[0]:
             kept.append(i)
         elif name not in FRAME_PARAMETERS:
-            absorbed.append((name, "absorbed by the tracker frame (acts as a combination of its "
-                                   "placement and the parameters kept)"))
+            absorbed.append((name, ABSORBED))
     names = tuple(candidates.parameter_names[i] for i in kept)
     frame_names = tuple(p for p in names if p in FRAME_PARAMETERS)
     return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed))
@@ -287,7 +288,7 @@ def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used
     ref, y, mask = measured_values(problem, fm, meas, T0)
     check_identifiable(problem, fm, meas, used, mask)
     model, sigma = fm.model, problem.sigma_m
-    m, d = y.shape
+    m = len(y)
     X, ident = identify_nonlinear(model, meas.Q[used], meas.F[used], ref[used], y[used].reshape(1, -1),
                                   sigma, mask=mask[used].reshape(-1))
     if ident.non_converged:

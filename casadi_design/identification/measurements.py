@@ -114,7 +114,7 @@ def read_measurements(problem: Problem, path: str) -> Measurements:
     outside = (Q < robot.q_min - LIMIT_TOL) | (Q > robot.q_max + LIMIT_TOL)
     if outside.any():
         i, k = (int(v[0]) for v in np.nonzero(outside))
-        si, people, scale = joint_units(problem, k)
+        _, people, scale = joint_units(problem, k)
         j = robot.joints[k]
         raise ProblemError(
             f"{path}: row {lines[i]}, column of joint {k + 1} ({j}_{people} or q{k + 1}_{people}): "

@@ -122,9 +122,9 @@ def summary_lines(calibration: Calibration) -> list[str]:
     """The lines ``identify`` prints (mm, deg for people)."""
     c, f = calibration, calibration.fit
     used = f.used
-    lines = [f"identified {len(c.names)} parameters from {int(used.sum())} of {c.measurements.m} rows "
-             f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; Levenberg-Marquardt "
-             f"{f.identification.iterations} iterations",
+    lines = [(f"identified {len(c.names)} parameters from {int(used.sum())} of {c.measurements.m} rows "
+              f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; Levenberg-Marquardt "
+              f"{f.identification.iterations} iterations"),
              f"{'parameter':28s} {'value':>12s} {'std':>10s}  unit"]
     for n, x, s in zip(c.names, f.X, c.std):
         (v, unit), (sd, _) = _value_for_people(x, parameter_unit(c, n)), _value_for_people(s, parameter_unit(c, n))
