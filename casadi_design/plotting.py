@@ -28,6 +28,13 @@ def is_path(position_m: np.ndarray) -> bool:
     return bool(np.all(np.einsum("ij,ij->i", steps[1:], steps[:-1]) >= 0))
 
 
+def pose_labels(position_m: np.ndarray) -> list[str]:
+    """``x`` over ``y`` of each test pose (mm, two lines), to label the groups of poses off a
+    path."""
+    xy = np.round(np.asarray(position_m)[:, :2] * 1e3) + 0.0  # + 0.0: no "-0"
+    return [f"{x:.0f}\n{y:.0f}" for x, y in xy]
+
+
 def path_coordinate(position_m: np.ndarray) -> tuple[np.ndarray, str]:
     """Abscissa of the test poses (mm): the Cartesian coordinate that varies most, when it is
     monotonic along the poses (x for the paper's line), else the arc length along them."""
@@ -84,12 +91,15 @@ def draw_errors_per_pose(ax: Axes, bars: list[tuple[str, dict, np.ndarray]], yla
 
 
 def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], xlabel: str,
-                     on_path: bool = True) -> None:
+                     labels: list[str] | None = None) -> None:
     """``+/- sqrt(rho)`` (mm) around the target trajectory for each design, maxima labelled;
-    test poses off a path (``on_path`` False): ``sqrt(rho)`` per pose, one group per pose."""
+    test poses off a path (``labels`` of the poses given): ``sqrt(rho)`` per pose, one group
+    per pose."""
     bands = [d if isinstance(d, Band) else Band.of(d) for d in designs]
-    if not on_path:
-        draw_errors_per_pose(ax, [(b.label, b.style, b.rms_error_m * 1e3) for b in bands], r"$\sqrt{\rho}$ (mm)")
+    if labels is not None:
+        draw_errors_per_pose(ax, [(b.label, b.style, b.rms_error_m * 1e3) for b in bands],
+                             r"$\sqrt{\rho}$ (mm)", labels)
+        ax.set_xlabel("test pose: x over y (mm), in file order")
         return
     ax.axhline(0.0, color="k", lw=1.0, label="Target trajectory")
     for d in bands:
@@ -114,8 +124,9 @@ def fig1(position_m: np.ndarray, designs: list[Design], m_values: list[int]) -> 
     axes = fig.subplots(1, len(m_values), squeeze=False)[0]
     top = max(d.scores.max_rms_error_m for d in designs if d.m in m_values) * 1e3
     on_path = is_path(position_m)
+    labels = None if on_path else pose_labels(position_m)
     for ax, m, letter in zip(axes, m_values, "abcdefghij"):
-        draw_error_bands(ax, x, [d for d in designs if d.m == m], xlabel, on_path)
+        draw_error_bands(ax, x, [d for d in designs if d.m == m], xlabel, labels)
         ax.set_ylim(-1.25 * top if on_path else 0, 1.25 * top)
         ax.set_title(f"({letter}) {m} calibration experiment{'s' if m > 1 else ''}")
     return fig
@@ -127,7 +138,7 @@ def bands_figure(position_m: np.ndarray, bands: list[Design | Band], title: str)
     fig = Figure(figsize=(6.5, 4.5), layout="constrained")
     ax = fig.subplots()
     on_path = is_path(position_m)
-    draw_error_bands(ax, x, bands, xlabel, on_path)
+    draw_error_bands(ax, x, bands, xlabel, None if on_path else pose_labels(position_m))
     top = max(float(np.max((b if isinstance(b, Band) else Band.of(b)).rms_error_m)) for b in bands) * 1e3
     ax.set_ylim(-1.25 * top if on_path else 0, 1.25 * top)
     ax.set_title(title)
@@ -323,6 +334,8 @@ def identification_figure(calibration) -> Figure:
     measured = c.test_pose_errors_m
     if measured is not None:
         bars.append(("measured (validation)", CALIBRATED_STYLE, measured * 1e3))
-    draw_errors_per_pose(ax_t, bars, "error after calibration (mm)")
+    position = c.problem.test_poses.position_m
+    draw_errors_per_pose(ax_t, bars, "error after calibration (mm)",
+                         None if is_path(position) else pose_labels(position))
     ax_t.set_title(f"(c) the {len(c.predicted_rms_m)} test poses")
     return fig

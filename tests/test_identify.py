@@ -258,3 +258,17 @@ def test_ur10_campaigns_meet_the_predicted_accuracy(tmp_path):
     print(f"UR10, {CAMPAIGNS} campaigns: calibrated {rms_cal * 1e3:.4f} mm RMS at the test poses, "
           f"predicted {rms_pred * 1e3:.4f} mm, nominal (registered) {rms_nom * 1e3:.4f} mm")
     assert rms_cal <= TARGET_FACTOR * rms_pred and rms_nom > 0.1e-3
+
+
+def test_a_fit_that_does_not_converge_gives_one_line(ur10_files, tmp_path, capsys, monkeypatch):
+    from functools import partial
+
+    from casadi_design.identification import fit
+
+    monkeypatch.setattr(fit, "identify_nonlinear", partial(lsq.identify_nonlinear, max_iterations=1))
+    folder, _ = ur10_files
+    out = tmp_path / "out"
+    assert main(["identify", str(UR10), "--measurements", str(folder / "meas.csv"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "the fit did not converge in 1 Levenberg-Marquardt iterations" in err and err.count("\n") == 1
+    assert not out.exists()

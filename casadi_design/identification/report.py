@@ -128,7 +128,8 @@ def summary_lines(calibration: Calibration) -> list[str]:
              f"{'parameter':28s} {'value':>12s} {'std':>10s}  unit"]
     for n, x, s in zip(c.names, f.X, c.std):
         (v, unit), (sd, _) = _value_for_people(x, parameter_unit(c, n)), _value_for_people(s, parameter_unit(c, n))
-        lines.append(f"{n:28s} {v:12.5g} {sd:10.3g}  {unit}")
+        label = f"tracker frame {n[len('base.'):]}" if n in f.fit.frame_names else n
+        lines.append(f"{label:28s} {v:12.5g} {sd:10.3g}  {unit}")
     lines += [f"absorbed {n}: {why}" for n, why in f.fit.absorbed if not n.startswith("base.")]
     lines.append(f"residual RMS {np.sqrt(np.mean(c.residual_rms_m[used] ** 2)) * 1e3:.4f} mm, max "
                  f"{np.max(c.residual_max_m[used]) * 1e3:.4f} mm; noise sigma estimated "
