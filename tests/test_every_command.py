@@ -50,7 +50,9 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     measured = tmp_path / "measured.csv"  # the solved plan measured on the nominal robot, base frame
     Q, F, _, _ = read_plan_table(problem, plan)
     P = model_points(problem.model, Q, F, np.zeros(problem.model.L))
-    measured.write_text(measurement_csv(problem, Q, F, P + 1e-6 * np.random.default_rng(0).standard_normal(P.shape)))
+    hidden = ((0, 1),) if P.shape[1] > 1 else ()  # a marker the tracker did not see
+    measured.write_text(measurement_csv(problem, Q, F, P + 1e-6 * np.random.default_rng(0).standard_normal(P.shape),
+                                        hidden))
     assert main(["identify", str(path), "--measurements", str(measured), "--frame", "base",
                  "--out", str(tmp_path / "identify")]) == 0
     out, err = capsys.readouterr()
