@@ -104,28 +104,32 @@ def run(args: argparse.Namespace) -> int:
     from ..plotting import identification_figure, write_figures
 
     f = cal.fit
-    robot_names = f.fit.model.parameter_names
-    chain = calibrated_chain(problem, robot_names, f.robot_X)
-    files = {"compensated_test_poses": "compensated_test_poses.csv", "urdf": "calibrated.urdf",
-             "problem": "calibrated.toml"}
-    write_atomic(out / "calibrated.urdf", urdf_text(problem, chain).encode())
+    chain = calibrated_chain(problem, f.fit.model.parameter_names, f.robot_X)
     header = (f"calibrated by casadi-design identify from {meas.path} ({problem.path}, frame "
               f"{args.frame})")
-    write_atomic(out / "calibrated.toml", toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header).encode())
+    # every text first, the figure (the slow part) next, then the texts at once: Ctrl-C leaves
+    # the folder as it was, or the figure alone
+    texts = {"calibrated.urdf": urdf_text(problem, chain),
+             "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header),
+             "compensated_test_poses.csv": compensated_csv(cal)}
     compliances = [(n, x, s) for n, x, s in zip(cal.names, f.X, cal.std) if n.startswith("k.")]
     if compliances:
-        files["compliances"] = "identified_compliances.toml"
         record = {"compliances": {n[2:]: {"value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
                                   for n, x, s in compliances}}
-        write_atomic(out / files["compliances"], toml_text(record, header + "\nidentified joint "
-                                                            "compliances (a URDF cannot hold them)").encode())
-    write_atomic(out / "compensated_test_poses.csv", compensated_csv(cal).encode())
-    figures = write_figures(out, "identification", identification_figure(cal), ("png",))  # a pdf: +1 s
-    files["figures"] = figures
-    write_atomic(out / "identification.md",
-                 report_markdown(cal, figures, ["identification.json", *[v for v in files.values() if isinstance(v, str)],
-                                                *figures]).encode())
-    write_json(out / "identification.json", identification_record(cal, {**files, "report": "identification.md"}))
-    print(f"wrote {out / 'identification.json'}, identification.md, {', '.join(figures)}, "
-          f"{', '.join(v for v in files.values() if isinstance(v, str))} in {out}")
+        texts["identified_compliances.toml"] = toml_text(
+            record, header + "\nidentified joint compliances (a URDF cannot hold them)")
+    figure = identification_figure(cal)
+    names = ["identification.json", "identification.md", "identification.png", *texts]
+    texts["identification.md"] = report_markdown(cal, ["identification.png"], names)
+    files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml",
+             "compensated_test_poses": "compensated_test_poses.csv", "report": "identification.md",
+             "figures": ["identification.png"]}
+    if compliances:
+        files["compliances"] = "identified_compliances.toml"
+    record_text = identification_record(cal, files)
+    write_figures(out, "identification", figure, ("png",))  # a pdf too would take 1 s more
+    for name, text in texts.items():
+        write_atomic(out / name, text.encode())
+    write_json(out / "identification.json", record_text)
+    print(f"wrote {', '.join(names)} in {out}")
     return 0

@@ -122,21 +122,25 @@ def summary_lines(calibration: Calibration) -> list[str]:
     """The lines ``identify`` prints (mm, deg for people)."""
     c, f = calibration, calibration.fit
     used = f.used
+
+    def label(name: str) -> str:
+        return f"tracker frame {name[len('base.'):]}" if name in f.fit.frame_names else name
+
     lines = [(f"identified {len(c.names)} parameters from {int(used.sum())} of {c.measurements.m} rows "
               f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; Levenberg-Marquardt "
               f"{f.identification.iterations} iterations"),
              f"{'parameter':28s} {'value':>12s} {'std':>10s}  unit"]
     for n, x, s in zip(c.names, f.X, c.std):
         (v, unit), (sd, _) = _value_for_people(x, parameter_unit(c, n)), _value_for_people(s, parameter_unit(c, n))
-        label = f"tracker frame {n[len('base.'):]}" if n in f.fit.frame_names else n
-        lines.append(f"{label:28s} {v:12.5g} {sd:10.3g}  {unit}")
+        lines.append(f"{label(n):28s} {v:12.5g} {sd:10.3g}  {unit}")
     lines += [f"absorbed {n}: {why}" for n, why in f.fit.absorbed if not n.startswith("base.")]
     lines.append(f"residual RMS {np.sqrt(np.mean(c.residual_rms_m[used] ** 2)) * 1e3:.4f} mm, max "
                  f"{np.max(c.residual_max_m[used]) * 1e3:.4f} mm; noise sigma estimated "
                  f"{c.sigma_hat_m * 1e3:.4f} mm vs {c.problem.sigma_m * 1e3:g} mm of the problem (chi2 "
                  f"{c.chi2:.1f}, {c.dof} dof, 95 % interval {c.chi2_interval[0]:.1f}..{c.chi2_interval[1]:.1f}: "
                  f"{'consistent' if c.noise_consistent else 'NOT consistent: check sigma or the model'})")
-    lines += [f"correlated beyond {CORRELATION_LIMIT}: {a} / {b} ({r:+.3f})" for a, b, r in c.correlated_pairs()]
+    lines += [f"correlated beyond {CORRELATION_LIMIT}: {label(a)} / {label(b)} ({r:+.3f})"
+              for a, b, r in c.correlated_pairs()]
     lines += [f"outlier excluded: row {line} ({s:.1f} sigma)" for line, s in c.outliers]
     lines.append(f"predicted accuracy at the {len(c.predicted_rms_m)} test poses: max sqrt(rho) "
                  f"{np.max(c.predicted_rms_m) * 1e3:.4f} mm")
