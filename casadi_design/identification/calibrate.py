@@ -10,7 +10,8 @@ Statistics of a fit with N measured values and L parameters (whitened residuals 
 * outliers: a row whose largest ``|r| / sigma`` exceeds ``threshold`` (default 4) is excluded,
   the worst first, and the rest refitted, one at a time;
 * predicted accuracy at the test poses of the plan that was measured:
-  ``sqrt(rho_j) = sqrt(sigma^2 trace(B0_j M^-1 B0_j^T))``, the error of the compensated robot
+  ``sqrt(rho_j) = sqrt(sigma^2 trace(B0_j M^-1 B0_j^T))`` with ``M`` and ``B0`` at X = 0 (the
+  design's measure, :func:`design_information`), the error of the compensated robot
   in the frame of the measurements (where the workpiece is registered: the frame's
   uncertainty included, as the design's base errors are);
 * validation rows (not in the fit): the nominal model after its own best rigid registration,
@@ -28,7 +29,7 @@ import numpy as np
 
 from ..build import Problem
 from ..errors import ProblemError
-from ..measures import rho_at_test_poses
+from ..measures import information_matrix, rho_at_test_poses
 from .compensate import compensate
 from .fit import Fit, FitModel, fit, fit_model, frame_matrix, model_points, registration
 from .lsq import nominal_poses
@@ -171,7 +172,16 @@ def in_tracker(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
-def validate_rows(problem: Problem, f: Fit, valid: Measurements) -> PoseErrors:
+def design_information(f: Fit, meas: Measurements) -> np.ndarray:
+    """``M = sum B_i^T B_i`` of the rows and values of ``meas`` the fit used, ``B`` at X = 0
+    for the physical parameters: the information matrix of the design's measure for the plan
+    that was measured (the standard deviations use ``J`` at the estimate)."""
+    model = f.fit.model
+    B = model.B_stack(meas.Q[f.used], meas.F[f.used]) * model.column_scale * f.mask[f.used][:, :, None]
+    return information_matrix(B)
+
+
+def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray) -> PoseErrors:
     """Errors of the nominal (its own best rigid registration) and calibrated model at the
     validation rows, and the predicted RMS (module docstring)."""
     fm, axes = f.fit, measured_axes(problem)
@@ -186,12 +196,12 @@ def validate_rows(problem: Problem, f: Fit, valid: Measurements) -> PoseErrors:
     e_nominal = point_errors(problem, valid.P_m, in_tracker(T_nominal, nominal))
     calibrated = model_points(model, valid.Q, valid.F, f.X)
     e_cal = point_errors(problem, valid.P_m, in_tracker(f.T0, calibrated))
-    Bv = model.B_stack(valid.Q, valid.F)
+    Bv = model.B_stack(valid.Q, valid.F) * model.column_scale  # for the physical X of the fit
     per = len(axes)
     mask = np.repeat(seen, per, axis=1)
     Bv = Bv * mask[:, :, None]
     k = seen.sum(axis=1)
-    model_var = rho_at_test_poses(f.information, Bv, sigma)  # sigma^2 trace(B_v M^-1 B_v^T)
+    model_var = rho_at_test_poses(M, Bv, sigma)  # sigma^2 trace(B_v M^-1 B_v^T)
     predicted = np.sqrt((model_var + mask.sum(axis=1) * sigma**2) / k)
     return PoseErrors(valid.lines, pose_rms(e_nominal), pose_rms(e_cal), predicted)
 
@@ -230,13 +240,14 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     axes_m[:, :, [a for a in range(3) if a not in measured_axes(problem)]] = np.nan
 
     tp = problem.test_poses
-    B0 = fm.model.B_stack(tp.q, tp.F, accuracy=True)
-    predicted = np.sqrt(rho_at_test_poses(f.information, B0, sigma))
+    B0 = fm.model.B_stack(tp.q, tp.F, accuracy=True) * fm.model.column_scale  # physical X, as M
+    M0 = design_information(f, meas)
+    predicted = np.sqrt(rho_at_test_poses(M0, B0, sigma))
     target = nominal_poses(fm.model, tp.q, tp.F)
     qc, done, _ = compensate(fm.model, tp.q, tp.F, target, np.tile(f.robot_X, (tp.s, 1)), sigma)
     return Calibration(
         problem, meas, f, tuple(outliers), std, correlation,
         float(np.sqrt(ssr / dof)) if dof > 0 else float("nan"), ssr / sigma**2, dof, interval,
         pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done,
-        None if validation is None else validate_rows(problem, f, validation),
+        None if validation is None else validate_rows(problem, f, validation, M0),
         None if validation is None else validation.path, None if validation is None else validation.Q)
