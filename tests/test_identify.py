@@ -167,6 +167,18 @@ def test_abb_markers_loads_and_a_hidden_marker(tmp_path):
     cal = calibrate(problem, meas)
     compliances_within_sigmas(cal, problem, true)
     assert cal.noise_consistent and not cal.outliers
+    # the DH robot's kinematic calibrated.urdf: its marker frames where the calibrated model
+    # puts the markers (unloaded)
+    from casadi_design.identification.urdf import calibrated_chain, urdf_text
+
+    (tmp_path / "calibrated.urdf").write_text(urdf_text(problem, calibrated_chain(
+        problem, cal.names, cal.fit.robot_X)))
+    model = pin.buildModelFromUrdf(str(tmp_path / "calibrated.urdf"))
+    expected = model_points(cal.fit.fit.model, meas.Q, np.zeros_like(meas.F), cal.fit.robot_X)
+    for c in range(3):
+        robot = make_robot(model, f"marker_{c + 1}", {})
+        got = np.array([frame_placement(robot, q).translation for q in meas.Q])
+        assert np.max(np.abs(got - expected[:, c])) < EXPORT_TOL_M
 
 
 @pytest.fixture(scope="module")
