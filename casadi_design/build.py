@@ -206,16 +206,7 @@ def _build(spec: ProblemSpec) -> Problem:
                                  markers_m=markers)
         chosen = base_set(full)
         parameters = chosen.kept
-    model_args = dict(
-        measured=meas.components,
-        accuracy=spec.test_poses.components,
-        geometric=tuple(parameters),
-        compliant=cal.compliant_joints,
-        force=cal.wrench_components,
-        markers_m=markers,
-        load_point_m=None if spec.force is None else np.array(spec.force.load_point_m),
-        whitening=None if meas.whitening is None else np.array(meas.whitening),
-    )
+    model_args = model_arguments(spec, tuple(parameters))
     model = calibration_model(kin, cal.case, **model_args)
     check_size(spec.path, "[experiments].m", max(spec.m_values), MAX_EXPERIMENTS, BYTES_PER_EXPERIMENT_L2,
                "experiments", "use fewer experiments", model.L)
@@ -228,6 +219,23 @@ def _build(spec: ProblemSpec) -> Problem:
         c = np.sqrt(np.mean(S.reshape(-1, model.d, model.L) ** 2, axis=0).sum(axis=0))
         model = calibration_model(kin, cal.case, column_scale=c, **model_args)
     return Problem(spec, robot, model, test_poses, chosen, m_min, _cell(spec, robot, markers))
+
+
+def model_arguments(spec: ProblemSpec, geometric: tuple[str, ...]) -> dict:
+    """The keyword arguments of :func:`~casadi_design.models.calibration_model` for the
+    problem ``spec`` with the geometric errors ``geometric`` (what is measured, required,
+    loaded and how the noise is whitened)."""
+    cal, meas = spec.calibration, spec.measurement
+    return dict(
+        measured=meas.components,
+        accuracy=spec.test_poses.components,
+        geometric=geometric,
+        compliant=cal.compliant_joints,
+        force=cal.wrench_components,
+        markers_m=None if meas.markers_m is None else np.array(meas.markers_m),
+        load_point_m=None if spec.force is None else np.array(spec.force.load_point_m),
+        whitening=None if meas.whitening is None else np.array(meas.whitening),
+    )
 
 
 #: Cells built in this process, by the data they depend on (a cell samples configurations to

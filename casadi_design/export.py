@@ -160,7 +160,18 @@ def _csv_cells(line: str) -> list[str]:
 
 
 def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.ndarray]:
-    """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m).
+    """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m)
+    (:func:`read_plan_table` without extra columns)."""
+    Q, F, _, _ = read_plan_table(problem, path)
+    return Q, F
+
+
+def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] = (),
+                    extra_hint: str = "") -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[int]]:
+    """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m);
+    the ``extra`` columns that are present (e.g. measured coordinates), as floats with NaN for
+    empty cells; and the line of the file of each row (1-based). ``extra_hint`` names the extra
+    columns in the message on an unknown column.
 
     UTF-8 text, with or without a byte-order mark. Trailing empty cells (as Excel writes
     them) are dropped, and so are lines of empty cells and lines starting with ``#``. Row
@@ -201,7 +212,7 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
             columns[f"{name}_{si}"] = (k, 1.0)
             columns[f"{name}_{people}"] = (k, scale)
     forces = force_columns(problem)
-    allowed = set(columns) | set(forces) | {"experiment", *POSITION_COLUMNS, *CLEARANCE_COLUMNS}
+    allowed = set(columns) | set(forces) | {"experiment", *POSITION_COLUMNS, *CLEARANCE_COLUMNS, *extra}
     if "" in header:
         raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
                            "name it or delete the column")
@@ -211,7 +222,8 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
         raise ProblemError(
             f"{path}: unknown column '{unknown[0]}'; allowed: q1_{people} or q1_{si} ... "
             f"q{robot.n}_<unit> (or joint names {', '.join(robot.joints)} with the unit suffix)"
-            + (f", {', '.join(forces)}" if forces else "") + ", experiment, x_mm, y_mm, z_mm")
+            + (f", {', '.join(forces)}" if forces else "") + ", experiment, x_mm, y_mm, z_mm"
+            + (f", {extra_hint}" if extra_hint else ""))
     repeated = next((h for h in header if header.count(h) > 1), None)
     if repeated:
         raise ProblemError(f"{path}: column '{repeated}' is given {header.count(repeated)} times; "
@@ -224,7 +236,7 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
                                f"{len(header)}; give one value per column in every row (a decimal "
                                "comma splits a number in two: use '.')")
 
-    def number(r: int, c: int) -> float:
+    def number(r: int, c: int, empty_allowed: bool = False) -> float:
         line, cell = rows[r][0], rows[r][1][c]
         where = f"{path}: row {line}, column '{header[c]}'"
         try:
@@ -232,7 +244,7 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
         except ValueError:
             raise ProblemError(f"{where}: expected a number, got '{cell}'; give a number with a "
                                "'.' decimal point in every cell") from None
-        if not math.isfinite(v):
+        if not math.isfinite(v) and not (empty_allowed and not cell):
             got = f"'{cell}'" if cell else "an empty cell"
             raise ProblemError(f"{where}: not a finite number, got {got}; give a finite number in "
                                "every cell")
@@ -254,18 +266,20 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
                 f"disagree by {spread:.3g} (rad or m); give one of them or fix the values")
         # the SI column when given (exact), else the people's unit converted
         Q[:, k] = values[next((i for i, (_, scale) in enumerate(given) if scale == 1.0), 0)]
+    values = {h: np.array([number(r, header.index(h), True) for r in range(m)]) for h in extra if h in header}
+    lines_of_rows = [i for i, _ in rows]
     nF = problem.model.nF
     if nF == 0:
-        return Q, np.zeros((m, 0))
+        return Q, np.zeros((m, 0)), values, lines_of_rows
     present = [h in header for h in forces]
     if not any(present) and problem.force is not None and problem.force.mode == "fixed":
-        return Q, np.tile(np.array(problem.force.vector_N), (m, 1))
+        return Q, np.tile(np.array(problem.force.vector_N), (m, 1)), values, lines_of_rows
     if not all(present):
         missing = [h for h, p in zip(forces, present) if not p]
         raise ProblemError(f"{path}: missing force column '{missing[0]}'; the plan needs the "
                            f"calibration load of each experiment: {', '.join(forces)} (N, N m)")
     F = np.array([[number(r, header.index(h)) for r in range(m)] for h in forces]).T  # checked column by column
-    return Q, F
+    return Q, F, values, lines_of_rows
 
 
 def _md_table(header: list[str], rows: list[list[str]]) -> str:

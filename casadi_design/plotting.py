@@ -20,6 +20,21 @@ from .files import write_atomic
 if TYPE_CHECKING:
     from .sweep import Sweep
 
+def is_path(position_m: np.ndarray) -> bool:
+    """Whether the test poses follow a path (a line, polyline or arc: no step turns back by more
+    than 90 deg from the one before), rather than separate points such as drilling holes, whose
+    file order draws a line that means nothing."""
+    steps = np.diff(np.asarray(position_m, dtype=float), axis=0)
+    return bool(np.all(np.einsum("ij,ij->i", steps[1:], steps[:-1]) >= 0))
+
+
+def pose_labels(position_m: np.ndarray) -> list[str]:
+    """``x`` over ``y`` of each test pose (mm, two lines), to label the groups of poses off a
+    path."""
+    xy = np.round(np.asarray(position_m)[:, :2] * 1e3) + 0.0  # + 0.0: no "-0"
+    return [f"{x:.0f}\n{y:.0f}" for x, y in xy]
+
+
 def path_coordinate(position_m: np.ndarray) -> tuple[np.ndarray, str]:
     """Abscissa of the test poses (mm): the Cartesian coordinate that varies most, when it is
     monotonic along the poses (x for the paper's line), else the arc length along them."""
@@ -54,11 +69,40 @@ class Band:
         return cls(crit.legend, crit.style, design.scores.rms_error_m)
 
 
-def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], xlabel: str) -> None:
-    """``+/- sqrt(rho)`` (mm) around the target trajectory for each design, maxima labelled."""
+def draw_errors_per_pose(ax: Axes, bars: list[tuple[str, dict, np.ndarray]], ylabel: str,
+                         labels: list[str] | None = None) -> None:
+    """One group per test pose (a drilling hole), one bar per series ``(label, style, values in
+    mm)``, each series' maximum labelled."""
+    s = len(bars[0][2])
+    width = 0.8 / len(bars)
+    x = np.arange(1, s + 1)
+    for i, (label, style, e) in enumerate(bars):
+        at = x - 0.4 + width * (i + 0.5)
+        ax.bar(at, e, width, label=label, color=style.get("color"), alpha=0.85)
+        j = int(np.nanargmax(e))
+        ax.annotate(f"{e[j]:.3f}", (at[j], e[j]), textcoords="offset points", xytext=(0, 3),
+                    ha="center", color=style.get("color"), fontsize=8)
+    every = max(1, s // 20)  # at most ~20 tick labels
+    ax.set_xticks(x[::every], (labels or [str(v) for v in x])[::every], fontsize=8)
+    ax.set_xlabel("test pose (one group per pose, in file order)")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=8, loc="best")
+
+
+def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], xlabel: str,
+                     labels: list[str] | None = None) -> None:
+    """``+/- sqrt(rho)`` (mm) around the target trajectory for each design, maxima labelled;
+    test poses off a path (``labels`` of the poses given): ``sqrt(rho)`` per pose, one group
+    per pose."""
+    bands = [d if isinstance(d, Band) else Band.of(d) for d in designs]
+    if labels is not None:
+        draw_errors_per_pose(ax, [(b.label, b.style, b.rms_error_m * 1e3) for b in bands],
+                             r"$\sqrt{\rho}$ (mm)", labels)
+        ax.set_xlabel("test pose: x over y (mm), in file order")
+        return
     ax.axhline(0.0, color="k", lw=1.0, label="Target trajectory")
-    for d in designs:
-        d = d if isinstance(d, Band) else Band.of(d)
+    for d in bands:
         e = d.rms_error_m * 1e3
         style = d.style
         ax.plot(x_mm, e, label=d.label, **style)
@@ -79,9 +123,11 @@ def fig1(position_m: np.ndarray, designs: list[Design], m_values: list[int]) -> 
     fig = Figure(figsize=(5.5 * len(m_values), 4.5), layout="constrained")
     axes = fig.subplots(1, len(m_values), squeeze=False)[0]
     top = max(d.scores.max_rms_error_m for d in designs if d.m in m_values) * 1e3
+    on_path = is_path(position_m)
+    labels = None if on_path else pose_labels(position_m)
     for ax, m, letter in zip(axes, m_values, "abcdefghij"):
-        draw_error_bands(ax, x, [d for d in designs if d.m == m], xlabel)
-        ax.set_ylim(-1.25 * top, 1.25 * top)
+        draw_error_bands(ax, x, [d for d in designs if d.m == m], xlabel, labels)
+        ax.set_ylim(-1.25 * top if on_path else 0, 1.25 * top)
         ax.set_title(f"({letter}) {m} calibration experiment{'s' if m > 1 else ''}")
     return fig
 
@@ -91,9 +137,10 @@ def bands_figure(position_m: np.ndarray, bands: list[Design | Band], title: str)
     x, xlabel = path_coordinate(position_m)
     fig = Figure(figsize=(6.5, 4.5), layout="constrained")
     ax = fig.subplots()
-    draw_error_bands(ax, x, bands, xlabel)
+    on_path = is_path(position_m)
+    draw_error_bands(ax, x, bands, xlabel, None if on_path else pose_labels(position_m))
     top = max(float(np.max((b if isinstance(b, Band) else Band.of(b)).rms_error_m)) for b in bands) * 1e3
-    ax.set_ylim(-1.25 * top, 1.25 * top)
+    ax.set_ylim(-1.25 * top if on_path else 0, 1.25 * top)
     ax.set_title(title)
     return fig
 
@@ -244,4 +291,51 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
         ax.set_title(f"{CRITERIA[d.criterion].legend}, m = {d.m}: "
                      f"{d.scores.max_rms_error_m * 1e3:.4f} mm", fontsize=10)
         ax.legend(fontsize=8, loc="upper left")
+    return fig
+
+
+#: Styles of the identification figure's series.
+NOMINAL_STYLE = {"color": "tab:gray"}
+CALIBRATED_STYLE = {"color": "tab:blue"}
+PREDICTED_STYLE = {"color": "tab:green"}
+AXIS_STYLES = ({"color": "tab:red"}, {"color": "tab:green"}, {"color": "tab:blue"})
+
+
+def identification_figure(calibration) -> Figure:
+    """The identification of measured data (a :class:`casadi_design.identification.calibrate.
+    Calibration`), mm: (a) residuals per experiment and axis (RMS over its points; outliers
+    marked), (b) validation errors per pose, nominal (registered) vs calibrated, beside the
+    predicted RMS, (c) at the test poses the predicted ``sqrt(rho)``, and the measured error
+    where a validation pose is a test pose."""
+    c = calibration
+    fig = Figure(figsize=(16, 4.5), layout="constrained")
+    ax_r, ax_v, ax_t = fig.subplots(1, 3)
+    axes = [a for a in range(3) if np.isfinite(c.residual_axes_m[:, :, a]).any()]
+    per_axis = {a: np.sqrt(np.nanmean(c.residual_axes_m[:, :, a] ** 2, axis=1)) * 1e3 for a in axes}
+    rows = [str(line) + ("*" if not used else "") for line, used in zip(c.measurements.lines, c.fit.used)]
+    draw_errors_per_pose(ax_r, [(f"{'xyz'[a]} residual", AXIS_STYLES[a], per_axis[a]) for a in axes],
+                         "residual, RMS over the points (mm)", rows)
+    ax_r.set_xlabel("experiment (row of the file; * outlier, not in the fit)")
+    ax_r.set_title(f"(a) residuals: RMS {np.sqrt(np.mean(c.residual_rms_m[c.fit.used] ** 2)) * 1e3:.4f} mm")
+    v = c.validation
+    if v is None:
+        ax_v.text(0.5, 0.5, "no validation set (--validation)", ha="center", va="center",
+                  transform=ax_v.transAxes)
+        ax_v.set_axis_off()
+    else:
+        draw_errors_per_pose(ax_v, [("nominal (registered)", NOMINAL_STYLE, v.nominal_m * 1e3),
+                                    ("calibrated", CALIBRATED_STYLE, v.calibrated_m * 1e3),
+                                    ("predicted", PREDICTED_STYLE, v.predicted_m * 1e3)],
+                             "error, RMS over the points (mm)", [str(line) for line in v.lines])
+        ax_v.set_yscale("log")
+        ax_v.set_xlabel("validation pose (row of the file)")
+        ax_v.set_title("(b) validation: nominal vs calibrated")
+    bars = [("predicted sqrt(rho)", PREDICTED_STYLE, c.predicted_rms_m * 1e3)]
+    measured = c.test_pose_errors_m
+    if measured is not None:
+        bars.append(("measured (validation)", CALIBRATED_STYLE, measured * 1e3))
+    position = c.problem.test_poses.position_m
+    draw_errors_per_pose(ax_t, bars, "error after calibration (mm)",
+                         None if is_path(position) else pose_labels(position))
+    ax_t.set_title(f"(c) the {len(c.predicted_rms_m)} test poses")
     return fig

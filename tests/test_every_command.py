@@ -1,19 +1,23 @@
 """Every subcommand on every file in problems/, with tiny settings: no traceback anywhere.
 
-Tiny settings: the D criterion, one start, IPOPT with a limited-memory Hessian, the smallest m,
+Tiny settings (identify: the solved plan measured on the nominal robot): the D criterion, one start, IPOPT with a limited-memory Hessian, the smallest m,
 one exchange step of the approximate design on 30 candidates in the bound command (none in
 solve and sweep); the sweep runs a range that does not start at the smallest m.
 """
 
 import json
 
+import numpy as np
 import pytest
 
 from casadi_design.bound import approximate_designs, bound
 from casadi_design.build import load_problem
 from casadi_design.cli import main
+from casadi_design.export import read_plan_table
+from casadi_design.identification.fit import model_points
 from casadi_design.rules import FEASIBILITY_TOL
 from tests.conftest import PROBLEM_FILES
+from tests.identify_data import measurement_csv
 
 #: Criterion of the tiny runs: cheap on every problem; an IPOPT option through --ipopt (a
 #: limited-memory Hessian: as fast as the exact one here, and it exercises the pass-through).
@@ -43,6 +47,14 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert main(["validate", str(path), "--results", str(solved / "results.json"), "--trials", "4",
                  "--out", str(tmp_path / "validate")]) == 0
     assert main(["plot", str(swept), "--out", str(tmp_path / "figures"), "--format", "png"]) == 0
+    measured = tmp_path / "measured.csv"  # the solved plan measured on the nominal robot, base frame
+    Q, F, _, _ = read_plan_table(problem, plan)
+    P = model_points(problem.model, Q, F, np.zeros(problem.model.L))
+    hidden = ((0, 1),) if P.shape[1] > 1 else ()  # a marker the tracker did not see
+    measured.write_text(measurement_csv(problem, Q, F, P + 1e-6 * np.random.default_rng(0).standard_normal(P.shape),
+                                        hidden))
+    assert main(["identify", str(path), "--measurements", str(measured), "--frame", "base",
+                 "--out", str(tmp_path / "identify")]) == 0
     out, err = capsys.readouterr()
     assert "Traceback" not in out + err and "error" not in err
 
@@ -56,3 +68,5 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
         assert [e["clearance_m"] for e in evaluation["experiments"]] == [e["clearance_m"] for e in design["experiments"]]
     assert (tmp_path / "figures" / "sweep_max_error.png").stat().st_size > 0
     assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == 4
+    identified = json.loads((tmp_path / "identify" / "identification.json").read_text())
+    assert identified["residual_rms_m"] < 1e-5 and (tmp_path / "identify" / "calibrated.urdf").stat().st_size > 0

@@ -6,12 +6,12 @@ values of a true robot (markers, load-point moment and joint deflection included
 the noise ``sigma`` per value is added. Nothing here rebuilds kinematics, markers, loads or
 the noise model.
 
-Every trial runs at once: :func:`evaluate` maps a CasADi function over N stacked inputs.
+Every trial runs at once: :func:`casadi_design.mapped.evaluate` maps a CasADi function over N
+stacked inputs.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, replace
 
@@ -19,8 +19,9 @@ import casadi as ca
 import numpy as np
 
 from ..errors import DesignError, ProblemError
+from ..identification.lsq import nominal_poses
+from ..mapped import evaluate
 from ..models import DEFLECTION_ITERATIONS, CalibrationModel
-from ..parallel import cpu_count
 
 #: Largest last fixed-point update of the joint deflection (rad, or m for prismatic joints)
 #: accepted for a true robot.
@@ -82,73 +83,6 @@ class Plan:
     F: np.ndarray
 
 
-#: Largest number of cases one mapped CasADi call evaluates: longer stacks run in chunks of
-#: this size, shorter ones in the next power of two, so that a few mapped functions serve
-#: every size (building one takes ~30 ms, as long as evaluating ~20000 cases).
-CHUNK = 8192
-
-
-#: Threads of the mapped evaluations: every core (the cases are independent, so the results do
-#: not depend on it).
-THREADS = cpu_count()
-
-
-@functools.lru_cache(maxsize=128)
-def _mapped(fn: ca.Function, N: int) -> ca.Function:
-    return fn.map(N, "thread", THREADS) if THREADS > 1 else fn.map(N)
-
-
-def evaluate(fn: ca.Function, *rows: np.ndarray) -> list[np.ndarray]:
-    """Evaluate ``fn`` on N stacked inputs at once (CasADi map).
-
-    The arrays are handed to CasADi without conversion (``Function.buffer``): row t of a
-    C-ordered (N, size) array is the t-th column of the mapped input, as CasADi stores it.
-
-    Parameters
-    ----------
-    rows : ndarray, shape (N, size of input a), one per (dense, column-vector) input of ``fn``
-
-    Returns
-    -------
-    list of ndarray, shape (N, rows of output b, columns of output b), one per output
-    """
-    N = rows[0].shape[0]
-    inputs = [np.ascontiguousarray(a, dtype=float).reshape(N, fn.numel_in(i)) for i, a in enumerate(rows)]
-    if any(not fn.sparsity_in(i).is_dense() for i in range(fn.n_in())):
-        raise ValueError(f"evaluate: {fn.name()} has sparse inputs; give a function of dense inputs")
-    nonzeros = [np.empty((N, fn.nnz_out(b))) for b in range(fn.n_out())]
-    K = min(CHUNK, 1 << max(N - 1, 0).bit_length())
-    mapped = _mapped(fn, K)
-    for start in range(0, N, K):
-        stop = min(start + K, N)
-        buffer, call = mapped.buffer()
-        if stop - start == K:
-            args, res = [a[start:stop] for a in inputs], [o[start:stop] for o in nonzeros]
-        else:  # the last, short chunk: pad with copies of its last case
-            pad = K - (stop - start)
-            args = [np.concatenate([a[start:stop], np.repeat(a[stop - 1:stop], pad, axis=0)])
-                    for a in inputs]
-            res = [np.empty((K, o.shape[1])) for o in nonzeros]
-        for i, a in enumerate(args):
-            buffer.set_arg(i, memoryview(a))
-        for b, o in enumerate(res):
-            buffer.set_res(b, memoryview(o))
-        call()
-        if stop - start < K:
-            for o, r in zip(nonzeros, res):
-                o[start:stop] = r[:stop - start]
-    out = []
-    for b, nz in enumerate(nonzeros):
-        sp = fn.sparsity_out(b)
-        if sp.is_dense():
-            full = nz
-        else:  # e.g. a Jacobian with structural zeros: scatter its nonzeros (column-major)
-            full = np.zeros((N, sp.numel()))
-            full[:, sp.find()] = nz
-        out.append(full.reshape(N, sp.size2(), sp.size1()).transpose(0, 2, 1))
-    return out
-
-
 def draw_true_parameters(model: CalibrationModel, spreads: ErrorSpreads, trials: int,
                          rng: np.random.Generator) -> np.ndarray:
     """True parameter vectors ``X`` (physical units) of ``trials`` robots, shape (trials, L).
@@ -170,14 +104,6 @@ def draw_true_parameters(model: CalibrationModel, spreads: ErrorSpreads, trials:
         linear = what in ("tx", "ty", "tz") or prismatic
         X[:, i] = (spreads.length_m if linear else spreads.angle_rad) * z[:, i]
     return X
-
-
-def nominal_poses(model: CalibrationModel, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """References of the nominal robot (``X = 0``, no deflection), shape (N, 12): the
-    measurement references of a plan ``(Q, F)`` and the targets of the test poses."""
-    Q = np.atleast_2d(np.asarray(Q, dtype=float))
-    return evaluate(model.pose, Q, np.asarray(F, float).reshape(len(Q), model.nF),
-                    np.zeros((len(Q), model.L)))[0][:, :, 0]
 
 
 def true_values(fn: ca.Function, spreads: ErrorSpreads, *rows: np.ndarray,

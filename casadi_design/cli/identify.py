@@ -1,0 +1,135 @@
+"""``casadi-design identify``: identify the robot from measured tracker coordinates
+(:mod:`casadi_design.identification`), compensate the test poses, export the calibrated model."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+from ..errors import ProblemError
+from ..files import prepare_out, write_atomic, write_json
+
+HELP = "identify the robot from tracker measurements, export the calibrated model (casadi-design identify --help)"
+DESCRIPTION = (
+    "Identify the robot from measured points: MEAS.csv is a plan CSV of casadi-design solve (joint "
+    "and load columns) with the measured coordinates appended in mm: meas_x_mm, meas_y_mm, "
+    "meas_z_mm for one measured point, meas1_x_mm ... measK_z_mm for the markers of markers_m (an "
+    "empty cell: a marker not seen). The tracker frame is registered in closed form, then the "
+    "parameters and the frame are fitted together by weighted nonlinear least squares "
+    "(Levenberg-Marquardt, the code of casadi-design validate); outliers are excluded one at a "
+    "time. Writes to --out: identification.json (SI units), identification.md and "
+    "identification.png, compensated_test_poses.csv, calibrated.urdf, calibrated.toml (a "
+    "problem file of the calibrated robot) and, with compliances, identified_compliances.toml.")
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"--outlier-sigma takes a positive number, got '{text}'")
+    return v
+
+
+def load_without_cell(path: str):
+    """The problem of ``path`` built without its ``[cell]``: the identification does not check
+    plans, and fitting the cell's capsules takes seconds (``calibrated.toml`` keeps the cell)."""
+    from dataclasses import replace
+
+    from ..build import build_problem
+    from ..problem import read_problem
+
+    return build_problem(replace(read_problem(path), cell=None))
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("identify", help=HELP, description=DESCRIPTION)
+    add_arguments(p)
+    p.set_defaults(run=run)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from ..identification.calibrate import OUTLIER_SIGMA
+    from ..identification.fit import FRAMES
+
+    p.add_argument("problem", help="problem file (TOML) of the measured robot, e.g. problems/ur10_drilling.toml")
+    p.add_argument("--measurements", required=True, metavar="CSV",
+                   help="measured plan: the plan CSV with meas_x_mm, meas_y_mm, meas_z_mm (or meas1_x_mm ...) appended")
+    p.add_argument("--validation", metavar="CSV",
+                   help="poses measured for validation only (same format), not used in the fit")
+    p.add_argument("--frame", choices=FRAMES, default="tracker",
+                   help="frame of the coordinates: tracker (default: its placement is identified) or base")
+    p.add_argument("--outlier-sigma", type=_positive, default=OUTLIER_SIGMA, metavar="S",
+                   help=f"a row whose residual exceeds S sigma is excluded and the rest refitted "
+                        f"(default {OUTLIER_SIGMA:g})")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for the files (created if missing)")
+    p.add_argument("--force", action="store_true",
+                   help="write into --out even if it exists and is not empty (overwrites our files)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``casadi-design identify``; returns 0.
+
+    Raises
+    ------
+    ProblemError, DesignError, casadi_design.errors.OutputError
+        Bad input (one line naming the file, row and column), a fit that does not converge,
+        an ``--out`` that cannot be written (before anything is computed).
+    """
+    from ..identification.calibrate import calibrate
+    from ..identification.measurements import read_measurements
+    from ..identification.problem_file import calibrated_problem, toml_text
+    from ..identification.report import (
+        compensated_csv,
+        identification_record,
+        parameter_unit,
+        report_markdown,
+        summary_lines,
+    )
+    from ..identification.urdf import calibrated_chain, urdf_text
+
+    out = prepare_out(args.out, args.force)
+    t0 = time.perf_counter()
+    problem = load_without_cell(args.problem)
+    meas = read_measurements(problem, args.measurements)
+    valid = None if args.validation is None else read_measurements(problem, args.validation)
+    if valid is not None and valid.path == meas.path:
+        raise ProblemError(f"--validation {valid.path}: is the file of the fit; give poses not used in the fit")
+    cal = calibrate(problem, meas, args.frame, valid, args.outlier_sigma)
+    print("\n".join(summary_lines(cal)))
+    print(f"identification time {time.perf_counter() - t0:.2f} s")
+
+    from ..plotting import identification_figure, write_figures
+
+    f = cal.fit
+    chain = calibrated_chain(problem, f.fit.model.parameter_names, f.robot_X)
+    header = (f"calibrated by casadi-design identify from {meas.path} ({problem.path}, frame "
+              f"{args.frame})")
+    # every text first, the figure (the slow part) next, then the texts at once: Ctrl-C leaves
+    # the folder as it was, or the figure alone
+    texts = {"calibrated.urdf": urdf_text(problem, chain),
+             "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header),
+             "compensated_test_poses.csv": compensated_csv(cal)}
+    compliances = [(n, x, s) for n, x, s in zip(cal.names, f.X, cal.std) if n.startswith("k.")]
+    if compliances:
+        record = {"compliances": {n[2:]: {"value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
+                                  for n, x, s in compliances}}
+        texts["identified_compliances.toml"] = toml_text(
+            record, header + "\nidentified joint compliances (a URDF cannot hold them)")
+    figure = identification_figure(cal)
+    names = ["identification.json", "identification.md", "identification.png", *texts]
+    texts["identification.md"] = report_markdown(cal, ["identification.png"], names)
+    files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml",
+             "compensated_test_poses": "compensated_test_poses.csv", "report": "identification.md",
+             "figures": ["identification.png"]}
+    if compliances:
+        files["compliances"] = "identified_compliances.toml"
+    record_text = identification_record(cal, files)
+    write_figures(out, "identification", figure, ("png",))  # a pdf too would take 1 s more
+    for name, text in texts.items():
+        write_atomic(out / name, text.encode())
+    write_json(out / "identification.json", record_text)
+    print(f"wrote {', '.join(names)} in {out}")
+    return 0

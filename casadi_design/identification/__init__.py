@@ -1,0 +1,11 @@
+"""Identify a robot from measured tracker coordinates: read, register, fit, compensate, export.
+
+Modules, in the order of the data: :mod:`.measurements` (measurement CSVs), :mod:`.registration`
+(the tracker frame in closed form), :mod:`.lsq` (Levenberg-Marquardt on the one measurement
+model, also the identification of every simulated calibration of ``validate``), :mod:`.fit`
+(the fit's model with the tracker frame, the fit of some rows), :mod:`.compensate` (the test
+poses' commands, shared with ``validate``), :mod:`.calibrate` (outliers, statistics, validation
+rows), :mod:`.report` (``identification.json``, the summary, the compensated poses),
+:mod:`.urdf` (``calibrated.urdf``) and :mod:`.problem_file` (``calibrated.toml``). The command
+is ``casadi-design identify`` (:mod:`casadi_design.cli.identify`).
+"""

@@ -1,0 +1,253 @@
+"""The whole identification of measured data: fit, outliers, statistics, validation, compensation.
+
+Statistics of a fit with N measured values and L parameters (whitened residuals ``r``, noise
+``sigma`` per value, ``J = dh/dX`` at the estimate):
+
+* ``cov(X) = sigma^2 (J^T J)^-1`` (the problem's sigma), standard deviations its diagonal's
+  roots, correlations ``C_ab / (std_a std_b)`` (pairs beyond ``CORRELATION_LIMIT`` reported);
+* ``sigma_hat = sqrt(|r|^2 / (N - L))``, and ``|r|^2 / sigma^2 ~ chi2(N - L)``: the noise is
+  consistent with sigma when it lies within the central ``CONFIDENCE`` interval;
+* outliers: a row whose largest ``|r| / sigma`` exceeds ``threshold`` (default 4) is excluded,
+  the worst first, and the rest refitted, one at a time;
+* predicted accuracy at the test poses of the plan that was measured:
+  ``sqrt(rho_j) = sqrt(sigma^2 trace(B0_j M^-1 B0_j^T))`` with ``M`` and ``B0`` at X = 0 (the
+  design's measure, :func:`design_information`), the error of the compensated robot
+  in the frame of the measurements (where the workpiece is registered: the frame's
+  uncertainty included, as the design's base errors are);
+* validation rows (not in the fit): the nominal model after its own best rigid registration,
+  and the calibrated one with the identified tracker frame; the error per pose is the RMS over
+  its points of ``|P - T p(X)|`` (mm for people), predicted
+  ``sqrt((sigma^2 trace(B_v M^-1 B_v^T) + d_v sigma^2) / k)`` (model error and the validation
+  measurement's own noise, d_v values of k points).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..build import Problem
+from ..errors import ProblemError
+from ..measures import information_matrix, rho_at_test_poses
+from .compensate import compensate
+from .fit import Fit, FitModel, fit, fit_model, frame_matrix, model_points, registration
+from .lsq import nominal_poses
+from .measurements import Measurements, measured_axes
+from .registration import rigid_fit
+
+#: Residual of a row, in sigma, above which it is an outlier (default of ``--outlier-sigma``).
+OUTLIER_SIGMA = 4.0
+#: Parameter pairs correlated beyond this are reported.
+CORRELATION_LIMIT = 0.9
+#: A validation pose is a test pose when their joints agree within this (rad or m).
+SAME_POSE_RAD = 1e-6
+#: Level of the chi-square test of the noise.
+CONFIDENCE = 0.95
+
+
+@dataclass(frozen=True, eq=False)
+class PoseErrors:
+    """Errors per pose (m): RMS over each pose's points of ``|measured - model|``, nominal and
+    calibrated, and the predicted RMS of the calibrated model's error (with the noise)."""
+
+    lines: tuple[int, ...]
+    nominal_m: np.ndarray
+    calibrated_m: np.ndarray
+    predicted_m: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """What ``casadi-design identify`` found (module docstring). SI units.
+
+    Attributes
+    ----------
+    fit : the final fit (outliers excluded).
+    outliers : tuple of (line, largest |r| / sigma of the row when it was excluded).
+    std : ndarray, shape (L,): standard deviations with the problem's sigma.
+    correlation : ndarray, shape (L, L).
+    sigma_hat_m, chi2, dof, chi2_interval : the noise estimated from the residuals and its test.
+    residual_rms_m, residual_max_m : ndarray, shape (m,): per row, over its points (NaN: excluded
+        rows get the calibrated model's error too, as the other rows).
+    residual_axes_m : ndarray, shape (m, k, 3): per row, point and axis (NaN where not measured).
+    predicted_rms_m : ndarray, shape (s,): ``sqrt(rho_j)`` at the test poses.
+    q_compensated : ndarray, shape (s, n): commands that put the calibrated robot's measured
+        frame on the nominal targets of the test poses (machining wrench included).
+    validation : :class:`PoseErrors` of the validation rows, or None.
+    """
+
+    problem: Problem
+    measurements: Measurements
+    fit: Fit
+    outliers: tuple[tuple[int, float], ...]
+    std: np.ndarray
+    correlation: np.ndarray
+    sigma_hat_m: float
+    chi2: float
+    dof: int
+    chi2_interval: tuple[float, float]
+    residual_rms_m: np.ndarray
+    residual_max_m: np.ndarray
+    residual_axes_m: np.ndarray
+    predicted_rms_m: np.ndarray
+    q_compensated: np.ndarray
+    compensation_converged: np.ndarray
+    validation: PoseErrors | None
+    validation_path: str | None
+    validation_Q: np.ndarray | None
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.fit.fit.model.parameter_names
+
+    @property
+    def noise_consistent(self) -> bool:
+        low, high = self.chi2_interval
+        return low <= self.chi2 <= high
+
+    @property
+    def test_pose_errors_m(self) -> np.ndarray | None:
+        """The calibrated model's validation error at each test pose that is also a validation
+        pose (joints within ``SAME_POSE_RAD``), NaN at the others; None when there are none."""
+        if self.validation is None:
+            return None
+        q0, qv = self.problem.test_poses.q, self.validation_Q
+        same = np.all(np.abs(q0[:, None, :] - qv[None, :, :]) <= SAME_POSE_RAD, axis=2)
+        if not same.any():
+            return None
+        e = np.full(len(q0), np.nan)
+        j, i = np.nonzero(same)
+        e[j] = self.validation.calibrated_m[i]
+        return e
+
+    def correlated_pairs(self) -> list[tuple[str, str, float]]:
+        C, out = self.correlation, []
+        for a in range(len(C)):
+            for b in range(a + 1, len(C)):
+                if abs(C[a, b]) > CORRELATION_LIMIT:
+                    out.append((self.names[a], self.names[b], float(C[a, b])))
+        return out
+
+
+def row_sigmas(f: Fit, sigma: float) -> np.ndarray:
+    """Largest ``|r| / sigma`` of each row, shape (m,)."""
+    return np.max(np.abs(f.r), axis=1) / sigma
+
+
+def fit_without_outliers(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray,
+                         threshold: float) -> tuple[Fit, list[tuple[int, float]]]:
+    """Fit, then exclude the worst row while its ``|r| / sigma`` exceeds ``threshold`` and the
+    remaining rows still identify the parameters; refit after each exclusion."""
+    used = np.ones(meas.m, dtype=bool)
+    f = fit(problem, fm, meas, T0, used)
+    outliers: list[tuple[int, float]] = []
+    while True:
+        score = np.where(used, row_sigmas(f, problem.sigma_m), -np.inf)
+        worst = int(np.argmax(score))
+        if not score[worst] > threshold:
+            return f, outliers
+        trial = used.copy()
+        trial[worst] = False
+        try:
+            refit = fit(problem, fm, meas, T0, trial)
+        except ProblemError:  # the rest cannot identify X: keep the row
+            return f, outliers
+        outliers.append((meas.lines[worst], float(score[worst])))
+        used, f = trial, refit
+
+
+def point_errors(problem: Problem, P: np.ndarray, model_P: np.ndarray) -> np.ndarray:
+    """Per point ``|P - model_P|`` over the measured axes (m, k), NaN where not seen."""
+    axes = list(measured_axes(problem))
+    return np.sqrt(np.sum((P - model_P)[:, :, axes] ** 2, axis=2))
+
+
+def pose_rms(e: np.ndarray) -> np.ndarray:
+    """RMS over each row's seen points, shape (m,)."""
+    return np.sqrt(np.nanmean(e**2, axis=1))
+
+
+def in_tracker(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def design_information(f: Fit, meas: Measurements) -> np.ndarray:
+    """``M = sum B_i^T B_i`` of the rows and values of ``meas`` the fit used, ``B`` at X = 0
+    for the physical parameters: the information matrix of the design's measure for the plan
+    that was measured (the standard deviations use ``J`` at the estimate)."""
+    model = f.fit.model
+    B = model.B_stack(meas.Q[f.used], meas.F[f.used]) * model.column_scale * f.mask[f.used][:, :, None]
+    return information_matrix(B)
+
+
+def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray) -> PoseErrors:
+    """Errors of the nominal (its own best rigid registration) and calibrated model at the
+    validation rows, and the predicted RMS (module docstring)."""
+    fm, axes = f.fit, measured_axes(problem)
+    model, sigma = fm.model, problem.sigma_m
+    seen = valid.seen
+    nominal = model_points(model, valid.Q, valid.F, np.zeros(model.L))
+    if fm.frame == "tracker":
+        found = rigid_fit(nominal[seen], valid.P_m[seen], axes)
+        T_nominal = f.T0 if found is None else frame_matrix(*found)
+    else:
+        T_nominal = np.eye(4)
+    e_nominal = point_errors(problem, valid.P_m, in_tracker(T_nominal, nominal))
+    calibrated = model_points(model, valid.Q, valid.F, f.X)
+    e_cal = point_errors(problem, valid.P_m, in_tracker(f.T0, calibrated))
+    Bv = model.B_stack(valid.Q, valid.F) * model.column_scale  # for the physical X of the fit
+    per = len(axes)
+    mask = np.repeat(seen, per, axis=1)
+    Bv = Bv * mask[:, :, None]
+    k = seen.sum(axis=1)
+    model_var = rho_at_test_poses(M, Bv, sigma)  # sigma^2 trace(B_v M^-1 B_v^T)
+    predicted = np.sqrt((model_var + mask.sum(axis=1) * sigma**2) / k)
+    return PoseErrors(valid.lines, pose_rms(e_nominal), pose_rms(e_cal), predicted)
+
+
+def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
+              validation: Measurements | None = None, threshold: float = OUTLIER_SIGMA) -> Calibration:
+    """Identify the robot of ``problem`` from ``meas`` (module docstring).
+
+    Raises
+    ------
+    ProblemError
+        Measurements that cannot be registered or do not identify the parameters.
+    DesignError
+        A fit that does not converge.
+    """
+    from scipy.stats import chi2  # imported here: scipy.stats takes ~1 s to import
+
+    if not threshold > 0:
+        raise ProblemError(f"--outlier-sigma {threshold:g}: give a positive number of sigma, e.g. 4")
+    fm = fit_model(problem, frame)
+    T0 = registration(problem, fm, meas)
+    f, outliers = fit_without_outliers(problem, fm, meas, T0, threshold)
+    sigma, L = problem.sigma_m, fm.model.L
+    Minv = np.linalg.inv(f.information)
+    C = sigma**2 * Minv
+    std = np.sqrt(np.diagonal(C))
+    correlation = C / np.outer(std, std)
+    N = int(f.mask[f.used].sum())
+    dof = N - L
+    ssr = float(np.sum(f.r[f.used] ** 2))
+    interval = ((float(chi2.ppf((1 - CONFIDENCE) / 2, dof)), float(chi2.ppf((1 + CONFIDENCE) / 2, dof)))
+                if dof > 0 else (0.0, float("inf")))
+    model_P = in_tracker(f.T0, model_points(fm.model, meas.Q, meas.F, f.X))
+    e = point_errors(problem, meas.P_m, model_P)
+    axes_m = meas.P_m - model_P
+    axes_m[:, :, [a for a in range(3) if a not in measured_axes(problem)]] = np.nan
+
+    tp = problem.test_poses
+    B0 = fm.model.B_stack(tp.q, tp.F, accuracy=True) * fm.model.column_scale  # physical X, as M
+    M0 = design_information(f, meas)
+    predicted = np.sqrt(rho_at_test_poses(M0, B0, sigma))
+    target = nominal_poses(fm.model, tp.q, tp.F)
+    qc, done, _ = compensate(fm.model, tp.q, tp.F, target, np.tile(f.robot_X, (tp.s, 1)), sigma)
+    return Calibration(
+        problem, meas, f, tuple(outliers), std, correlation,
+        float(np.sqrt(ssr / dof)) if dof > 0 else float("nan"), ssr / sigma**2, dof, interval,
+        pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done,
+        None if validation is None else validate_rows(problem, f, validation, M0),
+        None if validation is None else validation.path, None if validation is None else validation.Q)

@@ -1,0 +1,176 @@
+"""What ``casadi-design identify`` prints and writes: the summary, ``identification.json`` (SI
+units, field names with their unit), ``compensated_test_poses.csv`` and ``identification.md``."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..export import csv_text, is_prismatic, joint_units, plan_table
+from .calibrate import CORRELATION_LIMIT, Calibration
+from .fit import ABSORB_SEED, FRAME_PARAMETERS, error_placement
+
+#: Step (m, rad) of the finite differences of the tracker frame's entries in its parameters.
+FRAME_STEP = 1e-7
+
+
+def parameter_unit(calibration: Calibration, name: str) -> str:
+    """SI unit of parameter ``name``: m, rad, rad/(N m) or m/N."""
+    robot = calibration.problem.robot
+    owner, what = name.split(".", 1)
+    prismatic = owner in robot.joints and is_prismatic(calibration.problem, robot.joints.index(owner))
+    if owner == "k":
+        return "m/N" if is_prismatic(calibration.problem, robot.joints.index(what)) else "rad/(N m)"
+    if what in ("tx", "ty", "tz") or (what == "offset" and prismatic):
+        return "m"
+    return "rad"
+
+
+def tracker_std(calibration: Calibration) -> np.ndarray:
+    """Standard deviations (4 x 4, m) of the entries of ``tracker_from_base``:
+    ``sqrt(diag(G C G^T))``, ``G`` the finite-difference derivative of ``T0 E(delta)`` in the
+    frame's parameters and ``C`` their covariance."""
+    f = calibration.fit
+    nf = len(f.fit.frame_names)
+    if nf == 0:
+        return np.zeros((4, 4))
+    C = (calibration.std[:, None] * calibration.correlation * calibration.std[None, :])[:nf, :nf]
+    delta = np.zeros(6)
+    for name, value in zip(f.fit.frame_names, f.X):
+        delta[FRAME_PARAMETERS.index(name)] = value
+    G = []
+    for name in f.fit.frame_names:
+        step = delta.copy()
+        step[FRAME_PARAMETERS.index(name)] += FRAME_STEP
+        G.append(((f.T0 @ error_placement(step)) - (f.T0 @ error_placement(delta))).ravel() / FRAME_STEP)
+    G = np.array(G).T
+    return np.sqrt(np.maximum(np.einsum("ia,ab,ib->i", G, C, G), 0.0)).reshape(4, 4)
+
+
+def compensated_table(calibration: Calibration) -> tuple[list[str], list[list]]:
+    """``compensated_test_poses.csv``: the plan columns of the compensated test poses, then the
+    change from the nominal joint values (deg, mm for prismatic joints)."""
+    problem = calibration.problem
+    tp = problem.test_poses
+    header, rows = plan_table(problem, calibration.q_compensated, tp.F)
+    header = header[: len(rows[0])]  # no clearance columns: the test poses were not checked
+    changes = [f"{j}_change_{joint_units(problem, k)[1]}" for k, j in enumerate(problem.robot.joints)]
+    scale = np.array([joint_units(problem, k)[2] for k in range(problem.robot.n)])
+    delta = (calibration.q_compensated - tp.q) / scale
+    return (header + changes + ["converged"],
+            [r + list(d) + [bool(c)] for r, d, c in zip(rows, delta, calibration.compensation_converged)])
+
+
+def compensated_csv(calibration: Calibration) -> str:
+    return csv_text(*compensated_table(calibration))
+
+
+def identification_record(calibration: Calibration, files: dict) -> dict:
+    """``identification.json`` (module docstring)."""
+    c, f = calibration, calibration.fit
+    meas, problem = c.measurements, c.problem
+    valid = c.validation
+    return {
+        "problem": problem.path,
+        "measurements": meas.path,
+        "frame": f.fit.frame,
+        "absorb_seed": ABSORB_SEED,
+        "sigma_m": problem.sigma_m,
+        "parameters": [{"name": n, "value": float(x), "std": float(s), "unit": parameter_unit(c, n),
+                        "of": "tracker frame" if n in f.fit.frame_names else "robot"}
+                       for n, x, s in zip(c.names, f.X, c.std)],
+        "absorbed": [{"name": n, "why": why} for n, why in f.fit.absorbed],
+        "tracker_from_base": f.tracker_from_base.tolist(),
+        "tracker_from_base_std": tracker_std(c).tolist(),
+        "tracker_from_base_unit": "m (4 x 4 homogeneous: base-frame points to tracker-frame points)",
+        "levenberg_marquardt": {"iterations": f.identification.iterations,
+                                "converged": f.identification.non_converged == 0},
+        "noise": {"sigma_m": problem.sigma_m, "sigma_estimated_m": c.sigma_hat_m, "chi2": c.chi2,
+                  "dof": c.dof, "chi2_interval": list(c.chi2_interval), "confidence": 0.95,
+                  "consistent": c.noise_consistent},
+        "correlation_limit": CORRELATION_LIMIT,
+        "correlated_pairs": [{"a": a, "b": b, "correlation": r} for a, b, r in c.correlated_pairs()],
+        "outliers": [{"row": line, "residual_sigma": s} for line, s in c.outliers],
+        "experiments": [{"row": line, "used": bool(u), "residual_rms_m": float(r), "residual_max_m": float(x),
+                         "residual_xyz_m": np.where(np.isfinite(a), a, None).tolist()}
+                        for line, u, r, x, a in zip(meas.lines, f.used, c.residual_rms_m, c.residual_max_m,
+                                                    c.residual_axes_m)],
+        "residual_rms_m": float(np.sqrt(np.mean(c.residual_rms_m[f.used] ** 2))),
+        "test_poses": {"predicted_rms_m": c.predicted_rms_m.tolist(),
+                       "max_predicted_rms_m": float(np.max(c.predicted_rms_m)),
+                       "q_compensated": c.q_compensated.tolist(),
+                       "compensation_converged": c.compensation_converged.tolist()},
+        "validation": None if valid is None else {
+            "file": c.validation_path, "rows": list(valid.lines),
+            "nominal_m": valid.nominal_m.tolist(), "calibrated_m": valid.calibrated_m.tolist(),
+            "predicted_m": valid.predicted_m.tolist(),
+            "nominal_rms_m": float(np.sqrt(np.mean(valid.nominal_m**2))),
+            "calibrated_rms_m": float(np.sqrt(np.mean(valid.calibrated_m**2))),
+            "predicted_rms_m": float(np.sqrt(np.mean(valid.predicted_m**2))),
+            "nominal_max_m": float(np.max(valid.nominal_m)),
+            "calibrated_max_m": float(np.max(valid.calibrated_m))},
+        "files": files,
+    }
+
+
+def _value_for_people(value: float, unit: str) -> tuple[float, str]:
+    return {"m": (value * 1e3, "mm"), "rad": (math.degrees(value), "deg")}.get(unit, (value, unit))
+
+
+def summary_lines(calibration: Calibration) -> list[str]:
+    """The lines ``identify`` prints (mm, deg for people)."""
+    c, f = calibration, calibration.fit
+    used = f.used
+
+    def label(name: str) -> str:
+        return f"tracker frame {name[len('base.'):]}" if name in f.fit.frame_names else name
+
+    lines = [(f"identified {len(c.names)} parameters from {int(used.sum())} of {c.measurements.m} rows "
+              f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; Levenberg-Marquardt "
+              f"{f.identification.iterations} iterations"),
+             f"{'parameter':28s} {'value':>12s} {'std':>10s}  unit"]
+    for n, x, s in zip(c.names, f.X, c.std):
+        (v, unit), (sd, _) = _value_for_people(x, parameter_unit(c, n)), _value_for_people(s, parameter_unit(c, n))
+        lines.append(f"{label(n):28s} {v:12.5g} {sd:10.3g}  {unit}")
+    lines += [f"absorbed {n}: {why}" for n, why in f.fit.absorbed if not n.startswith("base.")]
+    lines.append(f"residual RMS {np.sqrt(np.mean(c.residual_rms_m[used] ** 2)) * 1e3:.4f} mm, max "
+                 f"{np.max(c.residual_max_m[used]) * 1e3:.4f} mm; noise sigma estimated "
+                 f"{c.sigma_hat_m * 1e3:.4f} mm vs {c.problem.sigma_m * 1e3:g} mm of the problem (chi2 "
+                 f"{c.chi2:.1f}, {c.dof} dof, 95 % interval {c.chi2_interval[0]:.1f}..{c.chi2_interval[1]:.1f}: "
+                 f"{'consistent' if c.noise_consistent else 'NOT consistent: check sigma or the model'})")
+    lines += [f"correlated beyond {CORRELATION_LIMIT}: {label(a)} / {label(b)} ({r:+.3f})"
+              for a, b, r in c.correlated_pairs()]
+    lines += [f"outlier excluded: row {line} ({s:.1f} sigma)" for line, s in c.outliers]
+    lines.append(f"predicted accuracy at the {len(c.predicted_rms_m)} test poses: max sqrt(rho) "
+                 f"{np.max(c.predicted_rms_m) * 1e3:.4f} mm")
+    if c.validation is None:
+        lines.append("warning: no validation set (--validation): the accuracy of the calibrated model "
+                     "is predicted, not checked on poses outside the fit")
+    else:
+        v = c.validation
+        lines.append(f"validation, {len(v.lines)} rows: nominal (registered) RMS "
+                     f"{np.sqrt(np.mean(v.nominal_m**2)) * 1e3:.4f} mm (max {np.max(v.nominal_m) * 1e3:.4f}), "
+                     f"calibrated RMS {np.sqrt(np.mean(v.calibrated_m**2)) * 1e3:.4f} mm (max "
+                     f"{np.max(v.calibrated_m) * 1e3:.4f}), predicted {np.sqrt(np.mean(v.predicted_m**2)) * 1e3:.4f} mm")
+    if not c.compensation_converged.all():
+        lines.append(f"warning: {int((~c.compensation_converged).sum())} test poses could not be "
+                     "compensated (the calibrated robot cannot reach their targets)")
+    return lines
+
+
+def report_markdown(calibration: Calibration, figures: list[str], files: list[str]) -> str:
+    """``identification.md``: the summary, the figure, the files."""
+    c = calibration
+    lines = [f"# Identification: {c.problem.name}", "",
+             f"Problem `{c.problem.path}`, measurements `{c.measurements.path}`"
+             + (f", validation `{c.validation_path}`" if c.validation is not None else "") + ".", "",
+             "```", *summary_lines(c), "```", ""]
+    lines += [f"![residuals, validation and test poses]({name})" for name in figures[:1]] + [""]
+    lines += ["Per row (residual RMS over its points, mm):", "", "| row | used | residual RMS mm | max mm |",
+              "|---|---|---|---|"]
+    lines += [f"| {line} | {'yes' if u else 'outlier'} | {r * 1e3:.4f} | {x * 1e3:.4f} |"
+              for line, u, r, x in zip(c.measurements.lines, c.fit.used, c.residual_rms_m, c.residual_max_m)]
+    lines += ["", "## Files", "", *[f"- `{name}`" for name in files], ""]
+    return "\n".join(lines)
+
