@@ -43,6 +43,8 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert main(["validate", str(path), "--results", str(solved / "results.json"), "--trials", "4",
                  "--out", str(tmp_path / "validate")]) == 0
     assert main(["plot", str(swept), "--out", str(tmp_path / "figures"), "--format", "png"]) == 0
+    assert main(["program", str(path), "--plan", str(plan), "--format", "json", "--measure-s", "1",
+                 "--out", str(tmp_path / "program"), "--quiet"]) == 0
     out, err = capsys.readouterr()
     assert "Traceback" not in out + err and "error" not in err
 
@@ -56,3 +58,5 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
         assert [e["clearance_m"] for e in evaluation["experiments"]] == [e["clearance_m"] for e in design["experiments"]]
     assert (tmp_path / "figures" / "sweep_max_error.png").stat().st_size > 0
     assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == 4
+    program = json.loads((tmp_path / "program" / "program.json").read_text())
+    assert sorted(p["experiment"] for p in program["points"] if p["experiment"]) == list(range(1, m + 1))

@@ -26,9 +26,11 @@ checked with the rows of the plan's rules, written once (:func:`casadi_design.ru
 A move that breaks the clearance (a capsule row below ``-FEASIBILITY_TOL``) or whose meshes
 touch is blocked; :func:`safe_path` then searches a detour through via points: the shortest
 path in time (:class:`casadi_design.program.order.TimeModel`) through collision-free
-configurations (home, the plan's experiments, seeded random configurations of the whole
-workspace and near the move), whose own moves are checked as they are used (a lazy
-shortest-path search).
+configurations, whose own moves are checked as they are used (a lazy shortest-path search):
+the blocked samples and the ends lifted clear along the gradient of their closest rows, the
+configurations with some joints at one end and the others at the other (a move joint group by
+joint group), the way to home, the plan's experiments, and seeded random configurations of the
+whole workspace and near the move (more of them in each of ``SEARCH_ROUNDS`` rounds).
 """
 
 from __future__ import annotations
@@ -64,13 +66,22 @@ LOCAL_SPREADS_RAD = (0.2, 0.5, 1.0)
 #: Blocked samples of a move lifted clear as via candidates, by these steps (rad) along the
 #: gradient of the row broken most (central differences of step ``FD_STEP_RAD``).
 LIFTED_SAMPLES = 4
-LIFT_STEPS_RAD = (0.1, 0.2, 0.4, 0.8)
+LIFT_STEPS_RAD = (0.05, 0.1, 0.2, 0.4, 0.8)
 FD_STEP_RAD = 1e-5
 ACTIVE_M = 0.001
+#: Most joints whose every split between a move's two ends is a via candidate (2^n - 2 of them).
+MIXED_UP_TO = 7
 #: Via candidates on the way from a move's ends (and its middle) to home, at these fractions.
 HOME_FRACTIONS = (0.25, 0.5, 0.75)
-#: Moves checked in the search for one detour before it gives up.
+#: Blocked moves met in one round of the search for a detour before the next round, with
+#: ``SEARCH_GROWTH`` times as many random candidates (``SEARCH_ROUNDS`` rounds, then it gives up).
 MAX_CHECKS = 400
+SEARCH_ROUNDS = 1
+SEARCH_GROWTH = 4
+#: RRT-Connect, the search of last resort: steps (each a checked move) and their largest size.
+RRT_ITERATIONS = 3000
+RRT_STEP_RAD = 0.3
+RRT_BOX_RAD = 0.5
 #: Seed of the via points' random configurations (a program is reproducible).
 VIA_SEED = 0
 
@@ -309,6 +320,7 @@ class MoveSearch:
         self.checked: dict[bytes, Move] = {}
         self.broken: dict[bytes, bool] = {}
         self.rng = np.random.default_rng(VIA_SEED)
+        self.pool = np.zeros((0, problem.robot.n))
 
     def move(self, qa: np.ndarray, qb: np.ndarray) -> Move:
         """The move checked on the capsule rows (each move once; the meshes: :meth:`confirm`)."""
@@ -327,9 +339,14 @@ class MoveSearch:
             self.broken[key] = self.broken[np.concatenate([qb, qa]).tobytes()] = breaks_clearance(self.problem, qa, qb)
         return self.broken[key]
 
-    @functools.cached_property
-    def global_vias(self) -> np.ndarray:
-        return self._free(lambda size: joint_limits(self.problem).sample(self.rng, size), GLOBAL_VIAS)
+    def global_vias(self, count: int) -> np.ndarray:
+        """The first ``count`` seeded collision-free configurations of the whole workspace
+        (drawn once, grown on demand)."""
+        have = len(self.pool)
+        if have < count:
+            self.pool = np.vstack([self.pool, self._free(lambda size: joint_limits(self.problem).sample(self.rng, size),
+                                                         count - have)])
+        return self.pool[:count]
 
     def _free(self, draw, count: int) -> np.ndarray:
         """Up to ``count`` collision-free configurations of ``draw(size)``, in draw order."""
@@ -364,6 +381,18 @@ class MoveSearch:
         V = np.vstack(out)
         return V[rules.free(V)]
 
+    def mixed(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+        """The collision-free configurations with some joints at ``qa`` and the others at
+        ``qb`` (a move joint group by joint group, as the wrist first, then the arm); for more
+        than ``MIXED_UP_TO`` joints, the groups of consecutive joints."""
+        n = len(qa)
+        if n <= MIXED_UP_TO:
+            masks = [np.array([(k >> j) & 1 for j in range(n)], dtype=bool) for k in range(1, 2**n - 1)]
+        else:
+            masks = [np.arange(n) < j for j in range(1, n)] + [np.arange(n) >= j for j in range(1, n)]
+        Q = np.array([np.where(mask, qb, qa) for mask in masks])
+        return Q[self.rules.free(Q)]
+
     def toward_home(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
         """The collision-free configurations on the way from ``qa``, ``qb`` and their middle to
         home (``anchors[0]``, raised clear of the cell) at the fractions ``HOME_FRACTIONS``."""
@@ -373,10 +402,12 @@ class MoveSearch:
         Q = np.array(Q)
         return Q[self.rules.free(Q)]
 
-    def local_vias(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+    def local_vias(self, qa: np.ndarray, qb: np.ndarray, count: int) -> np.ndarray:
+        """``count`` collision-free configurations near the move's middle per spread of
+        ``LOCAL_SPREADS_RAD`` (each joint drawn around the middle with that std)."""
         limits, middle = joint_limits(self.problem), (qa + qb) / 2
         return np.vstack([self._free(lambda size, s=s: limits.wrap(middle + s * self.rng.standard_normal((size, middle.size))),
-                                     LOCAL_VIAS) for s in LOCAL_SPREADS_RAD])
+                                     count) for s in LOCAL_SPREADS_RAD])
 
     def path(self, qa: np.ndarray, qb: np.ndarray) -> Path:
         """The straight move when it keeps the clearance, else the fastest detour found
@@ -385,22 +416,85 @@ class MoveSearch:
         qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
         if not self.blocked(qa, qb):
             return Path((qa, qb), (self.move(qa, qb),), self.times.move_time(qa, qb))
-        nodes = np.vstack([qa, qb, self.lifted(qa, qb), self.toward_home(qa, qb), self.anchors, self.global_vias,
-                           self.local_vias(qa, qb)])
-        T = self.times.time_matrix(nodes)
-        blocked = np.zeros(T.shape, dtype=bool)
-        blocked[0, 1] = blocked[1, 0] = True
-        for _ in range(MAX_CHECKS):
-            route = _shortest(np.where(blocked, np.inf, T), 0, 1)
-            if route is None:
-                break
-            legs = list(zip(route[:-1], route[1:]))
-            bad = next(((i, j) for i, j in legs if self.blocked(nodes[i], nodes[j])), None)
-            if bad is None:
-                return Path(tuple(nodes[route]), tuple(self.move(nodes[i], nodes[j]) for i, j in legs),
-                            float(sum(T[i, j] for i, j in legs)))
-            blocked[bad] = blocked[bad[::-1]] = True
-        raise NoSafePath(f"no collision-free detour among {len(nodes) - 2} via candidates")
+        near = np.vstack([qa, qb, self.lifted(qa, qb), self.mixed(qa, qb), self.toward_home(qa, qb), self.anchors])
+        for r in range(SEARCH_ROUNDS):  # more random candidates each round
+            grow = SEARCH_GROWTH**r
+            nodes = np.vstack([near, self.global_vias(GLOBAL_VIAS * grow), self.local_vias(qa, qb, LOCAL_VIAS * grow)])
+            T = self.times.time_matrix(nodes)
+            blocked = np.zeros(T.shape, dtype=bool)
+            blocked[0, 1] = blocked[1, 0] = True
+            for _ in range(MAX_CHECKS):
+                route = _shortest(np.where(blocked, np.inf, T), 0, 1)
+                if route is None:
+                    break
+                legs = list(zip(route[:-1], route[1:]))
+                bad = next(((i, j) for i, j in legs if self.blocked(nodes[i], nodes[j])), None)
+                if bad is None:
+                    return Path(tuple(nodes[route]), tuple(self.move(nodes[i], nodes[j]) for i, j in legs),
+                                float(sum(T[i, j] for i, j in legs)))
+                blocked[bad] = blocked[bad[::-1]] = True
+        route = self.rrt_connect(qa, qb)
+        if route is None:
+            raise NoSafePath(f"no collision-free detour among {len(nodes) - 2} via candidates nor by "
+                             f"{RRT_ITERATIONS} RRT-Connect steps")
+        route = self.shortcut(route)
+        legs = list(zip(route[:-1], route[1:]))
+        return Path(tuple(route), tuple(self.move(a, b) for a, b in legs),
+                    float(sum(self.times.move_time(a, b) for a, b in legs)))
+
+    def rrt_connect(self, qa: np.ndarray, qb: np.ndarray) -> list[np.ndarray] | None:
+        """A collision-free path by RRT-Connect (Kuffner and LaValle 2000): two trees grown from
+        ``qa`` and ``qb`` towards seeded random configurations (half of them in the box of both
+        ends widened by ``RRT_BOX_RAD``, half within the joint limits) by steps
+        of at most ``RRT_STEP_RAD``, each step a checked move, until they meet."""
+        limits, rng = joint_limits(self.problem), np.random.default_rng(VIA_SEED)
+        trees = [([qa], [-1]), ([qb], [-1])]
+
+        def extend(tree, target):
+            nodes, parents = tree
+            k = int(np.argmin(np.linalg.norm(np.array(nodes) - target, axis=1)))
+            d = target - nodes[k]
+            new = target if np.linalg.norm(d) <= RRT_STEP_RAD else nodes[k] + RRT_STEP_RAD * d / np.linalg.norm(d)
+            if self.rules.free(new[None])[0] and not self.blocked(nodes[k], new):
+                nodes.append(new)
+                parents.append(k)
+                return len(nodes) - 1
+            return None
+
+        def branch(tree, k):
+            nodes, parents = tree
+            out = []
+            while k >= 0:
+                out.append(nodes[k])
+                k = parents[k]
+            return out
+
+        for it in range(RRT_ITERATIONS):
+            grow, other = trees[it % 2], trees[1 - it % 2]
+            # half the samples in the box around both ends (widened by RRT_BOX_RAD), half anywhere
+            lo, hi = ((np.maximum(np.minimum(qa, qb) - RRT_BOX_RAD, limits.lower),
+                       np.minimum(np.maximum(qa, qb) + RRT_BOX_RAD, limits.upper)) if rng.random() < 0.5
+                      else (limits.lower, limits.upper))
+            k = extend(grow, rng.uniform(lo, hi))
+            if k is None:
+                continue
+            target = grow[0][k]
+            while (j := extend(other, target)) is not None:
+                if np.array_equal(other[0][j], target):
+                    a, b = branch(grow, k), branch(other, j)
+                    path = a[::-1] + b[1:] if it % 2 == 0 else b[::-1] + a[1:]
+                    return path
+        return None
+
+    def shortcut(self, route: list[np.ndarray]) -> list[np.ndarray]:
+        """``route`` with its points skipped where a straight move from an earlier point keeps
+        the clearance (from the start, the farthest point reachable first)."""
+        out, i = [route[0]], 0
+        while i < len(route) - 1:
+            j = next(j for j in range(len(route) - 1, i, -1) if j == i + 1 or not self.blocked(route[i], route[j]))
+            out.append(route[j])
+            i = j
+        return out
 
 
 def _shortest(W: np.ndarray, source: int, target: int) -> list[int] | None:

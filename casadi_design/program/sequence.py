@@ -11,13 +11,14 @@ lower bound.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..build import Problem
 from ..errors import DesignError, ProblemError
-from ..rules import LOAD_RTOL
+from ..rules import LOAD_RTOL, joint_limits
 from .moves import MoveSearch, NoSafePath, Path, home_problems, on_meshes
 from .order import TimeModel, best_order, load_changes, order_cost, time_model, tour_cost
 
@@ -72,10 +73,23 @@ def load_text(problem: Problem, f: np.ndarray) -> str:
     return "F = (" + ", ".join(f"{v:.1f}" for v in f) + ") N"
 
 
+def turns(problem: Problem, q: np.ndarray, home: np.ndarray) -> list[np.ndarray]:
+    """The configurations of the pose ``q`` (n,), rad: each periodic joint (a range of more than
+    a turn, as the UR10's +/-360 deg: :class:`casadi_design.rules.JointLimits`) at its angle
+    plus any whole turns within the limits; the fastest from ``home`` first."""
+    limits = joint_limits(problem)
+    options = [[q[k] + 2 * np.pi * t for t in range(-2, 3) if limits.lower[k] <= q[k] + 2 * np.pi * t <= limits.upper[k]]
+               if limits.periodic[k] else [q[k]] for k in range(len(q))]
+    out = [np.array(c) for c in itertools.product(*options)]
+    times = time_model(problem)
+    return sorted(out, key=lambda c: times.move_time(home, c))
+
+
 def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarray,
                  measure_s: float) -> Program:
     """The program of the plan ``Q`` (m, n), rad, ``F`` (m, nF), N, from and back to ``home``
-    (n,), rad, measuring ``measure_s`` seconds per experiment.
+    (n,), rad, measuring ``measure_s`` seconds per experiment; each experiment in the
+    configuration of its pose (:func:`turns`) that home reaches first by a clear move.
 
     Raises
     ------
@@ -90,12 +104,16 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     if why:
         raise ProblemError(f"--home: {why}; give a home pose inside the limits and clear of the cell")
     times = time_model(problem)
+    search = MoveSearch(problem, times, np.vstack([home, Q]))
+    # each experiment as the configuration of its pose that home reaches by the fastest clear move
+    # (a wrist turned the long way round may sweep past the forearm): home is then a way between any two
+    Q = np.array([next((c for c in turns(problem, q, home) if not search.blocked(home, c)), q) for q in Q])
     nodes = np.vstack([home, Q])
+    search.anchors = nodes
     straight = times.time_matrix(nodes)
     T = straight.copy()
     tol = LOAD_RTOL * (problem.force.magnitude_N if problem.force is not None else 1.0)
     changes = load_changes(np.asarray(F, dtype=float).reshape(m, -1), tol)
-    search = MoveSearch(problem, times, nodes)
     paths: dict[tuple[int, int], Path] = {}
 
     def name(i: int) -> str:
