@@ -37,7 +37,7 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
                  "--out", str(swept)]) == 0
     assert main(["bound", str(path), "--m", f"{m}:{m + 1}", *BOUND, "--quiet"]) == 0
     plan = solved / "plans" / f"{CRITERION}_m{m}.csv"
-    assert main(["evaluate", str(path), "--plan", str(plan), "--quiet"]) == 0
+    assert main(["evaluate", str(path), "--plan", str(plan), "--moves", "--quiet"]) == 0
     assert main(["evaluate", str(path), "--plan", str(plan), "--compare", str(solved),
                  "--out", str(tmp_path / "evaluate"), "--quiet"]) == 0
     assert main(["validate", str(path), "--results", str(solved / "results.json"), "--trials", "4",

@@ -291,6 +291,32 @@ def test_move_that_cannot_be_made_safe_is_named(abb, tmp_path, capsys, monkeypat
     assert not out.exists()
 
 
+def test_evaluate_checks_the_moves_of_your_sequence_with_the_same_code(abb, tmp_path, capsys):
+    qa, qb = _mirrored(ABB_BESIDE_TABLE_DEG)
+    plan = _plan_csv(tmp_path / "plan.csv", abb, np.vstack([qa, qb]))
+    assert main(["evaluate", str(ABB), "--plan", plan, "--moves", "--out", str(tmp_path / "ev"), "--quiet"]) == 0
+    assert "experiment 1 -> experiment 2" in capsys.readouterr().out
+    record = json.loads((tmp_path / "ev" / "evaluation.json").read_text())["moves"]
+    assert [(m["from"], m["to"]) for m in record] == [("home", "experiment 1"), ("experiment 1", "experiment 2"),
+                                                      ("experiment 2", "home")]
+    crossing = check_move(abb, qa, qb)
+    assert record[1]["blocked"] and record[1]["clearance_m"] == crossing.clearance_m
+
+
+def test_solve_writes_a_program_per_plan(tmp_path):
+    out = tmp_path / "solve"
+    assert main(["solve", str(PAPER), "--m", "2", "--criteria", "D", "--starts", "1", "--jobs", "1",
+                 "--bound-steps", "0", "--quiet", "--program", "krl", "--out", str(out)]) == 0
+    problem = load_problem(PAPER)
+    from casadi_design.export import read_plan_csv
+
+    Q, _ = read_plan_csv(problem, out / "plans" / "D_m2.csv")
+    read, _ = _read_krl((out / "programs" / "D_m2.src").read_text())
+    assert sorted(k for k, _ in read) == [1, 2]
+    for k, values in read:
+        assert np.max(np.abs(np.radians(values) - Q[k - 1])) < np.radians(READ_BACK_TOL_DEG)
+
+
 # --------------------------------------------------------------------------- the UR10 on its meshes
 
 @pytest.mark.slow

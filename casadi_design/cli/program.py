@@ -117,3 +117,19 @@ def report(problem, program, plan: str | Path) -> str:
     lines.append(f"clearance: capsules along the whole move (at least half the cell's "
                  f"{problem.cell.spec.clearance_m * 1e3:g} mm between samples), meshes at the closest samples")
     return "\n".join(lines)
+
+
+def write_programs(out: Path, problem, designs, fmt: str) -> list[str]:
+    """Each design's plan as ``out/programs/<criterion>_m<m>.<ext>`` in format ``fmt``, from
+    the default home with the default measuring time; returns the file names."""
+    from ..program.formats import FILES, check_format, program_text
+    from ..program.sequence import make_program
+
+    check_format(problem, fmt)
+    names = []
+    for d in designs:
+        name = f"programs/{d.criterion}_m{d.m}{Path(FILES[fmt]).suffix}"
+        program = make_program(problem, d.Q, d.F, home_pose(problem, None), MEASURE_S)
+        write_atomic(out / name, program_text(problem, program, fmt, f"plans/{d.criterion}_m{d.m}.csv").encode())
+        names.append(name)
+    return names
