@@ -126,7 +126,7 @@ def _dense_check(problem, points):
     check = problem.cell.check
     data, gdata = check.model.createData(), check.geometry.createData()
     smallest, touching = np.inf, False
-    for qa, qb in zip(points[:-1], points[1:]):
+    for qa, qb in itertools.pairwise(points):
         for s in np.linspace(0.0, 1.0, DENSE_STEPS + 1):
             pin.computeDistances(check.model, data, check.geometry, gdata, check.configuration(qa + s * (qb - qa)))
             d = np.array([r.min_distance for r in gdata.distanceResults])
@@ -167,7 +167,7 @@ def test_random_plan_program_is_safe_ordered_and_minimises_load_changes(abb):
     assert t[-1] == pytest.approx(moves_s + 6 * 2.0, rel=1e-12)
     stops = [p.stop_before for p in program.points if p.kind == "experiment"]
     assert stops[0].startswith("hang the load") and sum(s is not None for s in stops) == 5
-    assert [p for p in program.points if p.stop_after][0].stop_after.startswith("remove the load")
+    assert next(p for p in program.points if p.stop_after).stop_after.startswith("remove the load")
 
 
 # --------------------------------------------------------------------------- formats read back
@@ -189,7 +189,7 @@ def _read_krl(text):
 
 
 def _read_yaml(text):
-    numbers = [int(m) for m in re.findall(r"^# experiment (\d+)", text, flags=re.M)]
+    numbers = [int(m) for m in re.findall(r"^# experiment (\d+)", text, flags=re.MULTILINE)]
     return list(zip(numbers, [e["positions"] for e in yaml.safe_load(text)])), "model rad"
 
 
@@ -268,8 +268,8 @@ def test_plan_of_another_robot_and_bad_controller_are_refused(abb, tmp_path, cap
     raw = paper_raw()
     case, plan = tmp_path / "paper.toml", _plan_csv(tmp_path / "paper.csv", paper, np.zeros((2, 2)),
                                                     np.tile([100.0, 0.0], (2, 1)))
-    for controller_table, match in (({"signs": [1, 1, 1]}, r"\[robot.controller\].signs: has 3 values, the chain "
-                                                             r"has 2 joints \(joint1, joint2\); give one per joint"),
+    for controller_table, match in (({"signs": [1, 1, 1]}, (r"\[robot.controller\].signs: has 3 values, the chain "
+                                                             r"has 2 joints \(joint1, joint2\); give one per joint")),
                                     ({"signs": [1, 2]}, r"\[robot.controller\].signs: must be \+1 or -1, got \[1.0, 2.0\]")):
         raw["robot"]["controller"] = controller_table
         case.write_text(tomli_w.dumps(raw))

@@ -35,7 +35,7 @@ whole workspace and near the move (more of them in each of ``SEARCH_ROUNDS`` rou
 
 from __future__ import annotations
 
-import functools
+import itertools
 from dataclasses import dataclass, replace
 
 import casadi as ca
@@ -427,7 +427,7 @@ class MoveSearch:
                 route = _shortest(np.where(blocked, np.inf, T), 0, 1)
                 if route is None:
                     break
-                legs = list(zip(route[:-1], route[1:]))
+                legs = list(itertools.pairwise(route))
                 bad = next(((i, j) for i, j in legs if self.blocked(nodes[i], nodes[j])), None)
                 if bad is None:
                     return Path(tuple(nodes[route]), tuple(self.move(nodes[i], nodes[j]) for i, j in legs),
@@ -438,7 +438,7 @@ class MoveSearch:
             raise NoSafePath(f"no collision-free detour among {len(nodes) - 2} via candidates nor by "
                              f"{RRT_ITERATIONS} RRT-Connect steps")
         route = self.shortcut(route)
-        legs = list(zip(route[:-1], route[1:]))
+        legs = list(itertools.pairwise(route))
         return Path(tuple(route), tuple(self.move(a, b) for a, b in legs),
                     float(sum(self.times.move_time(a, b) for a, b in legs)))
 

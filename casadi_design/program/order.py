@@ -22,6 +22,7 @@ of load changes first (home carries no load), then the time, with the edge cost
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,7 +117,7 @@ def order_cost(T: np.ndarray, changes: np.ndarray) -> np.ndarray:
 def tour_cost(C: np.ndarray, order: tuple[int, ...] | list[int]) -> float:
     """Cost of home -> order[0] -> ... -> order[-1] -> home (nodes 1..N are experiments)."""
     nodes = [0, *order, 0]
-    return float(sum(C[i, j] for i, j in zip(nodes[:-1], nodes[1:])))
+    return float(sum(C[i, j] for i, j in itertools.pairwise(nodes)))
 
 
 def held_karp(C: np.ndarray) -> tuple[int, ...]:

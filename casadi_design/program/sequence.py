@@ -133,7 +133,7 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
 
     def edges(order) -> list[tuple[int, int]]:
         tour = [0, *order, 0]
-        return list(zip(tour[:-1], tour[1:]))
+        return list(itertools.pairwise(tour))
 
     while True:
         order = best_order(order_cost(T, changes))
@@ -183,5 +183,5 @@ def _assemble(problem, Q, F, nodes, order, paths, changes, times, measure_s, fil
         points.append(Point(Q[j - 1], "experiment", j, t, before))
         t += measure_s
     return Program(problem.robot.joints, tuple(points), tuple(paths), tuple(order), times, measure_s, t,
-                   file_time, int(sum(changes[i, j] for i, j in zip(tour[:-1], tour[1:]))), file_changes,
+                   file_time, int(sum(changes[i, j] for i, j in itertools.pairwise(tour))), file_changes,
                    file_blocked)
