@@ -48,8 +48,9 @@ class Program:
     ``points`` in program order (from home, back home); ``paths[i]`` leads to the i-th
     experiment of ``order`` (the last one back home); ``measure_s`` the measuring time per
     experiment; ``time_s`` / ``file_time_s``: the time of the program and of the plan's
-    file order (as straight moves, ``file_blocked`` of which break the clearance), s;
-    ``load_changes`` / ``file_load_changes`` likewise.
+    file order with its own safe moves, s; ``file_straight_s``: the file order as straight
+    moves, ``file_blocked`` of which break the clearance; ``load_changes`` /
+    ``file_load_changes`` likewise.
     """
 
     joints: tuple[str, ...]
@@ -60,6 +61,7 @@ class Program:
     measure_s: float
     time_s: float
     file_time_s: float
+    file_straight_s: float
     load_changes: int
     file_load_changes: int
     file_blocked: int
@@ -149,9 +151,12 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
             break
         raise DesignError(f"the move from {name(touching[0])} to {name(touching[1])} keeps the capsules "
                           "apart but its meshes touch; move that experiment or give another --home")
+    # the file order with its own safe moves (detours only raise T off the tour: the order stays optimal)
     file_order = tuple(range(1, m + 1))
     file_blocked = sum(search.blocked(nodes[i], nodes[j]) for i, j in edges(file_order))
-    file_time = tour_cost(straight, file_order) + m * measure_s
+    for i, j in edges(file_order):
+        safe(i, j)
+    file_time = (tour_cost(T, file_order) + m * measure_s, tour_cost(straight, file_order) + m * measure_s)
     return _assemble(problem, Q, np.asarray(F, dtype=float).reshape(m, -1), nodes, order,
                      final, changes, times, measure_s, file_time,
                      int(sum(changes[i, j] for i, j in edges(file_order))), file_blocked)
@@ -183,5 +188,5 @@ def _assemble(problem, Q, F, nodes, order, paths, changes, times, measure_s, fil
         points.append(Point(Q[j - 1], "experiment", j, t, before))
         t += measure_s
     return Program(problem.robot.joints, tuple(points), tuple(paths), tuple(order), times, measure_s, t,
-                   file_time, int(sum(changes[i, j] for i, j in itertools.pairwise(tour))), file_changes,
+                   *file_time, int(sum(changes[i, j] for i, j in itertools.pairwise(tour))), file_changes,
                    file_blocked)
