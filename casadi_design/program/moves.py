@@ -19,22 +19,24 @@ checked with the rows of the plan's rules, written once (:func:`casadi_design.ru
   for ``c / 4`` in a cell without clearance);
 * the **real meshes** (:func:`casadi_design.cell.clearances`, coal) at the ``MESH_SAMPLES``
   samples where the capsule rows come closest (their local minima);
-* the **beam** to the reflectors: the line-of-sight rows (broken where the beam meets a
-  capsule, ``g < -c``) and the incidence row. A move where the beam breaks is flagged, not
-  blocked: the tracker must re-acquire the reflector before the next measurement.
+* the **beam** to the reflectors, at the same samples: the line-of-sight rows (broken where
+  the beam meets a capsule, ``g < -c``) and the incidence row. A move where the beam breaks
+  is flagged, not blocked: the tracker must re-acquire the reflector before the next
+  measurement.
 
 A move that breaks the clearance (a capsule row below ``-FEASIBILITY_TOL``) or whose meshes
-touch is blocked; :func:`safe_path` then searches a detour through via points: the shortest
-path in time (:class:`casadi_design.program.order.TimeModel`) through collision-free
+touch is blocked; :meth:`MoveSearch.path` then searches a detour through via points: the
+fastest path (:class:`casadi_design.program.order.TimeModel`) through collision-free
 configurations, whose own moves are checked as they are used (a lazy shortest-path search):
 the blocked samples and the ends lifted clear along the gradient of their closest rows, the
 configurations with some joints at one end and the others at the other (a move joint group by
 joint group), the way to home, the plan's experiments, and seeded random configurations of the
-whole workspace and near the move (more of them in each of ``SEARCH_ROUNDS`` rounds).
+whole workspace and near the move; RRT-Connect when none of them gives a path.
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass, replace
 
@@ -73,11 +75,8 @@ ACTIVE_M = 0.001
 MIXED_UP_TO = 7
 #: Via candidates on the way from a move's ends (and its middle) to home, at these fractions.
 HOME_FRACTIONS = (0.25, 0.5, 0.75)
-#: Blocked moves met in one round of the search for a detour before the next round, with
-#: ``SEARCH_GROWTH`` times as many random candidates (``SEARCH_ROUNDS`` rounds, then it gives up).
+#: Blocked moves met in the search through the via candidates before RRT-Connect takes over.
 MAX_CHECKS = 400
-SEARCH_ROUNDS = 1
-SEARCH_GROWTH = 4
 #: RRT-Connect, the search of last resort: steps (each a checked move) and their largest size.
 RRT_ITERATIONS = 3000
 RRT_STEP_RAD = 0.3
@@ -145,20 +144,17 @@ def move_rules(problem: Problem) -> MoveRules | None:
 
 
 def row_reach(problem: Problem, labels: tuple[str, ...]) -> np.ndarray:
-    """Per row of ``labels`` (rows, n), m per rad: the sum over the capsules the row names
-    (:func:`casadi_design.collision.capsule_names`, as the rows' labels name them) and the
-    reflector of a line of sight, of :func:`reach`. A row changes by at most ``reach @ |dq|``
-    over a move ``dq``: it is a distance between bodies that move at most that much."""
+    """Per row of ``labels`` (rows, n), m per rad: the sum of :func:`reach` over the capsules
+    the row names (:func:`casadi_design.collision.capsule_names`, as the capsule rows' labels
+    name them; 0 for the other rows). A capsule row changes by at most ``reach @ |dq|`` over
+    a move ``dq``: it is a distance between bodies that move at most that much."""
     cell = problem.cell
     bodies = {name: reach(problem, [(c.frame, np.array(c.a_m)), (c.frame, np.array(c.b_m))])
               for name, c in zip(capsule_names(cell.capsules), cell.capsules)}
-    sights = {s.frame: reach(problem, [(s.frame, np.array(s.point_m))]) for s in cell.sights}
     out = np.zeros((len(labels), problem.robot.n))
     for r, label in enumerate(labels):
-        words = [w.rstrip(":") for w in label.split()]
-        out[r] = sum((bodies[w] for w in words if w in bodies), np.zeros(problem.robot.n))
-        if label.startswith("line of sight to ") and words[3] in sights:
-            out[r] += sights[words[3]]
+        out[r] = sum((bodies[w] for w in (w.rstrip(":") for w in label.split()) if w in bodies),
+                     np.zeros(problem.robot.n))
     return out
 
 
@@ -222,8 +218,8 @@ FREE = Move(np.inf, "", np.inf, None, None, 0, 0.0)
 
 def scan(rules: MoveRules, qa: np.ndarray, qb: np.ndarray, stop: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The samples ``s`` (k,) of the move from ``qa`` to ``qb`` and every row at them (k, rows),
-    stepping ``ds = (w + c / 2) / (2 delta)`` from a sample whose smallest capsule row is
-    ``w`` (module docstring); with ``stop``, up to the first sample that breaks the clearance."""
+    stepping ``ds = min_r (max(g_r, 0) + c / 2) / delta_r`` over the capsule rows g_r (module
+    docstring); with ``stop``, up to the first sample that breaks the clearance."""
     qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
     delta = rules.reach_m[rules.collision] @ np.abs(qb - qa)  # each row's largest change over the move
     moving = delta > 0
@@ -320,7 +316,6 @@ class MoveSearch:
         self.checked: dict[bytes, Move] = {}
         self.broken: dict[bytes, bool] = {}
         self.rng = np.random.default_rng(VIA_SEED)
-        self.pool = np.zeros((0, problem.robot.n))
 
     def move(self, qa: np.ndarray, qb: np.ndarray) -> Move:
         """The move checked on the capsule rows (each move once; the meshes: :meth:`confirm`)."""
@@ -339,14 +334,10 @@ class MoveSearch:
             self.broken[key] = self.broken[np.concatenate([qb, qa]).tobytes()] = breaks_clearance(self.problem, qa, qb)
         return self.broken[key]
 
-    def global_vias(self, count: int) -> np.ndarray:
-        """The first ``count`` seeded collision-free configurations of the whole workspace
-        (drawn once, grown on demand)."""
-        have = len(self.pool)
-        if have < count:
-            self.pool = np.vstack([self.pool, self._free(lambda size: joint_limits(self.problem).sample(self.rng, size),
-                                                         count - have)])
-        return self.pool[:count]
+    @functools.cached_property
+    def global_vias(self) -> np.ndarray:
+        """``GLOBAL_VIAS`` seeded collision-free configurations of the whole workspace."""
+        return self._free(lambda size: joint_limits(self.problem).sample(self.rng, size), GLOBAL_VIAS)
 
     def _free(self, draw, count: int) -> np.ndarray:
         """Up to ``count`` collision-free configurations of ``draw(size)``, in draw order."""
@@ -402,12 +393,12 @@ class MoveSearch:
         Q = np.array(Q)
         return Q[self.rules.free(Q)]
 
-    def local_vias(self, qa: np.ndarray, qb: np.ndarray, count: int) -> np.ndarray:
-        """``count`` collision-free configurations near the move's middle per spread of
+    def local_vias(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+        """``LOCAL_VIAS`` collision-free configurations near the move's middle per spread of
         ``LOCAL_SPREADS_RAD`` (each joint drawn around the middle with that std)."""
         limits, middle = joint_limits(self.problem), (qa + qb) / 2
         return np.vstack([self._free(lambda size, s=s: limits.wrap(middle + s * self.rng.standard_normal((size, middle.size))),
-                                     count) for s in LOCAL_SPREADS_RAD])
+                                     LOCAL_VIAS) for s in LOCAL_SPREADS_RAD])
 
     def path(self, qa: np.ndarray, qb: np.ndarray) -> Path:
         """The straight move when it keeps the clearance, else the fastest detour found
@@ -416,23 +407,21 @@ class MoveSearch:
         qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
         if not self.blocked(qa, qb):
             return Path((qa, qb), (self.move(qa, qb),), self.times.move_time(qa, qb))
-        near = np.vstack([qa, qb, self.lifted(qa, qb), self.mixed(qa, qb), self.toward_home(qa, qb), self.anchors])
-        for r in range(SEARCH_ROUNDS):  # more random candidates each round
-            grow = SEARCH_GROWTH**r
-            nodes = np.vstack([near, self.global_vias(GLOBAL_VIAS * grow), self.local_vias(qa, qb, LOCAL_VIAS * grow)])
-            T = self.times.time_matrix(nodes)
-            blocked = np.zeros(T.shape, dtype=bool)
-            blocked[0, 1] = blocked[1, 0] = True
-            for _ in range(MAX_CHECKS):
-                route = _shortest(np.where(blocked, np.inf, T), 0, 1)
-                if route is None:
-                    break
-                legs = list(itertools.pairwise(route))
-                bad = next(((i, j) for i, j in legs if self.blocked(nodes[i], nodes[j])), None)
-                if bad is None:
-                    return Path(tuple(nodes[route]), tuple(self.move(nodes[i], nodes[j]) for i, j in legs),
-                                float(sum(T[i, j] for i, j in legs)))
-                blocked[bad] = blocked[bad[::-1]] = True
+        nodes = np.vstack([qa, qb, self.lifted(qa, qb), self.mixed(qa, qb), self.toward_home(qa, qb), self.anchors,
+                           self.global_vias, self.local_vias(qa, qb)])
+        T = self.times.time_matrix(nodes)
+        blocked = np.zeros(T.shape, dtype=bool)
+        blocked[0, 1] = blocked[1, 0] = True
+        for _ in range(MAX_CHECKS):
+            route = _shortest(np.where(blocked, np.inf, T), 0, 1)
+            if route is None:
+                break
+            legs = list(itertools.pairwise(route))
+            bad = next(((i, j) for i, j in legs if self.blocked(nodes[i], nodes[j])), None)
+            if bad is None:
+                return Path(tuple(nodes[route]), tuple(self.move(nodes[i], nodes[j]) for i, j in legs),
+                            float(sum(T[i, j] for i, j in legs)))
+            blocked[bad] = blocked[bad[::-1]] = True
         route = self.rrt_connect(qa, qb)
         if route is None:
             raise NoSafePath(f"no collision-free detour among {len(nodes) - 2} via candidates nor by "
