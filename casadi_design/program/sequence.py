@@ -48,7 +48,7 @@ class Program:
     ``points`` in program order (from home, back home); ``paths[i]`` leads to the i-th
     experiment of ``order`` (the last one back home); ``measure_s`` the measuring time per
     experiment; ``time_s`` / ``file_time_s``: the time of the program and of the plan's
-    file order with its own safe moves, s; ``file_straight_s``: the file order as straight
+    file order with its own safe moves (inf: one cannot be made safe), s; ``file_straight_s``: the file order as straight
     moves, ``file_blocked`` of which break the clearance; ``load_changes`` /
     ``file_load_changes`` likewise.
     """
@@ -140,23 +140,26 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     while True:
         order = best_order(order_cost(T, changes))
         todo = [e for e in edges(order) if e not in paths]
+        if not todo:
+            break
         for i, j in todo:
             safe(i, j)
-        if todo:
-            continue
-        # the capsules keep the clearance on every move: the meshes confirm it where they come closest
-        final = [replace(paths[e], moves=tuple(on_meshes(problem, mv) for mv in paths[e].moves)) for e in edges(order)]
-        touching = next((e for e, path in zip(edges(order), final) if any(mv.touching for mv in path.moves)), None)
-        if touching is None:
-            break
+    # the capsules keep the clearance on every move: the meshes confirm it where they come closest
+    final = [replace(paths[e], moves=tuple(on_meshes(problem, mv) for mv in paths[e].moves)) for e in edges(order)]
+    touching = next((e for e, path in zip(edges(order), final) if any(mv.touching for mv in path.moves)), None)
+    if touching is not None:
         raise DesignError(f"the move from {name(touching[0])} to {name(touching[1])} keeps the capsules "
                           "apart but its meshes touch; move that experiment or give another --home")
     # the file order with its own safe moves (detours only raise T off the tour: the order stays optimal)
     file_order = tuple(range(1, m + 1))
     file_blocked = sum(search.blocked(nodes[i], nodes[j]) for i, j in edges(file_order))
-    for i, j in edges(file_order):
-        safe(i, j)
-    file_time = (tour_cost(T, file_order) + m * measure_s, tour_cost(straight, file_order) + m * measure_s)
+    try:
+        for i, j in edges(file_order):
+            safe(i, j)
+        file_safe = tour_cost(T, file_order) + m * measure_s
+    except DesignError:  # a move of the file order that no detour makes safe: it cannot run
+        file_safe = np.inf
+    file_time = (file_safe, tour_cost(straight, file_order) + m * measure_s)
     return _assemble(problem, Q, np.asarray(F, dtype=float).reshape(m, -1), nodes, order,
                      final, changes, times, measure_s, file_time,
                      int(sum(changes[i, j] for i, j in edges(file_order))), file_blocked)
