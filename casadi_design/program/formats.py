@@ -164,7 +164,7 @@ def krl(problem: Problem, program: Program, plan: str) -> str:
     people = [joint_units(problem, k)[2] for k in range(problem.robot.n)]
     name = _identifier(problem.name)[:24]
     lines = [f"DEF {name}()"] + ["  " + h for h in _header(problem, program, ";", plan)]
-    lines += ["  ; axis values in deg (controller convention); PTP at full axis speed",
+    lines += ["  ; axis values in deg (controller convention); PTP at the axis speeds BAS(#INITMOV) sets",
               "  BAS(#INITMOV, 0)"]
     for p in program.points:
         axes = ", ".join(f"A{k + 1} {x / s:.{DEG_DIGITS}f}" for k, (x, s) in enumerate(zip(ctrl(p.q), people)))
