@@ -49,7 +49,9 @@ MAX_LOAD_N = 1e6
 SECTIONS: dict[str, set[str] | None] = {
     "": {"name", "description", "robot", "calibration", "measurement", "test_poses",
          "experiments", "design", "solver", "cell"},
-    "robot": {"planar_links_m", "urdf", "dh", "frame", "tool_xyz_m", "tool_rpy_deg", "joint_limits_rad"},
+    "robot": {"planar_links_m", "urdf", "dh", "frame", "tool_xyz_m", "tool_rpy_deg", "joint_limits_rad",
+              "joint_speeds_deg_s", "controller"},
+    "robot.controller": {"signs", "offsets_deg", "acceleration_time_s"},
     "robot.dh": {"convention", "joints", "flange_xyz_m", "flange_rpy_deg"},
     "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "limits_deg"},
     "robot.joint_limits_rad": None,  # joint names: checked against the model when built
@@ -96,12 +98,29 @@ class DHRow:
 
 
 @dataclass(frozen=True)
+class ControllerSpec:
+    """The robot controller's joint conventions, as in the file: controller angle ``= sign_k
+    q_k + offset_k`` (``q`` the model's joint angle) per joint of the chain, ``offsets_deg`` in
+    deg (mm for prismatic joints; None: +1 and 0 for every joint); each joint reaches its full
+    speed in ``acceleration_time_s``. Converted to SI, and checked against the chain, by
+    :func:`casadi_design.program.order.time_model` and :func:`casadi_design.program.formats.controller`."""
+
+    signs: Vec | None = None
+    offsets_deg: Vec | None = None
+    acceleration_time_s: float = 0.5
+
+
+@dataclass(frozen=True)
 class RobotSpec:
     """The robot of a case: one of a planar arm, a URDF or a DH table, and its measured frame.
 
     ``urdf`` is an absolute path or ``example-robot-data:<relative path>``. ``tool_xyz_m`` /
     ``tool_rpy_rad`` (None when not given) add a tool frame after ``frame``.
     ``joint_limits_rad`` overrides limits as (joint, lower, upper), rad or m.
+    ``joint_speeds_deg_s`` (one per joint, deg/s or mm/s as in the file; None: the URDF's
+    velocity limits) and
+    ``controller`` (None: identity, acceleration time ``ControllerSpec.acceleration_time_s``)
+    are what the robot programs of :mod:`casadi_design.program` need.
     """
 
     frame: str
@@ -114,6 +133,8 @@ class RobotSpec:
     tool_xyz_m: Vec | None = None
     tool_rpy_rad: Vec | None = None
     joint_limits_rad: tuple[tuple[str, float, float], ...] = ()
+    joint_speeds_deg_s: Vec | None = None
+    controller: ControllerSpec | None = None
 
     @property
     def source(self) -> str:
@@ -524,7 +545,27 @@ def _robot(r: _Reader) -> RobotSpec:
         if not lo < hi:
             raise lt.error(f"lower {lo} must be below upper {hi}", "give [lower, upper]", j)
         limits.append((j, float(lo), float(hi)))
-    return RobotSpec(frame=frame, joint_limits_rad=tuple(limits), **spec)
+    speeds = r.array("joint_speeds_deg_s", (None,), None, hint="one speed per joint in deg/s (mm/s for prismatic joints)")
+    if speeds is not None and not np.all(speeds > 0):
+        raise r.error(f"must be positive, got {speeds.tolist()}", "give each joint's largest speed in deg/s",
+                      "joint_speeds_deg_s")
+    return RobotSpec(frame=frame, joint_limits_rad=tuple(limits), **spec,
+                     joint_speeds_deg_s=_vec(speeds),
+                     controller=_controller(r.sub("controller")))
+
+
+def _controller(c: _Reader | None) -> ControllerSpec | None:
+    """``[robot.controller]``: joint signs (+1 / -1), offsets (deg), acceleration time (s);
+    their lengths are checked against the chain when a program is made."""
+    if c is None:
+        return None
+    signs = c.array("signs", (None,), None, hint="+1 or -1 per joint, e.g. [1, 1, -1, 1, -1, 1]")
+    if signs is not None and not np.all(np.abs(signs) == 1):
+        raise c.error(f"must be +1 or -1, got {signs.tolist()}", "give +1 or -1 per joint", "signs")
+    offsets = c.array("offsets_deg", (None,), None, hint="one offset per joint in deg (mm for prismatic joints)")
+    return ControllerSpec(_vec(signs), _vec(offsets),
+                          c.number("acceleration_time_s", ControllerSpec.acceleration_time_s,
+                                   hint="the time a joint takes to reach its full speed, s", positive=True))
 
 
 def _dh(d: _Reader) -> dict:

@@ -41,7 +41,7 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
                  "--out", str(swept)]) == 0
     assert main(["bound", str(path), "--m", f"{m}:{m + 1}", *BOUND, "--quiet"]) == 0
     plan = solved / "plans" / f"{CRITERION}_m{m}.csv"
-    assert main(["evaluate", str(path), "--plan", str(plan), "--quiet"]) == 0
+    assert main(["evaluate", str(path), "--plan", str(plan), "--moves", "--quiet"]) == 0
     assert main(["evaluate", str(path), "--plan", str(plan), "--compare", str(solved),
                  "--out", str(tmp_path / "evaluate"), "--quiet"]) == 0
     assert main(["validate", str(path), "--results", str(solved / "results.json"), "--trials", "4",
@@ -55,6 +55,8 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
                                         hidden))
     assert main(["identify", str(path), "--measurements", str(measured), "--frame", "base",
                  "--out", str(tmp_path / "identify")]) == 0
+    assert main(["program", str(path), "--plan", str(plan), "--format", "json", "--measure-s", "1",
+                 "--out", str(tmp_path / "program"), "--quiet"]) == 0
     out, err = capsys.readouterr()
     assert "Traceback" not in out + err and "error" not in err
 
@@ -70,3 +72,5 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == 4
     identified = json.loads((tmp_path / "identify" / "identification.json").read_text())
     assert identified["residual_rms_m"] < 1e-5 and (tmp_path / "identify" / "calibrated.urdf").stat().st_size > 0
+    program = json.loads((tmp_path / "program" / "program.json").read_text())
+    assert sorted(p["experiment"] for p in program["points"] if p["experiment"]) == list(range(1, m + 1))

@@ -7,6 +7,7 @@
     casadi-design validate problems/<case>.toml --results DIR   simulate the calibration
     casadi-design bound    problems/<case>.toml --m 1:10        what no plan can beat
     casadi-design identify problems/<case>.toml --measurements meas.csv --out DIR   calibrate
+    casadi-design program  problems/<case>.toml --plan plan.csv --format urscript --out DIR   robot program
 
 Errors in the input or a design that cannot be produced print one line ``error: ...`` and exit
 with code 2; files are written only once the work they describe is done (a sweep also keeps
@@ -14,7 +15,7 @@ each finished design in ``sweep.partial.json``; Ctrl-C exits with code 130 and `
 continues).
 
 One module per command (``solve``, ``sweep``, ``evaluate``, ``plot``, ``validate``, ``bound``,
-``identify``),
+``identify``, ``program``),
 each reading its arguments, calling the package and writing; what they share is in
 :mod:`.common`.
 """
@@ -29,11 +30,11 @@ from .. import files, interrupt
 from ..interrupt import EXIT_INTERRUPTED
 from ..errors import DesignError, OutputError, ProblemError
 from ..parallel import MissingExtraError
-from . import bound, common, evaluate, identify, plot, solve, sweep, validate
+from . import bound, common, evaluate, identify, plot, program, solve, sweep, validate
 
 EXIT_ERROR = 2
 #: The commands, in the order of ``--help``.
-COMMANDS = (solve, sweep, evaluate, plot, bound, validate, identify)
+COMMANDS = (solve, sweep, evaluate, plot, bound, validate, identify, program)
 
 
 class ArgumentError(ValueError):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import OutputError
+from ..errors import OutputError, ProblemError
 from ..files import read_results, write_json
 from ..tables import format_measures
 from . import common
@@ -29,6 +29,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR",
                    help="folder for evaluation.json (SI units) and evaluation.png/pdf (error bands)")
     p.add_argument("--force", action="store_true", help="write into --out even if it is not empty")
+    p.add_argument("--moves", action="store_true",
+                   help="also check the moves of the plan as it runs: straight joint moves from home through "
+                        "the rows in file order and back (as casadi-design program checks them)")
+    p.add_argument("--home", metavar="DEG,...", help="home pose of --moves (default: as casadi-design program)")
     common.add_common(p)
     p.set_defaults(run=run)
 
@@ -69,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("the plan satisfies the problem's joint limits, load"
               + (", workspace and cell" if problem.cell else " and workspace"))
+    moves = checked_moves(args, problem, Q)
     near = clearances(problem.cell, Q) if problem.cell else []
     if near:
         print(f"clearance on the {problem.cell.check.source} (mm), per experiment: "
@@ -83,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
             "m": m, "units": {"q": "rad", "force": "N (N m for moments)", "errors": "m"},
             "experiments": experiment_records(Q, F, near),
             **scores.as_dict(), "violations": violations,
+            **({"moves": moves} if args.moves else {}),
         })
         # a singular plan has no finite error band: draw the others, or no figure at all
         bands = ([Band(f"Your plan ({Path(args.plan).name})", USER_STYLE, scores.rms_error_m)]
@@ -95,3 +101,38 @@ def run(args: argparse.Namespace) -> int:
         common.say(args, "wrote " + ", ".join(map(str, files))
                    + ("" if scores.identifiable else " (no error band of your plan: M is singular)"))
     return 0
+
+
+def checked_moves(args: argparse.Namespace, problem, Q) -> list[dict]:
+    """With ``--moves``: each move of the plan in file order, from and back to home, checked as
+    :func:`casadi_design.program.moves.check_move` checks a program's; printed, and returned
+    for evaluation.json (m, SI)."""
+    if not args.moves:
+        return []
+    import numpy as np
+
+    from ..program.moves import check_move, home_problems
+    from .program import home_pose
+
+    home = home_pose(problem, args.home)
+    why = home_problems(problem, home)
+    if why:
+        raise ProblemError(f"--home: {why}; give a home pose inside the limits and clear of the cell")
+    names = ["home", *(f"experiment {k}" for k in range(1, len(Q) + 1)), "home"]
+    points = np.vstack([home, Q, home])
+    out = []
+    for a, b, qa, qb in zip(names[:-1], names[1:], points[:-1], points[1:]):
+        mv = check_move(problem, qa, qb)
+        out.append({"from": a, "to": b, "blocked": mv.blocked, "clearance_m": mv.clearance_m, "closest": mv.closest,
+                    "mesh_clearance_m": mv.mesh_m, "beam_broken": mv.beam})
+    if problem.cell is None:
+        print("moves: no [cell], nothing to collide with")
+        return out
+    blocked = [m for m in out if m["blocked"]]
+    print(f"moves in file order from and back to home: {len(blocked)} of {len(out)} break the "
+          f"{problem.cell.spec.clearance_m * 1e3:g} mm clearance")
+    for m in out:
+        print(f"  {m['from'] + ' -> ' + m['to']:<30} clearance {m['clearance_m'] * 1e3:7.1f} mm"
+              + (f" BLOCKED ({m['closest']})" if m["blocked"] else "")
+              + (f"; beam broken: {m['beam_broken']}" if m["beam_broken"] else ""))
+    return out

@@ -26,6 +26,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("solve", help=HELP, description=DESCRIPTION)
     common.add_campaign(p, "numbers of experiments: 1,5 or a range 1:10 (default: [experiments].m)")
     common.add_output(p, "folder for results.json, fig1.png/pdf, plans/*.csv, report.md (created if missing)")
+    p.add_argument("--program", metavar="FORMAT",
+                   help="also write each plan as a robot program, programs/<criterion>_m<m>.<ext> (as "
+                        "casadi-design program with its defaults; FORMAT: urscript, rapid, krl, yaml, json)")
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted solve saved in --out (solve.partial.json; same "
                         "problem and options)")
@@ -35,6 +38,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = common.output_folder(args, "solve", (PARTIAL_NAME,))
+    if args.program:
+        from ..errors import OutputError, ProblemError
+        from ..program.formats import FILES
+
+        if args.program not in FILES:
+            raise ProblemError(f"--program: unknown format '{args.program}'; allowed: {', '.join(FILES)}")
+        if not out:
+            raise OutputError("--program writes into the --out folder; add --out DIR")
     problem, done, fig_m = common.campaign(args, "solve", out / PARTIAL_NAME if out else None)
     designs = list(done.designs.values())
     wall = time.perf_counter() - t0
@@ -45,6 +56,10 @@ def run(args: argparse.Namespace) -> int:
     if out:
         with common.kept_on_error(out / PARTIAL_NAME):
             files = write_solve(out, problem, done, fig_m)
+            if args.program:
+                from .program import write_programs
+
+                files += write_programs(out, problem, designs, args.program)
         (out / PARTIAL_NAME).unlink(missing_ok=True)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {len(designs)} plans in {out / 'plans'}")

@@ -1,0 +1,135 @@
+"""``casadi-design program``: a plan as a robot program, in the order that saves time, with
+moves checked against the cell."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..files import write_atomic
+from . import common
+
+HELP = "order a plan, check its moves against the cell and write a robot program"
+DESCRIPTION = ("Order the experiments of a plan CSV to save time (load changes first, then the time of "
+               "synchronous joint moves from and back to home), check every move against the cell along its "
+               "whole path (capsule rows, the meshes where they come closest, the tracker's beam), give "
+               "blocked moves via points, and write the program: URScript (program.script), ABB RAPID "
+               "(program.mod), KUKA KRL (program.src), the ROS robot_calibration poses YAML (program.yaml) "
+               "or a JSON joint trajectory (program.json).")
+#: Measuring time per experiment (s) when not given: the tracker settles and averages.
+MEASURE_S = 3.0
+
+
+def seconds(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"--measure-s takes a time in s >= 0, got '{text}'")
+    return v
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    from ..program.formats import FILES
+
+    p = sub.add_parser("program", help=HELP, description=DESCRIPTION)
+    p.add_argument("problem", help="problem file (TOML) the plan is for")
+    p.add_argument("--plan", required=True, metavar="CSV", help="the plan, one row per experiment (as for evaluate)")
+    p.add_argument("--format", required=True, metavar="FORMAT", help=f"one of {', '.join(FILES)}")
+    p.add_argument("--home", metavar="DEG,...",
+                   help="home pose, one joint value per joint in deg (mm for prismatic joints); default: the test "
+                        "poses' seed_q_deg, else the middle of the joint limits")
+    p.add_argument("--measure-s", type=seconds, default=MEASURE_S, metavar="S",
+                   help=f"measuring time per experiment, s (default {MEASURE_S:g})")
+    p.add_argument("--out", metavar="DIR", help="folder for the program file (created if missing)")
+    p.add_argument("--force", action="store_true", help="write into --out even if it is not empty")
+    common.add_common(p)
+    p.set_defaults(run=run)
+
+
+def home_pose(problem, text: str | None) -> np.ndarray:
+    """The home pose (n,), rad: ``--home`` (deg, mm) or the default of ``--help``."""
+    from ..errors import ProblemError
+    from ..export import joint_units
+    from ..rules import joint_limits
+
+    n = problem.robot.n
+    if text is None:
+        seed = problem.spec.test_poses.seed_q_rad
+        return np.array(seed) if seed is not None else joint_limits(problem).middle
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != n or not all(map(math.isfinite, values)):
+        raise ProblemError(f"--home: '{text}' is not {n} joint values; give one value in deg (mm for prismatic "
+                           f"joints) per joint of the chain ({', '.join(problem.robot.joints)}), e.g. --home "
+                           + ",".join(["0"] * n))
+    return np.array(values) * np.array([joint_units(problem, k)[2] for k in range(n)])
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..export import read_plan_csv
+    from ..program.formats import FILES, check_format, program_text
+    from ..program.sequence import make_program
+
+    out = common.output_folder(args, "program")
+    problem = common.load(args, check_solver=False)
+    check_format(problem, args.format)
+    Q, F = read_plan_csv(problem, args.plan)
+    home = home_pose(problem, args.home)
+    t0 = time.perf_counter()
+    program = make_program(problem, Q, F, home, args.measure_s)
+    text = program_text(problem, program, args.format, str(args.plan))
+    wall = time.perf_counter() - t0
+    print(report(problem, program, args.plan))
+    common.say(args, f"ordered, checked and written in {wall:.2f} s")
+    if out:
+        write_atomic(out / FILES[args.format], text.encode())
+        common.say(args, f"wrote {out / FILES[args.format]}")
+    return 0
+
+
+def report(problem, program, plan: str | Path) -> str:
+    """The order, the times and every move's time, via points, clearances and beam, for people."""
+    m = len(program.order)
+    moving = program.time_s - m * program.measure_s
+    lines = [f"plan {plan}: {m} experiments; joint speeds: {program.times.source}",
+             f"order: {', '.join(map(str, program.order))}",
+             (f"time {program.time_s:.1f} s ({moving:.1f} s of moves, {m} x {program.measure_s:g} s measuring); "
+             f"file order {program.file_time_s:.1f} s (as straight moves {program.file_straight_s:.1f} s, but "
+             f"{program.file_blocked} of its {m + 1} moves break the clearance)"),
+             f"load changes: {program.load_changes} (file order {program.file_load_changes})"]
+    if problem.cell is None:
+        return "\n".join(lines + ["no [cell]: the moves are not checked for collisions"])
+    lines.append(f"{'move':<32}{'time_s':>8}{'vias':>6}{'clearance_mm':>14}{'mesh_mm':>9}  beam")
+    names = ["home", *(f"experiment {k}" for k in program.order), "home"]
+    for a, b, path in zip(names[:-1], names[1:], program.paths):
+        beam = next((mv.beam for mv in path.moves if mv.beam), None)
+        lines.append(f"{a + ' -> ' + b:<32}{path.time_s:>8.2f}{path.vias:>6}"
+                     f"{min(mv.clearance_m for mv in path.moves) * 1e3:>14.1f}"
+                     f"{min(mv.mesh_m for mv in path.moves) * 1e3:>9.1f}  {'broken: ' + beam if beam else 'kept'}")
+    lines.append(f"clearance: capsules along the whole move (at least half the cell's "
+                 f"{problem.cell.spec.clearance_m * 1e3:g} mm between samples), meshes at the closest samples")
+    return "\n".join(lines)
+
+
+def write_programs(out: Path, problem, designs, fmt: str) -> list[str]:
+    """Each design's plan as ``out/programs/<criterion>_m<m>.<ext>`` in format ``fmt``, from
+    the default home with the default measuring time; returns the file names."""
+    from ..program.formats import FILES, check_format, program_text
+    from ..program.sequence import make_program
+
+    check_format(problem, fmt)
+    names = []
+    for d in designs:
+        name = f"programs/{d.criterion}_m{d.m}{Path(FILES[fmt]).suffix}"
+        program = make_program(problem, d.Q, d.F, home_pose(problem, None), MEASURE_S)
+        write_atomic(out / name, program_text(problem, program, fmt, f"plans/{d.criterion}_m{d.m}.csv").encode())
+        names.append(name)
+    return names

@@ -1,0 +1,195 @@
+"""The program of a plan: home, the experiments in their best order, the via points of blocked
+moves, the stops for load changes, and the time of every point.
+
+:func:`make_program` orders the experiments (:mod:`.order`) on the times of their safe paths
+(:mod:`.moves`), found lazily: the order is first solved on the straight moves' times (a lower
+bound of any path's time, T being a metric), the moves of the tour found are checked and a
+blocked move's time replaced by its detour's, until the tour uses only checked moves. An
+exact order on these times is then exact on the true ones: any other tour costs at least its
+lower bound.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..build import Problem
+from ..errors import DesignError, ProblemError
+from ..rules import LOAD_RTOL, joint_limits
+from .moves import MoveSearch, NoSafePath, Path, home_problems, on_meshes
+from .order import TimeModel, best_order, load_changes, order_cost, time_model, tour_cost
+
+#: Standard gravity (m/s^2): the mass of a hung weight, for people.
+G0 = 9.80665
+
+
+@dataclass(frozen=True, eq=False)
+class Point:
+    """A point of the program: ``q`` (n,), rad (model angles); ``kind`` "home", "via" or
+    "experiment"; ``experiment`` the plan's row (1-based) or None; ``time_s`` the arrival
+    time from the start; ``stop_before`` / ``stop_after``: a manual step (hang, change or
+    remove a load) before the measurement, or after it, None when there is none."""
+
+    q: np.ndarray
+    kind: str
+    experiment: int | None
+    time_s: float
+    stop_before: str | None = None
+    stop_after: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Program:
+    """A plan as a robot program (module docstring).
+
+    ``points`` in program order (from home, back home); ``paths[i]`` leads to the i-th
+    experiment of ``order`` (the last one back home); ``measure_s`` the measuring time per
+    experiment; ``time_s`` / ``file_time_s``: the time of the program and of the plan's
+    file order with its own safe moves (inf: one cannot be made safe), s; ``file_straight_s``: the file order as straight
+    moves, ``file_blocked`` of which break the clearance; ``load_changes`` /
+    ``file_load_changes`` likewise.
+    """
+
+    joints: tuple[str, ...]
+    points: tuple[Point, ...]
+    paths: tuple[Path, ...]
+    order: tuple[int, ...]
+    times: TimeModel
+    measure_s: float
+    time_s: float
+    file_time_s: float
+    file_straight_s: float
+    load_changes: int
+    file_load_changes: int
+    file_blocked: int
+
+
+def load_text(problem: Problem, f: np.ndarray) -> str:
+    """The load ``f`` (nF,), N, for the operator: a hung weight's mass, else the vector."""
+    force = problem.force
+    if force is not None and force.mode == "direction":
+        return f"{np.linalg.norm(f) / G0:.1f} kg ({np.linalg.norm(f):.0f} N)"
+    return "F = (" + ", ".join(f"{v:.1f}" for v in f) + ") N"
+
+
+def turns(problem: Problem, q: np.ndarray, home: np.ndarray) -> list[np.ndarray]:
+    """The configurations of the pose ``q`` (n,), rad: each periodic joint (a range of more than
+    a turn, as the UR10's +/-360 deg: :class:`casadi_design.rules.JointLimits`) at its angle
+    plus any whole turns within the limits; the fastest from ``home`` first."""
+    limits = joint_limits(problem)
+    options = [[q[k] + 2 * np.pi * t for t in range(-2, 3) if limits.lower[k] <= q[k] + 2 * np.pi * t <= limits.upper[k]]
+               if limits.periodic[k] else [q[k]] for k in range(len(q))]
+    out = [np.array(c) for c in itertools.product(*options)]
+    times = time_model(problem)
+    return sorted(out, key=lambda c: times.move_time(home, c))
+
+
+def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarray,
+                 measure_s: float) -> Program:
+    """The program of the plan ``Q`` (m, n), rad, ``F`` (m, nF), N, from and back to ``home``
+    (n,), rad, measuring ``measure_s`` seconds per experiment; each experiment in the
+    configuration of its pose (:func:`turns`) that home reaches first by a clear move.
+
+    Raises
+    ------
+    ProblemError
+        ``home`` outside the joint limits or in collision.
+    DesignError
+        A move for which no collision-free detour is found (the message names it).
+    """
+    Q, home = np.asarray(Q, dtype=float), np.asarray(home, dtype=float)
+    m = len(Q)
+    why = home_problems(problem, home)
+    if why:
+        raise ProblemError(f"--home: {why}; give a home pose inside the limits and clear of the cell")
+    times = time_model(problem)
+    search = MoveSearch(problem, times, np.vstack([home, Q]))
+    # each experiment as the configuration of its pose that home reaches by the fastest clear move
+    # (a wrist turned the long way round may sweep past the forearm): home is then a way between any two
+    Q = np.array([next((c for c in turns(problem, q, home) if not search.blocked(home, c)), q) for q in Q])
+    nodes = np.vstack([home, Q])
+    search.anchors = nodes
+    straight = times.time_matrix(nodes)
+    T = straight.copy()
+    tol = LOAD_RTOL * (problem.force.magnitude_N if problem.force is not None else 1.0)
+    changes = load_changes(np.asarray(F, dtype=float).reshape(m, -1), tol)
+    paths: dict[tuple[int, int], Path] = {}
+
+    def name(i: int) -> str:
+        return "home" if i == 0 else f"experiment {i}"
+
+    def safe(i: int, j: int) -> Path:
+        if (i, j) not in paths:
+            try:
+                path = search.path(nodes[i], nodes[j])
+            except NoSafePath as exc:
+                raise DesignError(f"the move from {name(i)} to {name(j)} cannot be made safe ({exc}); "
+                                  "move that experiment or give another --home") from None
+            paths[i, j] = path
+            paths[j, i] = path.reversed()
+            T[i, j] = T[j, i] = path.time_s
+        return paths[i, j]
+
+    def edges(order) -> list[tuple[int, int]]:
+        tour = [0, *order, 0]
+        return list(itertools.pairwise(tour))
+
+    while True:
+        order = best_order(order_cost(T, changes))
+        todo = [e for e in edges(order) if e not in paths]
+        if not todo:
+            break
+        for i, j in todo:
+            safe(i, j)
+    # the capsules keep the clearance on every move: the meshes confirm it where they come closest
+    final = [replace(paths[e], moves=tuple(on_meshes(problem, mv) for mv in paths[e].moves)) for e in edges(order)]
+    touching = next((e for e, path in zip(edges(order), final) if any(mv.touching for mv in path.moves)), None)
+    if touching is not None:
+        raise DesignError(f"the move from {name(touching[0])} to {name(touching[1])} keeps the capsules "
+                          "apart but its meshes touch; move that experiment or give another --home")
+    # the file order with its own safe moves (detours only raise T off the tour: the order stays optimal)
+    file_order = tuple(range(1, m + 1))
+    file_blocked = sum(search.blocked(nodes[i], nodes[j]) for i, j in edges(file_order))
+    try:
+        for i, j in edges(file_order):
+            safe(i, j)
+        file_safe = tour_cost(T, file_order) + m * measure_s
+    except DesignError:  # a move of the file order that no detour makes safe: it cannot run
+        file_safe = np.inf
+    file_time = (file_safe, tour_cost(straight, file_order) + m * measure_s)
+    return _assemble(problem, Q, np.asarray(F, dtype=float).reshape(m, -1), nodes, order,
+                     final, changes, times, measure_s, file_time,
+                     int(sum(changes[i, j] for i, j in edges(file_order))), file_blocked)
+
+
+def _assemble(problem, Q, F, nodes, order, paths, changes, times, measure_s, file_time, file_changes,
+              file_blocked) -> Program:
+    """The points of the program: home, each path's via points and its experiment, home."""
+    tour = [0, *order, 0]
+    t, hanging = 0.0, np.zeros(F.shape[1])
+    points = [Point(nodes[0], "home", None, 0.0)]
+    for i, j, path in zip(tour[:-1], tour[1:], paths):
+        if j == 0 and changes[i, 0]:  # the load comes off before the way home
+            points[-1] = replace(points[-1], stop_after=f"remove the load {load_text(problem, hanging)}")
+        for q in path.points[1:]:
+            t += times.move_time(points[-1].q, q)
+            points.append(Point(q, "via", None, t))
+        points.pop()  # the path's end: home or the experiment
+        if j == 0:
+            points.append(Point(nodes[0], "home", None, t))
+            break
+        before = None
+        if changes[i, j]:
+            f = F[j - 1]
+            before = (f"hang the load {load_text(problem, f)}" if not changes[0, i] else
+                      f"remove the load {load_text(problem, hanging)}" if not changes[0, j] else
+                      f"replace the load {load_text(problem, hanging)} by {load_text(problem, f)}")
+            hanging = f
+        points.append(Point(Q[j - 1], "experiment", j, t, before))
+        t += measure_s
+    return Program(problem.robot.joints, tuple(points), tuple(paths), tuple(order), times, measure_s, t,
+                   *file_time, int(sum(changes[i, j] for i, j in itertools.pairwise(tour))), file_changes,
+                   file_blocked)
