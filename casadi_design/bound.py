@@ -50,7 +50,7 @@ from .errors import DesignError
 from .ipopt import QUIET, ipopt_call
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .reduced import NumericFunction, experiment_functions
-from .rules import joint_limits, load_variables, plan_violations
+from .rules import joint_limits, load_variables, plan_violations, pose_constraints
 from .sampling import random_plan
 #: Candidate experiments of the first pool, and of the dense sample searched for max_x d.
 POOL_SIZE = 300
@@ -235,7 +235,10 @@ def _search(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndarray, np.n
     fns, loads = experiment_functions(problem), load_variables(problem)
     L = problem.model.L
     z, G = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L)
-    B, c = fns.values(z)
+    B, c, _ = fns.values(z)
+    rules = pose_constraints(problem)
+    if rules.collision is not None:  # every capsule row, after the others as in rule_bounds
+        c = ca.vertcat(c, rules.g(z[: fns.n])[rules.collision.first:])
     solver = ca.nlpsol("max_d", "ipopt", {"x": z, "p": ca.vec(G), "f": -ca.dot(B @ G, B), "g": c},
                        {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200})
     # the plan of one experiment: its variables and rule rows are those of z and c

@@ -45,8 +45,9 @@ import pinocchio as pin
 from .collision import (
     LineOfSight,
     PairSelection,
+    PointRows,
     capsule_names,
-    capsule_rows,
+    capsule_point_rows,
     capsules_from_geometry,
     carrier,
     load_collision_geometry,
@@ -315,17 +316,18 @@ Row = tuple[ca.SX, float, float, str, str]
 
 
 def cell_rows(cell: Cell, robot: Robot, q: ca.SX, R: ca.SX, P: ca.SX,
-              markers_m: np.ndarray) -> tuple[list[Row], list[Row]]:
+              markers_m: np.ndarray) -> tuple[PointRows, list[Row]]:
     """The cell's rows of configuration ``q``: ``(g, lb, ub, label, unit)`` with ``lb <= g <= ub``.
 
     ``R`` (3 x 3): the measured frame's rotation; ``P`` (3 x k, m): the reflectors, both at
-    ``q``; ``markers_m`` (k x 3, m): the reflectors in the measured frame. Returns the capsule rows in m (:func:`casadi_design.collision.capsule_rows`) and,
+    ``q``; ``markers_m`` (k x 3, m): the reflectors in the measured frame. Returns the capsule
+    rows (m, each ``>= 0``) as functions of the world points
+    (:func:`casadi_design.collision.capsule_point_rows`) and,
     apart because they cost far less to evaluate, the incidence rows as cosines (unit "cos",
     module docstring).
     """
-    capsule = [(g, lb, ub, label, "m") for g, lb, ub, label in
-               capsule_rows(robot, cell.capsules, q, cell.spec.clearance_m, cell.obstacles, cell.sights,
-                            cell.pairs.kept, cell.near)]
+    capsule = capsule_point_rows(robot, cell.capsules, q, cell.spec.clearance_m, cell.obstacles, cell.sights,
+                                 cell.pairs.kept, cell.near)
     rows: list[Row] = []
     tracker = cell.spec.tracker
     if tracker is not None:

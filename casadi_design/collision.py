@@ -535,6 +535,53 @@ def _rows(robot: Robot, capsules: Sequence[Capsule], ends: Callable, ops, dist: 
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class PointRows:
+    """Collision rows as functions of world points: the form in which the NLP holds only the
+    rows that can bind (:mod:`casadi_design.reduced`).
+
+    ``W`` (CasADi SX, 3K) stands for K world points (m): both ends of every capsule moving with
+    q, and each line of sight's reflector; ``points`` (SX of q, 3K) gives them at q. Row r is
+    ``G_r(W) >= 0`` (m) with label ``labels[r]``; it depends on at most 4 of the points (two
+    segments), the rest of its data (obstacles, tracker, radii, clearance) being constants.
+    """
+
+    W: ca.SX
+    points: ca.SX
+    G: tuple[ca.SX, ...]
+    labels: tuple[str, ...]
+
+    def of_q(self) -> list[ca.SX]:
+        """The rows as SX of q: ``G_r(points(q))``."""
+        return ca.substitute(list(self.G), [self.W], [self.points]) if self.G else []
+
+
+def capsule_point_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_m: float = 0.0,
+                       obstacles: Sequence[Obstacle] = (), sights: Sequence[LineOfSight] = (),
+                       pairs: Sequence[tuple[int, int]] | None = None,
+                       near: Sequence[tuple[int, int]] | None = None) -> PointRows:
+    """The rows of :func:`capsule_rows` as functions of the world points (:class:`PointRows`)."""
+    if pairs is None:
+        pairs = self_collision_pairs(robot, capsules, clearance_m).kept
+    placed = _ends_symbolic(robot, capsules, q)
+    symbols, points = [], []
+
+    def ends(capsule: Capsule):
+        if not _moves(robot, carrier(robot.model, capsule.frame)[0]):
+            return placed(capsule)  # constants
+        out = []
+        for p in placed(capsule):
+            symbols.append(ca.SX.sym(f"w{len(symbols)}", 3))
+            points.append(p)
+            out.append(symbols[-1])
+        return tuple(out)
+
+    rows = _rows(robot, capsules, ends, _CA, segment_distance, clearance_m, obstacles, sights, pairs, near)
+    return PointRows(ca.vertcat(*symbols) if symbols else ca.SX(0, 1),
+                     ca.vertcat(*points) if points else ca.SX(0, 1),
+                     tuple(g for g, _ in rows), tuple(label for _, label in rows))
+
+
 def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_m: float = 0.0,
                  obstacles: Sequence[Obstacle] = (), sights: Sequence[LineOfSight] = (),
                  pairs: Sequence[tuple[int, int]] | None = None,
@@ -552,13 +599,10 @@ def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_
       ``dist([tracker, reflector(q)], s_k) - r_k - spread - clearance_m``.
 
     ``dist`` is :func:`segment_distance` (smoothed, within ``SMOOTHING_M`` below the exact
-    distance).
+    distance). The rows are those of :func:`capsule_point_rows` at the points of q.
     """
-    if pairs is None:
-        pairs = self_collision_pairs(robot, capsules, clearance_m).kept
-    rows = _rows(robot, capsules, _ends_symbolic(robot, capsules, q), _CA, segment_distance,
-                 clearance_m, obstacles, sights, pairs, near)
-    return [(g, 0.0, np.inf, label) for g, label in rows]
+    rows = capsule_point_rows(robot, capsules, q, clearance_m, obstacles, sights, pairs, near)
+    return [(g, 0.0, np.inf, label) for g, label in zip(rows.of_q(), rows.labels)]
 
 
 def capsule_clearances(robot: Robot, capsules: Sequence[Capsule], q: np.ndarray, clearance_m: float = 0.0,

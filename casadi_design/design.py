@@ -28,7 +28,9 @@ SEEDED = "seeded"
 class StartRecord:
     """One IPOPT start: its status, iterations, criterion score and test-pose error (m), and
     where its start plan came from (``origin``: "seeded", or the label of an initial plan, e.g.
-    "warm start" or "rounded approximate design")."""
+    "warm start" or "rounded approximate design"); with a cell, its IPOPT ``runs`` and the
+    capsule rows its last run held (``rows_held``, of m times the rows of one experiment;
+    :mod:`casadi_design.solve`)."""
 
     status: str
     iterations: int
@@ -36,6 +38,8 @@ class StartRecord:
     max_rms_error_m: float
     feasible: bool
     origin: str = SEEDED
+    runs: int = 1
+    rows_held: int = 0
 
     @property
     def converged(self) -> bool:

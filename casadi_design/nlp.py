@@ -13,8 +13,10 @@ the paper (eq. 15) in epigraph form:
 
 Constraint rows, in this order: the criterion's rows, the loads (``|Fbar_i|^2 = 1`` or
 ``<= 1``), the workspace rows of every experiment
-(:func:`~casadi_design.rules.pose_constraints`) and the joint distance of every pair of
-experiments; joint limits and load magnitudes are bounds of x.
+(:func:`~casadi_design.rules.pose_constraints`) but a cell's capsule rows, the capsule rows
+the NLP holds (``active``: all of them, or those that can bind at the plans of a start,
+:mod:`casadi_design.solve`), and the joint distance of every pair of experiments; joint limits
+and load magnitudes are bounds of x.
 
 The NLP is posed in the reduced space (:mod:`casadi_design.reduced`): IPOPT's variables are x
 only, values and exact derivatives come from numeric linear algebra; E and condition through
@@ -33,7 +35,7 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem
-from .reduced import reduced_nlp
+from .reduced import all_rows, reduced_nlp
 from .rules import LoadVariables, joint_limits, load_variables, pose_constraints
 
 
@@ -48,6 +50,8 @@ class DesignNLP:
     plan : ``x -> (Q, F)``, joint values (m, n), rad, and loads (m, nF), N.
     information : ``x -> scale M`` (L x L).
     start : ``(Q, F) -> x0``, a plan completed with the auxiliary variables.
+    active : the capsule rows held, (experiment, row) pairs (K x 2); ``active_rows``: their
+        index in g.
     options : ``nlpsol`` options of the formulation: its own derivative functions.
     """
 
@@ -62,6 +66,8 @@ class DesignNLP:
     plan: Callable
     information: Callable
     start: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    active: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=int))
+    active_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     options: dict = field(default_factory=dict)
 
     def solver(self, name: str, opts: dict) -> ca.Function:
@@ -83,16 +89,17 @@ def information_scale(L: int, B0: np.ndarray) -> float:
 
 
 def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = None,
-              power: float = 0.0) -> DesignNLP:
+              power: float = 0.0, active: np.ndarray | None = None) -> DesignNLP:
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem);
-    ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``)."""
+    ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``);
+    ``active``: the capsule rows it holds, (experiment, row) pairs (K x 2; None: all)."""
     B0 = B0_at_test_poses(problem) if B0 is None else B0
     n, loads = problem.robot.n, load_variables(problem)
     scale = information_scale(problem.model.L, B0)
-    nlp = reduced_nlp(problem, criterion, m, B0, scale, power)
+    nlp = reduced_nlp(problem, criterion, m, B0, scale, power, active)
     oracle, options = nlp.functions()
     lbx, ubx = plan_bounds(problem, m, loads)
-    lbg, ubg = rule_bounds(problem, m, loads)
+    lbg, ubg = rule_bounds(problem, m, loads, nlp.active)
     if nlp.n_rows:  # the epigraph: t >= 0; rho_j - t <= 0
         lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
         s = nlp.n_rows
@@ -113,7 +120,8 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
             x0[-1] = 1.01 * np.max(nlp.at(x0).g[: nlp.n_rows])
         return x0
 
-    return DesignNLP(criterion, m, scale, oracle, lbx, ubx, lbg, ubg, plan, information, start, options)
+    return DesignNLP(criterion, m, scale, oracle, lbx, ubx, lbg, ubg, plan, information, start,
+                     nlp.active, nlp.active_rows, options)
 
 
 def plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
@@ -124,13 +132,19 @@ def plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndar
             np.concatenate([np.tile(upper, m), np.ones(loads.nv * m)]))
 
 
-def rule_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment, joint distance
-    of each pair ``i < j`` (squared, rad^2; :func:`~casadi_design.rules.joint_distance_sq`)."""
+def rule_bounds(problem: Problem, m: int, loads: LoadVariables,
+                active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment (its capsule
+    rows apart), the capsule rows ``active`` ((experiment, row) pairs; None: all), joint
+    distance of each pair ``i < j`` (squared, rad^2;
+    :func:`~casadi_design.rules.joint_distance_sq`)."""
     rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad
+    held = rules.lb.size if rules.collision is None else rules.collision.first
+    rows = held + (all_rows(problem, m) if active is None else active)[:, 1]
     n_norm = m if loads.norm_lb is not None else 0
     n_pairs = m * (m - 1) // 2 if dmin > 0 else 0
-    lb = np.concatenate([np.full(n_norm, loads.norm_lb or 0.0), np.tile(rules.lb, m),
-                         np.full(n_pairs, dmin**2)])
-    ub = np.concatenate([np.ones(n_norm), np.tile(rules.ub, m), np.full(n_pairs, np.inf)])
+    lb = np.concatenate([np.full(n_norm, loads.norm_lb or 0.0), np.tile(rules.lb[:held], m),
+                         rules.lb[rows], np.full(n_pairs, dmin**2)])
+    ub = np.concatenate([np.ones(n_norm), np.tile(rules.ub[:held], m), rules.ub[rows],
+                         np.full(n_pairs, np.inf)])
     return lb, ub

@@ -50,7 +50,7 @@ from scipy.linalg.lapack import dpotrf, dtrtri
 from .build import Problem, per_model
 from .criteria import CRITERIA
 from .objectives import EpigraphRows, Local, Objective
-from .rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
+from .rules import CollisionRows, joint_distance_sq, joint_limits, load_variables, pose_constraints
 
 
 class NumericFunction(ca.Callback):
@@ -150,14 +150,17 @@ class BufferedFunction:
 class ExperimentFunctions:
     """CasADi functions of one experiment's variables ``z = (q, v)`` (p = n + nv).
 
-    ``c(z)`` are the experiment's rule rows: ``|v|^2`` when the load direction is free, then the
-    workspace rows :func:`~casadi_design.rules.pose_constraints` of q (m).
+    ``c(z)`` are the experiment's rule rows held in every experiment: ``|v|^2`` when the load
+    direction is free, then the workspace rows :func:`~casadi_design.rules.pose_constraints` of
+    q (m), but for a cell's capsule rows: those enter row by row (``collision``, from the world
+    points ``w(q)``, 3K, m), only where they can bind.
 
     Attributes
     ----------
-    values : ``z -> (B, c)``, B (d x L) unscaled.
-    first : ``z -> (d vec(B) / dz (d L x p), dc/dz (nc x p))``.
-    second : ``(z, W, lam) -> d2/dz2 (sum_kl W_kl B_kl + lam . c)`` (p x p), W (d x L), lam (nc).
+    values : ``z -> (B, c, w)``, B (d x L) unscaled.
+    first : ``z -> (d vec(B) / dz (d L x p), dc/dz (nc x p), dw/dz (3K x p))``.
+    second : ``(z, W, lam, u) -> d2/dz2 (sum_kl W_kl B_kl + lam . c + u . w)`` (p x p), W (d x L),
+        lam (nc), u (3K).
     pair : ``u -> joint_distance_sq(q_a, q_b)`` (rad^2) for ``u = (q_a, q_b)``; ``pair_first``: its gradient
         (1 x 2n); ``pair_second``: ``(u, lam) -> lam`` times its Hessian (2n x 2n).
     """
@@ -171,6 +174,7 @@ class ExperimentFunctions:
     pair: ca.Function
     pair_first: ca.Function
     pair_second: ca.Function
+    collision: CollisionRows | None
 
     @property
     def p(self) -> int:
@@ -197,20 +201,25 @@ def experiment_functions(problem: Problem) -> ExperimentFunctions:
     q, v = ca.SX.sym("q", n), ca.SX.sym("v", loads.nv)
     z = ca.vertcat(q, v)
     B = model.B(q, loads.load(v))
-    c = ca.vertcat(*([ca.sumsqr(v)] if loads.norm_lb is not None else []), rules.g(q))
-    W, lam = ca.SX.sym("W", *B.shape), ca.SX.sym("lam", c.numel())
-    second = ca.hessian(ca.dot(W, B) + ca.dot(lam, c), z)[0]
+    collision = rules.collision
+    held = rules.g if collision is None else rules.screen
+    c = ca.vertcat(*([ca.sumsqr(v)] if loads.norm_lb is not None else []), held(q))
+    w = collision.points(q) if collision is not None else ca.SX(0, 1)
+    W, lam, u = ca.SX.sym("W", *B.shape), ca.SX.sym("lam", c.numel()), ca.SX.sym("u", w.numel())
+    second = ca.hessian(ca.dot(W, B) + ca.dot(lam, c) + ca.dot(u, w), z)[0]
     qa, qb, mu = ca.SX.sym("qa", n), ca.SX.sym("qb", n), ca.SX.sym("mu")
-    u = ca.vertcat(qa, qb)
+    ab = ca.vertcat(qa, qb)
     d = joint_distance_sq(joint_limits(problem), qa, qb)
     return ExperimentFunctions(
         n, loads.nv, c.numel(),
-        _function("B", [z], [B, c], ["z"], ["B", "c"]),
-        _function("dB", [z], [ca.jacobian(ca.vec(B), z), ca.jacobian(c, z)], ["z"], ["dB", "dc"]),
-        _function("d2B", [z, W, lam], [second], ["z", "W", "lam"], ["d2"]),
-        ca.Function("pair", [u], [d], ["u"], ["d"]),
-        ca.Function("dpair", [u], [ca.jacobian(d, u)], ["u"], ["dd"]),
-        ca.Function("d2pair", [u, mu], [ca.hessian(mu * d, u)[0]], ["u", "mu"], ["d2"]),
+        _function("B", [z], [B, c, w], ["z"], ["B", "c", "w"]),
+        _function("dB", [z], [ca.jacobian(ca.vec(B), z), ca.jacobian(c, z), ca.jacobian(w, z)], ["z"],
+                  ["dB", "dc", "dw"]),
+        _function("d2B", [z, W, lam, u], [second], ["z", "W", "lam", "u"], ["d2"]),
+        ca.Function("pair", [ab], [d], ["u"], ["d"]),
+        ca.Function("dpair", [ab], [ca.jacobian(d, ab)], ["u"], ["dd"]),
+        ca.Function("d2pair", [ab, mu], [ca.hessian(mu * d, ab)[0]], ["u", "mu"], ["d2"]),
+        collision,
     )
 
 
@@ -225,6 +234,8 @@ class ReducedNLP:
     rule_rows : ndarray, shape (m, nc): index in g of each experiment's rule rows.
     pairs : ndarray, shape (P, 2): the experiments (a < b) of each joint-distance row.
     pair_rows : ndarray, shape (P,): their index in g.
+    active : ndarray, shape (K, 2): the capsule rows held, as (experiment i, row r of
+        :class:`~casadi_design.rules.CollisionRows`); ``active_rows`` (K,): their index in g.
     n_rows : number of criterion rows (s for an epigraph criterion, 0 otherwise), first in g.
     nx, ng : sizes of x and g.
     objective : the criterion's part (:mod:`casadi_design.objectives`).
@@ -242,6 +253,8 @@ class ReducedNLP:
     rule_rows: np.ndarray
     pairs: np.ndarray
     pair_rows: np.ndarray
+    active: np.ndarray
+    active_rows: np.ndarray
     n_rows: int
     nx: int
     ng: int
@@ -259,7 +272,17 @@ class ReducedNLP:
         if P:
             out.update(pair=f.pair.map(P), pair_first=f.pair_first.map(P),
                        pair_second=f.pair_second.map(P))
+        if len(self.active):
+            K, rows = len(self.active), f.collision
+            out.update(row_value=rows.value.map(K), row_slope=rows.slope.map(K),
+                       row_curvature=rows.curvature.map(K))
         return {k: BufferedFunction.of(fn) for k, fn in out.items()}
+
+    @cached_property
+    def row_inputs(self) -> np.ndarray:
+        """Index in the experiment's points ``w`` (3K, then a zero) of the inputs ``w_r`` of
+        each held capsule row, shape (K, width)."""
+        return self.fns.collision.inputs[self.active[:, 1]]
 
     @cached_property
     def pair_cols(self) -> np.ndarray:
@@ -277,6 +300,7 @@ class ReducedNLP:
         dc = np.array(ca.DM(self.fns.first.sparsity_out(1), 1.0), dtype=bool)
         J[self.rule_rows[:, :, None], self.cols[:, None, :]] = dc
         J[self.pair_rows[:, None], self.pair_cols] = True
+        J[self.active_rows[:, None], self.cols[self.active[:, 0], : self.fns.n]] = True
         return J
 
     @cached_property
@@ -390,7 +414,8 @@ class ReducedNLP:
 class _Values(NamedTuple):
     """f, g and what they are made of at one x.
 
-    Z : (p, m) the experiments' variables; B : (m, d, L) unscaled; M : (L, L) scaled;
+    Z : (p, m) the experiments' variables; B : (m, d, L) unscaled; w_rows : (K, width) the
+    inputs of the held capsule rows (m); M : (L, L) scaled;
     Cinv : ``C^-1`` for ``M = C C^T`` (C lower triangular), None when M is not positive definite;
     local : the objective at M (None for an epigraph criterion or a singular M).
     """
@@ -398,6 +423,7 @@ class _Values(NamedTuple):
     x: np.ndarray
     Z: np.ndarray
     B: np.ndarray
+    w_rows: np.ndarray
     M: np.ndarray
     Cinv: np.ndarray | None
     local: Local | None
@@ -408,9 +434,12 @@ class _Values(NamedTuple):
 class _Slopes(NamedTuple):
     """First derivatives at one x: dB (m, p, d, L) unscaled, dM (m p, L, L) in the order of
     ``cols``, ``N = M^-1``, ``Y_j = N H_j N`` (s, L, L; epigraph) or ``G_f = df/dM`` (the
-    other criteria), and the gradient of f and the dense Jacobian of g."""
+    other criteria), and the gradient of f and the dense Jacobian of g; for the held capsule
+    rows, ``dg_r/dw_r`` (K, width) and ``dw_r/dz`` (K, width, p)."""
 
     dB: np.ndarray
+    row_slope: np.ndarray
+    dw_rows: np.ndarray
     dM: np.ndarray
     N: np.ndarray
     Y: np.ndarray | None
@@ -422,7 +451,7 @@ class _Slopes(NamedTuple):
 def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
     m, c = nlp.m, nlp.scale
     Z = x[nlp.cols.T]
-    B, rules = nlp.mapped["values"](Z)
+    B, rules, w = nlp.mapped["values"](Z)
     d, L = B.shape[0], B.shape[1] // m
     B = B.reshape(d, m, L).transpose(1, 0, 2)
     S = B.reshape(m * d, L)
@@ -441,18 +470,30 @@ def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
         local = nlp.objective.at(M, C, Cinv, nlp.P, nlp.power)
         f = local.value
     g[nlp.rule_rows] = rules.T
+    w_rows = np.zeros((0, 0))
+    if len(nlp.active):
+        w = np.vstack([w, np.zeros((1, m))])  # index 3K: the zero that fills w_r
+        w_rows = w[nlp.row_inputs, nlp.active[:, :1]]
+        g[nlp.active_rows] = nlp.mapped["row_value"](nlp.active[None, :, 1], w_rows.T)[0].ravel()
     if len(nlp.pairs):
         g[nlp.pair_rows] = nlp.mapped["pair"](x[nlp.pair_cols.T])[0].ravel()
-    return _Values(x, Z, B, M, Cinv, local, f, g)
+    return _Values(x, Z, B, w_rows, M, Cinv, local, f, g)
 
 
 def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
     m, p, c = nlp.m, nlp.fns.p, nlp.scale
     d, L = v.B.shape[1:]
-    dB, dc = nlp.mapped["first"](v.Z)
+    dB, dc, dw = nlp.mapped["first"](v.Z)
     dB = dB.reshape(L, d, m, p).transpose(2, 3, 1, 0)
     grad, J = np.zeros(nlp.nx), np.zeros((nlp.ng, nlp.nx))
     J[nlp.rule_rows[:, :, None], nlp.cols[:, None, :]] = dc.reshape(-1, m, p).transpose(1, 0, 2)
+    slope = dw_rows = np.zeros((0, 0))
+    if len(nlp.active):
+        K = len(nlp.active)
+        slope = nlp.mapped["row_slope"](nlp.active[None, :, 1], v.w_rows.T)[1].reshape(K, -1)
+        dw = np.concatenate([dw.reshape(-1, m, p), np.zeros((1, m, p))])
+        dw_rows = dw[nlp.row_inputs, nlp.active[:, :1]]
+        J[nlp.active_rows[:, None], nlp.cols[nlp.active[:, 0]]] = np.einsum("kw,kwp->kp", slope, dw_rows)
     if len(nlp.pairs):
         P, n2 = nlp.pair_cols.shape
         J[nlp.pair_rows[:, None], nlp.pair_cols] = nlp.mapped["pair_first"](
@@ -464,7 +505,7 @@ def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
         grad[: nlp.cols.size] = np.nan
         J[: nlp.n_rows] = np.nan
         nan = np.full((m * p, L, L), np.nan)
-        return _Slopes(dB, nan, nan[0], None, None, grad, J)
+        return _Slopes(dB, slope, dw_rows, nan, nan[0], None, None, grad, J)
     N = v.Cinv.T @ v.Cinv
     T = c * (dB.transpose(0, 1, 3, 2) @ v.B[:, None])  # dB_a^T B_i, (m, p, L, L)
     dM = (T + T.transpose(0, 1, 3, 2)).reshape(m * p, L * L)
@@ -476,7 +517,7 @@ def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
     else:
         G_f = nlp.objective.gradient(v.local, N, nlp.P)
         grad[cols] = dM @ G_f.ravel()
-    return _Slopes(dB, dM.reshape(m * p, L, L), N, Y, G_f, grad, J)
+    return _Slopes(dB, slope, dw_rows, dM.reshape(m * p, L, L), N, Y, G_f, grad, J)
 
 
 def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
@@ -493,8 +534,21 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
     # tr(Gbar d2M_ab) = c (2 <B Gbar, d2B_ab> + 2 <dB_a Gbar, dB_b>), and the rules' rows
     W = (2 * c) * (v.B @ Gbar)
     d = W.shape[1]
-    d2 = nlp.mapped["second"](v.Z, W.transpose(1, 0, 2).reshape(d, -1), lam_g[nlp.rule_rows].T)[0]
+    # the held capsule rows g_r(w_r(z)): u = sum_r lam_r dg_r/dw enters the kinematics' second
+    # derivative, and each row adds lam_r (dw_r/dz)^T d2g_r/dw_r2 (dw_r/dz) to its block
+    K3 = nlp.fns.values.size_out(2)[0]
+    u = np.zeros((K3 + 1, m))  # index 3K: the zero that fills w_r
+    if len(nlp.active):
+        lam = lam_g[nlp.active_rows]
+        np.add.at(u, (nlp.row_inputs, nlp.active[:, :1]), lam[:, None] * sl.row_slope)
+        K, width = sl.row_slope.shape
+        curvature = nlp.mapped["row_curvature"](nlp.active[None, :, 1], v.w_rows.T)[0]
+        curvature = lam[:, None, None] * curvature.reshape(width, K, width).transpose(1, 0, 2)
+    d2 = nlp.mapped["second"](v.Z, W.transpose(1, 0, 2).reshape(d, -1), lam_g[nlp.rule_rows].T,
+                              u[:K3])[0]
     blocks = d2.reshape(p, m, p).transpose(1, 0, 2)
+    if len(nlp.active):
+        np.add.at(blocks, nlp.active[:, 0], np.einsum("kwp,kwv,kvs->kps", sl.dw_rows, curvature, sl.dw_rows))
     dBG = (sl.dB @ Gbar).reshape(m, p, d * L)
     blocks += (2 * c) * (dBG @ sl.dB.reshape(m, p, d * L).transpose(0, 2, 1))
     flat = H.ravel()
@@ -506,15 +560,26 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
     return H
 
 
+def all_rows(problem: Problem, m: int) -> np.ndarray:
+    """Every capsule row of every experiment, as (experiment, row) pairs (K, 2): the whole
+    rulebook."""
+    rows = pose_constraints(problem).collision
+    R = 0 if rows is None else len(rows.inputs)
+    return np.array([(i, r) for i in range(m) for r in range(R)], dtype=int).reshape(-1, 2)
+
+
 def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                scale: float, power: float = 0.0) -> ReducedNLP:
+                scale: float, power: float = 0.0, active: np.ndarray | None = None) -> ReducedNLP:
     """The reduced-space NLP of ``criterion`` for m experiments (``power``: r of E and
-    condition).
+    condition) holding the capsule rows ``active`` ((experiment, row) pairs, K x 2; None:
+    every row, :func:`all_rows`).
 
     x = (Q, V, t for an epigraph criterion); g = (epigraph rows, load rows, workspace rows of
-    each experiment, joint-distance rows of each pair a < b), as in :mod:`casadi_design.nlp`.
+    each experiment but the capsule rows, the capsule rows held, joint-distance rows of each
+    pair a < b), as in :mod:`casadi_design.nlp`.
     """
     fns, objective = experiment_functions(problem), CRITERIA[criterion].objective
+    active = all_rows(problem, m) if active is None else np.asarray(active, dtype=int).reshape(-1, 2)
     n, nv = fns.n, fns.nv
     n_rows = B0.shape[0] if objective.epigraph else 0
     idx = np.arange(m)[:, None]
@@ -525,9 +590,10 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
                                 n_rows + has_norm * m + idx * n_ws + np.arange(n_ws)], axis=1)
     distance = problem.workspace.min_joint_distance_rad > 0
     pairs = np.array([(a, b) for a in range(m) for b in range(a + 1, m) if distance], dtype=int)
-    first_pair = n_rows + fns.nc * m
+    first_active = n_rows + fns.nc * m
+    first_pair = first_active + len(active)
     nx = (n + nv) * m + objective.epigraph
     B0s = np.sqrt(scale) * B0
     return ReducedNLP(criterion, m, scale, fns, B0s, cols, rule_rows, pairs.reshape(-1, 2),
-                      first_pair + np.arange(len(pairs)), n_rows, nx, first_pair + len(pairs),
-                      objective, objective.weights(B0s), power)
+                      first_pair + np.arange(len(pairs)), active, first_active + np.arange(len(active)),
+                      n_rows, nx, first_pair + len(pairs), objective, objective.weights(B0s), power)

@@ -61,7 +61,8 @@ def design_record(design: Design) -> dict:
                                  "median": float(np.median(values))},
             "per_start": [
                 {"status": st.status, "iterations": st.iterations, "value": st.value,
-                 "max_rms_error_m": st.max_rms_error_m, "feasible": st.feasible, "origin": st.origin}
+                 "max_rms_error_m": st.max_rms_error_m, "feasible": st.feasible, "origin": st.origin,
+                 "runs": st.runs, "rows_held": st.rows_held}
                 for st in design.starts
             ],
         },
@@ -162,7 +163,8 @@ def design_from_record(record: dict) -> Design:
 #: Numeric fields of a design's ``scores`` (finite: a design's plan is identifiable).
 _SCORE_NUMBERS = tuple(c.score for c in CRITERIA.values())
 #: The keys of one start in ``solver.per_start``: the fields of :class:`StartRecord`; those
-#: with a default (``origin``) may be missing (files of earlier versions).
+#: with a default (``origin``, ``runs``, ``rows_held``) may be missing (files of earlier
+#: versions).
 _START_KEYS = tuple(f.name for f in dataclasses.fields(StartRecord))
 _START_REQUIRED = tuple(f.name for f in dataclasses.fields(StartRecord)
                         if f.default is dataclasses.MISSING)
@@ -273,6 +275,8 @@ def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> N
             _need(s[k] is None or _is_number(s[k], finite=False), f"{at}.{k}", "a number or null", s[k])
         _need(isinstance(s["feasible"], bool), f"{at}.feasible", "true or false", s["feasible"])
         _need(isinstance(s.get("origin", ""), str), f"{at}.origin", "a string", s.get("origin"))
+        _int(s.get("runs", 1), f"{at}.runs", 1)
+        _int(s.get("rows_held", 0), f"{at}.rows_held", 0)
 
 
 def check_results(record: object) -> None:

@@ -32,6 +32,7 @@ import numpy as np
 
 from .build import Problem, per_model
 from .cell import cell_rows, clearances
+from .collision import PointRows
 from .symbolic import joint_axis
 
 #: Largest violation of a joint limit or workspace rule accepted (rad, m).
@@ -105,7 +106,8 @@ def joint_distance_sq(limits: JointLimits, qa, qb):
 class PoseConstraints:
     """Workspace rows of one configuration: ``lb <= g(q) <= ub``, one label and unit per row
     ("m", or "cos" for the cosine of an angle); ``screen`` gives the first rows alone (all but
-    the cell's capsule rows, which cost most)."""
+    the cell's capsule rows, which cost most); ``collision``: those capsule rows, the last
+    ones, in the form that evaluates them one by one (None without a ``[cell]``)."""
 
     g: ca.Function
     lb: np.ndarray
@@ -113,6 +115,7 @@ class PoseConstraints:
     labels: tuple[str, ...]
     units: tuple[str, ...]
     screen: ca.Function
+    collision: CollisionRows | None = None
 
     def feasible(self, Q: np.ndarray) -> np.ndarray:
         """Whether each configuration (row of ``Q``, k x n) satisfies every row: the first
@@ -129,12 +132,72 @@ class PoseConstraints:
             ok[idx] = np.all((G >= self.lb[:rows]) & (G <= self.ub[:rows]), axis=1)
         return ok
 
+    def near(self, Q: np.ndarray, margin_m: float) -> np.ndarray:
+        """The capsule rows closer than ``margin_m`` (m) to their bound ``g >= 0`` in the plan
+        ``Q`` (m, n): (experiment, row of :class:`CollisionRows`) pairs (K x 2), in that order."""
+        if self.collision is None:
+            return np.zeros((0, 2), dtype=int)
+        Q = np.asarray(Q, dtype=float)
+        G = np.asarray(_mapped(self.g, len(Q))(Q.T)).reshape(self.lb.size, len(Q)).T
+        first = self.collision.first
+        return np.argwhere(G[:, first:] - self.lb[first:] < margin_m)
+
     def violation(self, q: np.ndarray) -> np.ndarray:
         """Violation (in the row's unit, >= 0) of each row at configuration ``q``."""
         if not self.lb.size:
             return np.zeros(0)
         g = np.asarray(self.g(np.asarray(q, dtype=float))).ravel()
         return np.maximum(np.maximum(self.lb - g, g - self.ub), 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class CollisionRows:
+    """The capsule rows of one configuration, row by row: the NLP evaluates only the rows it
+    holds (those that can bind; :mod:`casadi_design.reduced`).
+
+    Row r is row ``first + r`` of :class:`PoseConstraints` (``g >= 0``, m). It depends on the
+    world points ``w = points(q)`` (3K, m; :class:`casadi_design.collision.PointRows`) through
+    ``w_r = w[inputs[r]]`` (``width`` coordinates: those of the few points it uses, then the
+    index 3K, a zero, to fill): ``g_r = G_r(w_r)``. ``value``, ``slope`` and ``curvature`` are
+    CasADi switches ``(r, w_r) -> g_r``, ``(g_r, dg_r/dw_r (1 x width))`` and
+    ``d2g_r/dw_r2 (width x width)``: they evaluate row r alone, so a switch mapped over k
+    rows costs those k rows.
+    """
+
+    first: int
+    points: ca.Function
+    inputs: np.ndarray
+    value: ca.Function
+    slope: ca.Function
+    curvature: ca.Function
+
+    @property
+    def width(self) -> int:
+        return self.inputs.shape[1]
+
+
+def collision_rows(rows: PointRows, q: ca.SX, first: int) -> CollisionRows:
+    """:class:`CollisionRows` of the capsule rows ``rows`` (rows ``first...`` of the pose)."""
+    K3 = rows.W.numel()
+    G = ca.vertcat(*rows.G)
+    uses = ca.jacobian(G, rows.W).sparsity()
+    dependence = np.array(ca.DM(uses, 1.0), dtype=bool).reshape(len(rows.G), K3 // 3, 3).any(axis=2)
+    width = 3 * max(1, int(dependence.sum(axis=1).max()))
+    w = ca.SX.sym("w", width)
+    inputs, value, slope, curvature = [], [], [], []
+    for r, g in enumerate(rows.G):
+        idx = [3 * k + a for k in np.flatnonzero(dependence[r]) for a in range(3)]
+        if idx:
+            g = ca.substitute(g, rows.W[idx], w[: len(idx)])
+        inputs.append(idx + [K3] * (width - len(idx)))
+        value.append(ca.Function("row", [w], [g]))
+        slope.append(ca.Function("drow", [w], [g, ca.jacobian(g, w)]))
+        curvature.append(ca.Function("d2row", [w], [ca.hessian(g, w)[0]]))
+    return CollisionRows(first, ca.Function("points", [q], [rows.points], ["q"], ["w"]),
+                         np.array(inputs, dtype=int).reshape(len(rows.G), width),
+                         ca.Function.conditional("row", value, value[0]),
+                         ca.Function.conditional("drow", slope, slope[0]),
+                         ca.Function.conditional("d2row", curvature, curvature[0]))
 
 
 @per_model
@@ -163,7 +226,7 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
                  + [(P[:, j], f"measured point {j + 1}") for j in range(P.shape[1])])
         rows += [(p[2], ws.floor_z_m, np.inf, f"{name}: below the floor", "m")
                  for p, name in named if ca.depends_on(p[2], q)]
-    capsule = []
+    capsule = None
     if problem.cell is not None:
         R = model.kinematics.placement(q, ca.DM.zeros(len(model.kinematics.parameter_names)))[0]
         markers = problem.spec.measurement.markers_m
@@ -171,13 +234,15 @@ def pose_constraints(problem: Problem) -> PoseConstraints:
                                        np.zeros((1, 3)) if markers is None else np.array(markers))
         rows += incidence
     screen = len(rows)  # the rows before the capsule rows are cheap: they screen candidates
-    rows += capsule
+    if capsule is not None:
+        rows += [(g, 0.0, np.inf, label, "m") for g, label in zip(capsule.of_q(), capsule.labels)]
     g = ca.vertcat(*[r[0] for r in rows]) if rows else ca.SX(0, 1)
     return PoseConstraints(ca.Function("workspace", [q], [g], ["q"], ["g"]),
                            np.array([r[1] for r in rows], dtype=float),
                            np.array([r[2] for r in rows], dtype=float), tuple(r[3] for r in rows),
                            tuple(r[4] for r in rows),
-                           ca.Function("screen", [q], [g[:screen]], ["q"], ["g"]))
+                           ca.Function("screen", [q], [g[:screen]], ["q"], ["g"]),
+                           collision_rows(capsule, q, screen) if capsule is not None and capsule.G else None)
 
 
 @dataclass(frozen=True, eq=False)

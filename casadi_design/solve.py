@@ -27,7 +27,7 @@ from .errors import DesignError, ProblemError
 from .ipopt import QUIET, WARM_START, ipopt_call
 from .measures import Scores, score_plan
 from .nlp import B0_at_test_poses, DesignNLP, build_nlp
-from .rules import joint_limits, plan_violations
+from .rules import FEASIBILITY_TOL, PoseConstraints, joint_limits, plan_violations, pose_constraints
 from .sampling import random_plan
 
 #: IPOPT statuses of a run stopped by one of its limits: the options were taken.
@@ -63,17 +63,63 @@ def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) 
     return score_plan(problem.model.B_stack(Q, F), B0, problem.sigma_m)
 
 
-def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False,
-                warm: bool = False) -> ca.Function:
-    """IPOPT on the NLP, with the problem's solver settings (raw options passed through);
-    ``warm``: it starts from the multipliers it is given (:data:`WARM_START`)."""
+def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: str = "cold",
+                max_iter: int | None = None, watch: bool = False) -> ca.Function:
+    """IPOPT on the NLP, with the problem's solver settings (raw options passed through).
+
+    ``how``: "cold" (IPOPT's own start), "warm" (from the primal and dual point it is given,
+    :data:`WARM_START`) or "resumed" (the same with the barrier parameter ``RESUME_MU``: a
+    run stopped on its way); ``max_iter``: instead of the problem's; ``watch``: it stops at an
+    iterate that breaks a capsule row the NLP does not hold (:class:`_Watch`)."""
     settings = problem.solver
-    opts = {**QUIET, "ipopt.max_iter": settings.max_iter, "ipopt.tol": settings.tol,
-            **(WARM_START if warm else {})}
+    opts = {**QUIET, "ipopt.max_iter": settings.max_iter if max_iter is None else max_iter,
+            "ipopt.tol": settings.tol}
+    if how != "cold":
+        opts.update(WARM_START)
+    if how == "resumed":
+        opts["ipopt.mu_init"] = RESUME_MU
     if verbose:
         opts.update({"ipopt.print_level": 5, "print_time": True, "show_eval_warnings": True})
     opts.update({f"ipopt.{k}": v for k, v in settings.ipopt})
-    return nlp.solver(f"design_m{nlp.m}", opts)
+    if watch:
+        opts["iteration_callback"] = _Watch(problem, nlp)
+    solver = nlp.solver(f"design_m{nlp.m}", opts)
+    solver.watch = opts.get("iteration_callback")  # alive as long as the solver
+    return solver
+
+
+#: IPOPT's status of a run that :class:`_Watch` stopped.
+STOPPED = "User_Requested_Stop"
+
+
+class _Watch(ca.Callback):
+    """IPOPT's iteration callback for an NLP that holds some of the capsule rows: it stops the
+    run (status :data:`STOPPED`) at the first iterate whose plan breaks a row the NLP does not
+    hold, so that the rows that can bind there join before the iterates go farther."""
+
+    def __init__(self, problem: Problem, nlp: DesignNLP):
+        ca.Callback.__init__(self)
+        self._rules, self._plan = pose_constraints(problem), nlp.plan
+        self._held = {(int(i), int(r)) for i, r in nlp.active}
+        self._sizes = {"x": nlp.lbx.size, "g": nlp.lbg.size, "f": 1, "lam_x": nlp.lbx.size,
+                       "lam_g": nlp.lbg.size}
+        self.construct("watch", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self._sizes.get(ca.nlpsol_out(i), 0), 1)
+
+    def eval(self, arg) -> list[int]:
+        broken = self._rules.near(self._plan(np.asarray(arg[0]).ravel())[0], -WATCH_DEPTH_M)
+        return [int(any((int(i), int(r)) not in self._held for i, r in broken))]
 
 
 def check_ipopt_options(problem: Problem) -> None:
@@ -96,35 +142,87 @@ def check_ipopt_options(problem: Problem) -> None:
 
 @dataclass(frozen=True, eq=False)
 class DesignSolver:
-    """The NLP of one (criterion, m) with its IPOPT solver: one stage, or for E and condition
-    one per power r of their surrogate (each run starts where the last stopped), after a short
-    D-optimality run that first moves nearly singular starts away from M = 0."""
+    """The NLPs of one (criterion, m) and their IPOPT solvers: one stage, or for E and
+    condition one per power r of their surrogate (each run starts where the last stopped),
+    after a short D-optimality run (``polish``) that first moves nearly singular starts away
+    from M = 0. With a cell, each NLP holds the capsule rows that can bind (:func:`solve_start`),
+    so they are built per start."""
 
-    stages: tuple[tuple[DesignNLP, ca.Function], ...]
-    polish: tuple[DesignNLP, ca.Function] | None
+    problem: Problem
+    criterion: str
+    m: int
+    B0: np.ndarray
+    verbose: bool = False
+
+    @property
+    def powers(self) -> tuple[float, ...]:
+        return CRITERIA[self.criterion].powers or (0.0,)
+
+    def stage(self, k: int, active: np.ndarray, how: str, max_iter: int,
+              watch: bool) -> tuple[DesignNLP, ca.Function]:
+        """The NLP of stage k holding the capsule rows ``active`` (K x 2) and its solver
+        (options of :func:`make_solver`)."""
+        nlp = build_nlp(self.problem, self.criterion, self.m, self.B0, self.powers[k], active)
+        return nlp, make_solver(self.problem, nlp, self.verbose, how, max_iter, watch)
+
+    def polish(self, active: np.ndarray) -> tuple[DesignNLP, ca.Function] | None:
+        """The D-optimal NLP of the polish run and its solver (None: the criterion has none)."""
+        if not CRITERIA[self.criterion].polished:
+            return None
+        nlp = build_nlp(self.problem, "D", self.m, self.B0, active=active)
+        return nlp, nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
 
 
 def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
                        verbose: bool = False) -> DesignSolver:
-    crit = CRITERIA[criterion]
-    stages = []
-    for k, power in enumerate(crit.powers or (0.0,)):
-        nlp = build_nlp(problem, criterion, m, B0, power)
-        stages.append((nlp, make_solver(problem, nlp, verbose, warm=k > 0)))
-    polish = None
-    if crit.polished:
-        d_nlp = build_nlp(problem, "D", m, B0)
-        d_solver = d_nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
-        polish = (d_nlp, d_solver)
-    return DesignSolver(tuple(stages), polish)
+    return DesignSolver(problem, criterion, m, B0, verbose)
+
+
+#: The rows where they can bind. A start holds the capsule rows closer than
+#: ``START_MARGIN_M`` (m) to their bound at its start plan. An IPOPT run stops at an iterate
+#: that breaks a row it does not hold by more than ``WATCH_DEPTH_M`` (:class:`_Watch`); the
+#: rows closer than ``START_MARGIN_M`` there join, and IPOPT goes on from that iterate with
+#: the barrier parameter ``RESUME_MU``. At the end of a run every row of the rulebook is
+#: checked at its plan: those closer than ``ADD_MARGIN_M`` join and IPOPT runs again from the
+#: last primal and dual point (warm start), until every row left out is farther than
+#: ``ADD_MARGIN_M`` from its bound; then the plan is a local optimum of the whole rulebook (the
+#: rows left out are inactive there). A run that fails runs once more from the start plan with
+#: the rows held so far. The runs of a start share the problem's ``max_iter``; the last of
+#: ``MAX_ROUNDS`` runs is not stopped, and its plan is checked as any other (a plan breaking a
+#: row is not feasible). The margins were chosen by measurement on the UR10 and ABB cells
+#: (see the README's speed section).
+START_MARGIN_M = 0.05
+WATCH_DEPTH_M = 0.05
+RESUME_MU = 1e-3
+ADD_MARGIN_M = 0.01
+MAX_ROUNDS = 12
+
+
+def _codes(rows: np.ndarray, R: int) -> np.ndarray:
+    """(experiment, row) pairs (K x 2) as the integers ``i R + r``."""
+    return rows[:, 0] * R + rows[:, 1]
+
+
+def _carried(old: DesignNLP, new: DesignNLP, lam_g: np.ndarray) -> np.ndarray:
+    """The multipliers ``lam_g`` of ``old``'s rows on the rows of ``new``, which holds the
+    same rows and more capsule rows (those start at 0)."""
+    R = 1 + int(max(old.active[:, 1].max(initial=0), new.active[:, 1].max(initial=0)))
+    out = np.zeros(new.lbg.size)
+    other_old = np.setdiff1d(np.arange(old.lbg.size), old.active_rows)
+    other_new = np.setdiff1d(np.arange(new.lbg.size), new.active_rows)
+    out[other_new] = lam_g[other_old]
+    codes_new = new.active[:, 0] * R + new.active[:, 1]
+    where = np.searchsorted(codes_new, old.active[:, 0] * R + old.active[:, 1])
+    out[new.active_rows[where]] = lam_g[old.active_rows]
+    return out
 
 
 def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(Q0, F0)``, or a few D iterations from it when its M is nearly singular: at a singular
     M the PSD-factor form of E / condition has a stationary point with lam = 0."""
-    if ds.polish is None:
+    if not CRITERIA[ds.criterion].polished:
         return Q0, F0
-    d_nlp, d_solver = ds.polish
+    d_nlp, d_solver = ds.polish(pose_constraints(problem).near(Q0, START_MARGIN_M))
     x0 = d_nlp.start(Q0, F0)
     lam = np.linalg.eigvalsh(np.asarray(d_nlp.information(x0)))
     if lam[0] > POLISH_RCOND * lam[-1]:
@@ -141,17 +239,43 @@ def solve_start(
     """One IPOPT start of the design solver from ``Q0`` (m, n), rad, ``F0`` (m, nF), N.
 
     The unit of work of the multi-start, run here or in worker processes
-    (:mod:`casadi_design.parallel`). Returns the start's record, its plan ``Q`` (m, n), rad,
-    ``F`` (m, nF), N, and the plan's scores.
+    (:mod:`casadi_design.parallel`). With a cell, each stage runs in rounds holding the
+    capsule rows that can bind (see :data:`START_MARGIN_M`). Returns the start's record, its
+    plan ``Q`` (m, n), rad, ``F`` (m, nF), N, and the plan's scores.
     """
     Q0, F0 = _polished(problem, ds, Q0, F0)
-    x, iterations, duals = ds.stages[0][0].start(Q0, F0), 0, {}
-    for nlp, solver in ds.stages:
-        with ipopt_call():  # IPOPT reports Ctrl-C as a failed start: stop instead
-            sol = solver(x0=x, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg, **duals)
-        x, duals = sol["x"], {"lam_x0": sol["lam_x"], "lam_g0": sol["lam_g"]}
-        stats = solver.stats()
-        iterations += int(stats.get("iter_count", 0))
+    rules = pose_constraints(problem)
+    active = rules.near(Q0, START_MARGIN_M)
+    x, duals, last, iterations, runs = None, {}, None, 0, 0
+    for k in range(len(ds.powers)):
+        how, restarted = ("warm" if k else "cold"), False
+        for run in range(MAX_ROUNDS):
+            watch = rules.collision is not None and run < MAX_ROUNDS - 1
+            nlp, solver = ds.stage(k, active, how, max(problem.solver.max_iter - iterations, 1), watch)
+            if how == "cold":
+                duals = {}
+            elif last is not None:
+                duals["lam_g0"] = _carried(last, nlp, np.asarray(duals["lam_g0"]).ravel())
+            x = nlp.start(Q0, F0) if x is None else x
+            with ipopt_call():  # IPOPT reports Ctrl-C as a failed start: stop instead
+                sol = solver(x0=x, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg, **duals)
+            x, duals, last = sol["x"], {"lam_x0": sol["lam_x"], "lam_g0": sol["lam_g"]}, nlp
+            stats = solver.stats()
+            iterations, runs = iterations + int(stats.get("iter_count", 0)), runs + 1
+            status = stats["return_status"]
+            if rules.collision is None:
+                break
+            if status not in (*CONVERGED, STOPPED):
+                if restarted or run == MAX_ROUNDS - 1:
+                    break
+                # once: again from the start plan with the rows held so far (from inside another
+                # link or an obstacle, a smooth distance row can lead the wrong way)
+                x, last, how, restarted = None, None, "cold", True
+                continue
+            grown, how = _grown(rules, nlp.plan(x)[0], active, status)
+            if len(grown) == len(active):
+                break
+            active = grown
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(x))
     Q = joint_limits(problem).wrap(Q)
     scores = plan_scores(problem, Q, F, B0)
@@ -161,8 +285,28 @@ def solve_start(
         value=scores.value(nlp.criterion),
         max_rms_error_m=scores.max_rms_error_m,
         feasible=not plan_violations(problem, Q, F) and scores.identifiable,
+        runs=runs,
+        rows_held=len(active),
     )
     return rec, Q, F, scores
+
+
+def _grown(rules: PoseConstraints, Q: np.ndarray, active: np.ndarray, status: str) -> tuple[np.ndarray, str]:
+    """After a run that ended with ``status`` at the plan ``Q`` (m, n), rad, holding the
+    capsule rows ``active`` (K x 2): the rows to hold next, and how the next run starts.
+
+    A converged run whose plan keeps every row left out: the rows closer than
+    ``ADD_MARGIN_M`` join, and the next run starts "warm" (from the primal and dual point).
+    A run that :class:`_Watch` stopped, or whose plan breaks a row left out: the rows closer
+    than ``START_MARGIN_M`` join, and the next run goes on from the iterate as a "resumed" run
+    (its barrier parameter, ``RESUME_MU``, larger than a warm start's).
+    """
+    R = len(rules.collision.inputs)
+    held = _codes(active, R)
+    broken = np.setdiff1d(_codes(rules.near(Q, -FEASIBILITY_TOL), R), held)
+    clear = status != STOPPED and not len(broken)
+    codes = np.union1d(held, _codes(rules.near(Q, ADD_MARGIN_M if clear else START_MARGIN_M), R))
+    return np.column_stack([codes // R, codes % R]), "warm" if clear else "resumed"
 
 
 def solve_design(

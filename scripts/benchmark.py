@@ -1,13 +1,15 @@
 """Speed and memory of the design NLPs: one table, and benchmark.json.
 
     python scripts/benchmark.py [--cases paper,ur10,ur10-50,abb] [--criteria test-pose,D] [--starts N]
-                                [--compare-with DIR] [--out benchmark.json]
+                                [--compare-with DIR] [--studies] [--out benchmark.json]
 
 Each (case, criterion, m) runs in a fresh process (so its peak memory is its own): build the
 design solver, then the seeded starts of `casadi-design solve` one after the other. Printed per
 design: build time (s), time per start (s), IPOPT iterations, ms per iteration, peak memory
 (MB, the child's maximum resident set), best max error (mm), best criterion value and the
-number of starts that reach it (the registry's same-optimum rule). Case ``ur10-50``: the UR10
+number of starts that reach it (the registry's same-optimum rule), and for a cell the IPOPT
+runs per start and the capsule rows the last run held (of all rows of the plan).
+``--studies`` also times each case's whole study as shipped. Case ``ur10-50``: the UR10
 with a grid of 50 drilling points as test poses, m = 20, 16 starts.
 
 ``--compare-with DIR`` runs the same designs with the package found in DIR (another checkout,
@@ -83,7 +85,31 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
                            for r in records),
             "best_max_error_mm": best.max_rms_error_m * 1e3,
             "values": [r.value for r in records],
+            # a checkout from before the rows where they can bind: one run holding every row
+            "runs": [getattr(r, "runs", 1) for r in records],
+            "rows_held": [getattr(r, "rows_held", None) for r in records],
+            "rows": m * _capsule_rows(problem),
             "peak_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def _capsule_rows(problem) -> int:
+    """Capsule rows of one experiment (0 without a cell)."""
+    from casadi_design.rules import pose_constraints
+
+    collision = getattr(pose_constraints(problem), "collision", None)
+    return 0 if collision is None else len(collision.inputs)
+
+
+def study(problem_file: str, jobs: int) -> dict:
+    """Wall time of the whole case study: ``casadi-design solve CASE --jobs N`` as shipped."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "casadi_design", "solve", str(ROOT / problem_file),
+                               "--jobs", str(jobs), "--out", out], capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+    return {"wall_s": wall, "returncode": proc.returncode, "stdout": proc.stdout}
 
 
 def child(package_dir: Path, problem_file: str, criterion: str, m: int, starts: int,
@@ -109,10 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--starts", type=int, help="seeded starts per design (default: per case)")
     parser.add_argument("--compare-with", metavar="DIR", help="another checkout to compare with")
     parser.add_argument("--out", default="benchmark.json", help="JSON file of all figures")
+    parser.add_argument("--studies", action="store_true",
+                        help="also time each case's whole study, `casadi-design solve CASE --jobs 2`")
     args = parser.parse_args(argv)
     rows = []
     head = (f"{'case':<8}{'criterion':<11}{'m':>3}{'build s':>9}{'s/start':>9}{'iter':>7}"
-            f"{'ms/iter':>9}{'peak MB':>9}{'best mm':>9}{'best value':>13}{'at best':>8}" + (f"{'old/new time':>14}{'old/new MB':>12}" if args.compare_with else ""))
+            f"{'ms/iter':>9}{'peak MB':>9}{'best mm':>9}{'best value':>13}{'at best':>8}{'runs':>6}"
+            f"{'rows held':>11}" + (f"{'old/new time':>14}{'old/new MB':>12}" if args.compare_with else ""))
     print(head)
     print("-" * len(head))
     for case in args.cases.split(","):
@@ -131,7 +160,10 @@ def main(argv: list[str] | None = None) -> int:
                 per_start = sum(new["start_s"]) / len(new["start_s"])
                 line = (f"{case:<8}{criterion:<11}{m:>3}{new['build_s']:>9.2f}{per_start:>9.2f}"
                         f"{sum(new['iterations']):>7d}{new['ms_per_iteration']:>9.2f}{new['peak_MB']:>9.0f}"
-                        f"{new['best_max_error_mm']:>9.4f}{new['best_value']:>13.7g}{new['at_best']:>8d}")
+                        f"{new['best_max_error_mm']:>9.4f}{new['best_value']:>13.7g}{new['at_best']:>8d}"
+                        f"{sum(new['runs']) / len(new['runs']):>6.1f}"
+                        + (f"{sum(new['rows_held']) / len(new['rows_held']):>6.0f}/{new['rows']:<4d}" if new["rows"]
+                           else f"{'-':>11}"))
                 if old and "error" not in old:
                     old_per_start = (old["build_s"] + sum(old["start_s"])) / len(old["start_s"])
                     new_per_start = (new["build_s"] + sum(new["start_s"])) / len(new["start_s"])
@@ -139,8 +171,15 @@ def main(argv: list[str] | None = None) -> int:
                 elif old:
                     line += f"{'old failed':>14}"
                 print(line, flush=True)
+    studies = {}
+    if args.studies:
+        for case in args.cases.split(","):
+            studies[case] = study(CASES[case][0], jobs=2)
+            print(f"study {case}: casadi-design solve {CASES[case][0]} --jobs 2: "
+                  f"{studies[case]['wall_s']:.0f} s wall (exit {studies[case]['returncode']})", flush=True)
     Path(args.out).write_text(json.dumps({"units": {"build_s": "s", "start_s": "s", "peak_MB": "MB",
-                                                    "best_max_error_mm": "mm"}, "rows": rows}, indent=2) + "\n")
+                                                    "best_max_error_mm": "mm", "wall_s": "s"},
+                                          "rows": rows, "studies": studies}, indent=2) + "\n")
     print(f"wrote {args.out}")
     return 0
 

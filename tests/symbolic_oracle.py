@@ -115,7 +115,11 @@ def lifted_nlp(problem: Problem, criterion: str,
 
     rules = pose_constraints(problem)
     g = [obj.g, ca.sum1(V**2).T if loads.norm_lb is not None else ca.SX(0, 1)]
-    g += [rules.g(Q[:, i]) for i in range(m)]
+    if rules.collision is None:
+        g += [rules.g(Q[:, i]) for i in range(m)]
+    else:  # the capsule rows come after the other rows of every experiment
+        held = rules.collision.first
+        g += [rules.g(Q[:, i])[:held] for i in range(m)] + [rules.g(Q[:, i])[held:] for i in range(m)]
     if problem.workspace.min_joint_distance_rad > 0:
         limits = joint_limits(problem)
         g += [joint_distance_sq(limits, Q[:, i], Q[:, j]) for i in range(m) for j in range(i + 1, m)]

@@ -16,7 +16,10 @@ from casadi_design.collision import capsule_names
 from casadi_design.errors import ProblemError
 from casadi_design.export import read_plan_csv
 from casadi_design.problem import parse_problem, read_problem
-from casadi_design.reduced import experiment_functions
+from casadi_design.design import CONVERGED
+from casadi_design.ipopt import ipopt_call
+from casadi_design.nlp import B0_at_test_poses, build_nlp
+from casadi_design.solve import make_design_solver, make_solver, plan_scores, solve_start, start_rng
 from casadi_design.rules import joint_distance_sq, joint_limits, plan_violations, pose_constraints
 from casadi_design.sampling import random_plan
 from tests.conftest import ROOT
@@ -89,18 +92,23 @@ def test_incidence_row_is_the_cosine_of_the_beam_angle(ur10):
 
 
 def test_cell_rows_hessian_equals_finite_differences(ur10):
-    fns = experiment_functions(ur10)
+    """The rule rows' part of the Hessian of the Lagrangian, the capsule rows entering row by
+    row through their world points, against central differences of their Jacobian."""
+    m = 9  # M is regular from 9 experiments on
+    nlp = build_nlp(ur10, "T", m)
     rng = np.random.default_rng(6)
-    Q, F = random_plan(ur10, 2, rng)
-    for q in Q:
-        z = np.concatenate([q, np.zeros(fns.nv)])
-        W = np.zeros(np.asarray(fns.values(z)[0]).shape)
-        lam = rng.normal(size=fns.nc)
-        H = np.asarray(fns.second(z, W, lam))
-        h = 1e-6
-        fd = np.column_stack([(np.asarray(fns.first(z + h * e)[1]).T @ lam - np.asarray(fns.first(z - h * e)[1]).T @ lam)
-                              / (2 * h) for e in np.eye(z.size)])
-        np.testing.assert_allclose(H, fd, atol=HESSIAN_FD_RTOL * np.abs(H).max())
+    x = nlp.start(*random_plan(ur10, m, rng))
+    lam = rng.normal(size=nlp.lbg.size)
+
+    def jac(x):
+        return np.asarray(ca.densify(nlp.options["jac_g"](x, [])[1])).reshape(lam.size, x.size)
+
+    H = np.asarray(ca.densify(nlp.options["hess_lag"](x, [], 0.0, lam)))
+    H = np.triu(H) + np.triu(H, 1).T
+    h = 1e-6
+    fd = np.column_stack([(jac(x + h * e) - jac(x - h * e)).T @ lam / (2 * h) for e in np.eye(x.size)])
+    assert len(nlp.active) == m * len(pose_constraints(ur10).collision.inputs)  # every capsule row
+    np.testing.assert_allclose(H, fd, atol=HESSIAN_FD_RTOL * np.abs(H).max())
 
 
 def test_periodic_joints_are_free_and_wrapped(ur10):
@@ -247,3 +255,27 @@ def _coal_distance(first, second) -> float:
     result = coal.DistanceResult()
     coal.distance(*shapes[0], *shapes[1], coal.DistanceRequest(), result)
     return result.min_distance
+
+
+def test_a_start_holding_the_rows_that_can_bind_ends_at_an_optimum_of_every_row(ur10):
+    """A start holds only the capsule rows that can bind (a few of the 9 x 100); its plan keeps
+    every row, and IPOPT on the NLP holding every row, started warm at that plan, stays there:
+    the plan is a local optimum of the whole rulebook."""
+    m, criterion = 9, "test-pose"
+    B0 = B0_at_test_poses(ur10)
+    Q0, F0 = random_plan(ur10, m, start_rng(ur10.solver.seed, criterion, m))
+    rec, Q, F, _ = solve_start(ur10, make_design_solver(ur10, criterion, m, B0), B0, Q0, F0)
+    rows = m * len(pose_constraints(ur10).collision.inputs)
+    assert rec.converged and rec.runs > 1 and 0 < rec.rows_held < rows / 4
+    assert plan_violations(ur10, Q, F) == []
+    full = build_nlp(ur10, criterion, m, B0)
+    assert len(full.active) == rows
+    solver = make_solver(ur10, full, how="warm")
+    with ipopt_call():
+        x = np.asarray(solver(x0=full.start(Q, F), lbx=full.lbx, ubx=full.ubx, lbg=full.lbg,
+                              ubg=full.ubg)["x"]).ravel()
+    assert solver.stats()["return_status"] in CONVERGED
+    Q1, F1 = full.plan(x)
+    np.testing.assert_allclose(Q1, Q, atol=1e-3)
+    value = plan_scores(ur10, joint_limits(ur10).wrap(Q1), F1, B0).value(criterion)
+    assert value == pytest.approx(rec.value, rel=1e-4)
