@@ -171,10 +171,6 @@ class CollisionRows:
     slope: ca.Function
     curvature: ca.Function
 
-    @property
-    def width(self) -> int:
-        return self.inputs.shape[1]
-
 
 def collision_rows(rows: PointRows, q: ca.SX, first: int) -> CollisionRows:
     """:class:`CollisionRows` of the capsule rows ``rows`` (rows ``first...`` of the pose)."""
