@@ -60,17 +60,18 @@ def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray,
                near: tuple[Clearance, ...] | None = None) -> tuple[list[str], list[list]]:
     """Header and rows of a plan: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m).
 
-    With a ``[cell]``, each row also gives the experiment's clearance on the real geometry
-    (``near``: :attr:`casadi_design.design.Design.clearances`, mm) and the two bodies at that
+    With a ``[cell]`` and ``near`` (:attr:`casadi_design.design.Design.clearances`), each row
+    also gives the experiment's clearance on the real geometry (mm) and the two bodies at that
     distance.
     """
     joints = problem.robot.joints
     units = [joint_units(problem, k) for k in range(len(joints))]
+    near = near if problem.cell and near else None
     header = (["experiment"] + [f"{j}_{u[1]}" for j, u in zip(joints, units)]
               + [f"{j}_{u[0]}" for j, u in zip(joints, units)] + force_columns(problem)
-              + list(POSITION_COLUMNS) + (list(CLEARANCE_COLUMNS) if problem.cell else []))
+              + list(POSITION_COLUMNS) + (list(CLEARANCE_COLUMNS) if near else []))
     Q = np.asarray(Q, float)
-    near = near if problem.cell and near else [None] * len(Q)
+    near = near or [None] * len(Q)
     rows = []
     for i, (q, f, c) in enumerate(zip(Q, np.asarray(F, float).reshape(len(Q), -1), near)):
         p = np.asarray(problem.model.position(q), dtype=float).ravel() * 1e3

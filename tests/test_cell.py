@@ -14,7 +14,7 @@ from casadi_design.build import build_problem, load_problem
 from casadi_design.cell import clearances
 from casadi_design.collision import capsule_names
 from casadi_design.errors import ProblemError
-from casadi_design.export import read_plan_csv
+from casadi_design.export import plan_table, read_plan_csv
 from casadi_design.problem import parse_problem, read_problem
 from casadi_design.design import CONVERGED
 from casadi_design.ipopt import ipopt_call
@@ -279,3 +279,13 @@ def test_a_start_holding_the_rows_that_can_bind_ends_at_an_optimum_of_every_row(
     np.testing.assert_allclose(Q1, Q, atol=1e-3)
     value = plan_scores(ur10, joint_limits(ur10).wrap(Q1), F1, B0).value(criterion)
     assert value == pytest.approx(rec.value, rel=1e-4)
+
+
+def test_a_plan_table_without_clearances_has_no_clearance_columns(ur10):
+    """A plan of a cell problem written without its clearances (compensated poses, a user's
+    plan): every row as long as the header; with them, the two columns are there."""
+    Q, F = random_plan(ur10, 3, np.random.default_rng(2))
+    for near in (None, tuple(clearances(ur10.cell, Q))):
+        header, rows = plan_table(ur10, Q, F, near)
+        assert all(len(row) == len(header) for row in rows)
+        assert ("clearance_mm" in " ".join(header)) == (near is not None)
