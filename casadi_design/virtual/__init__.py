@@ -12,8 +12,8 @@ load-point moment, joint deflection fixed point and noise model included):
    nominal value);
 2. the plan's measurements (:mod:`.simulate`): ``model.measurement`` of the true robot, whose
    values are whitened, plus noise ``sigma`` per value;
-3. identification (:mod:`.identify`): linear least squares ``X = (S^T S)^-1 S^T y`` in the
-   elasto-static case, Levenberg-Marquardt on ``model.measurement`` otherwise;
+3. identification (:mod:`.identify`): Levenberg-Marquardt on ``model.measurement``, the code
+   that identifies a robot from measured data (:mod:`casadi_design.identification`);
 4. compensation (:mod:`.compensate`): at each test pose ``(q0_j, F0_j)`` the command ``q_c`` for
    which the identified robot puts the frame on the nominal target (``model.accuracy`` = 0,
    machining wrench included; Newton-chord iterations); the residual error is

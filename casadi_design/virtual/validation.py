@@ -18,7 +18,7 @@ from ..errors import DesignError, ProblemError
 from ..measures import information_matrix, score_plan
 from ..nlp import B0_at_test_poses
 from .compensate import compensate as _compensate  # the name `compensate` stays the module
-from .identify import Identification, identify_linear, identify_nonlinear
+from .identify import Identification, identify_nonlinear
 from .simulate import (
     ErrorSpreads,
     Plan,
@@ -132,10 +132,7 @@ def simulate_plan(problem: Problem, plan: Plan, spreads: ErrorSpreads, trials: i
         )
     X_true = draw_true_parameters(model, spreads, trials, rng)
     ref, y = simulate_measurements(model, plan, X_true, sigma, spreads, rng)
-    if model.case == "elastostatic":
-        X_hat, ident = identify_linear(B, y, model.column_scale)
-    else:
-        X_hat, ident = identify_nonlinear(model, plan.Q, plan.F, ref, y, sigma)
+    X_hat, ident = identify_nonlinear(model, plan.Q, plan.F, ref, y, sigma)
 
     target = nominal_poses(model, tp.q, tp.F)
     qc, done, miss = _compensate(model, tp.q, tp.F, target, np.repeat(X_hat, s, axis=0), sigma)
