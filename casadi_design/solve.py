@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import casadi as ca
@@ -146,13 +146,22 @@ class DesignSolver:
     condition one per power r of their surrogate (each run starts where the last stopped),
     after a short D-optimality run (``polish``) that first moves nearly singular starts away
     from M = 0. With a cell, each NLP holds the capsule rows that can bind (:func:`solve_start`),
-    so they are built per start."""
+    so they are built per run; the last ``SOLVERS_KEPT`` are kept (``made``), which without a
+    cell means one per stage for every start."""
 
     problem: Problem
     criterion: str
     m: int
     B0: np.ndarray
     verbose: bool = False
+    made: dict = field(default_factory=dict, repr=False)
+
+    def _kept(self, key: tuple, make: Callable[[], tuple]) -> tuple:
+        if key not in self.made:
+            if len(self.made) >= SOLVERS_KEPT:
+                self.made.clear()
+            self.made[key] = make()
+        return self.made[key]
 
     @property
     def powers(self) -> tuple[float, ...]:
@@ -162,15 +171,22 @@ class DesignSolver:
               watch: bool) -> tuple[DesignNLP, ca.Function]:
         """The NLP of stage k holding the capsule rows ``active`` (K x 2) and its solver
         (options of :func:`make_solver`)."""
-        nlp = build_nlp(self.problem, self.criterion, self.m, self.B0, self.powers[k], active)
-        return nlp, make_solver(self.problem, nlp, self.verbose, how, max_iter, watch)
+        def make():
+            nlp = build_nlp(self.problem, self.criterion, self.m, self.B0, self.powers[k], active)
+            return nlp, make_solver(self.problem, nlp, self.verbose, how, max_iter, watch)
+
+        return self._kept(("stage", k, active.tobytes(), how, max_iter, watch), make)
 
     def polish(self, active: np.ndarray) -> tuple[DesignNLP, ca.Function] | None:
         """The D-optimal NLP of the polish run and its solver (None: the criterion has none)."""
         if not CRITERIA[self.criterion].polished:
             return None
-        nlp = build_nlp(self.problem, "D", self.m, self.B0, active=active)
-        return nlp, nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
+
+        def make():
+            nlp = build_nlp(self.problem, "D", self.m, self.B0, active=active)
+            return nlp, nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
+
+        return self._kept(("polish", active.tobytes()), make)
 
 
 def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
@@ -192,6 +208,8 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
 #: row is not feasible). The margins were chosen by measurement on the UR10 and ABB cells
 #: (see the README's speed section).
 START_MARGIN_M = 0.05
+#: Solvers a :class:`DesignSolver` keeps for the next runs and starts.
+SOLVERS_KEPT = 32
 WATCH_DEPTH_M = 0.05
 RESUME_MU = 1e-3
 ADD_MARGIN_M = 0.01
@@ -251,7 +269,9 @@ def solve_start(
         how, restarted = ("warm" if k else "cold"), False
         for run in range(MAX_ROUNDS):
             watch = rules.collision is not None and run < MAX_ROUNDS - 1
-            nlp, solver = ds.stage(k, active, how, max(problem.solver.max_iter - iterations, 1), watch)
+            # the runs of a start in a cell share max_iter; without a cell each stage has it
+            budget = problem.solver.max_iter - (iterations if rules.collision is not None else 0)
+            nlp, solver = ds.stage(k, active, how, max(budget, 1), watch)
             if how == "cold":
                 duals = {}
             elif last is not None:
