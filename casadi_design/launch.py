@@ -29,6 +29,12 @@ def main(argv: list[str] | None = None) -> int:
         from .cli import main as run
     except KeyboardInterrupt:
         _interrupted()
+    except ImportError:
+        # a native module whose initialisation Ctrl-C broke says "initialization failed"
+        # (scipy's HiGHS through pybind11): the interrupt, not a broken install
+        if interrupt.pressed():
+            _interrupted()
+        raise
     if interrupt.pressed():
         _interrupted()
     return run(argv)
