@@ -128,19 +128,23 @@ class PoseConstraints:
             if not rows or not ok.any():
                 continue
             idx = np.flatnonzero(ok)
-            G = np.asarray(_mapped(f, idx.size)(Q[idx].T)).reshape(rows, idx.size).T
+            G = _rows_at(f, Q[idx])
             ok[idx] = np.all((G >= self.lb[:rows]) & (G <= self.ub[:rows]), axis=1)
         return ok
+
+    def capsule_slack(self, Q: np.ndarray) -> np.ndarray:
+        """``g - lb`` (m) of every capsule row (of :class:`CollisionRows`) in each
+        configuration of ``Q`` (k x n): shape (k, R), R = 0 without a cell."""
+        Q = np.asarray(Q, dtype=float)
+        if self.collision is None:
+            return np.zeros((len(Q), 0))
+        first = self.collision.first
+        return _rows_at(self.g, Q)[:, first:] - self.lb[first:]
 
     def near(self, Q: np.ndarray, margin_m: float) -> np.ndarray:
         """The capsule rows closer than ``margin_m`` (m) to their bound ``g >= 0`` in the plan
         ``Q`` (m, n): (experiment, row of :class:`CollisionRows`) pairs (K x 2), in that order."""
-        if self.collision is None:
-            return np.zeros((0, 2), dtype=int)
-        Q = np.asarray(Q, dtype=float)
-        G = np.asarray(_mapped(self.g, len(Q))(Q.T)).reshape(self.lb.size, len(Q)).T
-        first = self.collision.first
-        return np.argwhere(G[:, first:] - self.lb[first:] < margin_m)
+        return np.argwhere(self.capsule_slack(Q) < margin_m)
 
     def violation(self, q: np.ndarray) -> np.ndarray:
         """Violation (in the row's unit, >= 0) of each row at configuration ``q``."""
@@ -157,11 +161,11 @@ class CollisionRows:
 
     Row r is row ``first + r`` of :class:`PoseConstraints` (``g >= 0``, m). It depends on the
     world points ``w = points(q)`` (3K, m; :class:`casadi_design.collision.PointRows`) through
-    ``w_r = w[inputs[r]]`` (``width`` coordinates: those of the few points it uses, then the
-    index 3K, a zero, to fill): ``g_r = G_r(w_r)``. ``value``, ``slope`` and ``curvature`` are
-    CasADi switches ``(r, w_r) -> g_r``, ``(g_r, dg_r/dw_r (1 x width))`` and
-    ``d2g_r/dw_r2 (width x width)``: they evaluate row r alone, so a switch mapped over k
-    rows costs those k rows.
+    ``w_r = w[inputs[r]]`` (the same number of coordinates for every row, ``width =
+    inputs.shape[1]``: those of the few points it uses, then the index 3K, a zero, to fill):
+    ``g_r = G_r(w_r)``. ``value``, ``slope`` and ``curvature`` are CasADi switches
+    ``(r, w_r) -> g_r``, ``(g_r, dg_r/dw_r (1 x width))`` and ``d2g_r/dw_r2 (width x width)``:
+    they evaluate row r alone, so a switch mapped over k rows costs those k rows.
     """
 
     first: int
@@ -294,6 +298,12 @@ def load_variables(problem: Problem) -> LoadVariables:
 def _mapped(f: ca.Function, k: int) -> ca.Function:
     """``f`` mapped over ``k`` configurations (made once per size: it costs about a ms)."""
     return f.map(k)
+
+
+def _rows_at(f: ca.Function, Q: np.ndarray) -> np.ndarray:
+    """The rows of ``f`` (a function of one configuration) at each configuration of ``Q``
+    (k x n): shape (k, rows)."""
+    return np.asarray(_mapped(f, len(Q))(Q.T)).reshape(f.numel_out(0), len(Q)).T
 
 
 def _amount(v: float, unit: str, lb: float) -> str:

@@ -177,11 +177,9 @@ class DesignSolver:
 
         return self._kept(("stage", k, active.tobytes(), how, max_iter, watch), make)
 
-    def polish(self, active: np.ndarray) -> tuple[DesignNLP, ca.Function] | None:
-        """The D-optimal NLP of the polish run and its solver (None: the criterion has none)."""
-        if not CRITERIA[self.criterion].polished:
-            return None
-
+    def polish(self, active: np.ndarray) -> tuple[DesignNLP, ca.Function]:
+        """The D-optimal NLP of the polish run (criteria marked ``polished``) holding the
+        capsule rows ``active``, and its solver."""
         def make():
             nlp = build_nlp(self.problem, "D", self.m, self.B0, active=active)
             return nlp, nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
@@ -208,12 +206,12 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
 #: row is not feasible). The margins were chosen by measurement on the UR10 and ABB cells
 #: (see the README's speed section).
 START_MARGIN_M = 0.05
-#: Solvers a :class:`DesignSolver` keeps for the next runs and starts.
-SOLVERS_KEPT = 32
 WATCH_DEPTH_M = 0.05
 RESUME_MU = 1e-3
 ADD_MARGIN_M = 0.01
 MAX_ROUNDS = 12
+#: Solvers a :class:`DesignSolver` keeps for the next runs and starts.
+SOLVERS_KEPT = 32
 
 
 def _codes(rows: np.ndarray, R: int) -> np.ndarray:
@@ -229,8 +227,7 @@ def _carried(old: DesignNLP, new: DesignNLP, lam_g: np.ndarray) -> np.ndarray:
     other_old = np.setdiff1d(np.arange(old.lbg.size), old.active_rows)
     other_new = np.setdiff1d(np.arange(new.lbg.size), new.active_rows)
     out[other_new] = lam_g[other_old]
-    codes_new = new.active[:, 0] * R + new.active[:, 1]
-    where = np.searchsorted(codes_new, old.active[:, 0] * R + old.active[:, 1])
+    where = np.searchsorted(_codes(new.active, R), _codes(old.active, R))
     out[new.active_rows[where]] = lam_g[old.active_rows]
     return out
 
@@ -323,9 +320,10 @@ def _grown(rules: PoseConstraints, Q: np.ndarray, active: np.ndarray, status: st
     """
     R = len(rules.collision.inputs)
     held = _codes(active, R)
-    broken = np.setdiff1d(_codes(rules.near(Q, -FEASIBILITY_TOL), R), held)
+    slack = rules.capsule_slack(Q)
+    broken = np.setdiff1d(_codes(np.argwhere(slack < -FEASIBILITY_TOL), R), held)
     clear = status != STOPPED and not len(broken)
-    codes = np.union1d(held, _codes(rules.near(Q, ADD_MARGIN_M if clear else START_MARGIN_M), R))
+    codes = np.union1d(held, _codes(np.argwhere(slack < (ADD_MARGIN_M if clear else START_MARGIN_M)), R))
     return np.column_stack([codes // R, codes % R]), "warm" if clear else "resumed"
 
 
