@@ -3,7 +3,8 @@
 The full error model (per joint an offset and six placement errors, plus base and tool
 errors) is redundant. Stack the identification Jacobian of the measured values over random
 configurations, ``S = [B(q_1); ...; B(q_N)]``, scale each column to unit norm (so the choice
-does not depend on units), and factor ``S P = Q R`` with column pivoting. The rank r is the
+does not depend on units), and factor ``S P = Q R`` with column pivoting (ties to the
+parameter listed first, :func:`pivoted_columns`). The rank r is the
 number of ``|R_ii| > RANK_RTOL |R_00|``; the first r pivoted columns are a base set. Every
 other parameter is reported with the reason it was dropped: no effect on the measured values
 (zero column), or the kept parameters it is a combination of (least-squares coefficients).
@@ -18,12 +19,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
 from .models import CalibrationModel
 
 #: Relative threshold on |R_ii| (column-normalised S) below which a direction is not identifiable.
 RANK_RTOL = 1e-8
+#: Column norms within this (relative) of the largest tie in the pivoting: the first column wins.
+TIE_RTOL = 1e-9
 #: Random configurations stacked.
 SAMPLES = 80
 #: A dropped parameter's partners are the kept ones with |coefficient| above this.
@@ -56,6 +58,30 @@ def stacked_jacobian(model: CalibrationModel, rng: np.random.Generator, samples:
     ])
 
 
+def pivoted_columns(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The column order and ``|R_ii|`` of ``S P = Q R`` with column pivoting (Businger-Golub):
+    at each step the column of largest norm orthogonal to those taken, by Gram-Schmidt with
+    a second pass. Columns whose norms agree to ``TIE_RTOL`` are a tie, taken in their order
+    in S: unit-norm columns tie at the first steps (a translation of the base, of joint 1 and
+    of the tool move the point alike), and LAPACK's pivoted QR breaks such ties by rounding,
+    so the base set would depend on the BLAS a machine has. Returns the order (k,) and the
+    norms (k,), k = number of columns."""
+    Rm = np.array(S, dtype=float)
+    left = list(range(Rm.shape[1]))
+    order, diag = [], []
+    while left:
+        norms = np.linalg.norm(Rm[:, left], axis=0)
+        j = left[int(np.flatnonzero(norms >= (1.0 - TIE_RTOL) * norms.max())[0])]
+        order.append(j)
+        diag.append(float(np.linalg.norm(Rm[:, j])))
+        left.remove(j)
+        if diag[-1] > 0.0 and left:
+            u = Rm[:, j] / diag[-1]
+            for _ in range(2):
+                Rm[:, left] -= np.outer(u, u @ Rm[:, left])
+    return np.array(order, dtype=int), np.array(diag)
+
+
 def base_set(model: CalibrationModel, seed: int = 0, samples: int = SAMPLES) -> BaseSet:
     """Select an identifiable base set among ``model.parameter_names`` (see module docstring)."""
     S = stacked_jacobian(model, np.random.default_rng(seed), samples)
@@ -63,9 +89,8 @@ def base_set(model: CalibrationModel, seed: int = 0, samples: int = SAMPLES) -> 
     scale = norms.max()
     live = norms > RANK_RTOL * scale
     Sn = S / np.where(live, norms, 1.0)
-    _, R, piv = scipy.linalg.qr(Sn[:, live], mode="economic", pivoting=True)
+    piv, diag = pivoted_columns(Sn[:, live])
     cols = np.flatnonzero(live)[piv]
-    diag = np.abs(np.diag(R))
     rank = int(np.sum(diag > RANK_RTOL * diag[0]))
     kept_idx = sorted(cols[:rank])
     names = model.parameter_names
