@@ -149,6 +149,11 @@ def _tx(a: float) -> pin.SE3:
     return pin.SE3(np.eye(3), np.array([a, 0.0, 0]))
 
 
+def dh_joint(theta: float, d: float) -> pin.SE3:
+    """``Rz(theta) Tz(d)``: along one joint axis (theta rad, d m)."""
+    return _rz(theta) * _tz(d)
+
+
 def dh_link(a: float, alpha: float, beta: float = 0.0) -> pin.SE3:
     """``Tx(a) Rx(alpha) Ry(beta)``: from one joint axis to the next (a m, angles rad)."""
     return _tx(a) * _rx(alpha) * _ry(beta)
@@ -175,7 +180,7 @@ def dh_arm(
         if row.kind not in ("R", "P"):
             raise ProblemError(f"[robot.dh].joints: joint '{row.name}' has type '{row.kind}'; allowed: R, P")
         # the joint moves at Rz(theta) (R) or at Tz(d) (P): what comes before it is fixed
-        head = _rz(row.theta_offset) if row.kind == "R" else _rz(row.theta_offset) * _tz(row.d)
+        head = dh_joint(row.theta_offset, 0.0 if row.kind == "R" else row.d)
         tail = _tz(row.d) if row.kind == "R" else pin.SE3.Identity()
         link = dh_link(row.a, row.alpha, row.beta)
         if convention == "standard":

@@ -18,7 +18,7 @@ import pytest
 from casadi_design.build import build_robot, load_problem
 from casadi_design.cli import main
 from casadi_design.identification.dh_table import calibrated_dh, is_hayati
-from casadi_design.identification.urdf import MEASURED_POINT, CalibratedChain
+from casadi_design.identification.urdf import MEASURED_POINT, CalibratedChain, calibrated_model
 from casadi_design.problem import DHRow, RobotSpec, parse_problem, read_problem
 from casadi_design.robots import frame_placement, make_robot
 from casadi_design.sampling import random_plan
@@ -83,17 +83,6 @@ def perturbed_chain(robot, rng) -> CalibratedChain:
     return CalibratedChain(tuple(joints), robot.model.frames[robot.frame_id].placement * tool)
 
 
-def chain_robot(robot, chain: CalibratedChain):
-    """``robot`` with the placements of ``chain`` (the calibrated Pinocchio model)."""
-    model = pin.Model(robot.model)
-    for jid, M in zip(robot.joint_ids, chain.joints):
-        model.jointPlacements[jid] = M
-    frame = model.frames[robot.frame_id]
-    frame.placement = chain.tool
-    model.frames[robot.frame_id] = frame
-    return make_robot(model, robot.frame)
-
-
 def kinematics_gap(a, b, Q, markers) -> tuple[float, float]:
     """Largest gap (m) between the measured points (``markers`` in the measured frame) of robots
     ``a`` and ``b`` over the rows of ``Q``, and between their joint axes: the angle (rad)
@@ -124,7 +113,7 @@ def test_derived_table_reproduces_the_calibrated_chain(spec, markers, parallel):
     for _ in range(5):
         chain = perturbed_chain(robot, rng)
         table = calibrated_dh(spec, chain)
-        points, axes = kinematics_gap(build_robot(table), chain_robot(robot, chain), Q, markers)
+        points, axes = kinematics_gap(build_robot(table), make_robot(calibrated_model(robot, chain), robot.frame), Q, markers)
         assert points < EXACT and axes < EXACT
         # Hayati exactly where the nominal axes are parallel, small values everywhere
         for nominal, row in zip(spec.dh_rows, table.dh_rows):

@@ -42,20 +42,12 @@ import numpy as np
 import pinocchio as pin
 
 from ..problem import DHRow, RobotSpec
-from ..robots import dh_link, placement_from_xyz_rpy
+from ..robots import dh_joint, dh_link, placement_from_xyz_rpy
 from .urdf import CalibratedChain
 
 #: Consecutive axes whose nominal directions are within this angle of parallel (or
 #: antiparallel) get Hayati's beta instead of the common normal's d (deg).
 HAYATI_BELOW_DEG = 1.0
-
-
-def _rz(theta: float) -> pin.SE3:
-    return pin.SE3(pin.AngleAxis(theta, np.array([0.0, 0, 1])).matrix(), np.zeros(3))
-
-
-def _tz(d: float) -> pin.SE3:
-    return pin.SE3(np.eye(3), np.array([0.0, 0, d]))
 
 
 def _near(angle: float, nominal: float) -> float:
@@ -95,7 +87,7 @@ def _next_axis(P: pin.SE3, W: pin.SE3, joint: DHRow, link: DHRow) -> tuple[float
         theta, n = theta + math.pi, -n
     n = n / np.linalg.norm(n)
     a = float(n @ (c - [0.0, 0.0, d]))
-    v = _rz(theta).rotation.T @ u
+    v = dh_joint(theta, 0.0).rotation.T @ u
     alpha = _near(math.atan2(-v[1], v[2]), link.alpha_rad)
     beta = math.atan2(v[0], math.hypot(v[1], v[2])) if hayati else 0.0
     return _near(theta, joint.theta_offset_rad), float(d), a, alpha, beta
@@ -125,14 +117,14 @@ def calibrated_dh(robot: RobotSpec, chain: CalibratedChain) -> RobotSpec:
     first = pin.SE3.Identity() if standard else dh_link(rows[0].a_m, rows[0].alpha_rad, rows[0].beta_rad)
     # P_1 on axis 1: W_1 Rz(phi) Tz(s) nearest the nominal P_1 = base link_0
     phi, s = _about_z(W[0].inverse() * placement_from_xyz_rpy(robot.base_xyz_m, robot.base_rpy_rad) * first)
-    P = W[0] * _rz(phi) * _tz(s)
+    P = W[0] * dh_joint(phi, s)
     base = P * first.inverse()
     joints, link_values = [], []
     for k in range(len(rows) - 1):
         theta, d, a, alpha, beta = _next_axis(P, W[k + 1], rows[k], links[k])
         joints.append((theta, d))
         link_values.append((a, alpha, beta))
-        P = P * _rz(theta) * _tz(d) * dh_link(a, alpha, beta)
+        P = P * dh_joint(theta, d) * dh_link(a, alpha, beta)
     last = rows[-1]
     last_link = dh_link(last.a_m, last.alpha_rad, last.beta_rad) if standard else pin.SE3.Identity()
     # P_n -> flange is Rz(theta_n) Tz(d_n) last_link flange: the Rz Tz nearest it with the nominal flange
@@ -140,7 +132,7 @@ def calibrated_dh(robot: RobotSpec, chain: CalibratedChain) -> RobotSpec:
     nominal_flange = placement_from_xyz_rpy(robot.flange_xyz_m, robot.flange_rpy_rad)
     theta, d = _about_z(X * (last_link * nominal_flange).inverse())
     joints.append((_near(theta, last.theta_offset_rad), d))
-    flange = (_rz(theta) * _tz(d) * last_link).inverse() * X
+    flange = (dh_joint(theta, d) * last_link).inverse() * X
     if standard:
         link_values.append((last.a_m, last.alpha_rad, last.beta_rad))
     else:
