@@ -103,7 +103,7 @@ def calibrated_problem(problem: Problem, urdf: Path) -> dict:
 
 
 def _degrees(values) -> list[float]:
-    return [math.degrees(v) for v in values]
+    return [math.degrees(v) + 0.0 for v in values]  # + 0.0: no -0.0 in the file
 
 
 def calibrated_dh_problem(problem: Problem, robot: RobotSpec) -> dict:
