@@ -260,9 +260,10 @@ def build_robot(r: RobotSpec) -> Robot:
     elif r.source == "urdf":
         model = load_urdf(r.urdf)
     else:
-        rows = [DHJoint(j.name, j.kind, j.theta_offset_rad, j.d_m, j.a_m, j.alpha_rad, j.lower, j.upper)
+        rows = [DHJoint(j.name, j.kind, j.theta_offset_rad, j.d_m, j.a_m, j.alpha_rad, j.lower, j.upper, j.beta_rad)
                 for j in r.dh_rows]
-        model = dh_arm(rows, r.dh_convention, placement_from_xyz_rpy(r.flange_xyz_m, r.flange_rpy_rad))
+        model = dh_arm(rows, r.dh_convention, placement_from_xyz_rpy(r.flange_xyz_m, r.flange_rpy_rad),
+                       base=placement_from_xyz_rpy(r.base_xyz_m, r.base_rpy_rad))
     frame = r.frame
     if r.tool_xyz_m is not None:
         frame = add_tool_frame(model, frame, placement_from_xyz_rpy(r.tool_xyz_m, r.tool_rpy_rad))

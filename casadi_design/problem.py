@@ -45,6 +45,9 @@ SYMMETRY_RTOL = 1e-9
 #: overflows the arithmetic.
 MAX_SIGMA_M = 1.0
 MAX_LOAD_N = 1e6
+#: Hayati's angle beta of a DH row lies strictly within +/- this (deg): only there does a
+#: direction of the next axis have one (alpha, beta) pair.
+MAX_BETA_DEG = 90.0
 
 SECTIONS: dict[str, set[str] | None] = {
     "": {"name", "description", "robot", "calibration", "measurement", "test_poses",
@@ -52,8 +55,8 @@ SECTIONS: dict[str, set[str] | None] = {
     "robot": {"planar_links_m", "urdf", "dh", "frame", "tool_xyz_m", "tool_rpy_deg", "joint_limits_rad",
               "joint_speeds_deg_s", "controller"},
     "robot.controller": {"signs", "offsets_deg", "acceleration_time_s"},
-    "robot.dh": {"convention", "joints", "flange_xyz_m", "flange_rpy_deg"},
-    "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "limits_deg"},
+    "robot.dh": {"convention", "joints", "base_xyz_m", "base_rpy_deg", "flange_xyz_m", "flange_rpy_deg"},
+    "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "beta_deg", "limits_deg"},
     "robot.joint_limits_rad": None,  # joint names: checked against the model when built
     "calibration": {"case", "parameters", "compliant_joints", "wrench_components"},
     "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
@@ -85,7 +88,8 @@ Mat = tuple[tuple[float, ...], ...]
 
 @dataclass(frozen=True)
 class DHRow:
-    """One row of a Denavit-Hartenberg table (lengths m, angles rad); see ``robots.DHJoint``."""
+    """One row of a Denavit-Hartenberg table (lengths m, angles rad), ``beta_rad`` Hayati's
+    rotation about y (0 in a plain DH row); see ``robots.DHJoint``."""
 
     name: str
     kind: str
@@ -95,6 +99,7 @@ class DHRow:
     alpha_rad: float
     lower: float
     upper: float
+    beta_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -115,7 +120,9 @@ class RobotSpec:
     """The robot of a case: one of a planar arm, a URDF or a DH table, and its measured frame.
 
     ``urdf`` is an absolute path or ``example-robot-data:<relative path>``. ``tool_xyz_m`` /
-    ``tool_rpy_rad`` (None when not given) add a tool frame after ``frame``.
+    ``tool_rpy_rad`` (None when not given) add a tool frame after ``frame``. A DH table's DH
+    frame 0 sits at (``base_xyz_m``, ``base_rpy_rad``) in the world, its frame ``flange`` at
+    (``flange_xyz_m``, ``flange_rpy_rad``) after the last row.
     ``joint_limits_rad`` overrides limits as (joint, lower, upper), rad or m.
     ``joint_speeds_deg_s`` (one per joint, deg/s or mm/s as in the file; None: the URDF's
     velocity limits) and
@@ -128,6 +135,8 @@ class RobotSpec:
     urdf: str = ""
     dh_convention: str = ""
     dh_rows: tuple[DHRow, ...] = ()
+    base_xyz_m: Vec = (0.0, 0.0, 0.0)
+    base_rpy_rad: Vec = (0.0, 0.0, 0.0)
     flange_xyz_m: Vec = (0.0, 0.0, 0.0)
     flange_rpy_rad: Vec = (0.0, 0.0, 0.0)
     tool_xyz_m: Vec | None = None
@@ -573,6 +582,7 @@ def _dh(d: _Reader) -> dict:
     if convention not in ("standard", "modified"):
         raise d.error(f"'{convention}'", "allowed: standard, modified", "convention")
     rows_raw = d.get("joints", list, hint="one table per joint: { name, type, theta_offset_deg, d_m, a_m, alpha_deg, limits_deg }")
+    optional = {"beta_deg"}
     if not rows_raw:
         raise d.error("is empty", "give one row per joint", "joints")
     rows = []
@@ -580,21 +590,29 @@ def _dh(d: _Reader) -> dict:
         if not isinstance(row, dict):
             raise d.error(f"row {k} is {_short(row)}", "write each row as an inline table { name = ..., ... }", "joints")
         j = _Reader(f"{d.path}: [robot.dh].joints row {k}", row, "robot.dh.joints")
-        missing = sorted(SECTIONS["robot.dh.joints"] - set(row))
+        missing = sorted(SECTIONS["robot.dh.joints"] - optional - set(row))
         if missing:
-            raise j.error(f"misses {', '.join(missing)}", "every row needs name, type (R), theta_offset_deg, d_m, a_m, alpha_deg, limits_deg")
+            raise j.error(f"misses {', '.join(missing)}", "every row needs name, type (R), theta_offset_deg, d_m, a_m, alpha_deg, limits_deg "
+                          "(beta_deg is optional)")
         lo, hi = np.radians(j.array("limits_deg", (2,), hint="[lower, upper] in deg"))
         if not lo < hi:
             raise j.error(f"lower {np.degrees(lo):g} must be below upper {np.degrees(hi):g}", "give [lower, upper] in deg", "limits_deg")
         kind = j.get("type", str)
         if kind != "R":
             raise j.error(f"'{kind}'", "allowed: R (describe prismatic axes in a URDF)", "type")
+        beta = j.number("beta_deg", 0.0, hint="Hayati's rotation about y in deg, for nearly parallel axes")
+        if not abs(beta) < MAX_BETA_DEG:
+            raise j.error(f"is {beta:g}", f"give an angle strictly between -{MAX_BETA_DEG:g} and {MAX_BETA_DEG:g} deg",
+                          "beta_deg")
         rows.append(DHRow(j.get("name", str), kind, math.radians(j.get("theta_offset_deg", float)), j.get("d_m", float),
-                          j.get("a_m", float), math.radians(j.get("alpha_deg", float)), float(lo), float(hi)))
+                          j.get("a_m", float), math.radians(j.get("alpha_deg", float)), float(lo), float(hi),
+                          math.radians(beta)))
     names = [row.name for row in rows]
     if len(set(names)) != len(names):
         raise d.error(f"has repeated joint names {names}", "name each joint once", "joints")
     return {"dh_convention": convention, "dh_rows": tuple(rows),
+            "base_xyz_m": _vec(d.array("base_xyz_m", (3,), np.zeros(3), hint="(x, y, z) in m")),
+            "base_rpy_rad": _vec(np.radians(d.array("base_rpy_deg", (3,), np.zeros(3), hint="roll, pitch, yaw in deg"))),
             "flange_xyz_m": _vec(d.array("flange_xyz_m", (3,), np.zeros(3), hint="(x, y, z) in m")),
             "flange_rpy_rad": _vec(np.radians(d.array("flange_rpy_deg", (3,), np.zeros(3), hint="roll, pitch, yaw in deg")))}
 

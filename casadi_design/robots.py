@@ -107,12 +107,15 @@ def planar_arm(link_lengths_m: list[float] | tuple[float, ...], name: str = "pla
 
 @dataclass(frozen=True)
 class DHJoint:
-    """One row of a Denavit-Hartenberg table (lengths m, angles rad).
+    """One row of a Denavit-Hartenberg table (lengths m, angles rad), with Hayati's ``beta``.
 
-    Standard DH (``convention="standard"``): ``T_i = Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``.
-    Modified DH (Craig, ``"modified"``): ``T_i = Rx(alpha_i) Tx(a_i) Rz(theta_i) Tz(d_i)``,
-    where this row's ``alpha``/``a`` are Craig's alpha_{i-1}/a_{i-1}.
+    Standard DH (``convention="standard"``):
+    ``T_i = Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i) Ry(beta_i)``.
+    Modified DH (Craig, ``"modified"``): ``T_i = Rx(alpha_i) Tx(a_i) Ry(beta_i) Rz(theta_i) Tz(d_i)``,
+    where this row's ``alpha``/``a``/``beta`` are Craig's alpha_{i-1}/a_{i-1}/beta_{i-1}.
     ``theta_i = q_i + theta_offset`` for revolute (R) joints; ``d_i = q_i + d`` for prismatic (P).
+    ``beta`` (Hayati, 0 in a plain DH table) tilts the next axis about the common normal's
+    perpendicular: with it a nearly parallel pair of axes is described without a large ``d``.
     """
 
     name: str
@@ -123,6 +126,7 @@ class DHJoint:
     alpha: float
     lower: float
     upper: float
+    beta: float = 0.0
 
 
 def _rz(t: float) -> pin.SE3:
@@ -133,6 +137,10 @@ def _rx(t: float) -> pin.SE3:
     return pin.SE3(pin.AngleAxis(t, np.array([1.0, 0, 0])).matrix(), np.zeros(3))
 
 
+def _ry(t: float) -> pin.SE3:
+    return pin.SE3(pin.AngleAxis(t, np.array([0.0, 1, 0])).matrix(), np.zeros(3))
+
+
 def _tz(d: float) -> pin.SE3:
     return pin.SE3(np.eye(3), np.array([0.0, 0, d]))
 
@@ -141,31 +149,44 @@ def _tx(a: float) -> pin.SE3:
     return pin.SE3(np.eye(3), np.array([a, 0.0, 0]))
 
 
+def dh_joint(theta: float, d: float) -> pin.SE3:
+    """``Rz(theta) Tz(d)``: along one joint axis (theta rad, d m)."""
+    return _rz(theta) * _tz(d)
+
+
+def dh_link(a: float, alpha: float, beta: float = 0.0) -> pin.SE3:
+    """``Tx(a) Rx(alpha) Ry(beta)``: from one joint axis to the next (a m, angles rad)."""
+    return _tx(a) * _rx(alpha) * _ry(beta)
+
+
 def dh_arm(
-    rows: list[DHJoint], convention: str, tool: pin.SE3 | None = None, name: str = "dh"
+    rows: list[DHJoint], convention: str, tool: pin.SE3 | None = None, name: str = "dh",
+    base: pin.SE3 | None = None,
 ) -> pin.Model:
     """Serial arm from a DH table: joints about / along local z, frame ``flange`` after the last row.
 
-    ``tool`` is the flange-to-tool placement after the last row (identity by default).
+    ``base`` is the placement of the DH frame 0 in the world (identity by default), ``tool`` the
+    flange-to-tool placement after the last row (identity by default). Joint ``i``'s frame is
+    the frame of its ``Rz(theta_i)`` (revolute) or ``Rz(theta_i) Tz(d_i)`` (prismatic): in both
+    conventions the chain is ``base [link_0] prod_i [Rz(theta_i) Tz(d_i) link_i] tool`` with
+    ``link = dh_link(a, alpha, beta)`` of row i (standard) or row i+1 (modified).
     """
     if convention not in ("standard", "modified"):
         raise ProblemError(f"[robot.dh].convention: '{convention}'; allowed: standard, modified")
     model = pin.Model()
     model.name = name
-    parent, pending = 0, pin.SE3.Identity()
+    parent, pending = 0, base or pin.SE3.Identity()
     for row in rows:
         if row.kind not in ("R", "P"):
             raise ProblemError(f"[robot.dh].joints: joint '{row.name}' has type '{row.kind}'; allowed: R, P")
-        fixed = _rz(row.theta_offset) if row.kind == "P" else _tz(row.d)
-        shift = _tz(row.d) if row.kind == "P" else _rz(row.theta_offset)
+        # the joint moves at Rz(theta) (R) or at Tz(d) (P): what comes before it is fixed
+        head = dh_joint(row.theta_offset, 0.0 if row.kind == "R" else row.d)
+        tail = _tz(row.d) if row.kind == "R" else pin.SE3.Identity()
+        link = dh_link(row.a, row.alpha, row.beta)
         if convention == "standard":
-            placement = pending * (shift if row.kind == "R" else fixed * shift)
-            after = _tx(row.a) * _rx(row.alpha)
-            if row.kind == "R":
-                after = fixed * after
+            placement, after = pending * head, tail * link
         else:
-            placement = pending * _rx(row.alpha) * _tx(row.a) * (shift if row.kind == "R" else fixed * shift)
-            after = fixed if row.kind == "R" else pin.SE3.Identity()
+            placement, after = pending * link * head, tail
         joint = pin.JointModelRZ() if row.kind == "R" else pin.JointModelPZ()
         parent = model.addJoint(parent, joint, placement, row.name)
         model.lowerPositionLimit[model.joints[parent].idx_q] = row.lower

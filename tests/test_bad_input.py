@@ -55,6 +55,20 @@ def test_dh_rows_with_nan_or_reversed_limits():
         build(_edited(ABB, (("robot", "dh", "joints"), bad)))
 
 
+@pytest.mark.parametrize("keys, value, match", [
+    (("joints", 1, "beta_deg"), 90.0,
+     r"^test.toml: \[robot.dh\].joints row 1: \[robot.dh.joints\].beta_deg: is 90; give an angle strictly between -90 and 90 deg$"),
+    (("joints", 0, "beta_deg"), "0.1", r"joints row 0: \[robot.dh.joints\].beta_deg: expected float, got '0.1'"),
+    (("joints", 0, "beta"), 0.1, r"joints row 0: \[robot.dh.joints\]: unknown key 'beta'; allowed: .*beta_deg"),
+    (("base_xyz_m",), [0.0, 0.1], r"^test.toml: \[robot.dh\].base_xyz_m: expected finite numbers of shape 3, got \[0.0, 0.1\]"),
+    (("base_rpy_deg",), [0.0, math.inf, 0.0], r"\[robot.dh\].base_rpy_deg: expected finite numbers of shape 3"),
+])
+def test_dh_hayati_and_base_fields_refused_with_one_line(keys, value, match):
+    with pytest.raises(ProblemError, match=match) as info:
+        build(_edited(ABB, (("robot", "dh", *keys), value)))
+    assert "\n" not in str(info.value)
+
+
 def test_covariance_symmetry_is_relative():
     """Entries of 1e-10 m^2: an absolute tolerance of 1e-8 would call any such matrix symmetric."""
     raw = paper_raw()

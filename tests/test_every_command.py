@@ -8,13 +8,17 @@ solve and sweep); the sweep runs a range that does not start at the smallest m.
 import json
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from casadi_design.bound import approximate_designs, bound
-from casadi_design.build import load_problem
+from casadi_design.build import build_robot, load_problem
 from casadi_design.cli import main
 from casadi_design.export import read_plan_table
 from casadi_design.identification.fit import model_points
+from casadi_design.identification.urdf import MEASURED_POINT
+from casadi_design.problem import read_problem
+from casadi_design.robots import frame_placement, make_robot
 from casadi_design.rules import FEASIBILITY_TOL
 from tests.conftest import PROBLEM_FILES
 from tests.identify_data import measurement_csv
@@ -72,5 +76,10 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == 4
     identified = json.loads((tmp_path / "identify" / "identification.json").read_text())
     assert identified["residual_rms_m"] < 1e-5 and (tmp_path / "identify" / "calibrated.urdf").stat().st_size > 0
+    if problem.spec.robot.source == "dh":  # the calibrated table reads and is calibrated.urdf's robot
+        table = build_robot(read_problem(tmp_path / "identify" / "calibrated_dh.toml").robot)
+        urdf = make_robot(pin.buildModelFromUrdf(str(tmp_path / "identify" / "calibrated.urdf")), MEASURED_POINT)
+        for q in Q:
+            assert np.abs(frame_placement(table, q).homogeneous - frame_placement(urdf, q).homogeneous).max() < 1e-9
     program = json.loads((tmp_path / "program" / "program.json").read_text())
     assert sorted(p["experiment"] for p in program["points"] if p["experiment"]) == list(range(1, m + 1))

@@ -20,7 +20,9 @@ DESCRIPTION = (
     "(Levenberg-Marquardt, the code of casadi-design validate); outliers are excluded one at a "
     "time. Writes to --out: identification.json (SI units), identification.md and "
     "identification.png, compensated_test_poses.csv, calibrated.urdf, calibrated.toml (a "
-    "problem file of the calibrated robot) and, with compliances, identified_compliances.toml.")
+    "problem file of the calibrated robot), for a DH robot calibrated_dh.toml (the same with the "
+    "corrected DH table, Hayati's beta for nearly parallel axes) and, with compliances, "
+    "identified_compliances.toml.")
 
 
 def _positive(text: str) -> float:
@@ -80,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
     """
     from ..identification.calibrate import calibrate
     from ..identification.measurements import read_measurements
-    from ..identification.problem_file import calibrated_problem, toml_text
+    from ..identification.dh_table import calibrated_dh, has_dh_table
+    from ..identification.problem_file import calibrated_dh_problem, calibrated_problem, toml_text
     from ..identification.report import (
         compensated_csv,
         identification_record,
@@ -112,6 +115,13 @@ def run(args: argparse.Namespace) -> int:
     texts = {"calibrated.urdf": urdf_text(problem, chain),
              "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header),
              "compensated_test_poses.csv": compensated_csv(cal)}
+    robot = problem.spec.robot
+    if has_dh_table(robot):
+        texts["calibrated_dh.toml"] = toml_text(calibrated_dh_problem(problem, calibrated_dh(robot, chain)), header + (
+            "\nthe calibrated DH table: beta_deg is Hayati's rotation about y for nearly parallel axes"))
+    elif robot.source == "dh":
+        print(f"no calibrated_dh.toml: the robot is measured at '{robot.frame}', not at its flange "
+              "(calibrated.urdf and calibrated.toml hold the calibration)")
     compliances = [(n, x, s) for n, x, s in zip(cal.names, f.X, cal.std) if n.startswith("k.")]
     if compliances:
         record = {"compliances": {n[2:]: {"value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
@@ -124,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
     files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml",
              "compensated_test_poses": "compensated_test_poses.csv", "report": "identification.md",
              "figures": ["identification.png"]}
+    if "calibrated_dh.toml" in texts:
+        files["dh_problem"] = "calibrated_dh.toml"
     if compliances:
         files["compliances"] = "identified_compliances.toml"
     record_text = identification_record(cal, files)

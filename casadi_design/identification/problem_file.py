@@ -1,21 +1,26 @@
-"""``calibrated.toml``: the problem file of the calibrated robot, which every command accepts.
+"""``calibrated.toml`` and ``calibrated_dh.toml``: problem files of the calibrated robot, which
+every command accepts.
 
-It is the measured problem's file with the robot replaced by ``calibrated.urdf`` (measured
-frame ``measured_point``, which holds the identified tool point) and the test poses given by
-their joint values (those of the problem: the next design is computed at the new estimate for
-the same robot motions), machining wrenches per pose. Capsules on the old measured frame move
-to ``measured_point``; a DH robot's kinematic URDF has no meshes, so its capsules stay those
-of the file (``capsules_per_link = 0``).
+Both are the measured problem's file with the test poses given by their joint values (those of
+the problem: the next design is computed at the new estimate for the same robot motions),
+machining wrenches per pose. In ``calibrated.toml`` the robot is ``calibrated.urdf`` (measured
+frame ``measured_point``, which holds the identified tool point); capsules on the old measured
+frame move to ``measured_point``, and a DH robot's kinematic URDF has no meshes, so its
+capsules stay those of the file (``capsules_per_link = 0``). In ``calibrated_dh.toml`` (DH
+robots) the robot keeps its fields and frames and gets the calibrated table
+(:mod:`.dh_table`), so the cell stays as it is (a relative ``collision_urdf`` made absolute).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import re
 import tomllib
 from pathlib import Path
 
 from ..build import Problem
+from ..problem import RobotSpec
 from .urdf import MEASURED_POINT
 
 #: The [test_poses] fields that describe the poses or their wrenches, replaced by joints_rad
@@ -40,6 +45,13 @@ def _value(v: object) -> str:
     return "[" + ", ".join(_value(x) for x in v) + "]"
 
 
+def _entry(k: str, v: object) -> str:
+    """``k = v``; an array of inline tables one table per line."""
+    if isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+        return f"{_key(k)} = [\n" + "".join(f"  {_value(x)},\n" for x in v) + "]"
+    return f"{_key(k)} = {_value(v)}"
+
+
 def toml_text(record: dict, header: str = "") -> str:
     """TOML of nested dicts (tables), lists (arrays, lists of dicts as inline tables) and
     scalars (strings, numbers, booleans)."""
@@ -49,7 +61,7 @@ def toml_text(record: dict, header: str = "") -> str:
         scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
         if name and (scalars or not d):
             lines.extend(["", f"[{name}]"])
-        lines.extend(f"{_key(k)} = {_value(v)}" for k, v in scalars.items())
+        lines.extend(_entry(k, v) for k, v in scalars.items())
         for k, v in d.items():
             if isinstance(v, dict):
                 table(v, f"{name}.{_key(k)}" if name else _key(k))
@@ -58,21 +70,27 @@ def toml_text(record: dict, header: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def calibrated_problem(problem: Problem, urdf: Path) -> dict:
-    """The table of ``calibrated.toml`` (module docstring); ``urdf``: the calibrated URDF."""
+def _calibrated_record(problem: Problem, suffix: str) -> dict:
+    """The problem's file as a table, named ``<name><suffix>``, test poses by their joints."""
     record = tomllib.loads(Path(problem.path).read_text(encoding="utf-8"))
-    source = problem.spec.robot.source
-    robot = {"urdf": str(Path(urdf).resolve()), "frame": MEASURED_POINT}
-    if "joint_limits_rad" in record.get("robot", {}):
-        robot["joint_limits_rad"] = record["robot"]["joint_limits_rad"]
-    record["robot"] = robot
-    record["name"] = f"{problem.name}_calibrated"
+    record["name"] = f"{problem.name}{suffix}"
     tp = problem.test_poses
     poses = {k: v for k, v in record["test_poses"].items() if k not in POSE_FIELDS}
     poses["joints_rad"] = tp.q.tolist()
     if problem.model.nF:
         poses["forces_N"] = tp.F.tolist()
     record["test_poses"] = poses
+    return record
+
+
+def calibrated_problem(problem: Problem, urdf: Path) -> dict:
+    """The table of ``calibrated.toml`` (module docstring); ``urdf``: the calibrated URDF."""
+    record = _calibrated_record(problem, "_calibrated")
+    source = problem.spec.robot.source
+    robot = {"urdf": str(Path(urdf).resolve()), "frame": MEASURED_POINT}
+    if "joint_limits_rad" in record.get("robot", {}):
+        robot["joint_limits_rad"] = record["robot"]["joint_limits_rad"]
+    record["robot"] = robot
     cell = record.get("cell")
     if cell is not None:
         old = problem.robot.frame
@@ -81,4 +99,28 @@ def calibrated_problem(problem: Problem, urdf: Path) -> dict:
         if source != "urdf":
             cell.pop("collision_urdf", None)
             cell["capsules_per_link"] = 0
+    return record
+
+
+def _degrees(values) -> list[float]:
+    return [math.degrees(v) + 0.0 for v in values]  # + 0.0: no -0.0 in the file
+
+
+def calibrated_dh_problem(problem: Problem, robot: RobotSpec) -> dict:
+    """The table of ``calibrated_dh.toml`` (module docstring); ``robot``: the calibrated DH
+    robot of :func:`.dh_table.calibrated_dh`."""
+    record = _calibrated_record(problem, "_calibrated_dh")
+    raw_rows = record["robot"]["dh"]["joints"]
+    record["robot"]["dh"] = {
+        "convention": robot.dh_convention,
+        "base_xyz_m": list(robot.base_xyz_m), "base_rpy_deg": _degrees(robot.base_rpy_rad),
+        "flange_xyz_m": list(robot.flange_xyz_m), "flange_rpy_deg": _degrees(robot.flange_rpy_rad),
+        "joints": [{"name": r.name, "type": r.kind, "theta_offset_deg": math.degrees(r.theta_offset_rad),
+                    "d_m": r.d_m, "a_m": r.a_m, "alpha_deg": math.degrees(r.alpha_rad),
+                    "beta_deg": math.degrees(r.beta_rad), "limits_deg": raw["limits_deg"]}
+                   for raw, r in zip(raw_rows, robot.dh_rows)]}
+    cell = record.get("cell", {})
+    urdf = cell.get("collision_urdf", "")
+    if urdf and not urdf.startswith("example-robot-data:"):
+        cell["collision_urdf"] = str((Path(problem.path).parent / urdf).resolve())
     return record

@@ -25,7 +25,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..build import Problem
-from ..robots import urdf_file
+from ..robots import Robot, urdf_file
 from ..symbolic import joint_axis
 from .fit import error_placement
 
@@ -65,14 +65,14 @@ def calibrated_chain(problem: Problem, names: tuple[str, ...], X: np.ndarray) ->
     return CalibratedChain(tuple(joints), robot.model.frames[robot.frame_id].placement * E("tool"))
 
 
-def calibrated_model(problem: Problem, chain: CalibratedChain) -> pin.Model:
-    """The problem's Pinocchio model with the calibrated placements (for checks)."""
-    model = pin.Model(problem.robot.model)
-    for jid, M in zip(problem.robot.joint_ids, chain.joints):
+def calibrated_model(robot: Robot, chain: CalibratedChain) -> pin.Model:
+    """The robot's Pinocchio model with the calibrated placements (for checks)."""
+    model = pin.Model(robot.model)
+    for jid, M in zip(robot.joint_ids, chain.joints):
         model.jointPlacements[jid] = M
-    frame = model.frames[problem.robot.frame_id]
+    frame = model.frames[robot.frame_id]
     frame.placement = chain.tool
-    model.frames[problem.robot.frame_id] = frame
+    model.frames[robot.frame_id] = frame
     return model
 
 
