@@ -6,6 +6,7 @@ model, also the identification of every simulated calibration of ``validate``), 
 (the fit's model with the tracker frame, the fit of some rows), :mod:`.compensate` (the test
 poses' commands, shared with ``validate``), :mod:`.calibrate` (outliers, statistics, validation
 rows), :mod:`.report` (``identification.json``, the summary, the compensated poses),
-:mod:`.urdf` (``calibrated.urdf``) and :mod:`.problem_file` (``calibrated.toml``). The command
+:mod:`.urdf` (``calibrated.urdf``), :mod:`.dh_table` (the calibrated DH table) and
+:mod:`.problem_file` (``calibrated.toml``, ``calibrated_dh.toml``). The command
 is ``casadi-design identify`` (:mod:`casadi_design.cli.identify`).
 """
