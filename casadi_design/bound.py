@@ -50,7 +50,7 @@ from .errors import DesignError
 from .ipopt import QUIET, ipopt_call
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .reduced import NumericFunction, experiment_functions
-from .rules import joint_limits, load_variables, plan_violations, pose_constraints
+from .rules import joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
 from .sampling import random_plan
 #: Candidate experiments of the first pool, and of the dense sample searched for max_x d.
 POOL_SIZE = 300
@@ -107,7 +107,11 @@ class ApproximateDesign:
         W, mu of the step with the best certificate (support, weights, W and mu are that
         step's), with d_max from the exchange and a final independent search.
     d_max : the largest ``d(x, W)`` found over single experiments.
-    history : the best certified value after each exchange step (before the final search).
+    history : the best certified value after each exchange step; it never falls but at the
+        steps of ``checked``.
+    checked : the steps after which the best certificate was checked by an independent search
+        (:func:`_verified`), which lowers it when it finds a larger d; the last one is the
+        reported certificate's.
     pool_size : candidates priced (random ones and local maxima); ``wall_s`` : time, s.
     """
 
@@ -121,6 +125,7 @@ class ApproximateDesign:
     certified: float
     d_max: float
     history: tuple[float, ...]
+    checked: tuple[int, ...]
     pool_size: int
     wall_s: float
 
@@ -228,10 +233,31 @@ def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray) -> tuple
     return w / w.sum(), mu / mu.sum()
 
 
+#: IPOPT on the search for max_x d from a maximum of an earlier exchange step, with its
+#: multipliers: the barrier parameter and bound pushes of a continuation, so the search
+#: follows the maximum as W moves (about 6 iterations instead of a cold start's 30).
+WARM_SEARCH = {"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-6,
+               "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_start_mult_bound_push": 1e-9,
+               "ipopt.warm_start_slack_bound_push": 1e-9}
+
+
+@dataclass(frozen=True, eq=False)
+class Search:
+    """IPOPT on one experiment ``z = (q, v)``: ``max tr(G B(z)^T B(z))`` within its rules,
+    with parameter ``vec G`` (L x L), started cold (``cold``) or from a point and its
+    multipliers (``warm``, :data:`WARM_SEARCH`); the bounds of z and of the rule rows."""
+
+    cold: ca.Function
+    warm: ca.Function
+    lbx: np.ndarray
+    ubx: np.ndarray
+    lbg: np.ndarray
+    ubg: np.ndarray
+
+
 @per_model
-def _search(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """IPOPT on one experiment ``z = (q, v)``: ``max tr(G B(z)^T B(z))`` within its rules, with
-    parameter ``vec G`` (L x L); and the bounds of z and of the rule rows."""
+def _search(problem: Problem) -> Search:
+    """The :class:`Search` of the problem (built once per problem)."""
     fns, loads = experiment_functions(problem), load_variables(problem)
     L = problem.model.L
     z, G = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L)
@@ -239,30 +265,50 @@ def _search(problem: Problem) -> tuple[ca.Function, np.ndarray, np.ndarray, np.n
     rules = pose_constraints(problem)
     if rules.collision is not None:  # every capsule row, after the others as in rule_bounds
         c = ca.vertcat(c, rules.g(z[: fns.n])[rules.collision.first:])
-    solver = ca.nlpsol("max_d", "ipopt", {"x": z, "p": ca.vec(G), "f": -ca.dot(B @ G, B), "g": c},
-                       {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200})
+    nlp = {"x": z, "p": ca.vec(G), "f": -ca.dot(B @ G, B), "g": c}
+    opts = {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200}
     # the plan of one experiment: its variables and rule rows are those of z and c
-    return (solver, *plan_bounds(problem, 1, loads), *rule_bounds(problem, 1, loads))
+    return Search(ca.nlpsol("max_d", "ipopt", nlp, opts),
+                  ca.nlpsol("max_d_warm", "ipopt", nlp, {**opts, **WARM_SEARCH}),
+                  *plan_bounds(problem, 1, loads), *rule_bounds(problem, 1, loads))
 
 
-def _maximise_d(problem: Problem, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
-                d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+#: The multipliers of a maximum of d (of z's bounds, of the rule rows) per unit of d: a warm
+#: start's.
+Duals = tuple[np.ndarray, np.ndarray]
+
+
+def _maximise_d(problem: Problem, G: np.ndarray, Q: np.ndarray, F: np.ndarray, d: np.ndarray,
+                duals: list[Duals | None]) -> tuple[np.ndarray, np.ndarray, list[Duals]]:
     """Local maxima of ``d(x) = tr(G B(x)^T B(x))`` from the experiments ``Q`` (k, n), ``F``
-    (k, nF) with values ``d`` (k,). Returns the feasible maxima: Q (p, n), F (p, nF)."""
-    solver, lbx, ubx, lbg, ubg = _search(problem)
+    (k, nF) with values ``d`` (k,); one with ``duals`` (a maximum of an earlier step) starts
+    warm from them, the others cold. Returns the maxima that keep every rule but the check on
+    the real geometry (:func:`casadi_design.rules.plan_violations` with ``meshes=False``; the
+    caller checks those it uses, :func:`_untouched`): Q (p, n), F (p, nF), their duals."""
+    search = _search(problem)
     loads, n = load_variables(problem), problem.robot.n
     scale = 1.0 / np.max(d)  # IPOPT sees d of order 1
+    bounds = dict(p=(scale * G).ravel(order="F"), lbx=search.lbx, ubx=search.ubx, lbg=search.lbg,
+                  ubg=search.ubg)
     found = []
-    for q0, f0 in zip(Q, F):
+    for q0, f0, start in zip(Q, F, duals):
         z0 = np.concatenate([q0, loads.variables(f0[None]).ravel()])
         with ipopt_call():  # Ctrl-C stops the command, not just this search
-            sol = solver(x0=z0, p=(scale * G).ravel(order="F"), lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
-        z = np.clip(np.asarray(sol["x"]).ravel(), lbx, ubx)
+            sol = (search.cold(x0=z0, **bounds) if start is None else
+                   search.warm(x0=z0, lam_x0=scale * start[0], lam_g0=scale * start[1], **bounds))
+        z = np.clip(np.asarray(sol["x"]).ravel(), search.lbx, search.ubx)
         q, f = z[:n], loads.load(z[n:])
-        if not plan_violations(problem, q[None], f[None]):
-            found.append((q, f))
-    return (np.array([q for q, _ in found]).reshape(len(found), n),
-            np.array([f for _, f in found]).reshape(len(found), F.shape[1]))
+        if not plan_violations(problem, q[None], f[None], meshes=False):
+            found.append((q, f, (np.asarray(sol["lam_x"]).ravel() / scale,
+                                 np.asarray(sol["lam_g"]).ravel() / scale)))
+    return (np.array([q for q, _, _ in found]).reshape(len(found), n),
+            np.array([f for _, f, _ in found]).reshape(len(found), F.shape[1]), [u for _, _, u in found])
+
+
+def _untouched(problem: Problem, Q: np.ndarray) -> np.ndarray:
+    """Which experiments of ``Q`` (k, n), rad, keep clear on the cell's real geometry
+    (:func:`casadi_design.rules.mesh_contacts`), shape (k,) bool."""
+    return np.array([not mesh_contacts(problem, q[None]) for q in Q], dtype=bool).reshape(len(Q))
 
 
 def approximate_design(
@@ -282,18 +328,24 @@ def approximate_design(
     Each step solves the convex problem on the pool (:func:`_pool_optimum`), prices every
     candidate by ``d(x, W)``, and polishes by IPOPT (:func:`_maximise_d`) the support points and
     the ``POLISH_STARTS`` best candidates: at the optimum every support point is a local
-    maximum of d, so the support moves to where the continuum wants it. The certificate of the
-    step is ``phi^2 / d_max`` (D: ``log det W + d_max - L``) with d_max the largest d of the
-    candidates and maxima. The next pool is the support, the ``ADDED_CANDIDATES`` best
-    candidates and the maxima whose d exceeds ``phi``. The steps stop when the best certified
-    value is within ``rtol`` (relative; D: ``rtol L`` on log det) of the best value on a pool
-    (then both are within rtol of the hull's optimum), when no candidate or maximum exceeds
-    ``phi`` (the equivalence theorem: the pool holds the hull's optimum, up to the search for
-    the maximum), or after ``iterations``. ``progress`` is called with the best certified
-    value after each step.
+    maximum of d, so the support moves to where the continuum wants it. A support point that
+    is a maximum of an earlier step starts warm from its multipliers (it follows its maximum
+    as W moves); the others start cold. The certificate of the step is ``phi^2 / d_max`` (D:
+    ``log det W + d_max - L``) with d_max the largest d of the candidates and maxima. The next
+    pool is the support, the ``ADDED_CANDIDATES`` best candidates and the maxima whose d
+    exceeds ``phi``. When the best certified value is within ``rtol`` (relative; D: ``rtol L``
+    on log det) of the best value on a pool (then both are within rtol of the hull's
+    optimum), when no candidate or maximum exceeds ``phi`` (the equivalence theorem: the pool
+    holds the hull's optimum, up to the search for the maximum), or at the last of
+    ``iterations`` steps, an independent search from a fresh sample checks the best
+    certificate (:func:`_verified`). The steps stop when it finds no d larger by more than
+    ``rtol``; otherwise what it found joins the candidates (and the pool) and the steps go on,
+    so a maximum the exchange missed moves the design instead of only loosening the bound.
+    ``progress`` is called with the best certified value after each step.
 
-    Every step's certificate is valid, so the best one is kept with its W, mu, d_max and
-    support; ``value`` is the best value on a pool over the steps.
+    The best certificate is kept with its W, mu, d_max and support, the best checked one once
+    checked: the reported certificate is always one an independent search confirmed; ``value``
+    is the best value on a pool over the steps.
 
     Raises
     ------
@@ -320,7 +372,9 @@ def approximate_design(
     sense = 1.0 if Hj is None else -1.0  # D's certificate is an upper bound, the others' lower
     pool, w = np.arange(pool_size), np.full(pool_size, 1.0 / pool_size)
     best, value, history = None, -np.inf * sense, []
-    for _ in range(iterations):
+    duals: dict[int, Duals] = {}  # the candidates that are maxima of an earlier step: theirs
+    checked, proven = [], None  # the checked steps, the best checked certificate
+    for step in range(iterations):
         w, mu = _pool_optimum(A[pool], Hj, w)
         W = np.einsum("k,kij->ij", w, A[pool])
         G, phi, step_value = _linearised(W, mu, Hj)
@@ -329,31 +383,45 @@ def approximate_design(
         support = w > WEIGHT_RTOL * w.max()
         heavy = pool[np.argsort(w)[::-1][:min(support.sum(), POLISH_SUPPORT)]]
         starts = np.union1d(heavy, np.argsort(d)[::-1][:POLISH_STARTS])
-        Qp, Fp, Ap, dp = _maxima(problem, G, c, Q[starts], F[starts], d[starts])
+        Qp, Fp, Ap, dp, up = _maxima(problem, G, c, Q[starts], F[starts], d[starts],
+                                     [duals.get(int(i)) for i in starts], phi)
         d_max = float(max(d.max(), dp.max(initial=0.0)))
         certified = _certificate(Hj, phi, step_value, d_max)
         if best is None or sense * (certified - best[0]) < 0:
             best = (certified, pool[support], w[support] / w[support].sum(), W, mu, d_max)
+        priced = np.setdiff1d(np.flatnonzero(d > phi), pool[support])
+        added = priced[np.argsort(d[priced])[::-1][:ADDED_CANDIDATES]]
+        new = _distinct(Ap, A[pool[support]])
+        gap = (best[0] - value) / L if Hj is None else (value - best[0]) / value
+        Qv, Fv, Av = Q[:0], F[:0], A[:0]
+        if gap <= rtol or not (added.size or new.any()) or step == iterations - 1:
+            # the best step's certificate from a fresh sample: it stands when that search finds
+            # no larger d; otherwise what it found joins the candidates and the steps go on
+            certified, d_max, Qv, Fv, Av = _verified(problem, c, *best[3:], Hj, rng, sample_size)
+            agreed = sense * (certified - best[0]) <= rtol * (L if Hj is None else best[0])
+            best = (certified, *best[1:5], d_max)
+            if proven is not None and sense * (proven[0] - certified) < 0:
+                best = proven  # an earlier check's certificate is better: it stands
+            proven = best
+            checked.append(step)
+            if agreed or step == iterations - 1:
+                history.append(best[0])
+                break
         history.append(best[0])
         if progress is not None:
             progress(best[0])
-        gap = (best[0] - value) / L if Hj is None else (value - best[0]) / value
-        priced = np.setdiff1d(np.flatnonzero(d > phi), pool[support])
-        added = priced[np.argsort(d[priced])[::-1][:ADDED_CANDIDATES]]
-        new = (dp > phi) & _distinct(Ap, A[pool[support]])
-        if gap <= rtol or not (added.size or new.any()):
-            break
-        Q, F, A = np.concatenate([Q, Qp[new]]), np.concatenate([F, Fp[new]]), np.concatenate([A, Ap[new]])
-        pool = np.concatenate([pool[support], added, np.arange(len(A) - new.sum(), len(A))])
+        duals.update(zip(range(len(A), len(A) + int(new.sum())), (u for u, k in zip(up, new) if k)))
+        Q, F, A = (np.concatenate([Q, Qp[new], Qv]), np.concatenate([F, Fp[new], Fv]),
+                   np.concatenate([A, Ap[new], Av]))
+        pool = np.concatenate([pool[support], added, np.arange(len(A) - new.sum() - len(Qv), len(A))])
         w = np.concatenate([w[support], np.full(len(pool) - support.sum(), NEW_WEIGHT * w[support].mean())])
         w /= w.sum()
     certified, idx, weights, W, mu, d_max = best
-    certified, d_max = _verified(problem, c, W, mu, Hj, d_max, rng, sample_size)
     if Hj is None:  # log det of the unscaled W
         value, certified = value - L * np.log(c), certified - L * np.log(c)
         history = [h - L * np.log(c) for h in history]
     return ApproximateDesign(criterion, Q[idx], F[idx], weights, W / c, mu, value, certified, d_max,
-                             tuple(history), len(A), time.perf_counter() - t0)
+                             tuple(history), tuple(checked), len(A), time.perf_counter() - t0)
 
 
 def _distinct(Ap: np.ndarray, Aref: np.ndarray, rtol: float = DISTINCT_RTOL) -> np.ndarray:
@@ -362,8 +430,8 @@ def _distinct(Ap: np.ndarray, Aref: np.ndarray, rtol: float = DISTINCT_RTOL) -> 
     searches from nearby starts end at the same maximum, and a pool of duplicates (equal for
     the design, whatever their joint values) only slows the convex solves."""
     keep = np.zeros(len(Ap), dtype=bool)
-    ref = list(Aref.reshape(len(Aref), -1))
-    for i, a in enumerate(Ap.reshape(len(Ap), -1)):
+    ref = [a.ravel() for a in Aref]
+    for i, a in enumerate(a.ravel() for a in Ap):
         tol = rtol * np.linalg.norm(a)
         if not ref or np.min(np.linalg.norm(np.asarray(ref) - a, axis=1)) > tol:
             keep[i] = True
@@ -389,29 +457,42 @@ def _certificate(Hj: np.ndarray | None, phi: float, value: float, d_max: float) 
     return float(value + d_max - phi if Hj is None else phi**2 / d_max)
 
 
-def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndarray,
-            d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The local maxima of d from the experiments ``Q``, ``F`` (values ``d``;
-    :func:`_maximise_d`) with their scaled information ``c A`` (p, L, L) and their d (p,)."""
-    Qp, Fp = _maximise_d(problem, G, Q, F, d)
+def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndarray, d: np.ndarray,
+            duals: list[Duals | None], above: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[Duals]]:
+    """The feasible local maxima of d above ``above`` from the experiments ``Q``, ``F`` (values
+    ``d``, warm starts ``duals``; :func:`_maximise_d`) with their scaled information ``c A``
+    (p, L, L), their d (p,) and duals. Maxima at or below ``above`` (phi, or the largest d
+    found) can neither join the pool nor raise d_max (phi is the support's mean d, so d_max
+    >= phi): they are left out before the check on the real geometry, the costly part of the
+    plan check."""
+    Qp, Fp, up = _maximise_d(problem, G, Q, F, d, duals)
     Ap = c * _information(problem, Qp, Fp)
-    return Qp, Fp, Ap, np.einsum("kij,ij->k", Ap, G)
+    dp = np.einsum("kij,ij->k", Ap, G)
+    keep = dp > above
+    keep[keep] = _untouched(problem, Qp[keep])
+    return Qp[keep], Fp[keep], Ap[keep], dp[keep], [u for u, k in zip(up, keep) if k]
 
 
-def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray,
-              Hj: np.ndarray | None, d_max: float, rng: np.random.Generator,
-              size: int) -> tuple[float, float]:
+def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: float,
+              Hj: np.ndarray | None, rng: np.random.Generator, size: int
+              ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """The certificate of ``W`` (scaled by c) and ``mu`` once more, with max_x d searched over a
     fresh sample of ``size`` experiments and IPOPT from its ``VERIFY_STARTS`` best: a search
     independent of the exchange, whose own maxima went into the pool. Returns the certified
-    value and d_max (the larger of ``d_max`` and the new search's)."""
+    value, d_max (the larger of ``d_max`` and the new search's) and the experiments of the new
+    search with d above ``d_max`` (the sample's and the maxima's: Q (k, n), F (k, nF), their
+    scaled information (k, L, L))."""
     G, phi, value = _linearised(W, mu, Hj)
     Q, F = _sample(problem, size, rng)
-    d = np.einsum("kij,ij->k", c * _information(problem, Q, F), G)
+    A = c * _information(problem, Q, F)
+    d = np.einsum("kij,ij->k", A, G)
     best = np.argsort(d)[::-1][:VERIFY_STARTS]
-    dp = _maxima(problem, G, c, Q[best], F[best], d[best])[3]
+    Qp, Fp, Ap, dp, _ = _maxima(problem, G, c, Q[best], F[best], d[best], [None] * len(best), d_max)
+    above = best[d[best] > d_max]
     d_max = float(max(d_max, d.max(), dp.max(initial=0.0)))
-    return _certificate(Hj, phi, value, d_max), d_max
+    return (_certificate(Hj, phi, value, d_max), d_max, np.concatenate([Q[above], Qp]),
+            np.concatenate([F[above], Fp]), np.concatenate([A[above], Ap]))
 
 
 def apportion(weights: np.ndarray, m: int) -> np.ndarray:

@@ -75,7 +75,8 @@ def approximate_record(approx: ApproximateDesign) -> dict:
             "support": [{"q_rad": q.tolist(), "force": f.tolist(), "weight": float(w)}
                         for q, f, w in zip(approx.Q, approx.F, approx.weights)],
             "relaxation": approx.value, "certified": approx.certified, "d_max": approx.d_max,
-            "exchange_steps": len(approx.history), "pool_size": approx.pool_size,
+            "exchange_steps": len(approx.history), "independent_checks": len(approx.checked),
+            "pool_size": approx.pool_size,
             "wall_s": approx.wall_s}
 
 

@@ -314,13 +314,26 @@ def _amount(v: float, unit: str, lb: float) -> str:
     return f"{np.rad2deg(np.arccos(np.clip(lb - v, -1, 1)) - np.arccos(lb)):.3g} deg"
 
 
-def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]:
+def mesh_contacts(problem: Problem, Q: np.ndarray) -> list[str]:
+    """The experiments of ``Q`` (m, n), rad, whose links or obstacles touch or cross on the
+    cell's real geometry (:func:`casadi_design.cell.clearances`), one line each; none without
+    a cell."""
+    if problem.cell is None:
+        return []
+    return [f"experiment {i + 1}: {near.touching[0]} and {near.touching[1]} touch or cross "
+            f"on the {problem.cell.check.source}"
+            for i, near in enumerate(clearances(problem.cell, Q)) if near.touching is not None]
+
+
+def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray, meshes: bool = True) -> list[str]:
     """Every rule the plan breaks, one line each (empty: the plan is feasible).
 
     Parameters
     ----------
     Q : ndarray, shape (m, n), rad (m for prismatic joints)
     F : ndarray, shape (m, nF), N (N m)
+    meshes : False leaves out the check on the cell's real geometry (:func:`mesh_contacts`,
+        about 10 ms per configuration), for a caller that runs it later on the plans it keeps.
     """
     robot, force, ws = problem.robot, problem.force, problem.workspace
     Q = np.asarray(Q, dtype=float)
@@ -340,11 +353,8 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray) -> list[str]
                 worst[label] = k
         out += [f"experiment {i + 1}: {label} by {_amount(violation[k], rules.units[k], rules.lb[k])}"
                 for label, k in worst.items()]
-    if problem.cell is not None:
-        for i, near in enumerate(clearances(problem.cell, Q)):
-            if near.touching is not None:
-                out.append(f"experiment {i + 1}: {near.touching[0]} and {near.touching[1]} touch or cross "
-                           f"on the {problem.cell.check.source}")
+    if meshes:
+        out += mesh_contacts(problem, Q)
     if force is not None and F.size:
         for i, f in enumerate(F):
             norm = float(np.linalg.norm(f))

@@ -37,5 +37,6 @@ def run(args: argparse.Namespace) -> int:
                         [bound(problem, m, approx["D"]) for m in ms]))
     for a in approx.values():
         common.say(args, f"{a.criterion}: {len(a.weights)} support points, pool {a.pool_size}, "
-                         f"{len(a.history)} exchange steps, {a.wall_s:.2f} s")
+                         f"{len(a.history)} exchange steps, {len(a.checked)} independent checks, "
+                         f"{a.wall_s:.2f} s")
     return 0
