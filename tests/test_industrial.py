@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from casadi_design.errors import DesignError, ProblemError
-from casadi_design.identifiability import base_set
+from casadi_design.identifiability import base_set, pivoted_columns
 from casadi_design.ik import sample_path
 from casadi_design.measures import information_matrix
 from casadi_design.models import calibration_model
@@ -286,3 +286,23 @@ def test_case_study_test_pose_beats_classical_plans(case, m):
         except DesignError:
             continue  # no converged start of the classical criterion: nothing to beat
         assert best <= other * (1 + 1e-6), c
+
+
+def test_pivoting_matches_lapack_and_breaks_ties_by_order():
+    """The base set's pivoted QR: the same |R_ii| as LAPACK's, a dependent column last with
+    |R_ii| ~ 0, and exactly tied columns (a copy, unit norms) taken in their order in S, which
+    LAPACK leaves to rounding."""
+    import scipy.linalg
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(50, 6))
+    S = np.column_stack([A, A[:, 0] + A[:, 1]])
+    order, diag = pivoted_columns(S)
+    R = scipy.linalg.qr(S, mode="economic", pivoting=True)[1]
+    np.testing.assert_allclose(diag, np.abs(np.diag(R)), rtol=1e-10, atol=1e-12)
+    assert diag[-1] < 1e-12 * diag[0] and sorted(order) == list(range(7))
+    u = rng.normal(size=50)
+    u /= np.linalg.norm(u)
+    T = np.column_stack([rng.normal(size=(50, 2)) * 0.1, u, u, u])  # three tied unit columns
+    order, diag = pivoted_columns(T)
+    assert list(order[:1]) == [2] and diag[1] > 1e-3 and 3 in order[-2:] and 4 in order[-2:]
