@@ -47,7 +47,7 @@ from .build import Problem, per_model
 from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import Bound
 from .errors import DesignError
-from .ipopt import QUIET, ipopt_call
+from .ipopt import QUIET, WARM_START, ipopt_call
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .reduced import NumericFunction, experiment_functions
 from .rules import joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
@@ -236,8 +236,7 @@ def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray) -> tuple
 #: IPOPT on the search for max_x d from a maximum of an earlier exchange step, with its
 #: multipliers: the barrier parameter and bound pushes of a continuation, so the search
 #: follows the maximum as W moves (about 6 iterations instead of a cold start's 30).
-WARM_SEARCH = {"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-6,
-               "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_start_mult_bound_push": 1e-9,
+WARM_SEARCH = {**WARM_START, "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_start_mult_bound_push": 1e-9,
                "ipopt.warm_start_slack_bound_push": 1e-9}
 
 
@@ -393,8 +392,9 @@ def approximate_design(
         added = priced[np.argsort(d[priced])[::-1][:ADDED_CANDIDATES]]
         new = _distinct(Ap, A[pool[support]])
         gap = (best[0] - value) / L if Hj is None else (value - best[0]) / value
-        Qv, Fv, Av = Q[:0], F[:0], A[:0]
-        if gap <= rtol or not (added.size or new.any()) or step == iterations - 1:
+        last = step == iterations - 1
+        Qv, Fv, Av, stop = Q[:0], F[:0], A[:0], False
+        if gap <= rtol or not (added.size or new.any()) or last:
             # the best step's certificate from a fresh sample: it stands when that search finds
             # no larger d; otherwise what it found joins the candidates and the steps go on
             certified, d_max, Qv, Fv, Av = _verified(problem, c, *best[3:], Hj, rng, sample_size)
@@ -404,12 +404,12 @@ def approximate_design(
                 best = proven  # an earlier check's certificate is better: it stands
             proven = best
             checked.append(step)
-            if agreed or step == iterations - 1:
-                history.append(best[0])
-                break
+            stop = agreed or last
         history.append(best[0])
         if progress is not None:
             progress(best[0])
+        if stop:
+            break
         duals.update(zip(range(len(A), len(A) + int(new.sum())), (u for u, k in zip(up, new) if k)))
         Q, F, A = (np.concatenate([Q, Qp[new], Qv]), np.concatenate([F, Fp[new], Fv]),
                    np.concatenate([A, Ap[new], Av]))

@@ -490,7 +490,7 @@ def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
     slope = dw_rows = np.zeros((0, 0))
     if len(nlp.active):
         K = len(nlp.active)
-        slope = nlp.mapped["row_slope"](nlp.active[None, :, 1], v.w_rows.T)[1].reshape(K, -1)
+        slope = nlp.mapped["row_slope"](nlp.active[None, :, 1], v.w_rows.T)[0].reshape(K, -1)
         dw = np.concatenate([dw.reshape(-1, m, p), np.zeros((1, m, p))])
         dw_rows = dw[nlp.row_inputs, nlp.active[:, :1]]
         J[nlp.active_rows[:, None], nlp.cols[nlp.active[:, 0]]] = np.einsum("kw,kwp->kp", slope, dw_rows)

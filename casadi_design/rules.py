@@ -164,7 +164,7 @@ class CollisionRows:
     ``w_r = w[inputs[r]]`` (the same number of coordinates for every row, ``width =
     inputs.shape[1]``: those of the few points it uses, then the index 3K, a zero, to fill):
     ``g_r = G_r(w_r)``. ``value``, ``slope`` and ``curvature`` are CasADi switches
-    ``(r, w_r) -> g_r``, ``(g_r, dg_r/dw_r (1 x width))`` and ``d2g_r/dw_r2 (width x width)``:
+    ``(r, w_r) -> g_r``, ``dg_r/dw_r (1 x width)`` and ``d2g_r/dw_r2 (width x width)``:
     they evaluate row r alone, so a switch mapped over k rows costs those k rows.
     """
 
@@ -191,7 +191,7 @@ def collision_rows(rows: PointRows, q: ca.SX, first: int) -> CollisionRows:
             g = ca.substitute(g, rows.W[idx], w[: len(idx)])
         inputs.append(idx + [K3] * (width - len(idx)))
         value.append(ca.Function("row", [w], [g]))
-        slope.append(ca.Function("drow", [w], [g, ca.jacobian(g, w)]))
+        slope.append(ca.Function("drow", [w], [ca.jacobian(g, w)]))
         curvature.append(ca.Function("d2row", [w], [ca.hessian(g, w)[0]]))
     return CollisionRows(first, ca.Function("points", [q], [rows.points], ["q"], ["w"]),
                          np.array(inputs, dtype=int).reshape(len(rows.G), width),

@@ -99,8 +99,7 @@ class _Watch(ca.Callback):
 
     def __init__(self, problem: Problem, nlp: DesignNLP):
         ca.Callback.__init__(self)
-        self._rules, self._plan = pose_constraints(problem), nlp.plan
-        self._held = {(int(i), int(r)) for i, r in nlp.active}
+        self._rules, self._plan, self._active = pose_constraints(problem), nlp.plan, nlp.active
         self._sizes = {"x": nlp.lbx.size, "g": nlp.lbg.size, "f": 1, "lam_x": nlp.lbx.size,
                        "lam_g": nlp.lbg.size}
         self.construct("watch", {})
@@ -118,8 +117,8 @@ class _Watch(ca.Callback):
         return ca.Sparsity.dense(self._sizes.get(ca.nlpsol_out(i), 0), 1)
 
     def eval(self, arg) -> list[int]:
-        broken = self._rules.near(self._plan(np.asarray(arg[0]).ravel())[0], -WATCH_DEPTH_M)
-        return [int(any((int(i), int(r)) not in self._held for i, r in broken))]
+        slack = self._rules.capsule_slack(self._plan(np.asarray(arg[0]).ravel())[0])
+        return [int(_left_out_broken(slack, self._active, WATCH_DEPTH_M))]
 
 
 def check_ipopt_options(problem: Problem) -> None:
@@ -146,8 +145,8 @@ class DesignSolver:
     condition one per power r of their surrogate (each run starts where the last stopped),
     after a short D-optimality run (``polish``) that first moves nearly singular starts away
     from M = 0. With a cell, each NLP holds the capsule rows that can bind (:func:`solve_start`),
-    so they are built per run; the last ``SOLVERS_KEPT`` are kept (``made``), which without a
-    cell means one per stage for every start."""
+    so they are built per run; without one, one per stage is made and kept (``made``) for
+    every start."""
 
     problem: Problem
     criterion: str
@@ -157,9 +156,11 @@ class DesignSolver:
     made: dict = field(default_factory=dict, repr=False)
 
     def _kept(self, key: tuple, make: Callable[[], tuple]) -> tuple:
+        """Without capsule rows a stage's NLP and solver are the same for every start: made
+        once. With them each run holds its own rows and iteration budget: made for it."""
+        if pose_constraints(self.problem).collision is not None:
+            return make()
         if key not in self.made:
-            if len(self.made) >= SOLVERS_KEPT:
-                self.made.clear()
             self.made[key] = make()
         return self.made[key]
 
@@ -210,13 +211,18 @@ WATCH_DEPTH_M = 0.05
 RESUME_MU = 1e-3
 ADD_MARGIN_M = 0.01
 MAX_ROUNDS = 12
-#: Solvers a :class:`DesignSolver` keeps for the next runs and starts.
-SOLVERS_KEPT = 32
 
 
 def _codes(rows: np.ndarray, R: int) -> np.ndarray:
     """(experiment, row) pairs (K x 2) as the integers ``i R + r``."""
     return rows[:, 0] * R + rows[:, 1]
+
+
+def _left_out_broken(slack: np.ndarray, active: np.ndarray, depth_m: float) -> bool:
+    """Whether a capsule row that ``active`` (K x 2, (experiment, row)) does not hold is broken
+    by more than ``depth_m`` (m), from the slack (m x R, m) of every row of the plan."""
+    R = slack.shape[1]
+    return np.setdiff1d(_codes(np.argwhere(slack < -depth_m), R), _codes(active, R)).size > 0
 
 
 def _carried(old: DesignNLP, new: DesignNLP, lam_g: np.ndarray) -> np.ndarray:
@@ -318,12 +324,10 @@ def _grown(rules: PoseConstraints, Q: np.ndarray, active: np.ndarray, status: st
     than ``START_MARGIN_M`` join, and the next run goes on from the iterate as a "resumed" run
     (its barrier parameter, ``RESUME_MU``, larger than a warm start's).
     """
-    R = len(rules.collision.inputs)
-    held = _codes(active, R)
     slack = rules.capsule_slack(Q)
-    broken = np.setdiff1d(_codes(np.argwhere(slack < -FEASIBILITY_TOL), R), held)
-    clear = status != STOPPED and not len(broken)
-    codes = np.union1d(held, _codes(np.argwhere(slack < (ADD_MARGIN_M if clear else START_MARGIN_M)), R))
+    R = slack.shape[1]
+    clear = status != STOPPED and not _left_out_broken(slack, active, FEASIBILITY_TOL)
+    codes = np.union1d(_codes(active, R), _codes(np.argwhere(slack < (ADD_MARGIN_M if clear else START_MARGIN_M)), R))
     return np.column_stack([codes // R, codes % R]), "warm" if clear else "resumed"
 
 
