@@ -47,6 +47,7 @@ from ..build import Problem, per_model
 from ..cell import clearances
 from ..collision import capsule_names, carrier
 from ..export import is_prismatic
+from ..mapped import evaluate
 from ..rules import FEASIBILITY_TOL, joint_limits, pose_constraints
 from .order import TimeModel
 
@@ -57,9 +58,6 @@ STEP_FRACTION = 0.25
 STEP_WITHOUT_CLEARANCE_M = 0.005
 #: Samples of a move (the capsule rows' closest local minima) checked on the real meshes.
 MESH_SAMPLES = 3
-#: Configurations evaluated per CasADi call: the rows are mapped once for each of these sizes
-#: (a call costs its size whatever the number of configurations given).
-CHUNKS = (16, 128)
 #: Collision-free random configurations of the whole workspace offered as via points, and
 #: per blocked move near its middle (at spreads ``LOCAL_SPREADS_RAD`` of each joint).
 GLOBAL_VIAS = 16
@@ -90,13 +88,12 @@ class MoveRules:
     """The rows a move is checked with (indices into :func:`casadi_design.rules.pose_constraints`):
     ``collision`` (capsule rows: self-collision, obstacles, floor), ``sight`` (lines of sight)
     and ``incidence`` (the reflector's acceptance angle, ``g >= lb``), the rows ``g`` of one
-    configuration and ``mapped`` over each size of ``CHUNKS``, ``reach_m`` (rows, n): per row,
+    configuration, ``reach_m`` (rows, n): per row,
     the sum of the bounds R_k of the module docstring of the bodies it keeps apart (0 for rows
     that are not capsule rows), and ``step_m``, the capsules' largest displacement between
     two samples where they touch the clearance."""
 
     g: ca.Function
-    mapped: tuple[ca.Function, ...]
     lb: np.ndarray
     labels: tuple[str, ...]
     collision: np.ndarray
@@ -108,16 +105,7 @@ class MoveRules:
 
     def rows(self, Q: np.ndarray) -> np.ndarray:
         """Every row (k, rows) at the configurations ``Q`` (k, n)."""
-        Q = np.asarray(Q, dtype=float)
-        out, start = [], 0
-        while start < len(Q):
-            size, g = next(((c, g) for c, g in zip(CHUNKS, self.mapped) if c >= len(Q) - start),
-                           (CHUNKS[-1], self.mapped[-1]))
-            part = Q[start:start + size]
-            padded = np.vstack([part, np.repeat(part[-1:], size - len(part), axis=0)])
-            out.append(np.asarray(g(padded.T)).reshape(-1, size).T[:len(part)])
-            start += size
-        return np.vstack(out) if out else np.zeros((0, self.lb.size))
+        return evaluate(self.g, np.asarray(Q, dtype=float))[0][:, :, 0]
 
     def free(self, Q: np.ndarray) -> np.ndarray:
         """Whether each configuration of ``Q`` (k, n) keeps every capsule row (clearance)."""
@@ -137,7 +125,7 @@ def move_rules(problem: Problem) -> MoveRules | None:
     sight = np.array([k >= screen and label.startswith("line of sight") for k, label in enumerate(rules.labels)])
     capsule = index >= screen
     clearance = cell.spec.clearance_m
-    return MoveRules(rules.g, tuple(rules.g.map(c) for c in CHUNKS), rules.lb, rules.labels,
+    return MoveRules(rules.g, rules.lb, rules.labels,
                      index[capsule & ~sight], index[sight], index[(index < screen) & (np.array(rules.units) == "cos")],
                      row_reach(problem, rules.labels),
                      STEP_FRACTION * clearance if clearance > 0 else STEP_WITHOUT_CLEARANCE_M, clearance)
