@@ -361,3 +361,16 @@ def test_programs_of_the_case_studies_test_pose_plans_are_safe_on_the_meshes(pat
             d = np.array(p["positions"]) - Q[p["experiment"] - 1]
             d -= 2 * np.pi * np.where(periodic, np.round(d / (2 * np.pi)), 0)
             assert np.degrees(np.max(np.abs(d))) < READ_BACK_TOL_DEG
+
+
+@pytest.mark.parametrize("fmt, match", [
+    ("gcode", r"--program: unknown format 'gcode'; allowed: urscript, rapid, krl, yaml, json"),
+    ("urscript", r"--program urscript: the controller drives 6 joints, the robot has 2"),
+])
+def test_solve_refuses_a_program_format_before_it_solves(tmp_path, capsys, fmt, match):
+    out = tmp_path / "out"
+    assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--quiet",
+                 "--program", fmt, "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert re.search(match, captured.err) and captured.err.count("\n") == 1
+    assert "max over test poses" not in captured.out and not (out / "results.json").exists()

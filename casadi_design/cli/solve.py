@@ -39,11 +39,10 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = common.output_folder(args, "solve", (PARTIAL_NAME,))
     if args.program:
-        from ..errors import OutputError, ProblemError
-        from ..program.formats import FILES
+        from ..errors import OutputError
+        from ..program.formats import check_format
 
-        if args.program not in FILES:
-            raise ProblemError(f"--program: unknown format '{args.program}'; allowed: {', '.join(FILES)}")
+        check_format(common.load(args), args.program, "--program")  # before anything is solved
         if not out:
             raise OutputError("--program writes into the --out folder; add --out DIR")
     problem, done, fig_m = common.campaign(args, "solve", out / PARTIAL_NAME if out else None)

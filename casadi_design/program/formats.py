@@ -72,14 +72,15 @@ def controller(problem: Problem) -> Controller:
     return Controller(sign, offset)
 
 
-def check_format(problem: Problem, fmt: str) -> None:
-    """Refuse a format unknown or whose controller drives another number of joints."""
+def check_format(problem: Problem, fmt: str, option: str = "--format") -> None:
+    """Refuse a format unknown or whose controller drives another number of joints (``option``:
+    the command-line option that gave it)."""
     if fmt not in FILES:
-        raise ProblemError(f"--format: unknown format '{fmt}'; allowed: {', '.join(FILES)}")
+        raise ProblemError(f"{option}: unknown format '{fmt}'; allowed: {', '.join(FILES)}")
     low, high = AXES[fmt]
     n = problem.robot.n
     if n < low or high is not None and n > high:
-        raise ProblemError(f"--format {fmt}: the controller drives {low if low == high else f'{low} to {high}'} "
+        raise ProblemError(f"{option} {fmt}: the controller drives {low if low == high else f'{low} to {high}'} "
                            f"joints, the robot has {n} ({', '.join(problem.robot.joints)}); use --format json or yaml")
 
 
