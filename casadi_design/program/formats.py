@@ -200,9 +200,8 @@ def trajectory_json(problem: Problem, program: Program, plan: str) -> str:
         "file_order_time_s": program.file_time_s, "file_order_straight_time_s": program.file_straight_s,
         "file_order_blocked_moves": program.file_blocked, "load_changes": program.load_changes,
         "moves": [{"to": "home" if k == len(program.order) else program.order[k], "vias": path.vias,
-                   "time_s": path.time_s, "clearance_mm": min(m.clearance_m for m in path.moves) * 1e3,
-                   "mesh_clearance_mm": min(m.mesh_m for m in path.moves) * 1e3,
-                   "beam_broken": next((m.beam for m in path.moves if m.beam), None)}
+                   "time_s": path.time_s, "clearance_mm": path.clearance_m * 1e3,
+                   "mesh_clearance_mm": path.mesh_m * 1e3, "beam_broken": path.beam}
                   for k, path in enumerate(program.paths)],
     }
     return json.dumps(json_ready(record), indent=2, allow_nan=False) + "\n"

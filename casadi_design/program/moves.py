@@ -286,6 +286,21 @@ class Path:
     def vias(self) -> int:
         return len(self.points) - 2
 
+    @property
+    def clearance_m(self) -> float:
+        """The smallest capsule clearance along the path (m)."""
+        return min(mv.clearance_m for mv in self.moves)
+
+    @property
+    def mesh_m(self) -> float:
+        """The smallest mesh distance at the moves' closest samples (m)."""
+        return min(mv.mesh_m for mv in self.moves)
+
+    @property
+    def beam(self) -> str | None:
+        """The first tracker beam the path breaks on its way (None: kept)."""
+        return next((mv.beam for mv in self.moves if mv.beam), None)
+
 
 class NoSafePath(Exception):
     """No detour was found; the caller names the move."""
