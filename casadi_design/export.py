@@ -50,6 +50,12 @@ def joint_units(problem: Problem, k: int) -> tuple[str, str, float]:
     return ("m", "mm", 1e-3) if is_prismatic(problem, k) else ("rad", "deg", math.pi / 180)
 
 
+def joint_scales(problem: Problem) -> np.ndarray:
+    """SI per people's unit of every joint of the chain (:func:`joint_units`), shape (n,):
+    pi / 180 (rad per deg) or 1e-3 (m per mm)."""
+    return np.array([joint_units(problem, k)[2] for k in range(problem.robot.n)])
+
+
 def force_columns(problem: Problem) -> list[str]:
     """Column names of the load components: ``fx_N``..., ``mx_Nm``..."""
     return [f"{WRENCH_ROWS[r]}_{'N' if WRENCH_ROWS[r][0] == 'f' else 'Nm'}"

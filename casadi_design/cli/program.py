@@ -55,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def home_pose(problem, text: str | None) -> np.ndarray:
     """The home pose (n,), rad: ``--home`` (deg, mm) or the default of ``--help``."""
     from ..errors import ProblemError
-    from ..export import joint_units
+    from ..export import joint_scales
     from ..rules import joint_limits
 
     n = problem.robot.n
@@ -70,7 +70,7 @@ def home_pose(problem, text: str | None) -> np.ndarray:
         raise ProblemError(f"--home: '{text}' is not {n} joint values; give one value in deg (mm for prismatic "
                            f"joints) per joint of the chain ({', '.join(problem.robot.joints)}), e.g. --home "
                            + ",".join(["0"] * n))
-    return np.array(values) * np.array([joint_units(problem, k)[2] for k in range(n)])
+    return np.array(values) * joint_scales(problem)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from ..export import csv_text, is_prismatic, joint_units, plan_table
+from ..export import csv_text, is_prismatic, joint_scales, joint_units, plan_table
 from .calibrate import CORRELATION_LIMIT, Calibration
 from .fit import ABSORB_SEED, FRAME_PARAMETERS, error_placement
 
@@ -56,7 +56,7 @@ def compensated_table(calibration: Calibration) -> tuple[list[str], list[list]]:
     header, rows = plan_table(problem, calibration.q_compensated, tp.F)
     header = header[: len(rows[0])]  # no clearance columns: the test poses were not checked
     changes = [f"{j}_change_{joint_units(problem, k)[1]}" for k, j in enumerate(problem.robot.joints)]
-    scale = np.array([joint_units(problem, k)[2] for k in range(problem.robot.n)])
+    scale = joint_scales(problem)
     delta = (calibration.q_compensated - tp.q) / scale
     return (header + changes + ["converged"],
             [r + list(d) + [bool(c)] for r, d, c in zip(rows, delta, calibration.compensation_converged)])

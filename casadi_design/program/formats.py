@@ -30,7 +30,7 @@ import numpy as np
 
 from ..build import Problem
 from ..errors import ProblemError
-from ..export import joint_units
+from ..export import joint_scales
 from ..files import json_ready
 from .sequence import Point, Program
 
@@ -68,7 +68,7 @@ def controller(problem: Problem) -> Controller:
     if spec is not None and spec.signs is not None:
         sign = np.array(spec.signs, dtype=float)
     if spec is not None and spec.offsets_deg is not None:
-        offset = np.array(spec.offsets_deg) * np.array([joint_units(problem, k)[2] for k in range(n)])
+        offset = np.array(spec.offsets_deg) * joint_scales(problem)
     return Controller(sign, offset)
 
 
@@ -139,7 +139,7 @@ def _name(p: Point, vias: dict[int, int]) -> str:
 
 def rapid(problem: Problem, program: Program, plan: str) -> str:
     ctrl, vias = controller(problem), _vias(program)
-    people = [joint_units(problem, k)[2] for k in range(problem.robot.n)]
+    people = joint_scales(problem)
     lines = ["MODULE Calibration"] + ["  " + h for h in _header(problem, program, "!", plan)]
     lines.append("  ! jointtarget in deg (controller convention); unused axes 0, no external axes (9E9)")
     seen = set()
@@ -162,7 +162,7 @@ def rapid(problem: Problem, program: Program, plan: str) -> str:
 
 def krl(problem: Problem, program: Program, plan: str) -> str:
     ctrl, vias = controller(problem), _vias(program)
-    people = [joint_units(problem, k)[2] for k in range(problem.robot.n)]
+    people = joint_scales(problem)
     name = _identifier(problem.name)[:24]
     lines = [f"DEF {name}()"] + ["  " + h for h in _header(problem, program, ";", plan)]
     lines += ["  ; axis values in deg (controller convention); PTP at the axis speeds BAS(#INITMOV) sets",

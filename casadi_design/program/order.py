@@ -29,7 +29,7 @@ import numpy as np
 
 from ..build import Problem
 from ..errors import ProblemError
-from ..export import joint_units
+from ..export import joint_scales
 from ..problem import ControllerSpec
 
 #: Speed (rad/s, m/s) of a joint without a velocity limit in its model or problem file.
@@ -88,7 +88,7 @@ def time_model(problem: Problem) -> TimeModel:
         if given.size != n:
             raise ProblemError(f"{problem.path}: [robot].joint_speeds_deg_s: has {given.size} values, the "
                                f"chain has {n} joints ({', '.join(robot.joints)}); give one speed per joint in deg/s")
-        speed = given * np.array([joint_units(problem, k)[2] for k in range(n)])
+        speed = given * joint_scales(problem)
         source = "[robot].joint_speeds_deg_s"
     else:
         limit = np.array([robot.model.velocityLimit[robot.model.joints[j].idx_v] for j in robot.joint_ids])
