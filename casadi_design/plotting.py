@@ -87,7 +87,8 @@ def draw_errors_per_pose(ax: Axes, bars: list[tuple[str, dict, np.ndarray]], yla
     ax.set_xlabel("test pose (one group per pose, in file order)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3, axis="y")
-    ax.legend(fontsize=8, loc="best")
+    # below the axes, in rows: the groups fill the width, so no corner is free of bars
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=min(3, len(bars)))
 
 
 def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], xlabel: str,
