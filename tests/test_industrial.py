@@ -279,7 +279,8 @@ def test_case_study_test_pose_beats_classical_plans(case, m):
     """On the case study at its smallest m, the test-pose plan is at least as accurate along
     the test poses as the D-, A- and E-optimal plans (few starts to stay fast)."""
     p = load_problem(ROOT / "problems" / case)
-    best = solve_design(p, "test-pose", m, starts=1).scores.max_rms_error_m
+    # two seeded starts: the ABB's first at m = 6 ends at max_iter (3000), the second converges
+    best = solve_design(p, "test-pose", m, starts=2).scores.max_rms_error_m
     for c in ("D", "A", "E"):
         try:
             other = solve_design(p, c, m, starts=1).scores.max_rms_error_m
