@@ -545,20 +545,35 @@ def approximate_one(problem: Problem, criterion: str, steps: int, pool: int) -> 
                               sample_size=pool * SAMPLE_SIZE // POOL_SIZE)
 
 
+def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE
+             ) -> tuple[dict[str, ApproximateDesign], list[str]]:
+    """Of the approximate designs of ``criteria`` that have a bound (none when ``steps`` is 0):
+    those computed in this process already, and the criteria still to compute."""
+    wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
+    have = {c: _COMPUTED[problem.digest, c, steps, pool] for c in wanted
+            if (problem.digest, c, steps, pool) in _COMPUTED}
+    return have, [c for c in wanted if c not in have]
+
+
+def keep(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> None:
+    """Keep ``approx`` (of ``problem`` with ``steps`` and ``pool``) for the commands that run
+    after this one in this process (:func:`computed`)."""
+    _COMPUTED[problem.digest, approx.criterion, steps, pool] = approx
+    while len(_COMPUTED) > KEEP_COMPUTED:
+        _COMPUTED.pop(next(iter(_COMPUTED)))
+
+
 def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,
                         executor=None) -> dict[str, ApproximateDesign]:
     """The approximate design (:func:`approximate_one`) of each of ``criteria`` that has a
     bound; none when ``steps`` is 0. ``executor`` (:mod:`casadi_design.parallel`) computes
     those not computed yet in this process at the same time, one per worker; None: here, one
     after the other. The result is the same either way."""
-    wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
-    key = {c: (problem.digest, c, steps, pool) for c in wanted}
-    missing = [c for c in wanted if key[c] not in _COMPUTED]
+    have, missing = computed(problem, criteria, steps, pool)
     if missing:
         found = (executor.map_approximate(problem, missing, steps, pool) if executor is not None
                  else (approximate_one(problem, c, steps, pool) for c in missing))
-        for c, a in zip(missing, found):
-            _COMPUTED[key[c]] = a
-        while len(_COMPUTED) > KEEP_COMPUTED:
-            _COMPUTED.pop(next(iter(_COMPUTED)))
-    return {c: _COMPUTED[key[c]] for c in wanted}
+        for a in found:
+            keep(problem, steps, pool, a)
+            have[a.criterion] = a
+    return {c: have[c] for c in criteria if c in have}

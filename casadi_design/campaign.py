@@ -12,12 +12,22 @@ and it carries the certified bound of its criterion for m experiments
 (:func:`casadi_design.bound.bound`). Every command that designs plans (``solve``, ``sweep``,
 ``validate`` without ``--results``, and what comes) calls :func:`run_campaign`, so the same
 problem and settings give the same plans whichever command solved them.
+
+On workers (:mod:`casadi_design.parallel`) the campaign is a pipeline (:class:`_Pipeline`):
+the approximate designs and the starts of every design are tasks, handed out as workers free
+up, so the seeded starts of later designs fill the time in which a design waits for its
+approximate design, its last start or the design before it. Serially, the designs are solved
+one after the other. Both give the same designs: each start and each approximate design is a
+pure function of its arguments, and a design is judged on its starts in their order.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+
+import numpy as np
 
 from .bound import (
     BOUND_STEPS,
@@ -27,14 +37,16 @@ from .bound import (
     ApproximateDesign,
     approximate_designs,
     bound,
+    computed,
+    keep,
     rounded_plans,
 )
 from .build import Problem
-from .criteria import CRITERIA
-from .design import Design
+from .criteria import BOUND_CRITERIA, CRITERIA
+from .design import SEEDED, Design
 from .errors import ProblemError
 from .nlp import B0_at_test_poses
-from .solve import StartExecutor, solve_design
+from .solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
 
 #: Extra starts of a design: ``(criterion, m, designs so far) -> [(Q0, F0, origin), ...]``.
 ExtraStarts = Callable[[str, int, dict[tuple[str, int], Design]], list[tuple]]
@@ -107,10 +119,14 @@ def approximate(problem: Problem, criteria: Iterable[str], settings: Settings,
     return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool, executor)
 
 
-def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings,
-                 approx: dict[str, ApproximateDesign]) -> int:
+def has_bound(criterion: str, settings: Settings) -> bool:
+    """Whether the designs of ``criterion`` carry a bound and rounded starts."""
+    return criterion in BOUND_CRITERIA and settings.bound_steps > 0
+
+
+def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings) -> int:
     """IPOPT starts of a campaign (for progress bars), the caller's extra starts left out."""
-    per_m = sum(settings.starts + (ROUNDED_PLANS if c in approx else 0) for c in criteria)
+    per_m = sum(settings.starts + (ROUNDED_PLANS if has_bound(c, settings) else 0) for c in criteria)
     return len(m_values) * per_m
 
 
@@ -142,9 +158,16 @@ def run_campaign(
     criteria, ms = tuple(criteria), tuple(sorted(set(m_values)))
     check_criteria(problem, criteria)
     check_m_values(problem, ms)
-    approx = approximate(problem, criteria, settings, executor) if approx is None else approx
     designs: dict[tuple[str, int], Design] = dict(done or {})
     B0 = B0_at_test_poses(problem)
+    if executor is not None and hasattr(executor, "run"):
+        pipeline = _Pipeline(problem, criteria, ms, settings, B0, designs, approx, extra_starts,
+                             on_design, progress)
+        for task, result in executor.run(pipeline):
+            pipeline.returned(task, result)
+        return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria},
+                        {c: pipeline.approx[c] for c in criteria if c in pipeline.approx})
+    approx = approximate(problem, criteria, settings, executor) if approx is None else approx
     for m in ms:
         for c in criteria:
             if (c, m) in designs:
@@ -161,3 +184,118 @@ def run_campaign(
             if on_design is not None:
                 on_design(d)
     return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
+
+
+@dataclass(eq=False)
+class _Starts:
+    """The starts of one design of a pipelined campaign: its plans and their origins (the
+    seeded ones first; the extra and rounded ones once ``complete``), how many were handed
+    out, their results by index and when the first was handed out."""
+
+    criterion: str
+    m: int
+    plans: list[StartPlan]
+    origins: list[str]
+    complete: bool = False
+    given: int = 0
+    results: dict[int, StartResult] = field(default_factory=dict)
+    t0: float | None = None
+
+
+class _Pipeline:
+    """The campaign's work as tasks for the workers (:meth:`casadi_design.parallel._Workers.run`),
+    so that no worker waits while another finishes a design: the approximate designs first
+    (they take longest and the rounded starts wait for them), then the starts of each design
+    in campaign order. The seeded starts of later designs run while a design waits for its
+    rounded starts (its approximate design) or for its extra starts (which are asked for once
+    every design before it is finished). Designs are finished, bounded and passed to
+    ``on_design`` in campaign order (:func:`casadi_design.solve.best_design`): the same designs
+    as one after the other, since each start and approximate design is a pure function of its
+    arguments."""
+
+    def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
+                 settings: Settings, B0: np.ndarray, designs: dict, approx: dict | None,
+                 extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None):
+        from .parallel import ProblemRef, Task, run_approximate, run_start
+
+        self._Task, self._run_start = Task, run_start
+        self.problem, self.settings, self.B0, self.designs = problem, settings, B0, designs
+        self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
+        self.ref = ProblemRef.of(problem)
+        steps, pool = settings.bound_steps, settings.bound_pool
+        if approx is None:
+            self.approx, missing = computed(problem, criteria, steps, pool)
+        else:
+            self.approx, missing = dict(approx), []
+        self.todo = [_Starts(c, m, seeded_plans(problem, c, m, settings.starts), [])
+                     for m in ms for c in criteria if (c, m) not in designs]
+        for d in self.todo:
+            d.origins = [SEEDED] * len(d.plans)
+        for m in ms:
+            for c in criteria:
+                if (c, m) in designs and progress is not None:
+                    progress(len(designs[c, m].starts))
+        self.pending = [Task(run_approximate, (self.ref, c, steps, pool), f"the approximate design of {c}")
+                        for c in missing]
+        self.waiting = dict(zip(self.pending, missing))
+        self.starts: dict = {}  # task -> (its design, the index of its plan)
+        self.finished = 0  # designs of ``todo`` finished, in order
+
+    def _completed(self, k: int, d: _Starts) -> bool:
+        """Append the extra and rounded starts of design ``k`` once their inputs are there."""
+        if d.complete:
+            return True
+        c, m = d.criterion, d.m
+        if has_bound(c, self.settings) and c not in self.approx:
+            return False
+        if self.extra_starts is not None and self.finished < k:
+            return False
+        extra = self.extra_starts(c, m, self.designs) if self.extra_starts is not None else []
+        rounded = ([(Q, F, ROUNDED) for Q, F in rounded_plans(self.problem, self.approx[c], m)]
+                   if c in self.approx else [])
+        plans, origins = initial_starts(self.problem, m, extra + rounded)
+        d.plans += plans
+        d.origins += origins
+        d.complete = True
+        return True
+
+    def take(self, k: int) -> list:
+        out, self.pending = self.pending[:k], self.pending[k:]
+        for i, d in enumerate(self.todo[self.finished:], start=self.finished):
+            if len(out) >= k:
+                break
+            self._completed(i, d)
+            while d.given < len(d.plans) and len(out) < k:
+                Q0, F0 = d.plans[d.given]
+                task = self._Task(self._run_start, (self.ref, d.criterion, d.m, self.B0, Q0, F0,
+                                                    self.settings.verbose),
+                                  f"criterion {d.criterion}, m = {d.m}")
+                self.starts[task] = (d, d.given)
+                d.t0 = time.perf_counter() if d.t0 is None else d.t0
+                d.given += 1
+                out.append(task)
+        return out
+
+    def returned(self, task, result) -> None:
+        """Take the result of ``task``; finish the designs whose every start returned."""
+        if task in self.waiting:
+            c = self.waiting.pop(task)
+            keep(self.problem, self.settings.bound_steps, self.settings.bound_pool, result)
+            self.approx[c] = result
+        else:
+            d, i = self.starts.pop(task)
+            d.results[i] = result
+            if self.progress is not None:
+                self.progress(1)
+        while self.finished < len(self.todo):
+            d = self.todo[self.finished]
+            if not (self._completed(self.finished, d) and len(d.results) == len(d.plans)):
+                break
+            design = best_design(self.problem, d.criterion, d.m, (d.results[i] for i in range(len(d.plans))),
+                                 d.origins, d.t0)
+            if d.criterion in self.approx:
+                design = replace(design, bound=bound(self.problem, d.m, self.approx[d.criterion]))
+            self.designs[d.criterion, d.m] = design
+            self.finished += 1
+            if self.on_design is not None:
+                self.on_design(design)

@@ -79,7 +79,8 @@ class Design:
     scores : every measure of the plan.
     status : IPOPT status of the winning start.
     starts : every start, in the order run.
-    wall_s : wall time of the multi-start solve, s.
+    wall_s : wall time of the multi-start solve, s: from its first start sent until it is
+        judged (on workers, the starts of other designs run in between).
     seed : ``[solver].seed`` of the problem the starts were drawn with.
     bound : the certified bound of the criterion for m experiments, when it was computed.
     clearances : with a ``[cell]``, each experiment's clearance on the real geometry

@@ -5,8 +5,13 @@ An executor sends each start to a worker as plain data: the problem's checked da
 ``(Q0, F0)`` (Q0 (m, n), rad; F0 (m, nF), N). The worker builds the problem and the design NLP once (cached per process) and runs
 :func:`casadi_design.solve.solve_start`, the same code the serial loop runs, so a start gives
 the same numbers wherever it runs. The seeded start plans are drawn by the caller
-(:func:`casadi_design.solve.solve_design`), never by a worker, so results do not depend on
+(:func:`casadi_design.solve.seeded_plans`), never by a worker, so results do not depend on
 the number of workers.
+
+An executor runs tasks (:class:`Task`) at most one per worker at a time, the most urgent ready
+one first (:meth:`_Workers.run`): a campaign hands it the approximate designs and the starts
+of all its designs (:mod:`casadi_design.campaign`), so no worker waits for another to finish
+a design.
 
 Executors (context managers; ``None`` means serial, in this process):
 
@@ -27,10 +32,10 @@ import signal
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import InvalidStateError, ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, InvalidStateError, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from typing import Any, Self
+from typing import Any, Protocol, Self
 
 import numpy as np
 
@@ -45,9 +50,6 @@ from .solve import StartPlan, StartResult, make_design_solver, solve_start
 DASK_CONNECT_TIMEOUT_S = 5.0
 #: Problems (and their solvers) kept per worker process.
 CACHE_PROBLEMS = 4
-#: Times the starts of a design run again on fresh workers after a worker process was lost
-#: (a start is a pure function of its plan: the result is the same).
-RETRIES = 1
 
 
 class WorkerLost(DesignError):
@@ -129,13 +131,96 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+@dataclass(frozen=True, eq=False)
+class Task:
+    """One call for a worker, ``fn(*args)``; ``what`` names the work in the message of a lost
+    worker (e.g. "criterion D, m = 2")."""
+
+    fn: Callable
+    args: tuple
+    what: str
+
+
+class TaskSource(Protocol):
+    """What :meth:`_Workers.run` runs: ``take(k)`` hands over up to k of the tasks that can
+    run now, the most urgent first (none: nothing is ready until a running task returns)."""
+
+    def take(self, k: int) -> list[Task]: ...
+
+
+@dataclass(eq=False)
+class _Queue:
+    """A :class:`TaskSource` of tasks known in advance, in their order."""
+
+    tasks: list[Task]
+
+    def take(self, k: int) -> list[Task]:
+        out, self.tasks = self.tasks[:k], self.tasks[k:]
+        return out
+
+
 class _Workers:
-    """What an executor runs on its workers, through its own ``_map(fn, calls, what)``:
-    ``fn(*args)`` for each of ``calls``, results in their order (``what`` names the work in the
-    message of a lost worker)."""
+    """What an executor runs on its workers: :meth:`run` keeps each worker busy with the most
+    urgent task that is ready; :meth:`_map` runs calls known in advance, results in their
+    order. A subclass gives ``slots`` (tasks at once), ``_submit(task) -> handle``,
+    ``_finished(handles) -> the handles done`` and ``_result(handle, task)`` (raises
+    :class:`BrokenProcessPool` when a local worker process died), ``_restart()`` and
+    ``_cancel(handles)``."""
+
+    slots: int = 1
+
+    def run(self, source: TaskSource) -> Iterator[tuple[Task, Any]]:
+        """Run the tasks of ``source``, at most ``slots`` at a time, and yield ``(task,
+        result)`` as each returns; ``source`` is asked for more whenever a worker is free (a
+        task whose inputs just returned goes before less urgent ones). Ends when nothing is
+        ready and nothing runs.
+
+        When a local worker process dies, the tasks that ran then run once more, one at a time
+        on fresh workers (a task is a pure function of its arguments: the result is the same),
+        so that the one that kills its worker is known: a task lost again raises
+        :class:`WorkerLost` naming its ``what``. (A Dask scheduler reschedules a lost task
+        itself.)"""
+        running: dict[Any, Task] = {}
+        slots = self.slots
+        try:
+            while True:
+                if len(running) < slots:
+                    for task in source.take(slots - len(running)):
+                        running[self._submit(task)] = task
+                if not running:
+                    return
+                broken = False
+                for handle in self._finished(list(running)):
+                    try:
+                        result = self._result(handle, running[handle])
+                    except BrokenProcessPool:
+                        broken = True
+                        continue
+                    yield running.pop(handle), result
+                if broken:  # every task that ran, again, alone: which one kills its worker?
+                    again, running = list(running.values()), {}
+                    self._restart()
+                    for task in again:
+                        yield task, self._alone(task)
+        finally:
+            self._cancel(list(running))
+
+    def _alone(self, task: Task) -> Any:
+        """``task`` run again on fresh workers, alone (after a lost worker)."""
+        raise NotImplementedError
 
     def _map(self, fn: Callable, calls: Sequence[tuple], what: str) -> Iterator[Any]:
-        raise NotImplementedError
+        """``fn(*args)`` for each of ``calls``, results in their order as soon as they are
+        (:meth:`run`)."""
+        tasks = [Task(fn, args, what) for args in calls]
+        index = {t: k for k, t in enumerate(tasks)}
+        done: dict[int, Any] = {}
+        first = 0
+        for task, result in self.run(_Queue(list(tasks))):
+            done[index[task]] = result
+            while first in done:
+                yield done.pop(first)
+                first += 1
 
     def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
@@ -185,31 +270,38 @@ class ProcessExecutor(_Workers):
         """The pool's worker processes (``multiprocessing.Process``), to read how one ended."""
         return list((getattr(self._pool, "_processes", None) or {}).values())
 
-    def _map(self, fn: Callable, calls: Sequence[tuple], what: str) -> Iterator[Any]:
-        """``fn(*args)`` for each of ``calls`` on the workers, results in their order. When a
-        worker process dies, the pool is started again and the calls not yet returned run
-        once more (``RETRIES``); when it dies again, :class:`WorkerLost` naming ``what``."""
-        done, lost = 0, 0
-        while done < len(calls):
-            futures = [self._pool.submit(fn, *args) for args in calls[done:]]
-            workers = self._processes()
-            try:
-                for f in futures:
-                    result = f.result()
-                    done += 1
-                    yield result
-            except BrokenProcessPool:
-                lost += 1
-                self._pool.shutdown(wait=True, cancel_futures=True)
-                # the pool ends the other workers with SIGTERM once one is lost: name the first cause
-                codes = sorted((p.exitcode for p in workers if p.exitcode not in (None, 0)),
-                               key=lambda c: c == -signal.SIGTERM)
-                if lost > RETRIES:
-                    raise _lost(what, _signal_name(codes[0] if codes else None) + ", twice") from None
-                self._pool = self._new_pool()
-            finally:
-                for f in futures:
-                    f.cancel()
+    @property
+    def slots(self) -> int:
+        return self.jobs
+
+    def _submit(self, task: Task) -> Any:
+        return self._pool.submit(task.fn, *task.args)
+
+    def _finished(self, handles: list) -> list:
+        done = wait(handles, return_when=FIRST_COMPLETED)[0]
+        return [h for h in handles if h in done]  # in the order they were sent
+
+    def _result(self, handle: Any, task: Task) -> Any:
+        return handle.result()
+
+    def _restart(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pool = self._new_pool()
+
+    def _cancel(self, handles: list) -> None:
+        for f in handles:
+            f.cancel()
+
+    def _alone(self, task: Task) -> Any:
+        workers = self._processes()
+        try:
+            return self._pool.submit(task.fn, *task.args).result()
+        except BrokenProcessPool:
+            self._restart()  # the old workers are joined: their exit codes are known
+            # the pool ends the other workers with SIGTERM once one is lost: name the first cause
+            codes = sorted((p.exitcode for p in workers if p.exitcode not in (None, 0)),
+                           key=lambda c: c == -signal.SIGTERM)
+            raise _lost(task.what, _signal_name(codes[0] if codes else None) + ", twice") from None
 
     def close(self, interrupted: bool = False) -> None:
         """Shut the pool down; after Ctrl-C, end the workers at once (their starts are lost
@@ -278,19 +370,33 @@ class DaskExecutor(_Workers):
                     "or start one with `dask scheduler`") from None
             self._own = True
 
-    def _map(self, fn: Callable, calls: Sequence[tuple], what: str) -> Iterator[Any]:
-        """``fn(*args)`` for each of ``calls`` on the cluster, results in their order."""
+    @property
+    def slots(self) -> int:
+        """The cluster's worker threads (one task each), when the work is handed out."""
+        return max(1, sum(self.client.nthreads().values()))
+
+    def _submit(self, task: Task) -> Any:
+        return self.client.submit(task.fn, *task.args, pure=False)
+
+    def _finished(self, handles: list) -> list:
+        from distributed import wait as dask_wait
+
+        done = dask_wait(handles, return_when="FIRST_COMPLETED").done
+        return [h for h in handles if h in done]
+
+    def _result(self, handle: Any, task: Task) -> Any:
         from distributed import KilledWorker
 
-        futures = [self.client.submit(fn, *args, pure=False) for args in calls]
         try:
-            for f in futures:
-                try:
-                    yield f.result()
-                except KilledWorker:
-                    raise _lost(what, "went away each time the Dask scheduler gave it this work") from None
-        finally:
-            self.client.cancel([f for f in futures if not f.done()])
+            return handle.result()
+        except KilledWorker:  # the scheduler gave the task to workers that died, each time
+            raise _lost(task.what, "went away each time the Dask scheduler gave it this work") from None
+
+    def _restart(self) -> None:
+        pass
+
+    def _cancel(self, handles: list) -> None:
+        self.client.cancel([f for f in handles if not f.done()])
 
     def close(self) -> None:
         if self._own:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -331,6 +331,30 @@ def _grown(rules: PoseConstraints, Q: np.ndarray, active: np.ndarray, status: st
     return np.column_stack([codes // R, codes % R]), "warm" if clear else "resumed"
 
 
+def seeded_plans(problem: Problem, criterion: str, m: int, starts: int | None = None) -> list[StartPlan]:
+    """The ``starts`` (default ``[solver].starts``) seeded random start plans of a design, from
+    :func:`start_rng`: they depend on the seed, the criterion and m only."""
+    rng = start_rng(problem.solver.seed, criterion, m)
+    return [random_plan(problem, m, rng) for _ in range(starts or problem.solver.starts)]
+
+
+def initial_starts(problem: Problem, m: int, initial_plans: Sequence[tuple]) -> tuple[list[StartPlan], list[str]]:
+    """Extra starts ``(Q0, F0)`` or ``(Q0, F0, origin)`` as start plans and their origins
+    ("initial plan" when not given); raises ValueError for a plan of the wrong shape."""
+    plans, origins = [], []
+    for k, (Q0, F0, *origin) in enumerate(initial_plans):
+        origins.append(origin[0] if origin else "initial plan")
+        Q0, F0 = np.asarray(Q0, dtype=float), np.asarray(F0, dtype=float)
+        F0 = F0.reshape(m, 0) if F0.size == 0 and problem.model.nF == 0 else F0
+        if Q0.shape != (m, problem.robot.n) or F0.shape != (m, problem.model.nF):
+            raise ValueError(
+                f"solve_design: initial plan {k} has Q of shape {Q0.shape} and F of shape "
+                f"{F0.shape}; expected ({m}, {problem.robot.n}) and ({m}, {problem.model.nF})"
+            )
+        plans.append((Q0, F0))
+    return plans, origins
+
+
 def solve_design(
     problem: Problem,
     criterion: str,
@@ -345,10 +369,10 @@ def solve_design(
 ) -> Design:
     """Best plan of ``m`` experiments for ``criterion`` over the multi-start.
 
-    The ``starts`` seeded random plans are drawn first (from :func:`start_rng`, so they do not
+    The ``starts`` seeded random plans are drawn first (:func:`seeded_plans`, so they do not
     depend on ``initial_plans`` or ``executor``); the ``initial_plans`` run after them as
     additional starts. Starts are judged in that order and a later start wins only when it is
-    strictly better, so extra starts can only improve the seeded result.
+    strictly better (:func:`best_design`), so extra starts can only improve the seeded result.
 
     Parameters
     ----------
@@ -366,29 +390,38 @@ def solve_design(
     """
     B0 = B0_at_test_poses(problem) if B0 is None else B0
     t0 = time.perf_counter()
-    rng = start_rng(problem.solver.seed, criterion, m)
-    plans = [random_plan(problem, m, rng) for _ in range(starts or problem.solver.starts)]
-    origins = [SEEDED] * len(plans)
-    for k, (Q0, F0, *origin) in enumerate(initial_plans):
-        origins.append(origin[0] if origin else "initial plan")
-        Q0, F0 = np.asarray(Q0, dtype=float), np.asarray(F0, dtype=float)
-        F0 = F0.reshape(m, 0) if F0.size == 0 and problem.model.nF == 0 else F0
-        if Q0.shape != (m, problem.robot.n) or F0.shape != (m, problem.model.nF):
-            raise ValueError(
-                f"solve_design: initial plan {k} has Q of shape {Q0.shape} and F of shape "
-                f"{F0.shape}; expected ({m}, {problem.robot.n}) and ({m}, {problem.model.nF})"
-            )
-        plans.append((Q0, F0))
+    plans = seeded_plans(problem, criterion, m, starts)
+    extra, extra_origins = initial_starts(problem, m, initial_plans)
+    plans, origins = plans + extra, [SEEDED] * len(plans) + extra_origins
     if executor is None:
         ds = make_design_solver(problem, criterion, m, B0, verbose)
         results = (solve_start(problem, ds, B0, Q0, F0) for Q0, F0 in plans)
     else:
         results = executor.map_starts(problem, criterion, m, B0, plans, verbose)
+
+    def counted():
+        for r in results:
+            if progress is not None:
+                progress(1)
+            yield r
+
+    return best_design(problem, criterion, m, counted(), origins, t0)
+
+
+def best_design(problem: Problem, criterion: str, m: int, results: Iterable[StartResult],
+                origins: Sequence[str], t0: float) -> Design:
+    """The design of the starts' ``results`` (in the order of their plans, labelled by
+    ``origins``): the first converged feasible start that no later one beats strictly, by the
+    criterion's own score; ``t0``: ``time.perf_counter()`` when its first start was sent.
+
+    Raises
+    ------
+    DesignError
+        When no start converged to a feasible plan (the message lists the IPOPT statuses).
+    """
     crit = CRITERIA[criterion]
     records, best, why = [], None, []
     for (rec, Q, F, scores), origin in zip(results, origins):
-        if progress is not None:
-            progress(1)
         rec = dataclasses.replace(rec, origin=origin)
         records.append(rec)
         why.append("" if rec.feasible else " (singular M: the plan does not identify every parameter)"

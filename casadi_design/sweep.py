@@ -122,13 +122,12 @@ def run_sweep(
 
 
 def sweep_total_starts(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],
-                       settings: Settings, warm_start: bool = True,
-                       approx: dict[str, ApproximateDesign] | None = None) -> int:
+                       settings: Settings, warm_start: bool = True) -> int:
     """Number of IPOPT starts a sweep runs (for progress bars), reference design included."""
-    criteria, ms, approx = tuple(criteria), sorted(set(m_values)), approx or {}
-    total = total_starts(criteria, ms, settings, approx) + (len(ms) - 1) * len(criteria) * warm_start
+    criteria, ms = tuple(criteria), sorted(set(m_values))
+    total = total_starts(criteria, ms, settings) + (len(ms) - 1) * len(criteria) * warm_start
     if "test-pose" in criteria and problem.m_min not in ms:
-        total += total_starts(("test-pose",), (problem.m_min,), settings, approx)
+        total += total_starts(("test-pose",), (problem.m_min,), settings)
     return total
 
 

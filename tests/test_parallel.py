@@ -15,6 +15,7 @@ from casadi_design.parallel import (
     run_start,
 )
 from casadi_design.solve import solve_design
+from casadi_design.bound import ROUNDED
 from casadi_design.campaign import Settings
 from casadi_design.sweep import run_sweep
 from tests.conftest import PAPER
@@ -63,6 +64,26 @@ def test_sweep_on_processes_equals_serial_sweep(paper):
     for key, d in plain.designs.items():
         _assert_same(pooled.designs[key], d)
     _assert_same(pooled.reference, plain.reference)
+
+
+def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch):
+    """On workers the campaign is a pipeline (the approximate designs, the seeded starts of
+    later designs, the rounded and warm starts once their inputs returned): the same designs,
+    starts and bounds as one design after the other."""
+    from casadi_design import bound
+
+    args = (paper, ["test-pose", "D"], [1, 2, 3], Settings(2, bound_steps=2))
+    monkeypatch.setattr(bound, "_COMPUTED", {})
+    plain = run_sweep(*args)
+    monkeypatch.setattr(bound, "_COMPUTED", {})  # computed again, on the workers
+    with ProcessExecutor(2) as ex:
+        pooled = run_sweep(*args, executor=ex)
+    assert list(pooled.designs) == list(plain.designs)
+    for key, d in plain.designs.items():
+        _assert_same(pooled.designs[key], d)
+        assert [s.origin for s in pooled.designs[key].starts] == [s.origin for s in d.starts]
+        assert pooled.designs[key].bound == d.bound
+    assert {s.origin for s in plain.designs["D", 3].starts} == {"seeded", "warm start", ROUNDED}
 
 
 def test_worker_builds_the_problem_from_its_plain_data(paper, serial):

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,6 @@ from ..build import Problem
 from ..campaign import (
     Campaign,
     Settings,
-    approximate,
     campaign_key,
     check_criteria,
     check_m_values,
@@ -231,16 +229,12 @@ def plan_request(args: argparse.Namespace, problem: Problem, all_m: bool = False
     return criteria, ms, settings
 
 
-def approximate_timed(args: argparse.Namespace, problem: Problem, criteria: list[str], settings: Settings,
-                      ex=None) -> dict:
-    """The approximate designs (:func:`casadi_design.campaign.approximate`, on the workers of
-    the executor ``ex``), with a line saying how long they took."""
-    t0 = time.perf_counter()
-    approx = approximate(problem, criteria, settings, ex)
+def say_approximate(args: argparse.Namespace, approx: dict) -> None:
+    """A line saying how long each approximate design took (on a worker, beside the starts)."""
     if approx:
-        say(args, f"approximate designs of {', '.join(approx)}: {time.perf_counter() - t0:.1f} s "
+        say(args, f"approximate designs of {', '.join(approx)}: "
+                  f"{', '.join(f'{a.wall_s:.1f}' for a in approx.values())} s "
                   f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})")
-    return approx
 
 
 def output_folder(args: argparse.Namespace, command: str, resume_files: tuple[str, ...] = ()) -> Path | None:
@@ -298,11 +292,11 @@ def campaign(args: argparse.Namespace, label: str,
         done = Finished.resumed(args, problem, campaign_key(problem, criteria, ms, settings), partial,
                                 () if partial is None else ((partial.name, ("key",)),), total)
         saved = dict(done.designs)
-        approx = approximate_timed(args, problem, criteria, settings, ex)
-        bar = progress_bar(total_starts(criteria, ms, settings, approx), label, args.quiet)
+        bar = progress_bar(total_starts(criteria, ms, settings), label, args.quiet)
         with keeping(partial, lambda: len(done.designs), total), bar:
-            result = run_campaign(problem, criteria, ms, settings, approx=approx, executor=ex,
+            result = run_campaign(problem, criteria, ms, settings, executor=ex,
                                   done=saved, on_design=done.save, progress=bar.update)
+    say_approximate(args, result.approx)
     return problem, result, panels
 
 

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from ..build import Problem
-from ..campaign import campaign_key
+from ..campaign import approximate, campaign_key
 from ..files import write_atomic
 from ..sweep import PARTIAL_NAME, RESUME_FILES, RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
 from ..tables import format_sweep_table
@@ -58,11 +58,12 @@ def run(args: argparse.Namespace) -> int:
 
     with common.keeping(partial, lambda: len(finished.designs), len(ms) * len(criteria)), \
             common.executor(args) as executor:
-        approx = common.approximate_timed(args, problem, criteria, settings, executor)
-        bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm, approx), "sweep", args.quiet)
+        bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm), "sweep", args.quiet)
         with bar:
             sweep = run_sweep(problem, criteria, ms, settings, warm_start=warm, done=done,
-                              executor=executor, progress=bar.update, on_design=save, approx=approx)
+                              executor=executor, progress=bar.update, on_design=save)
+    approx = approximate(problem, criteria, settings)  # computed by the sweep: kept in this process
+    common.say_approximate(args, approx)
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
     print(format_sweep_table(sweep))
