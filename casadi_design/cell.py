@@ -312,6 +312,24 @@ def _clearances(cell: Cell, Q_bytes: bytes, n: int) -> tuple[Clearance, ...]:
     return tuple(out)
 
 
+def touching(cell: Cell, Q: np.ndarray) -> list[tuple[str, str] | None]:
+    """For each configuration of ``Q`` (m, n), rad: the first two checked bodies that touch or
+    cross on the real geometry (the :attr:`Clearance.touching` of :func:`clearances`), None
+    when none does. A collision query that stops at the first pair in contact, not the
+    distance of every pair: on the UR10's meshes 0.6 ms a configuration instead of 11 ms."""
+    check = cell.check
+    if not check.geometry.collisionPairs:
+        return [None] * len(Q)
+    data, gdata = check.model.createData(), check.geometry.createData()
+    out = []
+    for q in np.asarray(Q, dtype=float):
+        hit = pin.computeCollisions(check.model, data, check.geometry, gdata, check.configuration(q), True)
+        k = next((k for k, r in enumerate(gdata.collisionResults) if r.isCollision()), None) if hit else None
+        cp = None if k is None else check.geometry.collisionPairs[k]
+        out.append(None if cp is None else (check.labels[cp.first], check.labels[cp.second]))
+    return out
+
+
 Row = tuple[ca.SX, float, float, str, str]
 
 

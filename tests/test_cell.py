@@ -12,7 +12,7 @@ import pytest
 import scipy.optimize
 
 from casadi_design.build import build_problem, load_problem
-from casadi_design.cell import clearances
+from casadi_design.cell import clearances, touching
 from casadi_design.collision import capsule_names
 from casadi_design.errors import ProblemError
 from casadi_design.export import plan_table, read_plan_csv
@@ -71,6 +71,19 @@ def test_random_plans_satisfy_every_row_and_the_mesh_check(ur10):
     for c in clearances(ur10.cell, Q):
         assert c.distance_m >= ur10.cell.spec.clearance_m - 1e-9 and c.touching is None
     assert plan_violations(ur10, Q, F) == []
+
+
+@pytest.mark.parametrize("case", ["ur10_drilling", "abb_irb6640_machining"])
+def test_the_collision_query_finds_the_pairs_the_distances_find(case):
+    """``touching`` (coal's collision query, stopping at the first pair in contact) names the
+    same first touching pair as the distance of every pair (``clearances``), on random
+    configurations anywhere in the joint limits (most of them cross something)."""
+    problem = load_problem(ROOT / "problems" / f"{case}.toml")
+    limits = joint_limits(problem)
+    Q = limits.lower + (limits.upper - limits.lower) * np.random.default_rng(3).uniform(size=(150, problem.robot.n))
+    by_distance = [c.touching for c in clearances(problem.cell, Q)]
+    assert touching(problem.cell, Q) == by_distance
+    assert 10 < sum(t is not None for t in by_distance) < len(Q)  # both answers occur
 
 
 def test_incidence_row_is_the_cosine_of_the_beam_angle(ur10):
