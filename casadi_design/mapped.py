@@ -11,7 +11,7 @@ import functools
 import casadi as ca
 import numpy as np
 
-from .parallel import cpu_count
+from .threads import cpu_count
 
 #: Largest number of cases one mapped CasADi call evaluates: longer stacks run in chunks of
 #: this size, shorter ones in the next power of two, so that a few mapped functions serve
@@ -25,12 +25,12 @@ THREADS = cpu_count()
 
 
 @functools.lru_cache(maxsize=128)
-def _mapped(fn: ca.Function, N: int) -> ca.Function:
-    return fn.map(N, "thread", THREADS) if THREADS > 1 else fn.map(N)
+def _mapped(fn: ca.Function, N: int, threads: int) -> ca.Function:
+    return fn.map(N, "thread", threads) if threads > 1 else fn.map(N)
 
 
-def evaluate(fn: ca.Function, *rows: np.ndarray) -> list[np.ndarray]:
-    """Evaluate ``fn`` on N stacked inputs at once (CasADi map).
+def evaluate(fn: ca.Function, *rows: np.ndarray, threads: int = THREADS) -> list[np.ndarray]:
+    """Evaluate ``fn`` on N stacked inputs at once (CasADi map, on ``threads`` threads).
 
     The arrays are handed to CasADi without conversion (``Function.buffer``): row t of a
     C-ordered (N, size) array is the t-th column of the mapped input, as CasADi stores it.
@@ -49,7 +49,7 @@ def evaluate(fn: ca.Function, *rows: np.ndarray) -> list[np.ndarray]:
         raise ValueError(f"evaluate: {fn.name()} has sparse inputs; give a function of dense inputs")
     nonzeros = [np.empty((N, fn.nnz_out(b))) for b in range(fn.n_out())]
     K = min(CHUNK, 1 << max(N - 1, 0).bit_length())
-    mapped = _mapped(fn, K)
+    mapped = _mapped(fn, K, threads)
     for start in range(0, N, K):
         stop = min(start + K, N)
         buffer, call = mapped.buffer()

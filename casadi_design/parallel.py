@@ -43,7 +43,7 @@ from .bound import ApproximateDesign, approximate_one
 from .build import Problem, build_problem
 from .errors import DesignError
 from .problem import ProblemSpec
-from .threads import single_threaded
+from .threads import cpu_count, single_threaded
 from .solve import StartPlan, StartResult, make_design_solver, solve_start
 
 #: Seconds to wait for a Dask scheduler before giving up.
@@ -72,14 +72,6 @@ def _signal_name(code: int | None) -> str:
 def _lost(what: str, how: str) -> WorkerLost:
     return WorkerLost(f"{what}: a worker process {how} while running it; give the workers more "
                       "memory or fewer --jobs")
-
-def cpu_count() -> int:
-    """CPUs this process may use (the default of ``--jobs``)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
 
 @dataclass(frozen=True)
 class ProblemRef:

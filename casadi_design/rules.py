@@ -24,7 +24,6 @@ when it finds none, and ``casadi-design evaluate`` prints them for a user's plan
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import casadi as ca
@@ -32,6 +31,7 @@ import numpy as np
 
 from .build import Problem, per_model
 from .cell import cell_rows, touching
+from .mapped import evaluate
 from .collision import PointRows
 from .symbolic import joint_axis
 
@@ -294,16 +294,11 @@ def load_variables(problem: Problem) -> LoadVariables:
                          1.0 if force.mode == "equal" else 0.0)
 
 
-@functools.lru_cache(maxsize=64)
-def _mapped(f: ca.Function, k: int) -> ca.Function:
-    """``f`` mapped over ``k`` configurations (made once per size: it costs about a ms)."""
-    return f.map(k)
-
-
 def _rows_at(f: ca.Function, Q: np.ndarray) -> np.ndarray:
     """The rows of ``f`` (a function of one configuration) at each configuration of ``Q``
-    (k x n): shape (k, rows)."""
-    return np.asarray(_mapped(f, len(Q))(Q.T)).reshape(f.numel_out(0), len(Q)).T
+    (k x n): shape (k, rows); one mapped call per chunk, in this thread (a worker's starts
+    and approximate designs run one per core)."""
+    return evaluate(f, np.asarray(Q, dtype=float), threads=1)[0].reshape(len(Q), f.numel_out(0))
 
 
 def _amount(v: float, unit: str, lb: float) -> str:

@@ -23,3 +23,11 @@ def single_threaded() -> dict[str, str | None]:
     for k in THREAD_VARIABLES:
         os.environ.setdefault(k, "1")
     return before
+
+
+def cpu_count() -> int:
+    """CPUs this process may use (the default of ``--jobs``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1

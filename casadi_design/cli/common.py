@@ -28,7 +28,8 @@ from ..criteria import BOUND_CRITERIA, CRITERIA
 from .. import interrupt
 from ..errors import DesignError, OutputError
 from ..files import load_partial, partial_record, prepare_out
-from ..parallel import WorkerLost, cpu_count
+from ..parallel import WorkerLost
+from ..threads import cpu_count
 from ..problem import MAX_EXPERIMENTS
 
 #: Figure formats ``plot --format`` writes.
