@@ -86,6 +86,30 @@ def test_the_collision_query_finds_the_pairs_the_distances_find(case):
     assert 10 < sum(t is not None for t in by_distance) < len(Q)  # both answers occur
 
 
+@pytest.mark.parametrize("case", ["ur10_drilling", "abb_irb6640_machining", "paper_planar_2r"])
+def test_random_plans_follow_the_one_then_growing_batches_rule(case):
+    """``random_plan``'s configurations are judged in blocks ahead of the rule, but they are
+    what the rule gives drawn batch by batch (one configuration, then 16, 32, ... up to 1024;
+    the first feasible one of the first batch that has one), and the generator is left there
+    (the loads, drawn after, come from the same stream)."""
+    from casadi_design import sampling
+
+    problem = load_problem(ROOT / "problems" / f"{case}.toml")
+    rules, limits = pose_constraints(problem), joint_limits(problem)
+    mine, rule = np.random.default_rng(8), np.random.default_rng(8)
+    Q = sampling._configurations(problem, 12, mine)
+    for q in Q:
+        batch = 1
+        while True:
+            candidates = limits.sample(rule, batch)
+            ok = np.flatnonzero(rules.feasible(candidates))
+            if ok.size:
+                np.testing.assert_array_equal(q, candidates[ok[0]])
+                break
+            batch = sampling.SAMPLING_BATCH if batch == 1 else min(2 * batch, sampling.SAMPLING_BATCH_MAX)
+    assert mine.uniform() == rule.uniform()  # the same place in the stream
+
+
 def test_incidence_row_is_the_cosine_of_the_beam_angle(ur10):
     """Against Pinocchio: the angle between the reflector's axis (x of tool0, turned by the
     tool frame) and the beam from the reflector to the tracker."""
