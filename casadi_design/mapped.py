@@ -15,8 +15,11 @@ from .threads import cpu_count
 
 #: Largest number of cases one mapped CasADi call evaluates: longer stacks run in chunks of
 #: this size, shorter ones in the next power of two, so that a few mapped functions serve
-#: every size (building one takes ~30 ms, as long as evaluating ~20000 cases).
+#: every size (building one takes ~30 ms, as long as evaluating ~20000 cases); up to
+#: ``EXACT`` cases (a plan's experiments, checked at every IPOPT iteration) in a function of
+#: their own size, not padded.
 CHUNK = 8192
+EXACT = 64
 
 
 #: Threads of the mapped evaluations: every core (the cases are independent, so the results do
@@ -48,7 +51,7 @@ def evaluate(fn: ca.Function, *rows: np.ndarray, threads: int = THREADS) -> list
     if any(not fn.sparsity_in(i).is_dense() for i in range(fn.n_in())):
         raise ValueError(f"evaluate: {fn.name()} has sparse inputs; give a function of dense inputs")
     nonzeros = [np.empty((N, fn.nnz_out(b))) for b in range(fn.n_out())]
-    K = min(CHUNK, 1 << max(N - 1, 0).bit_length())
+    K = N if 0 < N <= EXACT else min(CHUNK, 1 << max(N - 1, 0).bit_length())
     mapped = _mapped(fn, K, threads)
     for start in range(0, N, K):
         stop = min(start + K, N)

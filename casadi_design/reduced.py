@@ -274,9 +274,16 @@ class ReducedNLP:
                        pair_second=f.pair_second.map(P))
         if len(self.active):
             K, rows = len(self.active), f.collision
-            out.update(row_value=rows.value.map(K), row_slope=rows.slope.map(K),
-                       row_curvature=rows.curvature.map(K))
+            out.update(row_value=rows.value.map(K), row_slope=rows.slope.map(K))
+            if len(self.curved):
+                out.update(row_curvature=rows.curvature.map(len(self.curved)))
         return {k: BufferedFunction.of(fn) for k, fn in out.items()}
+
+    @cached_property
+    def curved(self) -> np.ndarray:
+        """Which held capsule rows have a second derivative (index in ``active``): the others
+        add nothing to the Hessian but through their slope."""
+        return np.flatnonzero(self.fns.collision.curved[self.active[:, 1]])
 
     @cached_property
     def row_inputs(self) -> np.ndarray:
@@ -541,14 +548,17 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
     if len(nlp.active):
         lam = lam_g[nlp.active_rows]
         np.add.at(u, (nlp.row_inputs, nlp.active[:, :1]), lam[:, None] * sl.row_slope)
-        K, width = sl.row_slope.shape
-        curvature = nlp.mapped["row_curvature"](nlp.active[None, :, 1], v.w_rows.T)[0]
-        curvature = lam[:, None, None] * curvature.reshape(width, K, width).transpose(1, 0, 2)
+        c_rows = nlp.curved
+        if c_rows.size:
+            width = sl.row_slope.shape[1]
+            curvature = nlp.mapped["row_curvature"](nlp.active[None, c_rows, 1], v.w_rows[c_rows].T)[0]
+            curvature = lam[c_rows, None, None] * curvature.reshape(width, c_rows.size, width).transpose(1, 0, 2)
     d2 = nlp.mapped["second"](v.Z, W.transpose(1, 0, 2).reshape(d, -1), lam_g[nlp.rule_rows].T,
                               u[:K3])[0]
     blocks = d2.reshape(p, m, p).transpose(1, 0, 2)
-    if len(nlp.active):
-        np.add.at(blocks, nlp.active[:, 0], np.einsum("kwp,kwv,kvs->kps", sl.dw_rows, curvature, sl.dw_rows))
+    if len(nlp.active) and c_rows.size:
+        dw = sl.dw_rows[c_rows]
+        np.add.at(blocks, nlp.active[c_rows, 0], np.einsum("kwp,kwv,kvs->kps", dw, curvature, dw))
     dBG = (sl.dB @ Gbar).reshape(m, p, d * L)
     blocks += (2 * c) * (dBG @ sl.dB.reshape(m, p, d * L).transpose(0, 2, 1))
     flat = H.ravel()

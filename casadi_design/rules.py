@@ -165,7 +165,9 @@ class CollisionRows:
     inputs.shape[1]``: those of the few points it uses, then the index 3K, a zero, to fill):
     ``g_r = G_r(w_r)``. ``value``, ``slope`` and ``curvature`` are CasADi switches
     ``(r, w_r) -> g_r``, ``dg_r/dw_r (1 x width)`` and ``d2g_r/dw_r2 (width x width)``:
-    they evaluate row r alone, so a switch mapped over k rows costs those k rows.
+    they evaluate row r alone, so a switch mapped over k rows costs those k rows. ``curved``
+    (bool, one per row): whether ``d2g_r/dw_r2`` has a structural nonzero (a plane's rows and
+    a box's, piecewise linear in the points, have none).
     """
 
     first: int
@@ -174,6 +176,7 @@ class CollisionRows:
     value: ca.Function
     slope: ca.Function
     curvature: ca.Function
+    curved: np.ndarray
 
 
 def collision_rows(rows: PointRows, q: ca.SX, first: int) -> CollisionRows:
@@ -197,7 +200,8 @@ def collision_rows(rows: PointRows, q: ca.SX, first: int) -> CollisionRows:
                          np.array(inputs, dtype=int).reshape(len(rows.G), width),
                          ca.Function.conditional("row", value, value[0]),
                          ca.Function.conditional("drow", slope, slope[0]),
-                         ca.Function.conditional("d2row", curvature, curvature[0]))
+                         ca.Function.conditional("d2row", curvature, curvature[0]),
+                         np.array([f.nnz_out(0) > 0 for f in curvature], dtype=bool))
 
 
 @per_model

@@ -110,6 +110,23 @@ def test_random_plans_follow_the_one_then_growing_batches_rule(case):
     assert mine.uniform() == rule.uniform()  # the same place in the stream
 
 
+def test_only_rows_linear_in_the_points_are_left_out_of_the_curvature(ur10):
+    """The capsule rows without a structural second derivative (``curved`` False, skipped in
+    the Hessian) are the floor's (a plane: linear in the points), and their Hessian is zero at
+    random points; every row whose Hessian is not zero somewhere is kept. (The table's rows,
+    a box's, are piecewise linear too, but CasADi's derivative of fmin / fmax keeps their
+    structure: kept, and zero.)"""
+    rows = pose_constraints(ur10).collision
+    labels = pose_constraints(ur10).labels[rows.first:]
+    flat = np.flatnonzero(~rows.curved)
+    assert flat.size == 22 and all(labels[r].endswith("to the floor") for r in flat)
+    W = np.random.default_rng(2).normal(size=(20, rows.inputs.shape[1]))
+    for r in range(len(rows.curved)):
+        curved = max(np.abs(np.asarray(rows.curvature(r, w))).max() for w in W) > 0
+        assert rows.curved[r] or not curved, labels[r]
+    assert sum(rows.curved) > 50  # the capsule pairs and the line of sight
+
+
 def test_incidence_row_is_the_cosine_of_the_beam_angle(ur10):
     """Against Pinocchio: the angle between the reflector's axis (x of tool0, turned by the
     tool frame) and the beam from the reflector to the tracker."""
