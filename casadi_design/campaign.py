@@ -190,7 +190,8 @@ def run_campaign(
 class _Starts:
     """The starts of one design of a pipelined campaign: its plans and their origins (the
     seeded ones first; the extra and rounded ones once ``complete``), how many were handed
-    out, their results by index and when the first was handed out."""
+    out, their results by index, when the first was handed out and whether it is judged
+    (``done``)."""
 
     criterion: str
     m: int
@@ -198,6 +199,7 @@ class _Starts:
     origins: list[str]
     complete: bool = False
     given: int = 0
+    done: bool = False
     results: dict[int, StartResult] = field(default_factory=dict)
     t0: float | None = None
 
@@ -205,12 +207,15 @@ class _Starts:
 class _Pipeline:
     """The campaign's work as tasks for the workers (:meth:`casadi_design.parallel._Workers.run`),
     so that no worker waits while another finishes a design: the approximate designs first
-    (they take longest and the rounded starts wait for them), then the starts of each design
-    in campaign order. The seeded starts of later designs run while a design waits for its
-    rounded starts (its approximate design) or for its extra starts (which are asked for once
-    every design before it is finished). Designs are finished, bounded and passed to
-    ``on_design`` in campaign order (:func:`casadi_design.solve.best_design`): the same designs
-    as one after the other, since each start and approximate design is a pure function of its
+    (they take longest and the rounded starts wait for them), then the starts of the designs.
+    Without extra starts the designs are independent and the largest m go first (their starts
+    cost most: a long start handed out last would keep one worker busy alone); with them (a
+    sweep's warm start from the design of the previous m) in campaign order, and a design's
+    extra starts are asked for once every design before it is finished. The seeded starts of
+    other designs run while a design waits for its rounded starts (its approximate design) or
+    for its extra starts. A design is judged (:func:`casadi_design.solve.best_design`), bounded
+    and passed to ``on_design`` as soon as its every start has returned: the same designs as
+    one after the other, since each start and approximate design is a pure function of its
     arguments."""
 
     def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
@@ -239,7 +244,8 @@ class _Pipeline:
                         for c in missing]
         self.waiting = dict(zip(self.pending, missing))
         self.starts: dict = {}  # task -> (its design, the index of its plan)
-        self.finished = 0  # designs of ``todo`` finished, in order
+        self.order = (list(range(len(self.todo))) if extra_starts is not None else
+                      sorted(range(len(self.todo)), key=lambda i: (-self.todo[i].m, i)))
 
     def _completed(self, k: int, d: _Starts) -> bool:
         """Append the extra and rounded starts of design ``k`` once their inputs are there."""
@@ -248,7 +254,7 @@ class _Pipeline:
         c, m = d.criterion, d.m
         if has_bound(c, self.settings) and c not in self.approx:
             return False
-        if self.extra_starts is not None and self.finished < k:
+        if self.extra_starts is not None and not all(e.done for e in self.todo[:k]):
             return False
         extra = self.extra_starts(c, m, self.designs) if self.extra_starts is not None else []
         rounded = ([(Q, F, ROUNDED) for Q, F in rounded_plans(self.problem, self.approx[c], m)]
@@ -261,10 +267,13 @@ class _Pipeline:
 
     def take(self, k: int) -> list:
         out, self.pending = self.pending[:k], self.pending[k:]
-        for i, d in enumerate(self.todo[self.finished:], start=self.finished):
+        for i in self.order:
+            d = self.todo[i]
             if len(out) >= k:
                 break
-            self._completed(i, d)
+            if d.done:
+                continue
+            self._completed(i, d)  # its extra and rounded starts, once their inputs are there
             while d.given < len(d.plans) and len(out) < k:
                 Q0, F0 = d.plans[d.given]
                 task = self._Task(self._run_start, (self.ref, d.criterion, d.m, self.B0, Q0, F0,
@@ -287,15 +296,14 @@ class _Pipeline:
             d.results[i] = result
             if self.progress is not None:
                 self.progress(1)
-        while self.finished < len(self.todo):
-            d = self.todo[self.finished]
-            if not (self._completed(self.finished, d) and len(d.results) == len(d.plans)):
-                break
+        for k, d in enumerate(self.todo):  # in campaign order: a finished one may complete the next
+            if d.done or not (self._completed(k, d) and len(d.results) == len(d.plans)):
+                continue
             design = best_design(self.problem, d.criterion, d.m, (d.results[i] for i in range(len(d.plans))),
                                  d.origins, d.t0)
             if d.criterion in self.approx:
                 design = replace(design, bound=bound(self.problem, d.m, self.approx[d.criterion]))
             self.designs[d.criterion, d.m] = design
-            self.finished += 1
+            d.done = True
             if self.on_design is not None:
                 self.on_design(design)

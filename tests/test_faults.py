@@ -94,13 +94,15 @@ def test_a_worker_killed_twice_names_the_design_the_signal_and_what_is_kept(tmp_
 
 
 def test_a_solve_keeps_what_it_finished_and_resumes(tmp_path, kill_at_m, capsys):
-    kill_at_m(2)
+    """A solve hands out the starts of the largest m first (independent designs): m = 2 is
+    finished and kept when the starts of m = 1 kill their workers."""
+    kill_at_m(1)
     out = tmp_path / "solve"
     args = ["solve", str(PAPER), "--m", "1,2", "--criteria", "D", "--jobs", "2", *TINY]
     assert main([*args, "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "criterion D, m = 2" in err and f"1 of 2 designs kept in {out / 'solve.partial.json'}" in err
-    kill_at_m(1)  # the resumed solve solves m = 2 only: m = 1 is kept
+    assert "criterion D, m = 1" in err and f"1 of 2 designs kept in {out / 'solve.partial.json'}" in err
+    kill_at_m(2)  # the resumed solve solves m = 1 only: m = 2 is kept
     assert main([*args, "--out", str(out), "--resume"]) == 0
     assert not (out / "solve.partial.json").exists()
     designs = json.loads((out / "results.json").read_text())["designs"]
