@@ -25,10 +25,12 @@ Executors (context managers; ``None`` means serial, in this process):
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
@@ -117,10 +119,21 @@ def run_start(ref: ProblemRef, criterion: str, m: int, B0: np.ndarray, Q0: np.nd
         return solve_start(problem, solvers[key], B0, Q0, F0)
 
 
-def _ignore_sigint() -> None:
-    # Ctrl-C reaches every process of the terminal's group: let only the parent react, so it
-    # can keep the finished cases and shut the pool down cleanly.
+#: prctl(2) option: the signal the kernel sends a process when its parent dies (Linux).
+PR_SET_PDEATHSIG = 1
+
+
+def _worker_setup(parent: int) -> None:
+    """In each worker process. Ctrl-C reaches every process of the terminal's group: only the
+    parent (pid ``parent``) reacts, so it can keep the finished cases and shut the pool down
+    cleanly. And a worker ends with its parent: on Linux the kernel sends it SIGKILL when the
+    parent dies (``kill``, a batch system's time limit, the out-of-memory killer), so no start
+    goes on computing for nobody."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -243,7 +256,7 @@ class ProcessExecutor(_Workers):
 
     def _new_pool(self) -> ProcessPoolExecutor:
         pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_ignore_sigint)
+                                   initializer=_worker_setup, initargs=(os.getpid(),))
         # Start the workers now (each imports this package, ~0.5 s) while the caller loads
         # the problem: one submit spawns one process. Ctrl-C waits until every worker is the
         # pool's (one caught half-started would be left behind, printing a traceback).

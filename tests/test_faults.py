@@ -235,3 +235,40 @@ def test_ctrl_c_turned_into_a_casadi_error_still_keeps_the_designs(tmp_path):
     finally:
         interrupt._HIT.clear()
         signal.signal(signal.SIGINT, handler)
+
+
+#: A parent whose two workers are in the middle of a long call: it prints their pids and waits.
+_BUSY_PARENT = """
+import sys, time
+from casadi_design.parallel import ProcessExecutor
+ex = ProcessExecutor(2)
+futures = [ex._pool.submit(time.sleep, 120) for _ in range(2)]
+time.sleep(1.0)
+print(*[p.pid for p in ex._processes()], flush=True)
+time.sleep(120)
+"""
+
+
+def _running(pid: int) -> bool:
+    stat = Path(f"/proc/{pid}/stat")
+    return stat.exists() and stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_workers_end_with_a_killed_command():
+    """A command killed outright (SIGKILL: no handler of its own runs; a batch system's time
+    limit, the out-of-memory killer) takes its worker processes along, even those in the middle
+    of a long call, instead of leaving them computing for nobody."""
+    proc = subprocess.Popen([sys.executable, "-c", _BUSY_PARENT], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        workers = [int(p) for p in proc.stdout.readline().split()]
+        assert len(workers) == 2 and all(_running(p) for p in workers)
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and any(_running(p) for p in workers):
+            time.sleep(0.05)
+        assert not any(_running(p) for p in workers)
+    finally:
+        proc.kill()
+        proc.wait()
