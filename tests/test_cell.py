@@ -80,10 +80,10 @@ def test_the_collision_query_finds_the_pairs_the_distances_find(case):
     configurations anywhere in the joint limits (most of them cross something)."""
     problem = load_problem(ROOT / "problems" / f"{case}.toml")
     limits = joint_limits(problem)
-    Q = limits.lower + (limits.upper - limits.lower) * np.random.default_rng(3).uniform(size=(150, problem.robot.n))
+    Q = limits.lower + (limits.upper - limits.lower) * np.random.default_rng(3).uniform(size=(60, problem.robot.n))
     by_distance = [c.touching for c in clearances(problem.cell, Q)]
     assert touching(problem.cell, Q) == by_distance
-    assert 10 < sum(t is not None for t in by_distance) < len(Q)  # both answers occur
+    assert 5 < sum(t is not None for t in by_distance) < len(Q)  # both answers occur
 
 
 @pytest.mark.parametrize("case", ["ur10_drilling", "abb_irb6640_machining", "paper_planar_2r"])

@@ -72,7 +72,7 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
     starts and bounds as one design after the other."""
     from casadi_design import bound
 
-    args = (paper, ["test-pose", "D"], [1, 2], Settings(2, bound_steps=2))
+    args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2))
     monkeypatch.setattr(bound, "_COMPUTED", {})
     plain = run_sweep(*args)
     monkeypatch.setattr(bound, "_COMPUTED", {})  # computed again, on the workers
