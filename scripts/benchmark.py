@@ -101,7 +101,9 @@ def _capsule_rows(problem) -> int:
 
 
 def study(problem_file: str, jobs: int) -> dict:
-    """Wall time of the whole case study: ``casadi-design solve CASE --jobs N`` as shipped."""
+    """Wall time of the whole case study, ``casadi-design solve CASE --jobs N`` as shipped, and
+    from its results.json the time of each approximate design and of each design (s; on
+    workers these overlap: the study is one pipeline)."""
     import tempfile
 
     with tempfile.TemporaryDirectory() as out:
@@ -109,7 +111,11 @@ def study(problem_file: str, jobs: int) -> dict:
         proc = subprocess.run([sys.executable, "-m", "casadi_design", "solve", str(ROOT / problem_file),
                                "--jobs", str(jobs), "--out", out], capture_output=True, text=True)
         wall = time.perf_counter() - t0
-    return {"wall_s": wall, "returncode": proc.returncode, "stdout": proc.stdout}
+        results = Path(out) / "results.json"
+        record = json.loads(results.read_text()) if results.exists() else {}
+    return {"wall_s": wall, "returncode": proc.returncode, "stdout": proc.stdout,
+            "approximate_wall_s": {a["criterion"]: a["wall_s"] for a in record.get("approximate_designs", [])},
+            "design_wall_s": {f"{d['criterion']} m={d['m']}": d["solver"]["wall_s"] for d in record.get("designs", [])}}
 
 
 def child(package_dir: Path, problem_file: str, criterion: str, m: int, starts: int,
@@ -175,8 +181,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.studies:
         for case in args.cases.split(","):
             studies[case] = study(CASES[case][0], jobs=2)
+            st = studies[case]
             print(f"study {case}: casadi-design solve {CASES[case][0]} --jobs 2: "
-                  f"{studies[case]['wall_s']:.0f} s wall (exit {studies[case]['returncode']})", flush=True)
+                  f"{st['wall_s']:.0f} s wall (exit {st['returncode']}); approximate designs "
+                  + ", ".join(f"{c} {t:.1f} s" for c, t in st["approximate_wall_s"].items()), flush=True)
     Path(args.out).write_text(json.dumps({"units": {"build_s": "s", "start_s": "s", "peak_MB": "MB",
                                                     "best_max_error_mm": "mm", "wall_s": "s"},
                                           "rows": rows, "studies": studies}, indent=2) + "\n")
