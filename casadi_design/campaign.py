@@ -44,7 +44,7 @@ from .bound import (
 from .build import Problem
 from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import SEEDED, Design
-from .errors import ProblemError
+from .errors import DesignError, ProblemError
 from .nlp import B0_at_test_poses
 from .solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
 
@@ -190,8 +190,8 @@ def run_campaign(
 class _Starts:
     """The starts of one design of a pipelined campaign: its plans and their origins (the
     seeded ones first; the extra and rounded ones once ``complete``), how many were handed
-    out, their results by index, when the first was handed out and whether it is judged
-    (``done``)."""
+    out, their results by index, when the first was handed out, whether it is judged
+    (``done``) and, when no start converged, the error to raise."""
 
     criterion: str
     m: int
@@ -200,6 +200,7 @@ class _Starts:
     complete: bool = False
     given: int = 0
     done: bool = False
+    error: DesignError | None = None
     results: dict[int, StartResult] = field(default_factory=dict)
     t0: float | None = None
 
@@ -216,7 +217,8 @@ class _Pipeline:
     for its extra starts. A design is judged (:func:`casadi_design.solve.best_design`), bounded
     and passed to ``on_design`` as soon as its every start has returned: the same designs as
     one after the other, since each start and approximate design is a pure function of its
-    arguments."""
+    arguments. A design none of whose starts converged raises its error once every design
+    before it is judged: the same error, and the same designs kept, as serially."""
 
     def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
                  settings: Settings, B0: np.ndarray, designs: dict, approx: dict | None,
@@ -254,7 +256,7 @@ class _Pipeline:
         c, m = d.criterion, d.m
         if has_bound(c, self.settings) and c not in self.approx:
             return False
-        if self.extra_starts is not None and not all(e.done for e in self.todo[:k]):
+        if self.extra_starts is not None and not all(e.done and e.error is None for e in self.todo[:k]):
             return False
         extra = self.extra_starts(c, m, self.designs) if self.extra_starts is not None else []
         rounded = ([(Q, F, ROUNDED) for Q, F in rounded_plans(self.problem, self.approx[c], m)]
@@ -299,11 +301,18 @@ class _Pipeline:
         for k, d in enumerate(self.todo):  # in campaign order: a finished one may complete the next
             if d.done or not (self._completed(k, d) and len(d.results) == len(d.plans)):
                 continue
-            design = best_design(self.problem, d.criterion, d.m, (d.results[i] for i in range(len(d.plans))),
-                                 d.origins, d.t0)
+            d.done = True
+            try:
+                design = best_design(self.problem, d.criterion, d.m,
+                                     (d.results[i] for i in range(len(d.plans))), d.origins, d.t0)
+            except DesignError as exc:  # raised once every design before it is judged, as serially
+                d.error = exc
+                continue
             if d.criterion in self.approx:
                 design = replace(design, bound=bound(self.problem, d.m, self.approx[d.criterion]))
             self.designs[d.criterion, d.m] = design
-            d.done = True
             if self.on_design is not None:
                 self.on_design(design)
+        failed = next((k for k, d in enumerate(self.todo) if d.error is not None), None)
+        if failed is not None and all(d.done for d in self.todo[:failed]):
+            raise self.todo[failed].error

@@ -177,3 +177,16 @@ def test_the_command_gives_the_same_numbers_for_any_jobs(tmp_path, monkeypatch):
         return designs, [{k: v for k, v in a.items() if k != "wall_s"} for a in record["approximate_designs"]]
 
     assert numbers(records[0]) == numbers(records[1])
+
+
+def test_a_design_without_a_converged_start_is_the_same_error_for_any_jobs(capsys):
+    """The pipeline judges the largest m first, but the error names the first failing design
+    in campaign order, as a serial run does (one line, exit code 2)."""
+    args = ["solve", str(PAPER), "--m", "1,5", "--criteria", "test-pose,D", "--starts", "2",
+            "--ipopt", "max_iter=1", "--bound-steps", "0", "--quiet"]
+    errors = []
+    for jobs in ("1", "2"):
+        assert main([*args, "--jobs", jobs]) == 2
+        errors.append(capsys.readouterr().err.strip())
+    assert errors[0] == errors[1] and len(errors[0].splitlines()) == 1
+    assert "criterion test-pose, m = 1: none of 2 starts converged" in errors[0]
