@@ -275,18 +275,21 @@ def _search(problem: Problem) -> Search:
 #: The multipliers of a maximum of d (of z's bounds, of the rule rows) per unit of d: a warm
 #: start's.
 Duals = tuple[np.ndarray, np.ndarray]
+#: What runs a batch of searches: :func:`_maximise_d`'s signature.
+Maximise = Callable[[Problem, float, np.ndarray, np.ndarray, np.ndarray, list], tuple]
 
 
-def _maximise_d(problem: Problem, G: np.ndarray, Q: np.ndarray, F: np.ndarray, d: np.ndarray,
+def _maximise_d(problem: Problem, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
                 duals: list[Duals | None]) -> tuple[np.ndarray, np.ndarray, list[Duals]]:
-    """Local maxima of ``d(x) = tr(G B(x)^T B(x))`` from the experiments ``Q`` (k, n), ``F``
-    (k, nF) with values ``d`` (k,); one with ``duals`` (a maximum of an earlier step) starts
-    warm from them, the others cold. Returns the maxima that keep every rule but the check on
-    the real geometry (:func:`casadi_design.rules.plan_violations` with ``meshes=False``; the
-    caller checks those it uses, :func:`_untouched`): Q (p, n), F (p, nF), their duals."""
+    """Local maxima of ``d(x) = tr(G B(x)^T B(x))`` (IPOPT sees ``scale d``) from the
+    experiments ``Q`` (k, n), ``F`` (k, nF); one with ``duals`` (a maximum of an earlier step)
+    starts warm from them, the others cold. Each search is a pure function of its inputs, so a
+    batch may be split over workers (:data:`Maximise`). Returns the maxima that keep every rule
+    but the check on the real geometry (:func:`casadi_design.rules.plan_violations` with
+    ``meshes=False``; the caller checks those it uses, :func:`_untouched`): Q (p, n), F (p,
+    nF), their duals."""
     search = _search(problem)
     loads, n = load_variables(problem), problem.robot.n
-    scale = 1.0 / np.max(d)  # IPOPT sees d of order 1
     bounds = dict(p=(scale * G).ravel(order="F"), lbx=search.lbx, ubx=search.ubx, lbg=search.lbg,
                   ubg=search.ubg)
     found = []
@@ -319,6 +322,7 @@ def approximate_design(
     rtol: float = EXCHANGE_RTOL,
     iterations: int = EXCHANGE_ITERATIONS,
     progress: Callable[[float], object] | None = None,
+    maximise: Maximise | None = None,
 ) -> ApproximateDesign:
     """The approximate design of ``criterion`` and its certified bound constant.
 
@@ -340,7 +344,9 @@ def approximate_design(
     certificate (:func:`_verified`). The steps stop when it finds no d larger by more than
     ``rtol``; otherwise what it found joins the candidates (and the pool) and the steps go on,
     so a maximum the exchange missed moves the design instead of only loosening the bound.
-    ``progress`` is called with the best certified value after each step.
+    ``progress`` is called with the best certified value after each step; ``maximise`` runs
+    the IPOPT searches of a step (None: :func:`_maximise_d`, here, one after the other; the
+    same maxima either way).
 
     The best certificate is kept with its W, mu, d_max and support, the best checked one once
     checked: the reported certificate is always one an independent search confirmed; ``value``
@@ -355,6 +361,7 @@ def approximate_design(
         raise DesignError(f"approximate design: criterion '{criterion}' has no bound; "
                           f"allowed: {', '.join(BOUND_CRITERIA)}")
     t0 = time.perf_counter()
+    maximise = _maximise_d if maximise is None else maximise
     L, form = problem.model.L, CRITERIA[criterion].bound
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, CRITERIA[criterion].seed_id])
     Q, F = _sample(problem, pool_size + sample_size, rng)
@@ -383,7 +390,7 @@ def approximate_design(
         heavy = pool[np.argsort(w)[::-1][:min(support.sum(), POLISH_SUPPORT)]]
         starts = np.union1d(heavy, np.argsort(d)[::-1][:POLISH_STARTS])
         Qp, Fp, Ap, dp, up = _maxima(problem, G, c, Q[starts], F[starts], d[starts],
-                                     [duals.get(int(i)) for i in starts], phi)
+                                     [duals.get(int(i)) for i in starts], phi, maximise)
         d_max = float(max(d.max(), dp.max(initial=0.0)))
         certified = _certificate(Hj, phi, step_value, d_max)
         if best is None or sense * (certified - best[0]) < 0:
@@ -397,7 +404,7 @@ def approximate_design(
         if gap <= rtol or not (added.size or new.any()) or last:
             # the best step's certificate from a fresh sample: it stands when that search finds
             # no larger d; otherwise what it found joins the candidates and the steps go on
-            certified, d_max, Qv, Fv, Av = _verified(problem, c, *best[3:], Hj, rng, sample_size)
+            certified, d_max, Qv, Fv, Av = _verified(problem, c, *best[3:], Hj, rng, sample_size, maximise)
             agreed = sense * (certified - best[0]) <= rtol * (L if Hj is None else best[0])
             best = (certified, *best[1:5], d_max)
             if proven is not None and sense * (proven[0] - certified) < 0:
@@ -458,15 +465,16 @@ def _certificate(Hj: np.ndarray | None, phi: float, value: float, d_max: float) 
 
 
 def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndarray, d: np.ndarray,
-            duals: list[Duals | None], above: float
+            duals: list[Duals | None], above: float, maximise: Maximise
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[Duals]]:
     """The feasible local maxima of d above ``above`` from the experiments ``Q``, ``F`` (values
-    ``d``, warm starts ``duals``; :func:`_maximise_d`) with their scaled information ``c A``
+    ``d``, warm starts ``duals``; ``maximise``: :func:`_maximise_d` here, or split over
+    workers) with their scaled information ``c A``
     (p, L, L), their d (p,) and duals. Maxima at or below ``above`` (phi, or the largest d
     found) can neither join the pool nor raise d_max (phi is the support's mean d, so d_max
     >= phi): they are left out before the check on the real geometry, the costly part of the
     plan check."""
-    Qp, Fp, up = _maximise_d(problem, G, Q, F, d, duals)
+    Qp, Fp, up = maximise(problem, 1.0 / np.max(d), G, Q, F, duals)  # IPOPT sees d of order 1
     Ap = c * _information(problem, Qp, Fp)
     dp = np.einsum("kij,ij->k", Ap, G)
     keep = dp > above
@@ -475,7 +483,7 @@ def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndar
 
 
 def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: float,
-              Hj: np.ndarray | None, rng: np.random.Generator, size: int
+              Hj: np.ndarray | None, rng: np.random.Generator, size: int, maximise: Maximise
               ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """The certificate of ``W`` (scaled by c) and ``mu`` once more, with max_x d searched over a
     fresh sample of ``size`` experiments and IPOPT from its ``VERIFY_STARTS`` best: a search
@@ -488,7 +496,7 @@ def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: 
     A = c * _information(problem, Q, F)
     d = np.einsum("kij,ij->k", A, G)
     best = np.argsort(d)[::-1][:VERIFY_STARTS]
-    Qp, Fp, Ap, dp, _ = _maxima(problem, G, c, Q[best], F[best], d[best], [None] * len(best), d_max)
+    Qp, Fp, Ap, dp, _ = _maxima(problem, G, c, Q[best], F[best], d[best], [None] * len(best), d_max, maximise)
     above = best[d[best] > d_max]
     d_max = float(max(d_max, d.max(), dp.max(initial=0.0)))
     return (_certificate(Hj, phi, value, d_max), d_max, np.concatenate([Q[above], Qp]),
@@ -537,12 +545,13 @@ _COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
 KEEP_COMPUTED = 32
 
 
-def approximate_one(problem: Problem, criterion: str, steps: int, pool: int) -> ApproximateDesign:
+def approximate_one(problem: Problem, criterion: str, steps: int, pool: int,
+                    maximise: Maximise | None = None) -> ApproximateDesign:
     """The approximate design of ``criterion`` with ``steps`` exchange steps at most, a first
     pool of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE`` times as many for
-    the search of max d."""
+    the search of max d (``maximise``: :func:`approximate_design`'s)."""
     return approximate_design(problem, criterion, iterations=steps, pool_size=pool,
-                              sample_size=pool * SAMPLE_SIZE // POOL_SIZE)
+                              sample_size=pool * SAMPLE_SIZE // POOL_SIZE, maximise=maximise)
 
 
 def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE

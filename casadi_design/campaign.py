@@ -36,6 +36,7 @@ from .bound import (
     ROUNDED_PLANS,
     ApproximateDesign,
     approximate_designs,
+    approximate_one,
     bound,
     computed,
     keep,
@@ -161,6 +162,7 @@ def run_campaign(
     designs: dict[tuple[str, int], Design] = dict(done or {})
     B0 = B0_at_test_poses(problem)
     if executor is not None and hasattr(executor, "run"):
+        approx = _spread(problem, criteria, ms, settings, designs, executor) if approx is None else approx
         pipeline = _Pipeline(problem, criteria, ms, settings, B0, designs, approx, extra_starts,
                              on_design, progress)
         for task, result in executor.run(pipeline):
@@ -184,6 +186,24 @@ def run_campaign(
             if on_design is not None:
                 on_design(d)
     return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
+
+
+def _spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
+            designs: dict, executor) -> dict[str, ApproximateDesign] | None:
+    """The approximate designs computed here, one after the other, each exchange step's IPOPT
+    searches split over the workers (:meth:`casadi_design.parallel._Workers.maximise`), when
+    the campaign has too little else to keep the workers busy meanwhile: fewer approximate
+    designs to compute than workers, and no more seeded starts than workers (a one-start solve).
+    Otherwise None: the pipeline runs each on one worker beside the starts. The same designs
+    either way (each search is a pure function of its inputs)."""
+    have, missing = computed(problem, criteria, settings.bound_steps, settings.bound_pool)
+    seeded = settings.starts * sum((c, m) not in designs for m in ms for c in criteria)
+    if not missing or len(missing) >= executor.slots or seeded > executor.slots:
+        return None
+    for c in missing:
+        have[c] = approximate_one(problem, c, settings.bound_steps, settings.bound_pool, executor.maximise)
+        keep(problem, settings.bound_steps, settings.bound_pool, have[c])
+    return {c: have[c] for c in criteria if c in have}
 
 
 @dataclass(eq=False)

@@ -41,7 +41,7 @@ from typing import Any, Protocol, Self
 
 import numpy as np
 
-from .bound import ApproximateDesign, approximate_one
+from .bound import ApproximateDesign, _maximise_d, approximate_one
 from .build import Problem, build_problem
 from .errors import DesignError
 from .problem import ProblemSpec
@@ -106,6 +106,13 @@ def run_approximate(ref: ProblemRef, criterion: str, steps: int, pool: int) -> A
     """One approximate design, in a worker (:func:`casadi_design.bound.approximate_one`)."""
     with _LOCK:
         return approximate_one(_cached(ref)[0], criterion, steps, pool)
+
+
+def run_searches(ref: ProblemRef, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
+                 duals: list) -> tuple:
+    """Searches of an approximate design's step, in a worker (:func:`casadi_design.bound._maximise_d`)."""
+    with _LOCK:
+        return _maximise_d(_cached(ref)[0], scale, G, Q, F, duals)
 
 
 def run_start(ref: ProblemRef, criterion: str, m: int, B0: np.ndarray, Q0: np.ndarray,
@@ -233,6 +240,19 @@ class _Workers:
         ref = ProblemRef.of(problem)
         yield from self._map(run_start, [(ref, criterion, m, B0, Q0, F0, verbose) for Q0, F0 in plans],
                              f"criterion {criterion}, m = {m}")
+
+    def maximise(self, problem: Problem, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
+                 duals: list) -> tuple:
+        """The searches of one exchange step (:data:`casadi_design.bound.Maximise`) split in
+        ``slots`` consecutive batches, one per worker; the maxima in their order."""
+        ref = ProblemRef.of(problem)
+        parts = [p for p in np.array_split(np.arange(len(Q)), self.slots) if p.size]
+        found = list(self._map(run_searches, [(ref, scale, G, Q[p], F[p], [duals[i] for i in p])
+                                              for p in parts], "the searches of an approximate design"))
+        k = sum(len(q) for q, _, _ in found)
+        return (np.concatenate([q for q, _, _ in found] or [Q[:0]]).reshape(k, Q.shape[1]),
+                np.concatenate([f for _, f, _ in found] or [F[:0]]).reshape(k, F.shape[1]),
+                [u for _, _, us in found for u in us])
 
     def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
                         pool: int) -> Iterator[ApproximateDesign]:

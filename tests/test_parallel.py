@@ -72,12 +72,25 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
     starts and bounds as one design after the other."""
     from casadi_design import bound
 
+    from casadi_design import campaign
+
     args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2))
     monkeypatch.setattr(bound, "_COMPUTED", {})
     plain = run_sweep(*args)
+    serial = bound.computed(paper, ["test-pose"], 2, args[3].bound_pool)[0]["test-pose"]
     monkeypatch.setattr(bound, "_COMPUTED", {})  # computed again, on the workers
     with ProcessExecutor(2) as ex:
         pooled = run_sweep(*args, executor=ex)
+        # a one-start solve's approximate design: here, each step's searches split over the
+        # workers; two to compute on two workers: one per worker, beside the starts
+        monkeypatch.setattr(bound, "_COMPUTED", {})
+        spread = campaign._spread(paper, ("test-pose",), (1,), args[3], {}, ex)["test-pose"]
+        monkeypatch.setattr(bound, "_COMPUTED", {})
+        assert campaign._spread(paper, ("test-pose", "D"), (1,), args[3], {}, ex) is None
+    assert (spread.value, spread.certified, spread.d_max, spread.history, spread.checked) == \
+        (serial.value, serial.certified, serial.d_max, serial.history, serial.checked)
+    for field in ("Q", "F", "weights", "W", "mu"):
+        np.testing.assert_array_equal(getattr(spread, field), getattr(serial, field))
     assert list(pooled.designs) == list(plain.designs)
     for key, d in plain.designs.items():
         _assert_same(pooled.designs[key], d)
