@@ -254,10 +254,9 @@ class _Pipeline:
             self.approx, missing = computed(problem, criteria, steps, pool)
         else:
             self.approx, missing = dict(approx), []
-        self.todo = [_Starts(c, m, seeded_plans(problem, c, m, settings.starts), [])
-                     for m in ms for c in criteria if (c, m) not in designs]
-        for d in self.todo:
-            d.origins = [SEEDED] * len(d.plans)
+        self.todo = [_Starts(c, m, plans, [SEEDED] * len(plans))
+                     for m in ms for c in criteria if (c, m) not in designs
+                     for plans in [seeded_plans(problem, c, m, settings.starts)]]
         for m in ms:
             for c in criteria:
                 if (c, m) in designs and progress is not None:
