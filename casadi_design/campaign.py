@@ -47,6 +47,7 @@ from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import SEEDED, Design
 from .errors import DesignError, ProblemError
 from .nlp import B0_at_test_poses
+from .parallel import ProblemRef, Task, run_approximate, run_start
 from .solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
 
 #: Extra starts of a design: ``(criterion, m, designs so far) -> [(Q0, F0, origin), ...]``.
@@ -243,9 +244,6 @@ class _Pipeline:
     def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
                  settings: Settings, B0: np.ndarray, designs: dict, approx: dict | None,
                  extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None):
-        from .parallel import ProblemRef, Task, run_approximate, run_start
-
-        self._Task, self._run_start = Task, run_start
         self.problem, self.settings, self.B0, self.designs = problem, settings, B0, designs
         self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
         self.ref = ProblemRef.of(problem)
@@ -297,7 +295,7 @@ class _Pipeline:
             self._completed(i, d)  # its extra and rounded starts, once their inputs are there
             while d.given < len(d.plans) and len(out) < k:
                 Q0, F0 = d.plans[d.given]
-                task = self._Task(self._run_start, (self.ref, d.criterion, d.m, self.B0, Q0, F0,
+                task = Task(run_start, (self.ref, d.criterion, d.m, self.B0, Q0, F0,
                                                     self.settings.verbose),
                                   f"criterion {d.criterion}, m = {d.m}")
                 self.starts[task] = (d, d.given)
