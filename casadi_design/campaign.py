@@ -47,7 +47,7 @@ from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import SEEDED, Design
 from .errors import DesignError, ProblemError
 from .nlp import B0_at_test_poses
-from .parallel import ProblemRef, Task, run_approximate, run_start
+from . import parallel
 from .solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
 
 #: Extra starts of a design: ``(criterion, m, designs so far) -> [(Q0, F0, origin), ...]``.
@@ -246,7 +246,7 @@ class _Pipeline:
                  extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None):
         self.problem, self.settings, self.B0, self.designs = problem, settings, B0, designs
         self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
-        self.ref = ProblemRef.of(problem)
+        self.ref = parallel.ProblemRef.of(problem)
         steps, pool = settings.bound_steps, settings.bound_pool
         if approx is None:
             self.approx, missing = computed(problem, criteria, steps, pool)
@@ -259,7 +259,8 @@ class _Pipeline:
             for c in criteria:
                 if (c, m) in designs and progress is not None:
                     progress(len(designs[c, m].starts))
-        self.pending = [Task(run_approximate, (self.ref, c, steps, pool), f"the approximate design of {c}")
+        self.pending = [parallel.Task(parallel.run_approximate, (self.ref, c, steps, pool),
+                                      f"the approximate design of {c}")
                         for c in missing]
         self.waiting = dict(zip(self.pending, missing))
         self.starts: dict = {}  # task -> (its design, the index of its plan)
@@ -295,7 +296,7 @@ class _Pipeline:
             self._completed(i, d)  # its extra and rounded starts, once their inputs are there
             while d.given < len(d.plans) and len(out) < k:
                 Q0, F0 = d.plans[d.given]
-                task = Task(run_start, (self.ref, d.criterion, d.m, self.B0, Q0, F0,
+                task = parallel.Task(parallel.run_start, (self.ref, d.criterion, d.m, self.B0, Q0, F0,
                                                     self.settings.verbose),
                                   f"criterion {d.criterion}, m = {d.m}")
                 self.starts[task] = (d, d.given)
