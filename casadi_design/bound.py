@@ -275,11 +275,11 @@ def _search(problem: Problem) -> Search:
 #: The multipliers of a maximum of d (of z's bounds, of the rule rows) per unit of d: a warm
 #: start's.
 Duals = tuple[np.ndarray, np.ndarray]
-#: What runs a batch of searches: :func:`_maximise_d`'s signature.
+#: What runs a batch of searches: :func:`maximise_d`'s signature.
 Maximise = Callable[[Problem, float, np.ndarray, np.ndarray, np.ndarray, list], tuple]
 
 
-def _maximise_d(problem: Problem, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
+def maximise_d(problem: Problem, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
                 duals: list[Duals | None]) -> tuple[np.ndarray, np.ndarray, list[Duals]]:
     """Local maxima of ``d(x) = tr(G B(x)^T B(x))`` (IPOPT sees ``scale d``) from the
     experiments ``Q`` (k, n), ``F`` (k, nF); one with ``duals`` (a maximum of an earlier step)
@@ -329,7 +329,7 @@ def approximate_design(
     Column generation over single experiments. The candidates are ``pool_size`` random feasible
     experiments (seeded by ``problem.solver.seed``), the first pool, and ``sample_size`` more.
     Each step solves the convex problem on the pool (:func:`_pool_optimum`), prices every
-    candidate by ``d(x, W)``, and polishes by IPOPT (:func:`_maximise_d`) the support points and
+    candidate by ``d(x, W)``, and polishes by IPOPT (:func:`maximise_d`) the support points and
     the ``POLISH_STARTS`` best candidates: at the optimum every support point is a local
     maximum of d, so the support moves to where the continuum wants it. A support point that
     is a maximum of an earlier step starts warm from its multipliers (it follows its maximum
@@ -345,7 +345,7 @@ def approximate_design(
     ``rtol``; otherwise what it found joins the candidates (and the pool) and the steps go on,
     so a maximum the exchange missed moves the design instead of only loosening the bound.
     ``progress`` is called with the best certified value after each step; ``maximise`` runs
-    the IPOPT searches of a step (None: :func:`_maximise_d`, here, one after the other; the
+    the IPOPT searches of a step (None: :func:`maximise_d`, here, one after the other; the
     same maxima either way).
 
     The best certificate is kept with its W, mu, d_max and support, the best checked one once
@@ -361,7 +361,7 @@ def approximate_design(
         raise DesignError(f"approximate design: criterion '{criterion}' has no bound; "
                           f"allowed: {', '.join(BOUND_CRITERIA)}")
     t0 = time.perf_counter()
-    maximise = _maximise_d if maximise is None else maximise
+    maximise = maximise_d if maximise is None else maximise
     L, form = problem.model.L, CRITERIA[criterion].bound
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, CRITERIA[criterion].seed_id])
     Q, F = _sample(problem, pool_size + sample_size, rng)
@@ -468,7 +468,7 @@ def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndar
             duals: list[Duals | None], above: float, maximise: Maximise
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[Duals]]:
     """The feasible local maxima of d above ``above`` from the experiments ``Q``, ``F`` (values
-    ``d``, warm starts ``duals``; ``maximise``: :func:`_maximise_d` here, or split over
+    ``d``, warm starts ``duals``; ``maximise``: :func:`maximise_d` here, or split over
     workers) with their scaled information ``c A``
     (p, L, L), their d (p,) and duals. Maxima at or below ``above`` (phi, or the largest d
     found) can neither join the pool nor raise d_max (phi is the support's mean d, so d_max

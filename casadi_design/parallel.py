@@ -41,7 +41,7 @@ from typing import Any, Protocol, Self
 
 import numpy as np
 
-from .bound import ApproximateDesign, _maximise_d, approximate_one
+from .bound import ApproximateDesign, approximate_one, maximise_d
 from .build import Problem, build_problem
 from .errors import DesignError
 from .problem import ProblemSpec
@@ -110,9 +110,9 @@ def run_approximate(ref: ProblemRef, criterion: str, steps: int, pool: int) -> A
 
 def run_searches(ref: ProblemRef, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
                  duals: list) -> tuple:
-    """Searches of an approximate design's step, in a worker (:func:`casadi_design.bound._maximise_d`)."""
+    """Searches of an approximate design's step, in a worker (:func:`casadi_design.bound.maximise_d`)."""
     with _LOCK:
-        return _maximise_d(_cached(ref)[0], scale, G, Q, F, duals)
+        return maximise_d(_cached(ref)[0], scale, G, Q, F, duals)
 
 
 def run_start(ref: ProblemRef, criterion: str, m: int, B0: np.ndarray, Q0: np.ndarray,
