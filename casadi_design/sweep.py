@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -67,6 +67,8 @@ class Sweep:
     seeded_starts : seeded starts per design.
     reference : the best test-pose design at ``problem.m_min``, for the "repeat" line (None when
         the sweep has no test-pose criterion).
+    approx : the approximate designs behind its bounds and rounded starts (empty for a sweep
+        read back from its record).
     """
 
     m_values: tuple[int, ...]
@@ -75,6 +77,7 @@ class Sweep:
     seeded_starts: int
     warm_start: bool
     reference: Design | None = None
+    approx: dict[str, ApproximateDesign] = field(default_factory=dict)
 
     def warm_start_won(self, criterion: str, m: int) -> bool:
         """True when the warm start is strictly better than every seeded start."""
@@ -118,7 +121,7 @@ def run_sweep(
     if reference is None and "test-pose" in criteria:
         reference = run_campaign(problem, ("test-pose",), (problem.m_min,), settings, approx=campaign.approx,
                                  executor=executor, progress=progress).designs["test-pose", problem.m_min]
-    return Sweep(ms, criteria, campaign.designs, settings.starts, warm_start, reference)
+    return Sweep(ms, criteria, campaign.designs, settings.starts, warm_start, reference, campaign.approx)
 
 
 def sweep_total_starts(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],

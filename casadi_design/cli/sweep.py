@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from ..build import Problem
-from ..campaign import approximate, campaign_key
+from ..campaign import campaign_key
 from ..files import write_atomic
 from ..sweep import PARTIAL_NAME, RESUME_FILES, RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
 from ..tables import format_sweep_table
@@ -62,8 +62,7 @@ def run(args: argparse.Namespace) -> int:
         with bar:
             sweep = run_sweep(problem, criteria, ms, settings, warm_start=warm, done=done,
                               executor=executor, progress=bar.update, on_design=save)
-    approx = approximate(problem, criteria, settings)  # computed by the sweep: kept in this process
-    common.say_approximate(args, approx)
+    common.say_approximate(args, sweep.approx)
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
     print(format_sweep_table(sweep))
@@ -71,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
                      f"{', plus one warm start for m after the first' if warm else ''}) {common.where(args)}")
     if out:
         with common.kept_on_error(partial):
-            files = write_sweep(out, problem, sweep, fig_m, args.log, key, approx)
+            files = write_sweep(out, problem, sweep, fig_m, args.log, key, sweep.approx)
         if partial.exists():
             partial.unlink()
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
