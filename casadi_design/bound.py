@@ -573,15 +573,16 @@ def keep(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> 
 
 
 def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,
-                        executor=None) -> dict[str, ApproximateDesign]:
+                        executor=None, maximise: Maximise | None = None) -> dict[str, ApproximateDesign]:
     """The approximate design (:func:`approximate_one`) of each of ``criteria`` that has a
     bound; none when ``steps`` is 0. ``executor`` (:mod:`casadi_design.parallel`) computes
     those not computed yet in this process at the same time, one per worker; None: here, one
-    after the other. The result is the same either way."""
+    after the other, their searches run by ``maximise`` (:func:`approximate_design`'s). The
+    result is the same either way."""
     have, missing = computed(problem, criteria, steps, pool)
     if missing:
         found = (executor.map_approximate(problem, missing, steps, pool) if executor is not None
-                 else (approximate_one(problem, c, steps, pool) for c in missing))
+                 else (approximate_one(problem, c, steps, pool, maximise) for c in missing))
         for a in found:
             keep(problem, steps, pool, a)
             have[a.criterion] = a

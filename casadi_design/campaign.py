@@ -36,7 +36,6 @@ from .bound import (
     ROUNDED_PLANS,
     ApproximateDesign,
     approximate_designs,
-    approximate_one,
     bound,
     computed,
     keep,
@@ -177,16 +176,28 @@ def run_campaign(
                 if progress is not None:
                     progress(len(designs[c, m].starts))
                 continue
-            extra = extra_starts(c, m, designs) if extra_starts is not None else []
-            rounded = [(Q, F, ROUNDED) for Q, F in rounded_plans(problem, approx[c], m)] if c in approx else []
             d = solve_design(problem, c, m, B0, starts=settings.starts, verbose=settings.verbose,
-                             initial_plans=extra + rounded, executor=executor, progress=progress)
-            if c in approx:
-                d = replace(d, bound=bound(problem, m, approx[c]))
-            designs[c, m] = d
+                             initial_plans=_later_starts(problem, c, m, designs, approx, extra_starts),
+                             executor=executor, progress=progress)
+            designs[c, m] = d = _bounded(problem, d, approx)
             if on_design is not None:
                 on_design(d)
     return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
+
+
+def _later_starts(problem: Problem, c: str, m: int, designs: dict, approx: dict,
+                  extra_starts: ExtraStarts | None) -> list[tuple]:
+    """The starts of design (c, m) after its seeded ones, ``(Q0, F0, origin)``: the caller's
+    extra starts (from the designs so far), then those rounded from its approximate design."""
+    extra = extra_starts(c, m, designs) if extra_starts is not None else []
+    return extra + ([(Q, F, ROUNDED) for Q, F in rounded_plans(problem, approx[c], m)] if c in approx else [])
+
+
+def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
+    """``design`` with the bound of its criterion for its m, when it has an approximate design."""
+    if design.criterion not in approx:
+        return design
+    return replace(design, bound=bound(problem, design.m, approx[design.criterion]))
 
 
 def _spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
@@ -197,14 +208,12 @@ def _spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], se
     designs to compute than workers, and no more seeded starts than workers (a one-start solve).
     Otherwise None: the pipeline runs each on one worker beside the starts. The same designs
     either way (each search is a pure function of its inputs)."""
-    have, missing = computed(problem, criteria, settings.bound_steps, settings.bound_pool)
+    missing = computed(problem, criteria, settings.bound_steps, settings.bound_pool)[1]
     seeded = settings.starts * sum((c, m) not in designs for m in ms for c in criteria)
     if not missing or len(missing) >= executor.slots or seeded > executor.slots:
         return None
-    for c in missing:
-        have[c] = approximate_one(problem, c, settings.bound_steps, settings.bound_pool, executor.maximise)
-        keep(problem, settings.bound_steps, settings.bound_pool, have[c])
-    return {c: have[c] for c in criteria if c in have}
+    return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool,
+                               maximise=executor.maximise)
 
 
 @dataclass(eq=False)
@@ -276,10 +285,8 @@ class _Pipeline:
             return False
         if self.extra_starts is not None and not all(e.done and e.error is None for e in self.todo[:k]):
             return False
-        extra = self.extra_starts(c, m, self.designs) if self.extra_starts is not None else []
-        rounded = ([(Q, F, ROUNDED) for Q, F in rounded_plans(self.problem, self.approx[c], m)]
-                   if c in self.approx else [])
-        plans, origins = initial_starts(self.problem, m, extra + rounded)
+        plans, origins = initial_starts(self.problem, m, _later_starts(self.problem, c, m, self.designs,
+                                                                      self.approx, self.extra_starts))
         d.plans += plans
         d.origins += origins
         d.complete = True
@@ -326,9 +333,7 @@ class _Pipeline:
             except DesignError as exc:  # raised once every design before it is judged, as serially
                 d.error = exc
                 continue
-            if d.criterion in self.approx:
-                design = replace(design, bound=bound(self.problem, d.m, self.approx[d.criterion]))
-            self.designs[d.criterion, d.m] = design
+            self.designs[d.criterion, d.m] = design = _bounded(self.problem, design, self.approx)
             if self.on_design is not None:
                 self.on_design(design)
         failed = next((k for k, d in enumerate(self.todo) if d.error is not None), None)
