@@ -1,0 +1,145 @@
+"""Compiled CasADi functions: a function's C code, built once per machine and kept on disk.
+
+The large functions of a 6-axis robot in its cell (the kinematics' derivatives of
+:mod:`casadi_design.reduced`, the capsule rows and their curvature, the bound's searches) run
+10 to 16 times faster as C than in CasADi's virtual machine. :func:`compiled` writes a
+function's C code (``casadi.CodeGenerator``), compiles it with the system's C compiler into a
+shared library in the cache directory, named by a hash of the code and of the compiler command,
+and loads it (``casadi.external``); a later run, or another process, finds the library there and
+pays nothing but the code generation. Libraries are written under a lock to a temporary name and
+renamed, so a killed run leaves no half-written library and two processes never build one twice.
+
+The C code performs the same floating-point operations in the same order as the virtual machine:
+no ``-ffast-math`` and no contraction into fused multiply-adds (``-ffp-contract=off``), so the
+results, and every plan, are the same to the bit (a test checks it). Without a C compiler, with
+``CASADI_DESIGN_COMPILE=0``, or for a function too small to gain (``MIN_INSTRUCTIONS``), the
+function is returned as it is.
+
+Environment: ``CASADI_DESIGN_COMPILE`` (0: never compile), ``CASADI_DESIGN_CACHE`` (the
+directory; default ``$XDG_CACHE_HOME/casadi_design`` or ``~/.cache/casadi_design``), ``CC``
+(the compiler; default ``cc``).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import casadi as ca
+
+from .threads import cpu_count
+
+#: Functions (or groups of a switch's cases) of fewer virtual-machine instructions stay as they
+#: are: their call costs more than their arithmetic, and compiling them would cost more than
+#: it saves (the paper's planar arm compiles nothing).
+MIN_INSTRUCTIONS = 1000
+#: The compiler's flags: optimised, but exactly IEEE (no reassociation, no fused multiply-add).
+FLAGS = ("-O1", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
+
+_groups: dict[tuple[int, ...], tuple[list, list]] = {}
+_said: list[str] = []
+
+
+def enabled() -> bool:
+    """Whether functions are compiled: ``CASADI_DESIGN_COMPILE`` is not 0 and a compiler exists."""
+    return os.environ.get("CASADI_DESIGN_COMPILE", "1") != "0" and _compiler() is not None
+
+
+def _compiler() -> str | None:
+    return shutil.which(os.environ.get("CC", "cc"))
+
+
+def cache_dir() -> Path:
+    """Where the compiled libraries are kept."""
+    if os.environ.get("CASADI_DESIGN_CACHE"):
+        return Path(os.environ["CASADI_DESIGN_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "casadi_design"
+
+
+def instructions(fn: ca.Function) -> int:
+    """Virtual-machine instructions of an SX function (0 for any other kind)."""
+    return fn.n_instructions() if fn.class_name() == "SXFunction" else 0
+
+
+def _source(fn: ca.Function) -> str:
+    """The C code of ``fn`` (its entry point named ``fn.name()``)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        gen = ca.CodeGenerator("f.c", {"with_header": False})
+        gen.add(fn)
+        gen.generate(tmp + os.sep)
+        return (Path(tmp) / "f.c").read_text()
+
+
+def _build(source: str, target: Path, compiler: str) -> None:
+    """Compile ``source`` into the library ``target`` (written under a temporary name first)."""
+    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+        c, so = Path(tmp) / "f.c", Path(tmp) / target.name
+        c.write_text(source)
+        subprocess.run([compiler, *FLAGS, str(c), "-o", str(so), "-lm"], check=True,
+                       capture_output=True, text=True)
+        os.replace(so, target)
+
+
+def compiled(fn: ca.Function) -> ca.Function:
+    """``fn`` as compiled code (the same inputs, outputs and results; :func:`compiled_group`)."""
+    return compiled_group([fn])[0]
+
+
+def compiled_group(fns: Sequence[ca.Function], min_instructions: int = MIN_INSTRUCTIONS) -> list[ca.Function]:
+    """The functions ``fns`` as compiled code (the same inputs, outputs and results), or as they
+    are when compiling is off or their instructions together number fewer than
+    ``min_instructions``. The missing libraries are built in parallel, one compiler per core;
+    a function asked for again is not generated again."""
+    fns = list(fns)
+    key = tuple(id(f) for f in fns)
+    if key not in _groups:
+        _groups[key] = (fns, _compile(fns, min_instructions))  # holds fns: their ids stay theirs
+    return list(_groups[key][1])
+
+
+def _compile(fns: list[ca.Function], min_instructions: int) -> list[ca.Function]:
+    if not fns or not enabled() or sum(instructions(f) for f in fns) < min_instructions:
+        return fns
+    compiler, directory = _compiler(), cache_dir()
+    sources = [_source(f) for f in fns]
+    keys = [hashlib.sha256((s + " ".join((compiler, *FLAGS))).encode()).hexdigest()[:32] for s in sources]
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with open(directory / "lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # one process builds; the others wait, then load
+            todo = {k: s for k, s in zip(keys, sources) if not (directory / f"{k}.so").exists()}
+            with ThreadPoolExecutor(max_workers=cpu_count()) as pool:
+                list(pool.map(lambda k: _build(todo[k], directory / f"{k}.so", compiler), todo))
+    except (OSError, subprocess.CalledProcessError) as exc:
+        _say(f"casadi-design: could not compile CasADi functions in {directory} ({_reason(exc)}); "
+             "they run in CasADi's virtual machine (the same results, slower)")
+        return fns
+    return [ca.external(f.name(), str(directory / f"{k}.so")) for k, f in zip(keys, fns)]
+
+
+def compiled_switch(name: str, cases: Sequence[ca.Function]) -> ca.Function:
+    """``casadi.Function.conditional(name, cases, cases[0])`` over the compiled cases
+    (:func:`compiled_group`: their instructions counted together)."""
+    cases = compiled_group(cases)
+    return ca.Function.conditional(name, cases, cases[0])
+
+
+def _reason(exc: Exception) -> str:
+    if isinstance(exc, subprocess.CalledProcessError):
+        return (exc.stderr or "").strip().splitlines()[-1:][0] if exc.stderr else f"exit {exc.returncode}"
+    return str(exc)
+
+
+def _say(message: str) -> None:
+    if message not in _said:
+        _said.append(message)
+        print(message, file=sys.stderr)
