@@ -48,6 +48,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dtrtri
 
 from .build import Problem, per_model
+from .compiled import compiled
 from .criteria import CRITERIA
 from .objectives import EpigraphRows, Local, Objective
 from .rules import CollisionRows, joint_distance_sq, joint_limits, load_variables, pose_constraints
@@ -265,10 +266,11 @@ class ReducedNLP:
 
     @cached_property
     def mapped(self) -> dict[str, BufferedFunction]:
-        """The functions of :class:`ExperimentFunctions` mapped over the experiments (pairs)."""
+        """The functions of :class:`ExperimentFunctions`, compiled (:mod:`casadi_design.compiled`),
+        mapped over the experiments (pairs)."""
         f, P = self.fns, len(self.pairs)
-        out = {"values": f.values.map(self.m), "first": f.first.map(self.m),
-               "second": f.second.map(self.m)}
+        out = {"values": compiled(f.values).map(self.m), "first": compiled(f.first).map(self.m),
+               "second": compiled(f.second).map(self.m)}
         if P:
             out.update(pair=f.pair.map(P), pair_first=f.pair_first.map(P),
                        pair_second=f.pair_second.map(P))

@@ -25,12 +25,14 @@ when it finds none, and ``casadi-design evaluate`` prints them for a user's plan
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import casadi as ca
 import numpy as np
 
 from .build import Problem, per_model
 from .cell import cell_rows, touching
+from .compiled import compiled, compiled_switch
 from .mapped import evaluate
 from .collision import PointRows
 from .symbolic import joint_axis
@@ -163,20 +165,32 @@ class CollisionRows:
     world points ``w = points(q)`` (3K, m; :class:`casadi_design.collision.PointRows`) through
     ``w_r = w[inputs[r]]`` (the same number of coordinates for every row, ``width =
     inputs.shape[1]``: those of the few points it uses, then the index 3K, a zero, to fill):
-    ``g_r = G_r(w_r)``. ``value``, ``slope`` and ``curvature`` are CasADi switches
-    ``(r, w_r) -> g_r``, ``dg_r/dw_r (1 x width)`` and ``d2g_r/dw_r2 (width x width)``:
-    they evaluate row r alone, so a switch mapped over k rows costs those k rows. ``curved``
-    (bool, one per row): whether ``d2g_r/dw_r2`` has a structural nonzero (a plane's rows and
-    a box's, piecewise linear in the points, have none).
+    ``g_r = G_r(w_r)``. ``cases[r]`` are row r's functions ``w_r -> g_r``, ``dg_r/dw_r (1 x
+    width)`` and ``d2g_r/dw_r2 (width x width)``; ``value``, ``slope`` and ``curvature`` are
+    CasADi switches ``(r, w_r) ->`` those, over their compiled code
+    (:mod:`casadi_design.compiled`, built when first asked for): they evaluate row r alone, so
+    a switch mapped over k rows costs those k rows. ``curved`` (bool, one per row): whether
+    ``d2g_r/dw_r2`` has a structural nonzero (a plane's rows and a box's, piecewise linear in
+    the points, have none).
     """
 
     first: int
     points: ca.Function
     inputs: np.ndarray
-    value: ca.Function
-    slope: ca.Function
-    curvature: ca.Function
+    cases: tuple[tuple[ca.Function, ca.Function, ca.Function], ...]
     curved: np.ndarray
+
+    @cached_property
+    def value(self) -> ca.Function:
+        return compiled_switch("row", [c[0] for c in self.cases])
+
+    @cached_property
+    def slope(self) -> ca.Function:
+        return compiled_switch("drow", [c[1] for c in self.cases])
+
+    @cached_property
+    def curvature(self) -> ca.Function:
+        return compiled_switch("d2row", [c[2] for c in self.cases])
 
 
 def collision_rows(rows: PointRows, q: ca.SX, first: int) -> CollisionRows:
@@ -187,21 +201,17 @@ def collision_rows(rows: PointRows, q: ca.SX, first: int) -> CollisionRows:
     dependence = np.array(ca.DM(uses, 1.0), dtype=bool).reshape(len(rows.G), K3 // 3, 3).any(axis=2)
     width = 3 * max(1, int(dependence.sum(axis=1).max()))
     w = ca.SX.sym("w", width)
-    inputs, value, slope, curvature = [], [], [], []
+    inputs, cases = [], []
     for r, g in enumerate(rows.G):
         idx = [3 * k + a for k in np.flatnonzero(dependence[r]) for a in range(3)]
         if idx:
             g = ca.substitute(g, rows.W[idx], w[: len(idx)])
         inputs.append(idx + [K3] * (width - len(idx)))
-        value.append(ca.Function("row", [w], [g]))
-        slope.append(ca.Function("drow", [w], [ca.jacobian(g, w)]))
-        curvature.append(ca.Function("d2row", [w], [ca.hessian(g, w)[0]]))
+        cases.append((ca.Function("row", [w], [g]), ca.Function("drow", [w], [ca.jacobian(g, w)]),
+                      ca.Function("d2row", [w], [ca.hessian(g, w)[0]])))
     return CollisionRows(first, ca.Function("points", [q], [rows.points], ["q"], ["w"]),
-                         np.array(inputs, dtype=int).reshape(len(rows.G), width),
-                         ca.Function.conditional("row", value, value[0]),
-                         ca.Function.conditional("drow", slope, slope[0]),
-                         ca.Function.conditional("d2row", curvature, curvature[0]),
-                         np.array([f.nnz_out(0) > 0 for f in curvature], dtype=bool))
+                         np.array(inputs, dtype=int).reshape(len(rows.G), width), tuple(cases),
+                         np.array([d2.nnz_out(0) > 0 for _, _, d2 in cases], dtype=bool))
 
 
 @per_model
@@ -302,7 +312,7 @@ def _rows_at(f: ca.Function, Q: np.ndarray) -> np.ndarray:
     """The rows of ``f`` (a function of one configuration) at each configuration of ``Q``
     (k x n): shape (k, rows); one mapped call per chunk, in this thread (a worker's starts
     and approximate designs run one per core)."""
-    return evaluate(f, np.asarray(Q, dtype=float), threads=1)[0].reshape(len(Q), f.numel_out(0))
+    return evaluate(compiled(f), np.asarray(Q, dtype=float), threads=1)[0].reshape(len(Q), f.numel_out(0))
 
 
 def _amount(v: float, unit: str, lb: float) -> str:
