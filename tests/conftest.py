@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import tomllib
 from pathlib import Path
 
@@ -10,6 +11,9 @@ import pytest
 
 from casadi_design.threads import single_threaded
 
+# The suite runs CasADi's virtual machine: compiling a robot's functions the first time costs
+# seconds per cell. tests/test_compiled.py checks the compiled code gives the same bits.
+os.environ.setdefault("CASADI_DESIGN_COMPILE", "0")
 single_threaded()  # as the command does, before numpy and CasADi load (casadi_design.launch)
 
 from casadi_design.build import build_problem, load_problem  # noqa: E402

@@ -1,0 +1,135 @@
+"""Compiled CasADi functions (casadi_design.compiled): the same results to the bit as CasADi's
+virtual machine, built once and found again on disk, and the virtual machine when no compiler
+works. The rest of the suite runs with compiling off (conftest): these tests compile into a
+temporary cache of their own."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from casadi_design import compiled as cc
+from casadi_design.build import load_problem
+from casadi_design.mapped import evaluate
+from casadi_design.reduced import experiment_functions
+from casadi_design.rules import pose_constraints
+from casadi_design.sampling import random_plan
+from tests.conftest import ROOT
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    """Compiling on, into an empty cache of this test."""
+    monkeypatch.setenv("CASADI_DESIGN_COMPILE", "1")
+    monkeypatch.setenv("CASADI_DESIGN_CACHE", str(tmp_path))
+    monkeypatch.setattr(cc, "_groups", {})
+    if not cc.enabled():
+        pytest.skip("no C compiler on this machine")
+    return tmp_path
+
+
+@pytest.fixture(scope="module")
+def ur10():
+    return load_problem(ROOT / "problems" / "ur10_drilling.toml")
+
+
+def _same(fn: ca.Function, other: ca.Function, *rows: np.ndarray) -> None:
+    for a, b in zip(evaluate(fn, *rows, threads=1), evaluate(other, *rows, threads=1)):
+        assert np.array_equal(a, b), fn.name()
+
+
+def test_the_experiment_functions_give_the_same_bits(cache, ur10):
+    fns = experiment_functions(ur10)
+    rng = np.random.default_rng(3)
+    Q = np.array([random_plan(ur10, 1, rng)[0][0] for _ in range(40)])
+    Z = np.concatenate([Q, rng.uniform(-1, 1, size=(40, fns.nv))], axis=1)
+    for fn in (fns.values, fns.first):
+        fast = cc.compiled(fn)
+        assert fast.class_name() == "External"
+        _same(fn, fast, Z)
+    fast = cc.compiled(fns.second)
+    W, lam, u = (rng.normal(size=(40, fns.second.numel_in(k))) for k in (1, 2, 3))
+    _same(fns.second, fast, Z, W, lam, u)
+    assert len(list(cache.glob("*.so"))) >= 3  # and the workspace rows the sampling checks
+
+
+def test_the_capsule_rows_give_the_same_bits(cache, ur10):
+    """Every row's value, slope and curvature through the compiled switches, at the points of
+    sampled configurations, against the virtual machine's switch of the same cases."""
+    rows = pose_constraints(ur10).collision
+    rng = np.random.default_rng(5)
+    Q = np.array([random_plan(ur10, 1, rng)[0][0] for _ in range(8)])
+    w = np.concatenate([evaluate(rows.points, Q, threads=1)[0][:, :, 0], np.zeros((len(Q), 1))], axis=1)
+    R = len(rows.inputs)
+    index = np.repeat(np.arange(R), len(Q)).astype(float)[:, None]
+    args = w[np.tile(np.arange(len(Q)), R)[:, None], rows.inputs[index[:, 0].astype(int)]]
+    for k, name in enumerate(("value", "slope", "curvature")):
+        plain = ca.Function.conditional(name, [c[k] for c in rows.cases], rows.cases[0][k])
+        fast = getattr(rows, name)
+        assert fast.class_name() == "Switch"
+        _same(plain, fast, index, args)
+    assert len(list(cache.glob("*.so"))) >= 3
+
+
+@pytest.mark.slow
+def test_a_start_in_the_cell_is_the_same_compiled_or_not(cache, monkeypatch):
+    """One UR10 start in its cell (rows joining as they can bind): the same IPOPT iterations, plan
+    and value with the compiled functions as in the virtual machine."""
+    from casadi_design.build import _build
+    from casadi_design.nlp import B0_at_test_poses
+    from casadi_design.problem import read_problem
+    from casadi_design.solve import make_design_solver, solve_start, start_rng
+
+    spec = read_problem(ROOT / "problems" / "ur10_drilling.toml")
+
+    def run():
+        problem = _build(spec)  # built anew: its own CasADi functions
+        Q0, F0 = random_plan(problem, 9, start_rng(problem.solver.seed, "test-pose", 9))
+        B0 = B0_at_test_poses(problem)
+        return solve_start(problem, make_design_solver(problem, "test-pose", 9, B0), B0, Q0, F0)
+
+    monkeypatch.setenv("CASADI_DESIGN_COMPILE", "0")
+    plain = run()
+    monkeypatch.setenv("CASADI_DESIGN_COMPILE", "1")
+    fast = run()
+    assert list(cache.glob("*.so"))
+    assert fast[0] == plain[0] and fast[0].iterations > 10
+    assert np.array_equal(fast[1], plain[1]) and np.array_equal(fast[2], plain[2])
+
+
+def test_a_library_is_built_once_and_found_again(cache, monkeypatch):
+    x = ca.SX.sym("x", 4)
+    fn = ca.Function("f", [x], [ca.sin(x) * ca.exp(x[0] * x[1]) + ca.sqrt(ca.sumsqr(x) + 1)])
+    first = cc.compiled_group([fn], min_instructions=0)[0]
+    assert first.class_name() == "External" and len(list(cache.glob("*.so"))) == 1
+
+    def no_compiler(*args, **kwargs):
+        raise AssertionError("compiled again")
+
+    monkeypatch.setattr(cc, "_groups", {})  # another process: only the disk remembers
+    monkeypatch.setattr(cc, "_build", no_compiler)
+    again = cc.compiled_group([fn], min_instructions=0)[0]
+    X = np.random.default_rng(0).normal(size=(16, 4))
+    _same(fn, again, X)
+    _same(first, again, X)
+
+
+def test_small_functions_and_switched_off_compiling_stay_as_they_are(cache, monkeypatch):
+    x = ca.SX.sym("x", 2)
+    small = ca.Function("small", [x], [x[0] * x[1]])
+    assert cc.compiled(small) is small
+    big = ca.Function("big", [x], [ca.sin(x) * ca.cos(x[0])])
+    monkeypatch.setenv("CASADI_DESIGN_COMPILE", "0")
+    assert cc.compiled_group([big], min_instructions=0)[0] is big
+    assert not list(cache.glob("*.so"))
+
+
+def test_a_failing_compiler_leaves_the_function_and_no_library(cache, monkeypatch, capsys):
+    monkeypatch.setenv("CC", "false")  # a compiler that fails on everything
+    x = ca.SX.sym("x", 2)
+    fn = ca.Function("g", [x], [ca.sin(x) * ca.cos(x[0])])
+    assert cc.compiled_group([fn], min_instructions=0)[0] is fn
+    err = capsys.readouterr().err
+    assert "could not compile" in err and "virtual machine" in err and err.count("\n") == 1
+    assert not list(cache.glob("*.so")) and not [p for p in cache.iterdir() if p.is_dir()]
