@@ -1,20 +1,25 @@
 """Speed and memory of the design NLPs: one table, and benchmark.json.
 
     python scripts/benchmark.py [--cases paper,ur10,ur10-50,abb] [--criteria test-pose,D] [--starts N]
-                                [--compare-with DIR] [--studies] [--out benchmark.json]
+                                [--compare-with DIR | --compare-vm] [--studies] [--out benchmark.json]
 
 Each (case, criterion, m) runs in a fresh process (so its peak memory is its own): build the
 design solver, then the seeded starts of `casadi-design solve` one after the other. Printed per
 design: build time (s), time per start (s), IPOPT iterations, ms per iteration, peak memory
 (MB, the child's maximum resident set), best max error (mm), best criterion value and the
 number of starts that reach it (the registry's same-optimum rule), and for a cell the IPOPT
-runs per start and the capsule rows the last run held (of all rows of the plan).
+runs per start and the capsule rows the last run held (of all rows of the plan); with a
+comparison, the old/new ratios and whether every start's value and iterations are the same.
 ``--studies`` also times each case's whole study as shipped. Case ``ur10-50``: the UR10
 with a grid of 50 drilling points as test poses, m = 20, 16 starts.
 
 ``--compare-with DIR`` runs the same designs with the package found in DIR (another checkout,
-e.g. a worktree of an older commit) and adds the old/new ratios of time per start and memory.
-Figures are for the machine at hand; compare ratios, not absolutes.
+e.g. a worktree of an older commit) and adds the old/new ratios of time per start and memory;
+``--compare-vm`` compares instead with this checkout in CasADi's virtual machine
+(``CASADI_DESIGN_COMPILE=0``: no compiled functions, :mod:`casadi_design.compiled`). The first
+line says whether the functions are compiled and where their cache is; build times include
+compiling what the cache does not hold yet. Figures are for the machine at hand; compare
+ratios, not absolutes.
 """
 
 from __future__ import annotations
@@ -119,9 +124,10 @@ def study(problem_file: str, jobs: int) -> dict:
 
 
 def child(package_dir: Path, problem_file: str, criterion: str, m: int, starts: int,
-          grid: tuple | None) -> dict:
-    """Run one design in a fresh process with the package of ``package_dir`` (its own peak memory)."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+          grid: tuple | None, env: dict | None = None) -> dict:
+    """Run one design in a fresh process with the package of ``package_dir`` (its own peak
+    memory), with the environment variables ``env`` besides this one's."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
     # the package first on sys.path, before an installed (editable) copy; this script's helpers after
     code = ("import json, sys; sys.path[:0] = [%r, %r]; from benchmark import run_one; "
             "print(json.dumps(run_one(%r, %r, %d, %d, %r)))"
@@ -140,14 +146,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--m", help="numbers of experiments, e.g. 9,12 (default: per case)")
     parser.add_argument("--starts", type=int, help="seeded starts per design (default: per case)")
     parser.add_argument("--compare-with", metavar="DIR", help="another checkout to compare with")
+    parser.add_argument("--compare-vm", action="store_true",
+                        help="compare with this checkout in CasADi's virtual machine (nothing compiled)")
     parser.add_argument("--out", default="benchmark.json", help="JSON file of all figures")
     parser.add_argument("--studies", action="store_true",
                         help="also time each case's whole study, `casadi-design solve CASE --jobs 2`")
     args = parser.parse_args(argv)
+    if args.compare_with and args.compare_vm:
+        parser.error("--compare-with and --compare-vm: choose one")
+    sys.path.insert(0, str(ROOT))
+    from casadi_design import compiled
+
+    print(f"compiled CasADi functions: on, cache {compiled.cache_dir()}" if compiled.enabled() else
+          "compiled CasADi functions: off (CASADI_DESIGN_COMPILE=0 or no C compiler): the virtual machine")
+    compare = args.compare_with or args.compare_vm
+    old_dir = Path(args.compare_with) if args.compare_with else ROOT
+    old_env = {"CASADI_DESIGN_COMPILE": "0"} if args.compare_vm else None
     rows = []
     head = (f"{'case':<8}{'criterion':<11}{'m':>3}{'build s':>9}{'s/start':>9}{'iter':>7}"
             f"{'ms/iter':>9}{'peak MB':>9}{'best mm':>9}{'best value':>13}{'at best':>8}{'runs':>6}"
-            f"{'rows held':>11}" + (f"{'old/new time':>14}{'old/new MB':>12}" if args.compare_with else ""))
+            f"{'rows held':>11}" + (f"{'old/new time':>14}{'old/new MB':>12}{'starts':>8}" if compare else ""))
     print(head)
     print("-" * len(head))
     for case in args.cases.split(","):
@@ -156,8 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         for m in ([int(v) for v in args.m.split(",")] if args.m else ms):
             for criterion in args.criteria.split(","):
                 new = child(ROOT, problem_file, criterion, m, starts, grid)
-                old = (child(Path(args.compare_with), problem_file, criterion, m, starts, grid)
-                       if args.compare_with else None)
+                old = child(old_dir, problem_file, criterion, m, starts, grid, old_env) if compare else None
                 rows.append({"case": case, "criterion": criterion, "m": m, "starts": starts,
                              "new": new, "old": old})
                 if "error" in new:
@@ -173,7 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                 if old and "error" not in old:
                     old_per_start = (old["build_s"] + sum(old["start_s"])) / len(old["start_s"])
                     new_per_start = (new["build_s"] + sum(new["start_s"])) / len(new["start_s"])
-                    line += f"{old_per_start / new_per_start:>14.1f}{old['peak_MB'] / new['peak_MB']:>12.1f}"
+                    same = old["values"] == new["values"] and old["iterations"] == new["iterations"]
+                    line += (f"{old_per_start / new_per_start:>14.1f}{old['peak_MB'] / new['peak_MB']:>12.1f}"
+                             f"{'same' if same else 'differ':>8}")
                 elif old:
                     line += f"{'old failed':>14}"
                 print(line, flush=True)
