@@ -46,6 +46,7 @@ import numpy as np
 from ..build import Problem, per_model
 from ..cell import clearances
 from ..collision import capsule_names, carrier
+from ..compiled import compiled
 from ..export import is_prismatic
 from ..mapped import evaluate
 from ..rules import FEASIBILITY_TOL, joint_limits, pose_constraints
@@ -88,7 +89,7 @@ class MoveRules:
     """The rows a move is checked with (indices into :func:`casadi_design.rules.pose_constraints`):
     ``collision`` (capsule rows: self-collision, obstacles, floor), ``sight`` (lines of sight)
     and ``incidence`` (the reflector's acceptance angle, ``g >= lb``), the rows ``g`` of one
-    configuration, ``reach_m`` (rows, n): per row,
+    configuration (compiled, :mod:`casadi_design.compiled`), ``reach_m`` (rows, n): per row,
     the sum of the bounds R_k of the module docstring of the bodies it keeps apart (0 for rows
     that are not capsule rows), and ``step_m``, the capsules' largest displacement between
     two samples where they touch the clearance."""
@@ -125,7 +126,7 @@ def move_rules(problem: Problem) -> MoveRules | None:
     sight = np.array([k >= screen and label.startswith("line of sight") for k, label in enumerate(rules.labels)])
     capsule = index >= screen
     clearance = cell.spec.clearance_m
-    return MoveRules(rules.g, rules.lb, rules.labels,
+    return MoveRules(compiled(rules.g), rules.lb, rules.labels,
                      index[capsule & ~sight], index[sight], index[(index < screen) & (np.array(rules.units) == "cos")],
                      row_reach(problem, rules.labels),
                      STEP_FRACTION * clearance if clearance > 0 else STEP_WITHOUT_CLEARANCE_M, clearance)
