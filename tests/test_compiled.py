@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from casadi_design import compiled as cc
-from casadi_design.build import load_problem
 from casadi_design.mapped import evaluate
 from casadi_design.reduced import experiment_functions
 from casadi_design.rules import pose_constraints
@@ -31,7 +30,12 @@ def cache(tmp_path, monkeypatch):
 
 @pytest.fixture(scope="module")
 def ur10():
-    return load_problem(ROOT / "problems" / "ur10_drilling.toml")
+    """The UR10 in its cell, built anew (not the process's cached problem, whose functions
+    other tests built with compiling off)."""
+    from casadi_design.build import _build
+    from casadi_design.problem import read_problem
+
+    return _build(read_problem(ROOT / "problems" / "ur10_drilling.toml"))
 
 
 def _same(fn: ca.Function, other: ca.Function, *rows: np.ndarray) -> None:
@@ -54,6 +58,21 @@ def test_the_experiment_functions_give_the_same_bits(cache, ur10):
     assert len(list(cache.glob("*.so"))) >= 3  # and the workspace rows the sampling checks
 
 
+def test_every_rule_row_of_a_configuration_gives_the_same_bits(cache, ur10):
+    """The rows of one configuration (the sampling's judge and the move checks of a robot
+    program, :func:`casadi_design.program.moves.move_rules`) at sampled configurations."""
+    from casadi_design.program.moves import move_rules
+
+    g = pose_constraints(ur10).g
+    rng = np.random.default_rng(11)
+    Q = np.array([random_plan(ur10, 1, rng)[0][0] for _ in range(20)])
+    fast = move_rules(ur10).g
+    assert fast.class_name() == "External" and fast is cc.compiled(g)
+    _same(g, fast, Q)
+    for q in Q[:3]:  # called one configuration at a time, as a move's scan does
+        assert np.array_equal(np.asarray(g(q)), np.asarray(fast(q)))
+
+
 def test_the_capsule_rows_give_the_same_bits(cache, ur10):
     """Every row's value, slope and curvature through the compiled switches, at the points of
     sampled configurations, against the virtual machine's switch of the same cases."""
@@ -68,6 +87,8 @@ def test_the_capsule_rows_give_the_same_bits(cache, ur10):
         plain = ca.Function.conditional(name, [c[k] for c in rows.cases], rows.cases[0][k])
         fast = getattr(rows, name)
         assert fast.class_name() == "Switch"
+        built = cc._groups[tuple(id(c[k]) for c in rows.cases)][1]  # what the switch was made of
+        assert {f.class_name() for f in built} == {"External"}
         _same(plain, fast, index, args)
     assert len(list(cache.glob("*.so"))) >= 3
 
