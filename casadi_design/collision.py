@@ -28,14 +28,17 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from types import SimpleNamespace
 
 import casadi as ca
 import coal
 import numpy as np
 import pinocchio as pin
+import scipy
 from scipy.optimize import minimize
 
+from .cache import digest, stored
 from .errors import ProblemError
 from .obstacles import Capsule, Obstacle, vector3
 from .robots import Robot
@@ -287,6 +290,10 @@ def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_
     fitted around each group (:func:`fit_capsule`). Every piece lies inside one capsule
     (convexity), so the link's surface lies inside the union of its capsules and the smallest
     capsule distance between two links is never larger than the mesh distance.
+
+    The fit takes seconds (Nelder-Mead on each capsule); its result is kept on disk
+    (:func:`casadi_design.cache.stored`), named by the pieces' bytes, ``per_link``, this
+    module's code and the numpy and scipy versions: a later run reads the same capsules.
     """
     parts: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
     for go in geom_model.geometryObjects:
@@ -294,14 +301,23 @@ def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_
         fMg = model.frames[go.parentFrame].placement.inverse() * go.placement
         parts.setdefault(go.parentFrame, []).extend(
             (c @ fMg.rotation.T + fMg.translation, r) for c, r in _geometry_pieces(go.geometry))
-    out = []
-    for fid, pieces in sorted(parts.items()):
-        points = np.vstack([c for c, _ in pieces])
-        radii = np.concatenate([r for _, r in pieces])
-        piece = np.repeat(np.arange(len(pieces)), [len(r) for _, r in pieces])
-        for mask in _partition(points, radii, piece, per_link):
-            out.append(fit_capsule(model.frames[fid].name, points[mask], radii[mask]))
-    return tuple(out)
+    links = [(model.frames[fid].name, pieces) for fid, pieces in sorted(parts.items())]
+
+    def fit() -> tuple[Capsule, ...]:
+        out = []
+        for name, pieces in links:
+            points = np.vstack([c for c, _ in pieces])
+            radii = np.concatenate([r for _, r in pieces])
+            piece = np.repeat(np.arange(len(pieces)), [len(r) for _, r in pieces])
+            for mask in _partition(points, radii, piece, per_link):
+                out.append(fit_capsule(name, points[mask], radii[mask]))
+        return tuple(out)
+
+    key = digest(Path(__file__).read_bytes(), np.__version__.encode(), scipy.__version__.encode(),
+                 str(per_link).encode(), *(part for name, pieces in links for c, r in pieces
+                                          for part in (name.encode(), np.ascontiguousarray(c).tobytes(),
+                                                       np.ascontiguousarray(r).tobytes())))
+    return stored("capsules", key, fit)
 
 
 def load_collision_geometry(model: pin.Model, urdf_path, package_dirs: Sequence[str] = ()) -> pin.GeometryModel:

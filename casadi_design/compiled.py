@@ -16,8 +16,7 @@ results, and every plan, are the same to the bit (a test checks it). Without a C
 function is returned as it is.
 
 Environment: ``CASADI_DESIGN_COMPILE`` (0: never compile), ``CASADI_DESIGN_CACHE`` (the
-directory; default ``$XDG_CACHE_HOME/casadi_design`` or ``~/.cache/casadi_design``), ``CC``
-(the compiler; default ``cc``).
+directory, :func:`casadi_design.cache.cache_dir`), ``CC`` (the compiler; default ``cc``).
 """
 
 from __future__ import annotations
@@ -35,6 +34,7 @@ from pathlib import Path
 
 import casadi as ca
 
+from .cache import cache_dir
 from .threads import cpu_count
 
 #: Functions (or groups of a switch's cases) of fewer virtual-machine instructions stay as they
@@ -55,14 +55,6 @@ def enabled() -> bool:
 
 def _compiler() -> str | None:
     return shutil.which(os.environ.get("CC", "cc"))
-
-
-def cache_dir() -> Path:
-    """Where the compiled libraries are kept."""
-    if os.environ.get("CASADI_DESIGN_CACHE"):
-        return Path(os.environ["CASADI_DESIGN_CACHE"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "casadi_design"
 
 
 def instructions(fn: ca.Function) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import os
+import tempfile
 import tomllib
 from pathlib import Path
 
@@ -14,6 +15,9 @@ from casadi_design.threads import single_threaded
 # The suite runs CasADi's virtual machine: compiling a robot's functions the first time costs
 # seconds per cell. tests/test_compiled.py checks the compiled code gives the same bits.
 os.environ.setdefault("CASADI_DESIGN_COMPILE", "0")
+# What the package keeps between runs (casadi_design.cache: the capsules fitted around the
+# meshes) goes to a folder of the test runs, not the user's cache.
+os.environ.setdefault("CASADI_DESIGN_CACHE", os.path.join(tempfile.gettempdir(), f"casadi-design-tests-{os.getuid()}"))
 single_threaded()  # as the command does, before numpy and CasADi load (casadi_design.launch)
 
 from casadi_design.build import build_problem, load_problem  # noqa: E402

@@ -1,0 +1,73 @@
+"""What is kept on disk between runs (casadi_design.cache): computed once, read again to the
+bit, computed anew when the file is damaged or the cache cannot be written; the capsules fitted
+around a URDF's meshes read back as the fit gives them."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from casadi_design import cache, collision
+from casadi_design.cell import _package_dirs
+from casadi_design.collision import capsules_from_geometry, load_collision_geometry
+from casadi_design.robots import load_urdf, urdf_file
+
+UR10 = "example-robot-data:ur_description/urdf/ur10_robot.urdf"
+
+
+@pytest.fixture
+def directory(tmp_path, monkeypatch):
+    monkeypatch.setenv("CASADI_DESIGN_CACHE", str(tmp_path))
+    return tmp_path
+
+
+def test_a_value_is_computed_once_and_read_again(directory):
+    calls = []
+
+    def make():
+        calls.append(1)
+        return {"x": np.arange(3.0) / 7}
+
+    key = cache.digest(b"inputs", b"code")
+    first = cache.stored("test", key, make)
+    again = cache.stored("test", key, make)
+    assert calls == [1] and np.array_equal(first["x"], again["x"])
+    assert [p.name for p in directory.iterdir()] == [f"test-{key}.pickle"]  # no temporary left
+    other = cache.stored("test", cache.digest(b"other inputs", b"code"), make)  # another key: computed
+    assert np.array_equal(other["x"], first["x"]) and calls == [1, 1]
+
+
+def test_the_digest_tells_its_parts_apart():
+    assert cache.digest(b"ab", b"c") != cache.digest(b"a", b"bc")
+
+
+def test_a_damaged_file_is_computed_again(directory):
+    key = cache.digest(b"k")
+    (directory / f"test-{key}.pickle").write_bytes(b"\x80\x04 half a pickle")
+    assert cache.stored("test", key, lambda: 42) == 42
+    assert pickle.loads((directory / f"test-{key}.pickle").read_bytes()) == 42
+
+
+def test_an_unwritable_cache_still_gives_the_value(tmp_path, monkeypatch):
+    blocker = tmp_path / "a file"
+    blocker.write_text("not a directory")
+    monkeypatch.setenv("CASADI_DESIGN_CACHE", str(blocker / "cache"))
+    assert cache.stored("test", cache.digest(b"k"), lambda: [1, 2]) == [1, 2]
+
+
+def test_the_ur10_capsules_read_back_as_fitted(directory, monkeypatch):
+    model = load_urdf(UR10)
+    geometry = load_collision_geometry(model, urdf_file(UR10), _package_dirs(UR10))
+    fitted = capsules_from_geometry(model, geometry, 2)
+    assert len(list(directory.glob("capsules-*.pickle"))) == 1
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("fitted again")
+
+    monkeypatch.setattr(collision, "fit_capsule", no_fit)
+    again = capsules_from_geometry(model, geometry, 2)
+    assert pickle.dumps(again) == pickle.dumps(fitted)  # the same capsules to the bit
+    with pytest.raises(AssertionError, match="fitted again"):  # other inputs: fitted anew
+        capsules_from_geometry(model, geometry, 1)
