@@ -39,6 +39,15 @@ def pressed() -> bool:
     return _HIT.is_set()
 
 
+def check() -> None:
+    """Raise ``KeyboardInterrupt`` if Ctrl-C was pressed since :func:`install`: a
+    ``KeyboardInterrupt`` raised inside CasADi's argument conversion is swallowed by SWIG's
+    overload dispatch (it tries the next overload), so the command checks after building a
+    problem and whenever a start comes back."""
+    if _HIT.is_set():
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def solver_call() -> Iterator[None]:
     """Run a CasADi solver call; raise ``KeyboardInterrupt`` after it if Ctrl-C was pressed.

@@ -192,6 +192,7 @@ def load(args: argparse.Namespace, check_solver: bool = True) -> Problem:
         options = {**dict(spec.solver.ipopt), **dict(args.ipopt)}
         spec = replace(spec, solver=replace(spec.solver, ipopt=tuple(sorted(options.items()))))
     problem = build_problem(spec)
+    interrupt.check()  # a Ctrl-C that CasADi's argument conversion swallowed while building
     if check_solver:
         check_ipopt_options(problem)
     return problem
@@ -296,9 +297,19 @@ def campaign(args: argparse.Namespace, label: str,
         bar = progress_bar(total_starts(criteria, ms, settings), label, args.quiet)
         with keeping(partial, lambda: len(done.designs), total), bar:
             result = run_campaign(problem, criteria, ms, settings, executor=ex,
-                                  done=saved, on_design=done.save, progress=bar.update)
+                                  done=saved, on_design=done.save, progress=checked(bar))
     say_approximate(args, result.approx)
     return problem, result, panels
+
+
+def checked(bar) -> Callable[[int], object]:
+    """``bar.update`` for each start that comes back, after :func:`casadi_design.interrupt.check`
+    (a Ctrl-C that CasADi swallowed in this process stops the command there)."""
+    def update(n: int = 1) -> object:
+        interrupt.check()
+        return bar.update(n)
+
+    return update
 
 
 # --------------------------------------------------------------------------- stopped with designs kept
@@ -322,6 +333,8 @@ def keeping(partial: Path | None, finished: Callable[[], int], total: int) -> It
     except KeyboardInterrupt:
         raise Interrupted(f"interrupted: {kept()}") from None
     except WorkerLost as exc:
+        if interrupt.pressed():
+            raise Interrupted(f"interrupted: {kept()}") from None
         raise DesignError(f"{exc}; {kept()}") from None
     except Exception:
         if not interrupt.pressed():

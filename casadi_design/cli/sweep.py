@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
         bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm), "sweep", args.quiet)
         with bar:
             sweep = run_sweep(problem, criteria, ms, settings, warm_start=warm, done=done,
-                              executor=executor, progress=bar.update, on_design=save)
+                              executor=executor, progress=common.checked(bar), on_design=save)
     common.say_approximate(args, sweep.approx)
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
