@@ -73,6 +73,21 @@ def test_every_rule_row_of_a_configuration_gives_the_same_bits(cache, ur10):
         assert np.array_equal(np.asarray(g(q)), np.asarray(fast(q)))
 
 
+def test_some_capsule_rows_give_the_same_bits(cache, ur10):
+    """The value, slope and curvature of a few capsule rows (of the switches' cases), compiled,
+    at the points of sampled configurations (the whole switches: the slow test below)."""
+    rows = pose_constraints(ur10).collision
+    rng = np.random.default_rng(4)
+    Q = np.array([random_plan(ur10, 1, rng)[0][0] for _ in range(8)])
+    w = np.concatenate([evaluate(rows.points, Q, threads=1)[0][:, :, 0], np.zeros((len(Q), 1))], axis=1)
+    for r in rng.choice(len(rows.cases), size=6, replace=False):
+        fast = cc.compiled_group(rows.cases[r], min_instructions=0)
+        assert {f.class_name() for f in fast} == {"External"}
+        for plain, compiled in zip(rows.cases[r], fast):
+            _same(plain, compiled, w[:, rows.inputs[r]])
+
+
+@pytest.mark.slow
 def test_the_capsule_rows_give_the_same_bits(cache, ur10):
     """Every row's value, slope and curvature through the compiled switches, at the points of
     sampled configurations, against the virtual machine's switch of the same cases."""
