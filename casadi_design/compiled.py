@@ -1,8 +1,9 @@
 """Compiled CasADi functions: a function's C code, built once per machine and kept on disk.
 
-The large functions of a 6-axis robot in its cell (the kinematics' derivatives of
-:mod:`casadi_design.reduced`, the capsule rows and their curvature, the bound's searches) run
-10 to 16 times faster as C than in CasADi's virtual machine. :func:`compiled` writes a
+The large functions of a 6-axis robot in its cell (the kinematics and its derivatives of
+:mod:`casadi_design.reduced`, the capsule rows and their curvature, the rule rows of one
+configuration) run 3 to 16 times faster as C than in CasADi's virtual machine (the bound's
+search NLP is not compiled: its Hessian takes gcc minutes). :func:`compiled` writes a
 function's C code (``casadi.CodeGenerator``), compiles it with the system's C compiler into a
 shared library in the cache directory, named by a hash of the code and of the compiler command,
 and loads it (``casadi.external``); a later run, or another process, finds the library there and
@@ -22,7 +23,6 @@ directory, :func:`casadi_design.cache.cache_dir`), ``CC`` (the compiler; default
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import os
 import shutil
 import subprocess
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from .cache import cache_dir
+from .cache import cache_dir, digest
 from .threads import cpu_count
 
 #: Functions (or groups of a switch's cases) of fewer virtual-machine instructions stay as they
@@ -103,7 +103,7 @@ def _compile(fns: list[ca.Function], min_instructions: int) -> list[ca.Function]
         return fns
     compiler, directory = _compiler(), cache_dir()
     sources = [_source(f) for f in fns]
-    keys = [hashlib.sha256((s + " ".join((compiler, *FLAGS))).encode()).hexdigest()[:32] for s in sources]
+    keys = [digest(s.encode(), compiler.encode(), " ".join(FLAGS).encode()) for s in sources]
     try:
         directory.mkdir(parents=True, exist_ok=True)
         with open(directory / "lock", "w") as lock:
@@ -127,7 +127,8 @@ def compiled_switch(name: str, cases: Sequence[ca.Function]) -> ca.Function:
 
 def _reason(exc: Exception) -> str:
     if isinstance(exc, subprocess.CalledProcessError):
-        return (exc.stderr or "").strip().splitlines()[-1:][0] if exc.stderr else f"exit {exc.returncode}"
+        lines = (exc.stderr or "").strip().splitlines()
+        return lines[-1] if lines else f"exit {exc.returncode}"
     return str(exc)
 
 
