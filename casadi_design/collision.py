@@ -26,6 +26,7 @@ Robots without collision geometry (DH tables) take capsules given as numbers
 from __future__ import annotations
 
 import itertools
+import sys
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -292,8 +293,9 @@ def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_
     capsule distance between two links is never larger than the mesh distance.
 
     The fit takes seconds (Nelder-Mead on each capsule); its result is kept on disk
-    (:func:`casadi_design.cache.stored`), named by the pieces' bytes, ``per_link``, this
-    module's code and the numpy and scipy versions: a later run reads the same capsules.
+    (:func:`casadi_design.cache.stored`), named by the pieces' bytes, ``per_link``, the code of
+    this module and of :class:`Capsule`'s, and the numpy and scipy versions: a later run reads
+    the same capsules.
     """
     parts: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
     for go in geom_model.geometryObjects:
@@ -313,7 +315,8 @@ def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_
                 out.append(fit_capsule(name, points[mask], radii[mask]))
         return tuple(out)
 
-    key = digest(Path(__file__).read_bytes(), np.__version__.encode(), scipy.__version__.encode(),
+    code = (Path(__file__).read_bytes(), Path(sys.modules[Capsule.__module__].__file__).read_bytes())
+    key = digest(*code, np.__version__.encode(), scipy.__version__.encode(),
                  str(per_link).encode(), *(part for name, pieces in links for c, r in pieces
                                           for part in (name.encode(), np.ascontiguousarray(c).tobytes(),
                                                        np.ascontiguousarray(r).tobytes())))
