@@ -175,7 +175,7 @@ class _Workers:
     """What an executor runs on its workers: :meth:`run` keeps each worker busy with the most
     urgent task that is ready; :meth:`_map` runs calls known in advance, results in their
     order. A subclass gives ``slots`` (tasks at once), ``_submit(task) -> handle``,
-    ``_finished(handles) -> the handles done`` and ``_result(handle, task)`` (raises
+    ``_finished(handles) -> the handles done`` and ``_result(handle, task)`` (both raise
     :class:`BrokenProcessPool` when a local worker process died), ``_restart()`` and
     ``_cancel(handles)``."""
 
@@ -193,14 +193,22 @@ class _Workers:
         :class:`WorkerLost` naming its ``what``. (A Dask scheduler reschedules a lost task
         itself.)"""
         running: dict[Any, Task] = {}
+        unsent: list[Task] = []  # taken, but the pool broke before they could be sent
         slots = self.slots
         try:
             while True:
-                if len(running) < slots:
-                    for task in source.take(slots - len(running)):
+                free = slots - len(running) - len(unsent)
+                tasks, unsent = unsent + (list(source.take(free)) if free > 0 else []), []
+                for task in tasks:
+                    try:
                         running[self._submit(task)] = task
+                    except BrokenProcessPool:  # a worker died since the last results came back
+                        unsent.append(task)
                 if not running:
-                    return
+                    if not unsent:
+                        return
+                    self._restart()  # the worker died idle: nothing ran that must run alone
+                    continue
                 broken = False
                 for handle in self._finished(list(running)):
                     try:

@@ -1,6 +1,7 @@
 """Starts on other processes or a Dask cluster give the serial numbers, bit for bit."""
 
 import pickle
+from concurrent.futures.process import BrokenProcessPool
 import sys
 
 import numpy as np
@@ -11,6 +12,7 @@ from casadi_design.parallel import (
     DaskExecutor,
     MissingExtraError,
     ProcessExecutor,
+    _Workers,
     make_executor,
     run_start,
 )
@@ -203,3 +205,46 @@ def test_a_design_without_a_converged_start_is_the_same_error_for_any_jobs(capsy
         errors.append(capsys.readouterr().err.strip())
     assert errors[0] == errors[1] and len(errors[0].splitlines()) == 1
     assert "criterion test-pose, m = 1: none of 2 starts converged" in errors[0]
+
+
+class _DyingPool(_Workers):
+    """Workers whose pool breaks (a worker dies) just before its third task is sent, while
+    another task still runs: the race of a process pool whose worker dies between two results."""
+
+    slots = 2
+
+    def __init__(self):
+        self.sent, self.generation, self.broken, self.alone = 0, 0, False, []
+
+    def _submit(self, task):
+        self.sent += 1
+        if self.sent == 3 and not self.generation:
+            self.broken = True
+        if self.broken:
+            raise BrokenProcessPool("a worker died")
+        return (task, self.generation)
+
+    def _finished(self, handles):
+        return handles[:1]
+
+    def _result(self, handle, task):
+        if self.broken and handle[1] == self.generation:
+            raise BrokenProcessPool("a worker died")
+        return task.fn(*task.args)
+
+    def _restart(self):
+        self.generation, self.broken = self.generation + 1, False
+
+    def _alone(self, task):
+        self.alone.append(task.args)
+        return task.fn(*task.args)
+
+    def _cancel(self, handles):
+        pass
+
+
+def test_a_pool_that_breaks_before_a_task_is_sent_runs_every_task_once():
+    pool = _DyingPool()
+    assert list(pool._map(pow, [(2, k) for k in range(6)], "powers")) == [2**k for k in range(6)]
+    # the task running when the pool broke ran again alone; the one not sent went to the new pool
+    assert pool.alone == [(2, 1)] and pool.generation == 1
