@@ -9,7 +9,7 @@ import sys
 
 from . import interrupt
 from .interrupt import EXIT_INTERRUPTED
-from .threads import single_threaded
+from .threads import fixed_blas
 
 
 def _interrupted() -> None:
@@ -24,7 +24,7 @@ def _interrupted() -> None:
 def main(argv: list[str] | None = None) -> int:
     """Import the command line and run it (:func:`casadi_design.cli.main`)."""
     interrupt.install()  # records Ctrl-C: Python drops the KeyboardInterrupt of some import hooks
-    single_threaded()  # before numpy, CasADi and IPOPT load: the same numbers for any --jobs
+    fixed_blas()  # before numpy, CasADi and IPOPT load: the same numbers for any --jobs and CPU
     try:
         from .cli import main as run
     except KeyboardInterrupt:

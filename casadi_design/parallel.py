@@ -45,7 +45,7 @@ from .bound import ApproximateDesign, approximate_one, maximise_d
 from .build import Problem, build_problem
 from .errors import DesignError
 from .problem import ProblemSpec
-from .threads import cpu_count, single_threaded
+from .threads import KERNEL_VARIABLE, blas_kernels, cpu_count, fixed_blas
 from .solve import StartPlan, StartResult, make_design_solver, solve_start
 
 #: Seconds to wait for a Dask scheduler before giving up.
@@ -279,7 +279,7 @@ class ProcessExecutor(_Workers):
         self.jobs = jobs
         # Workers are spawned on demand and inherit os.environ then: keep the setting until close
         # (the command set it already: casadi_design.launch; a library caller may not have).
-        self._saved_env = single_threaded()
+        self._saved_env = fixed_blas()
         self._pool = self._new_pool()
 
     def _new_pool(self) -> ProcessPoolExecutor:
@@ -402,6 +402,22 @@ class DaskExecutor(_Workers):
                     f"{DASK_CONNECT_TIMEOUT_S:g} s ({reason}); check the address (tcp://host:8786) "
                     "or start one with `dask scheduler`") from None
             self._own = True
+        self._check_kernels()
+
+    def _check_kernels(self) -> None:
+        """The workers compute with this process's OpenBLAS kernels (:mod:`casadi_design.threads`),
+        or their starts would give other numbers than ``--jobs``: a clear error otherwise."""
+        here = blas_kernels()
+        other = {w: k for w, k in self.client.run(blas_kernels).items() if k != here}
+        if other:
+            worker, kernels = next(iter(other.items()))
+            if self._own:
+                self.client.close()
+            raise DesignError(
+                f"--dask-scheduler: {len(other)} worker(s) compute with other OpenBLAS kernels "
+                f"than this command ({worker}: {kernels}; here: {here}), so their starts would end "
+                f"elsewhere; start the workers with {KERNEL_VARIABLE}={here} OPENBLAS_NUM_THREADS=1 "
+                f"dask worker {self.client.scheduler.address} --nthreads 1")
 
     @property
     def slots(self) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from importlib.metadata import version
 
 import numpy as np
 
@@ -20,6 +21,7 @@ from .collision import capsule_names
 from .criteria import CRITERIA
 from .design import Bound, Design, StartRecord
 from .measures import Scores
+from .threads import blas_kernels
 
 
 def experiment_records(Q: np.ndarray, F: np.ndarray, near: tuple[Clearance, ...] | None) -> list[dict]:
@@ -80,6 +82,10 @@ def approximate_record(approx: ApproximateDesign) -> dict:
             "wall_s": approx.wall_s}
 
 
+#: The libraries whose versions a results record names (their rounding decides which start wins).
+NUMERIC_LIBRARIES = ("casadi", "numpy", "scipy", "pin")
+
+
 def results_dict(problem: Problem, designs: list[Design],
                  approx: dict[str, ApproximateDesign] | None = None) -> dict:
     """The whole results record of a solved problem (with the approximate designs of the
@@ -89,6 +95,9 @@ def results_dict(problem: Problem, designs: list[Design],
         "problem": problem.name,
         "problem_file": problem.path,
         "seed": problem.solver.seed,
+        # what the numbers were computed with (README, Same numbers on any machine)
+        "blas_kernels": blas_kernels(),
+        "versions": {name: version(name) for name in NUMERIC_LIBRARIES},
         "sigma_m": problem.sigma_m,
         "robot": dataclasses.asdict(problem.spec.robot),
         "calibration": {

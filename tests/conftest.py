@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from casadi_design.threads import single_threaded
+from casadi_design.threads import fixed_blas
 
 # The suite runs CasADi's virtual machine: compiling a robot's functions the first time costs
 # seconds per cell. tests/test_compiled.py checks the compiled code gives the same bits.
@@ -18,7 +18,7 @@ os.environ.setdefault("CASADI_DESIGN_COMPILE", "0")
 # What the package keeps between runs (casadi_design.cache: the capsules fitted around the
 # meshes) goes to a folder of the test runs, not the user's cache.
 os.environ.setdefault("CASADI_DESIGN_CACHE", os.path.join(tempfile.gettempdir(), f"casadi-design-tests-{os.getuid()}"))
-single_threaded()  # as the command does, before numpy and CasADi load (casadi_design.launch)
+fixed_blas()  # as the command does, before numpy and CasADi load (casadi_design.launch)
 
 from casadi_design.build import build_problem, load_problem  # noqa: E402
 from casadi_design.problem import parse_problem  # noqa: E402
