@@ -560,7 +560,7 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
     blocks = d2.reshape(p, m, p).transpose(1, 0, 2)
     if len(nlp.active) and c_rows.size:
         dw = sl.dw_rows[c_rows]
-        np.add.at(blocks, nlp.active[c_rows, 0], np.einsum("kwp,kwv,kvs->kps", dw, curvature, dw))
+        np.add.at(blocks, nlp.active[c_rows, 0], dw.transpose(0, 2, 1) @ (curvature @ dw))
     dBG = (sl.dB @ Gbar).reshape(m, p, d * L)
     blocks += (2 * c) * (dBG @ sl.dB.reshape(m, p, d * L).transpose(0, 2, 1))
     flat = H.ravel()
