@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
@@ -56,7 +56,11 @@ from .sampling import random_plan
 POOL_SIZE = 300
 SAMPLE_SIZE = 3000
 #: IPOPT starts of the search for max_x d besides the support points: the best candidates.
-POLISH_STARTS = 8
+#: (8 until the searches held only the rows that can bind: an independent search of 64 starts
+#: from another sample then found maxima of d up to 2.5 % (UR10 test-pose), 4 % (ABB
+#: test-pose) higher than the exchange had, so its certificates were optimistic; with 16 the
+#: exchange finds those maxima itself, in the same time.)
+POLISH_STARTS = 16
 #: Support points polished per step, the heaviest first.
 POLISH_SUPPORT = 24
 #: Candidates (d > phi) added to the pool per exchange step, and their first weight (times the
@@ -65,8 +69,8 @@ ADDED_CANDIDATES = 40
 NEW_WEIGHT = 0.1
 #: Maxima closer than this (relative, in their information matrices) are one candidate.
 DISTINCT_RTOL = 1e-6
-#: IPOPT starts of the final, independent search for max_x d.
-VERIFY_STARTS = 16
+#: IPOPT starts of the final, independent search for max_x d (16 found too few maxima, above).
+VERIFY_STARTS = 64
 #: Smallest eigenvalue of the first pool's mean information, relative to the largest.
 POOL_RCOND = 1e-12
 #: IPOPT on the convex problem of a pool: tolerance and iterations.
@@ -240,18 +244,89 @@ WARM_SEARCH = {**WARM_START, "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_st
                "ipopt.warm_start_slack_bound_push": 1e-9}
 
 
+#: The capsule rows a search holds (see :class:`Search`): those within this of their bound at
+#: its start point (m), and after each run those within ``SEARCH_ADD_MARGIN_M`` of it at the
+#: run's maximum, until every row left out is farther (at most ``SEARCH_RUNS`` runs; the last
+#: holds every row).
+SEARCH_START_MARGIN_M = 0.05
+SEARCH_ADD_MARGIN_M = 0.01
+SEARCH_RUNS = 6
+#: The numbers of capsule rows a search NLP has room for (the rows it holds are parameters,
+#: the places left over hold a row without bounds); the last one: every row.
+SEARCH_SIZES = (8, 16, 32, 64)
+
+
 @dataclass(frozen=True, eq=False)
 class Search:
     """IPOPT on one experiment ``z = (q, v)``: ``max tr(G B(z)^T B(z))`` within its rules,
-    with parameter ``vec G`` (L x L), started cold (``cold``) or from a point and its
-    multipliers (``warm``, :data:`WARM_SEARCH`); the bounds of z and of the rule rows."""
+    with parameter ``vec G`` (L x L), started cold or from a point and its multipliers (warm,
+    :data:`WARM_SEARCH`); the bounds of z and of every rule row (``lbg``, ``ubg``; the capsule
+    rows are rows ``capsules`` of them, in the order of
+    :class:`~casadi_design.rules.CollisionRows`).
 
-    cold: ca.Function
-    warm: ca.Function
+    A search holds the rule rows that are not capsule rows and only the capsule rows that can
+    bind: the NLP of :meth:`solvers` has room for K capsule rows, and which rows is a parameter
+    (a place left over takes index R: a row 0 without bounds), so one NLP per size serves every
+    set of rows. ``fixed`` are SX functions of z (and G) of the objective and the other rows:
+    values, first and second derivatives; ``row`` switches over the capsule rows (``value``,
+    ``slope`` (1 x p) and ``curvature`` (z, lam) -> ``lam d2g_r/dz2``, each row's own SX
+    function), mapped over the K places: each row is evaluated and differentiated only where it
+    is held. Of 100 UR10 capsule rows a search holds about ten: IPOPT's work, the Jacobian and
+    the Hessian of the Lagrangian shrink with them (339 131 instructions of the Hessian with
+    every row; 39 673 for the objective and about 4 200 per capsule row)."""
+
+    fixed: dict
+    row: dict
+    capsules: np.ndarray
     lbx: np.ndarray
     ubx: np.ndarray
     lbg: np.ndarray
     ubg: np.ndarray
+    kept: dict = field(default_factory=dict)
+
+    def size(self, held: int) -> int:
+        """The room of the NLP that holds ``held`` capsule rows: a size of :data:`SEARCH_SIZES`
+        or every row."""
+        return next((k for k in SEARCH_SIZES if held <= k < self.capsules.size), self.capsules.size)
+
+    def solvers(self, K: int) -> tuple[ca.Function, ca.Function]:
+        """The cold and warm IPOPT of the search with room for ``K`` capsule rows: parameters
+        ``(vec G, rows)``, rule rows the others, then the K places."""
+        if K not in self.kept:
+            fx, row = self.fixed, self.row
+            z, G = ca.MX.sym("z", self.lbx.size), ca.MX.sym("G", *fx["f"].size_in(1))
+            rows = ca.MX.sym("rows", 1, K)
+            p, lam_f = ca.vertcat(ca.vec(G), rows.T), ca.MX.sym("lam_f")
+            c0, n0 = fx["c"](z), fx["c"].numel_out(0)
+            lam_g = ca.MX.sym("lam_g", n0 + K)
+            g, J = c0, fx["dc"](z)
+            H = lam_f * fx["d2f"](z, G) + fx["d2c"](z, lam_g[:n0])
+            if K:
+                g = ca.vertcat(g, row["value"].map(K, [False, True], [False])(rows, z).T)
+                J = ca.vertcat(J, ca.reshape(row["slope"].map(K, [False, True], [False])(rows, z),
+                                             z.numel(), K).T)
+                H += row["curvature"].map(K, [False, True, False], [True])(rows, z, lam_g[n0:].T)
+            f = fx["f"](z, G)
+            opts = {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200, "no_nlp_grad": True, "calc_lam_p": False,
+                    "grad_f": ca.Function("grad_f", [z, p], [f, fx["df"](z, G)], ["x", "p"], ["f", "grad_f_x"]),
+                    "jac_g": ca.Function("jac_g", [z, p], [g, J], ["x", "p"], ["g", "jac_g_x"]),
+                    "hess_lag": ca.Function("hess_lag", [z, p, lam_f, lam_g], [ca.triu(H)],
+                                            ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])}
+            nlp = {"x": z, "p": p, "f": f, "g": g}
+            self.kept[K] = (ca.nlpsol("max_d", "ipopt", nlp, opts),
+                            ca.nlpsol("max_d_warm", "ipopt", nlp, {**opts, **WARM_SEARCH}))
+        return self.kept[K]
+
+    def rows(self, held: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For the NLP of size ``K`` holding the capsule rows ``held``: its row parameter (K,),
+        the rows of ``lbg`` at its places (-1 where a place is left over) and its lbg, ubg."""
+        R, first = self.capsules.size, self.lbg.size - self.capsules.size
+        index = np.concatenate([held, np.full(K - held.size, R)]).astype(float)
+        where = np.concatenate([np.arange(first), self.capsules[held], np.full(K - held.size, -1)])
+        free = where < 0
+        lbg, ubg = self.lbg[where], self.ubg[where]
+        lbg[free], ubg[free] = -np.inf, np.inf
+        return index, where, lbg, ubg
 
 
 @per_model
@@ -259,17 +334,31 @@ def _search(problem: Problem) -> Search:
     """The :class:`Search` of the problem (built once per problem)."""
     fns, loads = experiment_functions(problem), load_variables(problem)
     L = problem.model.L
-    z, G = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L)
+    z, G, lam = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L), ca.SX.sym("lam")
     B, c, _ = fns.values(z)
+    f, lam_c = -ca.dot(B @ G, B), ca.SX.sym("lam_c", c.numel())
+    fixed = {"f": ca.Function("d", [z, G], [f]), "df": ca.Function("dd", [z, G], [ca.gradient(f, z)]),
+             "d2f": ca.Function("d2d", [z, G], [ca.densify(ca.hessian(f, z)[0])]),
+             "c": ca.Function("rules", [z], [c]),
+             "dc": ca.Function("drules", [z], [ca.densify(ca.jacobian(c, z))]),
+             "d2c": ca.Function("d2rules", [z, lam_c], [ca.densify(ca.hessian(ca.dot(lam_c, c), z)[0])])}
     rules = pose_constraints(problem)
-    if rules.collision is not None:  # every capsule row, after the others as in rule_bounds
-        c = ca.vertcat(c, rules.g(z[: fns.n])[rules.collision.first:])
-    nlp = {"x": z, "p": ca.vec(G), "f": -ca.dot(B @ G, B), "g": c}
-    opts = {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200}
-    # the plan of one experiment: its variables and rule rows are those of z and c
-    return Search(ca.nlpsol("max_d", "ipopt", nlp, opts),
-                  ca.nlpsol("max_d_warm", "ipopt", nlp, {**opts, **WARM_SEARCH}),
-                  *plan_bounds(problem, 1, loads), *rule_bounds(problem, 1, loads))
+    caps = (rules.g(z[: fns.n])[rules.collision.first:] if rules.collision is not None  # after the
+            else ca.SX(0, 1))                                           # others, as in rule_bounds
+    cases = {"value": [], "slope": [], "curvature": []}
+    for r in range(caps.numel()):
+        cases["value"].append(ca.Function(f"capsule_row_{r}", [z], [caps[r]]))
+        cases["slope"].append(ca.Function(f"capsule_slope_{r}", [z], [ca.densify(ca.jacobian(caps[r], z))]))
+        cases["curvature"].append(ca.Function(f"capsule_curvature_{r}", [z, lam],
+                                              [ca.densify(lam * ca.hessian(caps[r], z)[0])]))
+    left_over = {"value": ca.Function("free", [z], [ca.SX.zeros(1, 1)]),
+                 "slope": ca.Function("free_slope", [z], [ca.SX.zeros(1, fns.p)]),
+                 "curvature": ca.Function("free_curvature", [z, lam], [ca.SX.zeros(fns.p, fns.p)])}
+    row = {k: ca.Function.conditional(f"capsule_{k}", v, left_over[k]) for k, v in cases.items()
+           if v}  # none without a cell
+    lbx, ubx = plan_bounds(problem, 1, loads)
+    lbg, ubg = rule_bounds(problem, 1, loads)
+    return Search(fixed, row, np.arange(c.numel(), c.numel() + caps.numel()), lbx, ubx, lbg, ubg)
 
 
 #: The multipliers of a maximum of d (of z's bounds, of the rule rows) per unit of d: a warm
@@ -279,30 +368,66 @@ Duals = tuple[np.ndarray, np.ndarray]
 Maximise = Callable[[Problem, float, np.ndarray, np.ndarray, np.ndarray, list], tuple]
 
 
+def _held(problem: Problem, q: np.ndarray, margin_m: float, held: np.ndarray | None = None) -> np.ndarray:
+    """The capsule rows within ``margin_m`` (m) of their bound at ``q`` (n,), rad, joined to
+    ``held`` (sorted row numbers of :class:`~casadi_design.rules.CollisionRows`)."""
+    near = np.flatnonzero(pose_constraints(problem).capsule_slack(q[None])[0] < margin_m)
+    return near if held is None else np.union1d(held, near)
+
+
+def _search_one(problem: Problem, search: Search, G: np.ndarray, z0: np.ndarray,
+                start: Duals | None, scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One search from ``z0`` (cold, or warm from the multipliers ``start``, per unit of d)
+    with IPOPT's objective ``scale d``: runs holding the capsule rows that can bind
+    (:class:`Search`), each from the last one's primal and dual point, until every row left
+    out is farther than ``SEARCH_ADD_MARGIN_M`` from its bound at the maximum, or the last run
+    holds every row. Returns z and the multipliers of z's bounds and of every rule row (0 for
+    the rows not held)."""
+    n, R = problem.robot.n, search.capsules.size
+    held = _held(problem, z0[:n], SEARCH_START_MARGIN_M,
+                 None if start is None else np.flatnonzero(start[1][search.capsules]))
+    lam_x, lam_g = (None, None) if start is None else (scale * start[0], scale * start[1])
+    z, p = z0, (scale * G).ravel(order="F")
+    for run in range(SEARCH_RUNS):
+        if run == SEARCH_RUNS - 1:
+            held = np.arange(R)
+        K = search.size(held.size)
+        index, where, lbg, ubg = search.rows(held, K)
+        cold, warm = search.solvers(K)
+        args = dict(x0=z, p=np.concatenate([p, index]), lbx=search.lbx, ubx=search.ubx, lbg=lbg, ubg=ubg)
+        with ipopt_call():  # Ctrl-C stops the command, not just this search
+            if lam_g is None:
+                sol = cold(**args)
+            else:
+                sol = warm(**args, lam_x0=lam_x, lam_g0=np.where(where < 0, 0.0, lam_g[where]))
+        z = np.clip(np.asarray(sol["x"]).ravel(), search.lbx, search.ubx)
+        lam_x, lam_g = np.asarray(sol["lam_x"]).ravel(), np.zeros(search.lbg.size)
+        lam_g[where[where >= 0]] = np.asarray(sol["lam_g"]).ravel()[where >= 0]
+        grown = _held(problem, z[:n], SEARCH_ADD_MARGIN_M, held)
+        if grown.size == held.size:
+            break
+        held = grown
+    return z, lam_x, lam_g
+
+
 def maximise_d(problem: Problem, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
                 duals: list[Duals | None]) -> tuple[np.ndarray, np.ndarray, list[Duals]]:
     """Local maxima of ``d(x) = tr(G B(x)^T B(x))`` (IPOPT sees ``scale d``) from the
     experiments ``Q`` (k, n), ``F`` (k, nF); one with ``duals`` (a maximum of an earlier step)
-    starts warm from them, the others cold. Each search is a pure function of its inputs, so a
-    batch may be split over workers (:data:`Maximise`). Returns the maxima that keep every rule
-    but the check on the real geometry (:func:`casadi_design.rules.plan_violations` with
-    ``meshes=False``; the caller checks those it uses, :func:`_untouched`): Q (p, n), F (p,
-    nF), their duals."""
+    starts warm from them, the others cold (:func:`_search_one`). Each search is a pure
+    function of its inputs, so a batch may be split over workers (:data:`Maximise`). Returns
+    the maxima that keep every rule but the check on the real geometry
+    (:func:`casadi_design.rules.plan_violations` with ``meshes=False``; the caller checks
+    those it uses, :func:`_untouched`): Q (p, n), F (p, nF), their duals."""
     search = _search(problem)
     loads, n = load_variables(problem), problem.robot.n
-    bounds = dict(p=(scale * G).ravel(order="F"), lbx=search.lbx, ubx=search.ubx, lbg=search.lbg,
-                  ubg=search.ubg)
     found = []
     for q0, f0, start in zip(Q, F, duals):
         z0 = np.concatenate([q0, loads.variables(f0[None]).ravel()])
-        with ipopt_call():  # Ctrl-C stops the command, not just this search
-            sol = (search.cold(x0=z0, **bounds) if start is None else
-                   search.warm(x0=z0, lam_x0=scale * start[0], lam_g0=scale * start[1], **bounds))
-        z = np.clip(np.asarray(sol["x"]).ravel(), search.lbx, search.ubx)
+        z, lam_x, lam_g = _search_one(problem, search, G, z0, start, scale)
         q, f = z[:n], loads.load(z[n:])
         if not plan_violations(problem, q[None], f[None], meshes=False):
-            found.append((q, f, (np.asarray(sol["lam_x"]).ravel() / scale,
-                                 np.asarray(sol["lam_g"]).ravel() / scale)))
+            found.append((q, f, (lam_x / scale, lam_g / scale)))
     return (np.array([q for q, _, _ in found]).reshape(len(found), n),
             np.array([f for _, f, _ in found]).reshape(len(found), F.shape[1]), [u for _, _, u in found])
 

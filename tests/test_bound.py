@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _information, _pool_optimum, _sample, apportion,
+from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _search, _search_one, _information, _pool_optimum, _sample, apportion,
                                  approximate_design, bound, rounded_plans)
 from casadi_design.build import load_problem
 from casadi_design.errors import DesignError
 from casadi_design.nlp import B0_at_test_poses
-from casadi_design.rules import plan_violations
+from casadi_design.rules import plan_violations, pose_constraints
 from casadi_design.solve import solve_design
 
 from conftest import PROBLEM_FILES, ROOT, build, paper_raw
@@ -269,3 +269,72 @@ def test_paper_gap_at_two_experiments_is_integrality(paper, paper_tp):
     solved = solve_design(paper, "test-pose", 2, starts=20).scores.max_rms_error_m
     assert solved == pytest.approx(exact, rel=1e-6)
     assert bound(paper, 2, paper_tp).gap_percent(exact) > 3.0
+
+
+@pytest.fixture(scope="module")
+def ur10_cell():
+    return load_problem(ROOT / "problems" / "ur10_drilling.toml")
+
+
+def _sym(L: int, rng: np.random.Generator) -> np.ndarray:
+    X = rng.normal(size=(L, L))
+    return X @ X.T / L
+
+
+def test_a_search_of_held_rows_has_their_values_and_derivatives(ur10_cell):
+    """The search NLP with room for 8 capsule rows, 3 of them held: its rows are the SX rules'
+    rows at those places (free places 0), its Jacobian and Hessian of the Lagrangian match
+    central differences of its rows and of the Lagrangian's gradient."""
+    search, rng = _search(ur10_cell), np.random.default_rng(3)
+    rules, L = pose_constraints(ur10_cell), ur10_cell.model.L
+    held, K = np.array([3, 17, 42]), 8
+    cold, _ = search.solvers(K)
+    index, where, _, _ = search.rows(held, K)
+    z = _sample(ur10_cell, 1, rng)[0][0]
+    p = np.concatenate([_sym(L, rng).ravel(order="F"), index])
+    g_fn, jac, grad, hess = (cold.get_function(n) for n in ("nlp_g", "nlp_jac_g", "nlp_grad_f", "nlp_hess_l"))
+    g = np.asarray(g_fn(z, p)).ravel()
+    first = rules.collision.first
+    all_rows = np.asarray(rules.g(z)).ravel()
+    n0 = search.capsules[0]
+    np.testing.assert_allclose(g[n0:n0 + 3], all_rows[first + held], rtol=1e-12)
+    assert np.all(g[n0 + 3:] == 0.0) and where[n0 + 3:].tolist() == [-1] * (K - 3)
+    h = 1e-6
+    J = np.asarray(jac(z, p)[1])
+    J_fd = np.column_stack([(np.asarray(g_fn(z + h * e, p)).ravel() - np.asarray(g_fn(z - h * e, p)).ravel()) / (2 * h)
+                            for e in np.eye(z.size)])
+    np.testing.assert_allclose(J, J_fd, rtol=1e-5, atol=1e-7)
+    lam_f, lam_g = 0.7, rng.uniform(0, 1, g.size)
+
+    def grad_lagrangian(x):
+        return lam_f * np.asarray(grad(x, p)[1]).ravel() + np.asarray(jac(x, p)[1]).T @ lam_g
+
+    H = np.asarray(hess(z, p, lam_f, lam_g))
+    H = np.triu(H) + np.triu(H, 1).T
+    H_fd = np.column_stack([(grad_lagrangian(z + h * e) - grad_lagrangian(z - h * e)) / (2 * h) for e in np.eye(z.size)])
+    np.testing.assert_allclose(H, H_fd, rtol=1e-5, atol=1e-6 * np.abs(H).max())
+
+
+def test_a_search_holding_the_rows_that_can_bind_ends_at_a_maximum_of_every_row(ur10_cell):
+    """From sampled experiments, a search holding only the capsule rows near its path ends at
+    an experiment that keeps every row, and the NLP holding every row, started there with its
+    multipliers, stays there: a local maximum of the whole rulebook."""
+    search, rng = _search(ur10_cell), np.random.default_rng(5)
+    Q, F = _sample(ur10_cell, 200, rng)
+    A = _information(ur10_cell, Q, F)
+    Wi = np.linalg.inv(A.mean(axis=0))
+    G = Wi @ Wi
+    d = np.einsum("kij,ij->k", A, G)
+    R = search.capsules.size
+    _, warm = search.solvers(R)
+    index, where, lbg, ubg = search.rows(np.arange(R), R)
+    held_less = 0
+    for i in np.argsort(d)[::-1][:4]:
+        z, lam_x, lam_g = _search_one(ur10_cell, search, G, Q[i], None, 1.0 / d.max())
+        assert not plan_violations(ur10_cell, z[None], F[i][None], meshes=False)
+        held_less += np.count_nonzero(lam_g[search.capsules]) < R
+        sol = warm(x0=z, p=np.concatenate([(G / d.max()).ravel(order="F"), index]), lbx=search.lbx,
+                   ubx=search.ubx, lbg=lbg, ubg=ubg, lam_x0=lam_x, lam_g0=lam_g[where])
+        assert warm.stats()["success"]
+        np.testing.assert_allclose(np.asarray(sol["x"]).ravel(), z, atol=1e-5)
+    assert held_less == 4  # every search held fewer than all rows
