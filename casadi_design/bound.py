@@ -50,7 +50,7 @@ from .errors import DesignError
 from .ipopt import QUIET, WARM_START, ipopt_call
 from .nlp import B0_at_test_poses, plan_bounds, rule_bounds
 from .reduced import NumericFunction, experiment_functions
-from .rules import joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
+from .rules import ADD_MARGIN_M, START_MARGIN_M, joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
 from .sampling import random_plan
 #: Candidate experiments of the first pool, and of the dense sample searched for max_x d.
 POOL_SIZE = 300
@@ -244,12 +244,9 @@ WARM_SEARCH = {**WARM_START, "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_st
                "ipopt.warm_start_slack_bound_push": 1e-9}
 
 
-#: The capsule rows a search holds (see :class:`Search`): those within this of their bound at
-#: its start point (m), and after each run those within ``SEARCH_ADD_MARGIN_M`` of it at the
-#: run's maximum, until every row left out is farther (at most ``SEARCH_RUNS`` runs; the last
-#: holds every row).
-SEARCH_START_MARGIN_M = 0.05
-SEARCH_ADD_MARGIN_M = 0.01
+#: Runs of a search at most (see :class:`Search`; the rows it holds: those within
+#: :data:`~casadi_design.rules.START_MARGIN_M` of their bound at its start, then those within
+#: :data:`~casadi_design.rules.ADD_MARGIN_M` at each run's maximum); the last holds every row.
 SEARCH_RUNS = 6
 #: The numbers of capsule rows a search NLP has room for (the rows it holds are parameters,
 #: the places left over hold a row without bounds); the last one: every row.
@@ -371,7 +368,7 @@ Maximise = Callable[[Problem, float, np.ndarray, np.ndarray, np.ndarray, list], 
 def _held(problem: Problem, q: np.ndarray, margin_m: float, held: np.ndarray | None = None) -> np.ndarray:
     """The capsule rows within ``margin_m`` (m) of their bound at ``q`` (n,), rad, joined to
     ``held`` (sorted row numbers of :class:`~casadi_design.rules.CollisionRows`)."""
-    near = np.flatnonzero(pose_constraints(problem).capsule_slack(q[None])[0] < margin_m)
+    near = pose_constraints(problem).near(q[None], margin_m)[:, 1]
     return near if held is None else np.union1d(held, near)
 
 
@@ -380,11 +377,11 @@ def _search_one(problem: Problem, search: Search, G: np.ndarray, z0: np.ndarray,
     """One search from ``z0`` (cold, or warm from the multipliers ``start``, per unit of d)
     with IPOPT's objective ``scale d``: runs holding the capsule rows that can bind
     (:class:`Search`), each from the last one's primal and dual point, until every row left
-    out is farther than ``SEARCH_ADD_MARGIN_M`` from its bound at the maximum, or the last run
+    out is farther than :data:`~casadi_design.rules.ADD_MARGIN_M` from its bound at the maximum, or the last run
     holds every row. Returns z and the multipliers of z's bounds and of every rule row (0 for
     the rows not held)."""
     n, R = problem.robot.n, search.capsules.size
-    held = _held(problem, z0[:n], SEARCH_START_MARGIN_M,
+    held = _held(problem, z0[:n], START_MARGIN_M,
                  None if start is None else np.flatnonzero(start[1][search.capsules]))
     lam_x, lam_g = (None, None) if start is None else (scale * start[0], scale * start[1])
     z, p = z0, (scale * G).ravel(order="F")
@@ -403,7 +400,7 @@ def _search_one(problem: Problem, search: Search, G: np.ndarray, z0: np.ndarray,
         z = np.clip(np.asarray(sol["x"]).ravel(), search.lbx, search.ubx)
         lam_x, lam_g = np.asarray(sol["lam_x"]).ravel(), np.zeros(search.lbg.size)
         lam_g[where[where >= 0]] = np.asarray(sol["lam_g"]).ravel()[where >= 0]
-        grown = _held(problem, z[:n], SEARCH_ADD_MARGIN_M, held)
+        grown = _held(problem, z[:n], ADD_MARGIN_M, held)
         if grown.size == held.size:
             break
         held = grown

@@ -27,7 +27,7 @@ from .errors import DesignError, ProblemError
 from .ipopt import QUIET, WARM_START, ipopt_call
 from .measures import Scores, score_plan
 from .nlp import B0_at_test_poses, DesignNLP, build_nlp
-from .rules import FEASIBILITY_TOL, PoseConstraints, joint_limits, plan_violations, pose_constraints
+from .rules import ADD_MARGIN_M, FEASIBILITY_TOL, START_MARGIN_M, PoseConstraints, joint_limits, plan_violations, pose_constraints
 from .sampling import random_plan
 
 #: IPOPT statuses of a run stopped by one of its limits: the options were taken.
@@ -205,11 +205,10 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
 #: the rows held so far. The runs of a start share the problem's ``max_iter``; the last of
 #: ``MAX_ROUNDS`` runs is not stopped, and its plan is checked as any other (a plan breaking a
 #: row is not feasible). The margins were chosen by measurement on the UR10 and ABB cells
-#: (see the README's speed section).
-START_MARGIN_M = 0.05
+#: (see the README's speed section; the margins are :data:`casadi_design.rules.START_MARGIN_M`
+#: and :data:`~casadi_design.rules.ADD_MARGIN_M`).
 WATCH_DEPTH_M = 0.05
 RESUME_MU = 1e-3
-ADD_MARGIN_M = 0.01
 MAX_ROUNDS = 12
 
 
