@@ -2,8 +2,9 @@
 
 The large functions of a 6-axis robot in its cell (the kinematics and its derivatives of
 :mod:`casadi_design.reduced`, the capsule rows and their curvature, the rule rows of one
-configuration) run 3 to 16 times faster as C than in CasADi's virtual machine (the bound's
-search NLP is not compiled: its Hessian takes gcc minutes). :func:`compiled` writes a
+configuration) run 3 to 16 times faster as C than in CasADi's virtual machine; so do the objective and the
+non-capsule rules of the bound's searches over one experiment, with their derivatives (their
+capsule rows stay in the virtual machine: 300 small libraries cost more gcc time than they save). :func:`compiled` writes a
 function's C code (``casadi.CodeGenerator``), compiles it with the system's C compiler into a
 shared library in the cache directory, named by a hash of the code and of the compiler command,
 and loads it (``casadi.external``); a later run, or another process, finds the library there and
