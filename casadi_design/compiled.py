@@ -2,13 +2,14 @@
 
 The large functions of a 6-axis robot in its cell (the kinematics and its derivatives of
 :mod:`casadi_design.reduced`, the capsule rows and their curvature, the rule rows of one
-configuration) run 3 to 16 times faster as C than in CasADi's virtual machine; so do the objective and the
-non-capsule rules of the bound's searches over one experiment, with their derivatives (their
-capsule rows stay in the virtual machine: 300 small libraries cost more gcc time than they save). :func:`compiled` writes a
-function's C code (``casadi.CodeGenerator``), compiles it with the system's C compiler into a
-shared library in the cache directory, named by a hash of the code and of the compiler command,
-and loads it (``casadi.external``); a later run, or another process, finds the library there and
-pays nothing but the code generation. Libraries are written under a lock to a temporary name and
+configuration) run 3 to 16 times faster as C than in CasADi's virtual machine, and the
+objective and non-capsule rules of the bound's searches over one experiment (a UR10 search
+12.5 -> 7.8 ms); the searches' capsule rows are not compiled (6.3 ms for 25 s of gcc, 300
+small libraries, on a cold cache). :func:`compiled` writes a function's C code
+(``casadi.CodeGenerator``), compiles it with the system's C compiler into a shared library in
+the cache directory, named by a hash of the code and of the compiler command, and loads it
+(``casadi.external``); a later run, or another process, finds the library there and pays
+nothing but the code generation. Libraries are written under a lock to a temporary name and
 renamed, so a killed run leaves no half-written library and two processes never build one twice.
 
 The C code performs the same floating-point operations in the same order as the virtual machine:
