@@ -89,17 +89,20 @@ def information_scale(L: int, B0: np.ndarray) -> float:
 
 
 def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = None,
-              power: float = 0.0, active: np.ndarray | None = None) -> DesignNLP:
+              power: float = 0.0, active: np.ndarray | None = None,
+              weights: np.ndarray | None = None, fixed: np.ndarray | None = None) -> DesignNLP:
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem);
     ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``);
-    ``active``: the capsule rows it holds, (experiment, row) pairs (K x 2; None: all)."""
+    ``active``: the capsule rows it holds, (experiment, row) pairs (K x 2; None: all);
+    ``weights`` (m,): the experiments' weights in M, for the support of an approximate design
+    (:func:`casadi_design.reduced.reduced_nlp`; no joint-distance rows)."""
     B0 = B0_at_test_poses(problem) if B0 is None else B0
     n, loads = problem.robot.n, load_variables(problem)
     scale = information_scale(problem.model.L, B0)
-    nlp = reduced_nlp(problem, criterion, m, B0, scale, power, active)
+    nlp = reduced_nlp(problem, criterion, m, B0, scale, power, active, weights, fixed)
     oracle, options = nlp.functions()
     lbx, ubx = plan_bounds(problem, m, loads)
-    lbg, ubg = rule_bounds(problem, m, loads, nlp.active)
+    lbg, ubg = rule_bounds(problem, m, loads, nlp.active, pairs=weights is None)
     if nlp.n_rows:  # the epigraph: t >= 0; rho_j - t <= 0
         lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
         s = nlp.n_rows
@@ -133,16 +136,16 @@ def plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndar
 
 
 def rule_bounds(problem: Problem, m: int, loads: LoadVariables,
-                active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                active: np.ndarray | None = None, pairs: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of the rule rows: loads ``|v_i|^2``, workspace of each experiment (its capsule
     rows apart), the capsule rows ``active`` ((experiment, row) pairs; None: all), joint
     distance of each pair ``i < j`` (squared, rad^2;
-    :func:`~casadi_design.rules.joint_distance_sq`)."""
+    :func:`~casadi_design.rules.joint_distance_sq`; none when not ``pairs``)."""
     rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad
     held = rules.lb.size if rules.collision is None else rules.collision.first
     rows = held + (all_rows(problem, m) if active is None else active)[:, 1]
     n_norm = m if loads.norm_lb is not None else 0
-    n_pairs = m * (m - 1) // 2 if dmin > 0 else 0
+    n_pairs = m * (m - 1) // 2 if dmin > 0 and pairs else 0
     lb = np.concatenate([np.full(n_norm, loads.norm_lb or 0.0), np.tile(rules.lb[:held], m),
                          rules.lb[rows], np.full(n_pairs, dmin**2)])
     ub = np.concatenate([np.ones(n_norm), np.tile(rules.ub[:held], m), rules.ub[rows],

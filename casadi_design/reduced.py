@@ -262,7 +262,16 @@ class ReducedNLP:
     objective: Objective
     P: np.ndarray | None
     power: float = 0.0
+    weights: np.ndarray | None = None
+    fixed: np.ndarray | None = None
     last: list = field(default_factory=list)
+
+    def c(self, ndim: int) -> float | np.ndarray:
+        """The factor of each experiment's information: ``scale``, or with ``weights``
+        ``scale w_i`` shaped (m, 1, ..., 1) with ``ndim`` dimensions in all."""
+        if self.weights is None:
+            return self.scale
+        return (self.scale * self.weights).reshape((-1,) + (1,) * (ndim - 1))
 
     @cached_property
     def mapped(self) -> dict[str, BufferedFunction]:
@@ -458,13 +467,15 @@ class _Slopes(NamedTuple):
 
 
 def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
-    m, c = nlp.m, nlp.scale
+    m = nlp.m
     Z = x[nlp.cols.T]
     B, rules, w = nlp.mapped["values"](Z)
     d, L = B.shape[0], B.shape[1] // m
     B = B.reshape(d, m, L).transpose(1, 0, 2)
     S = B.reshape(m * d, L)
-    M = c * (S.T @ S)
+    M = nlp.scale * (S.T @ S) if nlp.weights is None else (nlp.c(3) * B).reshape(m * d, L).T @ S
+    if nlp.fixed is not None:
+        M = M + nlp.fixed
     C, info = dpotrf(M, lower=1, clean=1)
     Cinv = dtrtri(C, lower=1)[0] if info == 0 else None
     g = np.empty(nlp.ng)
@@ -490,7 +501,7 @@ def _values(nlp: ReducedNLP, x: np.ndarray) -> _Values:
 
 
 def _slopes(nlp: ReducedNLP, v: _Values) -> _Slopes:
-    m, p, c = nlp.m, nlp.fns.p, nlp.scale
+    m, p, c = nlp.m, nlp.fns.p, nlp.c(4)
     d, L = v.B.shape[1:]
     dB, dc, dw = nlp.mapped["first"](v.Z)
     dB = dB.reshape(L, d, m, p).transpose(2, 3, 1, 0)
@@ -533,7 +544,7 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
                   lam_g: np.ndarray) -> np.ndarray:
     """``lam_f d2f/dx2 + sum_k lam_g[k] d2g_k/dx2`` over the plan variables in plan order
     (V x V); t enters f and g linearly."""
-    m, p, c = nlp.m, nlp.fns.p, nlp.scale
+    m, p, c = nlp.m, nlp.fns.p, nlp.c(3)
     V, L = m * p, len(v.M)
     if v.Cinv is None:
         return np.full((V, V), np.nan)
@@ -581,10 +592,13 @@ def all_rows(problem: Problem, m: int) -> np.ndarray:
 
 
 def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                scale: float, power: float = 0.0, active: np.ndarray | None = None) -> ReducedNLP:
+                scale: float, power: float = 0.0, active: np.ndarray | None = None,
+                weights: np.ndarray | None = None, fixed: np.ndarray | None = None) -> ReducedNLP:
     """The reduced-space NLP of ``criterion`` for m experiments (``power``: r of E and
     condition) holding the capsule rows ``active`` ((experiment, row) pairs, K x 2; None:
-    every row, :func:`all_rows`).
+    every row, :func:`all_rows`). With ``weights`` (m,), ``M = scale sum_i w_i B_i^T B_i``:
+    the support points of an approximate design (:mod:`casadi_design.bound`), each a single
+    experiment of its own, so there is no joint-distance row.
 
     x = (Q, V, t for an epigraph criterion); g = (epigraph rows, load rows, workspace rows of
     each experiment but the capsule rows, the capsule rows held, joint-distance rows of each
@@ -600,7 +614,7 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     n_ws = fns.nc - has_norm
     rule_rows = np.concatenate([n_rows + idx + np.zeros((1, has_norm), dtype=int),
                                 n_rows + has_norm * m + idx * n_ws + np.arange(n_ws)], axis=1)
-    distance = problem.workspace.min_joint_distance_rad > 0
+    distance = problem.workspace.min_joint_distance_rad > 0 and weights is None
     pairs = np.array([(a, b) for a in range(m) for b in range(a + 1, m) if distance], dtype=int)
     first_active = n_rows + fns.nc * m
     first_pair = first_active + len(active)
@@ -608,4 +622,6 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     B0s = np.sqrt(scale) * B0
     return ReducedNLP(criterion, m, scale, fns, B0s, cols, rule_rows, pairs.reshape(-1, 2),
                       first_pair + np.arange(len(pairs)), active, first_active + np.arange(len(active)),
-                      n_rows, nx, first_pair + len(pairs), objective, objective.weights(B0s), power)
+                      n_rows, nx, first_pair + len(pairs), objective, objective.weights(B0s), power,
+                      None if weights is None else np.asarray(weights, dtype=float),
+                      None if fixed is None else scale * np.asarray(fixed, dtype=float))
