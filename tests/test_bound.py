@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _search, _search_one, _information, _pool_optimum, _sample, apportion,
+from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _search_one, _information, _pool_optimum, _sample, apportion,
                                  approximate_design, bound, rounded_plans)
 from casadi_design.build import load_problem
 from casadi_design.errors import DesignError
@@ -269,6 +269,47 @@ def test_paper_gap_at_two_experiments_is_integrality(paper, paper_tp):
     solved = solve_design(paper, "test-pose", 2, starts=20).scores.max_rms_error_m
     assert solved == pytest.approx(exact, rel=1e-6)
     assert bound(paper, 2, paper_tp).gap_percent(exact) > 3.0
+
+
+def _criterion_of(problem, criterion, W):
+    """The criterion of W (L, L) with numpy: max_j tr(H_j W^-1) (test-pose) or -log det W."""
+    if criterion == "D":
+        return -np.linalg.slogdet(W)[1]
+    B0 = B0_at_test_poses(problem)
+    return np.einsum("jri,jrl,li->j", B0, B0, np.linalg.inv(W)).max()
+
+
+#: A support whose first four points carry 97 % of the weight: those move, the rest stay.
+SUPPORT_WEIGHTS = np.array([0.4, 0.3, 0.2, 0.07, 0.01, 0.01, 0.01])
+
+
+@pytest.mark.parametrize("criterion", ["test-pose", "D"])
+def test_a_move_lowers_the_criterion_at_fixed_weights(paper, criterion):
+    """The heavy points of a support, moved with their weights kept, give a W of lower
+    criterion (computed here with numpy) than where they were; the light points stay."""
+    Q, F = _sample(paper, SUPPORT_WEIGHTS.size, np.random.default_rng(11))
+    A = _information(paper, Q, F)
+    Qm, Fm = _moved(paper, criterion, Q, F, SUPPORT_WEIGHTS, A)
+    assert len(Qm) == 4
+    W = np.einsum("k,kij->ij", SUPPORT_WEIGHTS, A)
+    Wm = np.einsum("k,kij->ij", SUPPORT_WEIGHTS[:4], _information(paper, Qm, Fm)) + \
+        np.einsum("k,kij->ij", SUPPORT_WEIGHTS[4:], A[4:])
+    assert _criterion_of(paper, criterion, Wm) < _criterion_of(paper, criterion, W) - 1e-3 * abs(
+        _criterion_of(paper, criterion, W))
+
+
+def test_moved_points_keep_every_rule(ur10_cell):
+    """On the UR10 in its cell the moved points keep every rule and the meshes' clearance: a
+    move holds the capsule rows near where it starts and drops the points that end past a row
+    it did not hold (from these random places, far from a support, 8 of the 12)."""
+    rng = np.random.default_rng(12)
+    Q, F = _sample(ur10_cell, 12, rng)
+    w = rng.uniform(0.5, 1.0, len(Q))
+    Qm, Fm = _moved(ur10_cell, "test-pose", Q, F, w, _information(ur10_cell, Q, F))
+    assert len(Qm) >= 1
+    assert not np.allclose(Qm, Q[np.argsort(w)[::-1][:len(Qm)]]), "the points moved"
+    for q, f in zip(Qm, Fm):
+        assert plan_violations(ur10_cell, q[None], f[None]) == []
 
 
 @pytest.fixture(scope="module")

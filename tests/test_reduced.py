@@ -130,8 +130,13 @@ def test_derivatives_equal_the_symbolic_formulation(case, criterion):
 @pytest.mark.parametrize("case", ["paper-bound-distance", "paper-direction", "ur10"])
 def test_derivatives_equal_finite_differences(case, criterion):
     problem, m = _problem(case), _cases()[case][1]
-    nlp = build_nlp(problem, *criterion[:1], m, power=criterion[1])
-    x, lam_f, lam_g = _point(problem, nlp, seed=2)
+    _check_finite_differences(build_nlp(problem, *criterion[:1], m, power=criterion[1]), problem, seed=2)
+
+
+def _check_finite_differences(nlp, problem, seed):
+    """The gradient, Jacobian and Hessian of the Lagrangian of ``nlp`` at a random plan
+    against central differences of its values and first derivatives."""
+    x, lam_f, lam_g = _point(problem, nlp, seed=seed)
     f, g, grad, J, H = _reduced(nlp, x, lam_f, lam_g)
     step = 1e-6 * np.maximum(1.0, np.abs(x))
     fd_grad, fd_J, fd_H = np.empty_like(grad), np.empty_like(J), np.empty_like(H)
@@ -148,6 +153,57 @@ def test_derivatives_equal_finite_differences(case, criterion):
     _close(H, fd_H, FD_RTOL)
 
 
+def _information(problem, Q, F):
+    """sum_k B_k^T B_k of the experiments Q (k, n), F (k, nF), with numpy."""
+    B = problem.model.B_stack(Q, F)
+    return np.einsum("kri,krj->ij", B, B)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+@pytest.mark.parametrize("case", ["paper-bound-distance", "ur10"])
+def test_weighted_derivatives_equal_finite_differences(case, criterion):
+    """The support of an approximate design (the bound's moves): M = scale (sum_i w_i B_i^T B_i
+    + M0) with random weights w and the information M0 of two other experiments."""
+    problem, m = _problem(case), _cases()[case][1]
+    rng = np.random.default_rng(6)
+    M0 = _information(problem, *random_plan(problem, 2, rng))
+    nlp = build_nlp(problem, criterion, m, weights=rng.uniform(0.2, 3.0, m), fixed=M0)
+    assert nlp.lbg.size == build_nlp(problem, criterion, m).lbg.size - (
+        m * (m - 1) // 2 if problem.workspace.min_joint_distance_rad > 0 else 0), "no joint-distance rows"
+    _check_finite_differences(nlp, problem, seed=7)
+
+
+@pytest.mark.parametrize("criterion", CRITERIA)
+def test_integer_weights_and_fixed_information_are_experiments(criterion):
+    """Weights (2, 1) on (z1, z2) with the information of z3 fixed are the plain NLP of the
+    plan (z1, z1, z2, z3): the same objective and rho_j, and the gradient of z1 is the sum of
+    its two copies' gradients."""
+    problem = _problem("paper-direction")
+    Q, F = random_plan(problem, 3, np.random.default_rng(8))
+    weighted = build_nlp(problem, criterion, 2, weights=np.array([2.0, 1.0]),
+                         fixed=_information(problem, Q[2:], F[2:]))
+    plain = build_nlp(problem, criterion, 4)
+    xw, xp = weighted.start(Q[:2], F[:2]), plain.start(Q[[0, 0, 1, 2]], F[[0, 0, 1, 2]])
+    np.testing.assert_allclose(weighted.information(xw), plain.information(xp), rtol=1e-12)
+    n, p = problem.robot.n, (xp.size - xw.size) // 2
+    t = xw.size - 2 * p
+    np.testing.assert_allclose(xw[2 * p:], xp[4 * p:], rtol=1e-12)  # t: the same max_j rho_j
+
+    def columns(m, i):  # x = (Q, V, t): experiment i's joints and load variables
+        return np.r_[i * n:(i + 1) * n, m * n + i * (p - n):m * n + (i + 1) * (p - n)]
+
+    fw, gw, gradw, Jw = _first_order(weighted, xw)
+    fp, gp, gradp, Jp = _first_order(plain, xp)
+    pairs = 6 if problem.workspace.min_joint_distance_rad > 0 else 0
+    rows = gw.size - (gp.size - gw.size - pairs)  # the epigraph rows rho_j - t (before the rules)
+    np.testing.assert_allclose(fw, fp, rtol=1e-12)
+    np.testing.assert_allclose(gw[:rows], gp[:rows], rtol=1e-12, atol=1e-12 * np.abs(gp[:rows]).max(initial=0.0))
+    for got, want in ((gradw[None], gradp[None]), (Jw[:rows], Jp[:rows])):
+        for iw, ip in ((0, (0, 1)), (1, (2,))):
+            expected = sum(want[:, columns(4, k)] for k in ip)
+            _close(got[:, columns(2, iw)], expected, 1e-10)
+        np.testing.assert_allclose(got[:, 2 * p:], want[:, 4 * p:], rtol=1e-10, atol=1e-12)
+    assert t in (0, 1)
 @pytest.mark.parametrize("criterion", CRITERIA)
 def test_ur10_derivatives_equal_the_symbolic_formulation(criterion):
     """The UR10 (L = 27, m = 9): f, g, gradient and Jacobian from CasADi's graph, the Hessian
