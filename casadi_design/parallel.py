@@ -44,6 +44,7 @@ import numpy as np
 from .bound import ApproximateDesign, approximate_one, maximise_d
 from .build import Problem, build_problem
 from .errors import DesignError
+from .interrupt import pressed
 from .problem import ProblemSpec
 from .threads import KERNEL_VARIABLE, blas_kernels, cpu_count, fixed_blas
 from .solve import StartPlan, StartResult, make_design_solver, solve_start
@@ -366,7 +367,8 @@ class ProcessExecutor(_Workers):
         return self
 
     def __exit__(self, exc_type: type | None, *exc: object) -> None:
-        self.close(interrupted=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
+        # Ctrl-C: a KeyboardInterrupt, or the one-line error a command made of it
+        self.close(interrupted=exc_type is not None and (issubclass(exc_type, KeyboardInterrupt) or pressed()))
 
 
 class MissingExtraError(ImportError):
