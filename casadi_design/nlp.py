@@ -94,8 +94,9 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem);
     ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``);
     ``active``: the capsule rows it holds, (experiment, row) pairs (K x 2; None: all);
-    ``weights`` (m,): the experiments' weights in M, for the support of an approximate design
-    (:func:`casadi_design.reduced.reduced_nlp`; no joint-distance rows)."""
+    ``weights`` (m,) and ``fixed`` (L x L, unscaled): ``M = sum_i w_i B_i^T B_i + fixed``, the
+    support of an approximate design (:func:`casadi_design.reduced.reduced_nlp`; no
+    joint-distance rows)."""
     B0 = B0_at_test_poses(problem) if B0 is None else B0
     n, loads = problem.robot.n, load_variables(problem)
     scale = information_scale(problem.model.L, B0)

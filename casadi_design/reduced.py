@@ -242,6 +242,8 @@ class ReducedNLP:
     objective : the criterion's part (:mod:`casadi_design.objectives`).
     P : its weight matrix (:meth:`~casadi_design.objectives.Objective.weights`), or None.
     power : r of the spectral surrogates of E and condition; 0 otherwise.
+    weights : ndarray, shape (m,), or None: each experiment's weight in M (:meth:`c`).
+    fixed : ndarray, shape (L, L), or None: ``scale M0``, information added to M.
     last : the quantities of the last x: ``[x bytes, _Values, _Slopes or None]``.
     """
 
@@ -596,9 +598,10 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
                 weights: np.ndarray | None = None, fixed: np.ndarray | None = None) -> ReducedNLP:
     """The reduced-space NLP of ``criterion`` for m experiments (``power``: r of E and
     condition) holding the capsule rows ``active`` ((experiment, row) pairs, K x 2; None:
-    every row, :func:`all_rows`). With ``weights`` (m,), ``M = scale sum_i w_i B_i^T B_i``:
-    the support points of an approximate design (:mod:`casadi_design.bound`), each a single
-    experiment of its own, so there is no joint-distance row.
+    every row, :func:`all_rows`). With ``weights`` (m,) and ``fixed`` (L x L),
+    ``M = scale (sum_i w_i B_i^T B_i + fixed)``: the support points of an approximate design
+    (:mod:`casadi_design.bound`), each a single experiment of its own, so there is no
+    joint-distance row.
 
     x = (Q, V, t for an epigraph criterion); g = (epigraph rows, load rows, workspace rows of
     each experiment but the capsule rows, the capsule rows held, joint-distance rows of each

@@ -25,6 +25,10 @@ from tests.conftest import PAPER
 #: Designs compared: a smooth criterion and the PSD-constrained E, at 1 and 3 experiments.
 CASES = [("test-pose", 1), ("E", 3)]
 STARTS = 4
+#: The approximate designs' first pool in the comparisons across executors: what they check
+#: (the same numbers wherever the work runs) does not depend on its size, and 50 candidates
+#: cost a third of the default 300.
+SMALL_POOL = 50
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +80,7 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
 
     from casadi_design import campaign
 
-    args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2))
+    args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2, bound_pool=SMALL_POOL))
     monkeypatch.setattr(bound, "_COMPUTED", {})
     plain = run_sweep(*args)
     serial = bound.computed(paper, ["test-pose"], 2, args[3].bound_pool)[0]["test-pose"]
@@ -179,7 +183,7 @@ def test_the_command_gives_the_same_numbers_for_any_jobs(tmp_path, monkeypatch):
     from casadi_design import bound
 
     args = ["solve", str(PAPER), "--m", "1,3", "--criteria", "test-pose,D", "--starts", "3",
-            "--bound-steps", "2", "--quiet"]
+            "--bound-steps", "2", "--bound-pool", str(SMALL_POOL), "--quiet"]
     records = []
     for jobs in (1, 2):
         monkeypatch.setattr(bound, "_COMPUTED", {})  # the approximate designs computed again
