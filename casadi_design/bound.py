@@ -569,7 +569,7 @@ def approximate_design(
 #: heavy points, those carrying all the weight but ``MOVE_TAIL``, by one IPOPT run of at most
 #: ``MOVE_ITERATIONS`` from the support (barrier parameter ``MOVE_MU``: the support is nearly
 #: optimal already). Measured on the UR10 test-pose design: moves every 6 steps gave the
-#: certificate's gap 0.05 % in 37 steps, 34-37 s (0.58 % in 40 steps, 34 s without); every 4
+#: certificate's gap 0.05 % in 37 steps, 37.7 s (0.58 % in 40 steps, 31.1 s without); every 4
 #: steps 0.07 % in 42 s, every 2 0.07 % in 64 s, every step 0.04 % in 99 s. Moving every
 #: support point (62 at step 12) hit 3000 iterations and 59 s: the points of tiny weight
 #: barely steer their rows. A's 77 to 105 heavy points took 8 to 13 s a move (30 of them 0.2

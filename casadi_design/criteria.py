@@ -75,11 +75,12 @@ class BoundForm:
     moves : exchange steps between two moves of the heavy support points
         (:func:`casadi_design.bound._moved`); 0: the support moves only through the maxima of
         d. Measured on the UR10 cell (README, Speed): every 6 steps the test-pose certificate's
-        gap fell from 0.58 % to 0.05 % in the same time. D's bound tightened by 0.008 in log
-        det (48.2306 -> 48.2221 at m = 9), but its rounded starts changed and the study's D
-        plan at m = 9 got worse (log det 42.218 -> 42.081), so D has none; A's support is
-        spread (77 to 105 points carry 95 % of the weight) and its moves took 1.7x the time
-        for no better bound, so A and I (untried) have none either.
+        gap fell from 0.58 % to 0.05 % for 1.17x the time (ABB: 0.85 % to 0.02 %, 1.42x).
+        D's bound tightened by 0.008 in log det (48.2306 -> 48.2221 at m = 9), but its rounded
+        starts changed and the study's D plan at m = 9 got worse (log det 42.218 -> 42.081),
+        so D has none; A's support is spread (77 to 105 points carry 95 % of the weight) and
+        its moves took 1.7x the time for no better bound, so A and I (untried) have none
+        either.
     """
 
     rows: Callable[[np.ndarray], np.ndarray] | None
