@@ -36,6 +36,8 @@ sigma^2 t / m`` in m^2.
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -44,6 +46,7 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem, per_model
+from .cache import digest, read, write
 from .compiled import compiled_group
 from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import Bound
@@ -118,6 +121,7 @@ class ApproximateDesign:
         (:func:`_verified`), which lowers it when it finds a larger d; the last one is the
         reported certificate's.
     pool_size : candidates priced (random ones and local maxima); ``wall_s`` : time, s.
+    kept : read back from the disk (:func:`computed`), computed by an earlier run in ``wall_s``.
     """
 
     criterion: str
@@ -133,6 +137,7 @@ class ApproximateDesign:
     checked: tuple[int, ...]
     pool_size: int
     wall_s: float
+    kept: bool = False
 
 
 def bound(problem: Problem, m: int, approx: ApproximateDesign) -> Bound:
@@ -732,6 +737,12 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
 #: in one process (keyed like :func:`casadi_design.build.build_problem`'s problems).
 _COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
 KEEP_COMPUTED = 32
+#: They are kept on disk too (:mod:`casadi_design.cache`, named by the problem's
+#: :attr:`~casadi_design.build.Problem.fingerprint`, the criterion, steps and pool), so a later
+#: run of any command on the same problem reads them back, to the bit, instead of computing
+#: them again; not when this variable is 0.
+KEEP_ON_DISK = "CASADI_DESIGN_KEEP_DESIGNS"
+DISK_KIND = "approximate-design"
 
 
 def approximate_one(problem: Problem, criterion: str, steps: int, pool: int,
@@ -746,8 +757,14 @@ def approximate_one(problem: Problem, criterion: str, steps: int, pool: int,
 def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE
              ) -> tuple[dict[str, ApproximateDesign], list[str]]:
     """Of the approximate designs of ``criteria`` that have a bound (none when ``steps`` is 0):
-    those computed in this process already, and the criteria still to compute."""
+    those computed in this process already or kept on disk by an earlier run (these marked
+    ``kept``), and the criteria still to compute."""
     wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
+    for c in wanted:
+        if (problem.digest, c, steps, pool) not in _COMPUTED and _on_disk():
+            kept = read(DISK_KIND, _disk_key(problem, c, steps, pool))
+            if isinstance(kept, ApproximateDesign):
+                _remember(problem, steps, pool, dataclasses.replace(kept, kept=True))
     have = {c: _COMPUTED[problem.digest, c, steps, pool] for c in wanted
             if (problem.digest, c, steps, pool) in _COMPUTED}
     return have, [c for c in wanted if c not in have]
@@ -755,10 +772,24 @@ def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = P
 
 def keep(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> None:
     """Keep ``approx`` (of ``problem`` with ``steps`` and ``pool``) for the commands that run
-    after this one in this process (:func:`computed`)."""
+    after this one in this process and on this machine (:func:`computed`)."""
+    _remember(problem, steps, pool, approx)
+    if _on_disk():
+        write(DISK_KIND, _disk_key(problem, approx.criterion, steps, pool), approx)
+
+
+def _remember(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> None:
     _COMPUTED[problem.digest, approx.criterion, steps, pool] = approx
     while len(_COMPUTED) > KEEP_COMPUTED:
         _COMPUTED.pop(next(iter(_COMPUTED)))
+
+
+def _on_disk() -> bool:
+    return os.environ.get(KEEP_ON_DISK, "1") != "0"
+
+
+def _disk_key(problem: Problem, criterion: str, steps: int, pool: int) -> str:
+    return digest(problem.fingerprint.encode(), criterion.encode(), str(steps).encode(), str(pool).encode())
 
 
 def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import TypeVar
 import numpy as np
 import pinocchio as pin
 
+from .cache import code_digest, digest
 from .cell import Cell, build_cell
 from .errors import ProblemError
 from .identifiability import BaseSet, base_set
@@ -52,6 +54,7 @@ from .robots import (
     planar_arm,
 )
 from .symbolic import symbolic_kinematics
+from .threads import blas_kernels
 
 T = TypeVar("T")
 
@@ -136,6 +139,18 @@ class Problem:
         """SHA-256 (hex) of the problem's checked data: what a resumed sweep and a worker's
         cache recognise a problem by."""
         return hashlib.sha256(spec_digest_blob(self.spec)).hexdigest()
+
+    @functools.cached_property
+    def fingerprint(self) -> str:
+        """A name for all a result of the problem is computed from, for what is kept on disk
+        between runs (:mod:`casadi_design.cache`): its checked data, the robot's Pinocchio
+        model, the cell's capsules and real geometry (the meshes' vertices: an edited URDF or
+        mesh file is another problem, though its path is the same), the package's code, the
+        libraries' versions and the BLAS kernels."""
+        cell = self.cell
+        geometry = pickle.dumps(self.robot.model) + (
+            b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry)) + repr(cell.capsules).encode())
+        return digest(spec_digest_blob(self.spec), geometry, code_digest().encode(), blas_kernels().encode())
 
 
 def load_problem(path: str | Path) -> Problem:

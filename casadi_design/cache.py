@@ -1,6 +1,7 @@
 """What the package keeps on disk between runs, per machine: the compiled CasADi functions
-(:mod:`casadi_design.compiled`) and the capsules fitted around a robot's meshes
-(:func:`casadi_design.collision.capsules_from_geometry`).
+(:mod:`casadi_design.compiled`), the capsules fitted around a robot's meshes
+(:func:`casadi_design.collision.capsules_from_geometry`) and the approximate designs behind the
+bounds (:func:`casadi_design.bound.approximate_designs`).
 
 Everything kept is named by a hash of all it is computed from (the inputs' bytes and the code
 that computes it), so a cached value is the value that would be computed, to the bit, and a
@@ -14,6 +15,7 @@ or ``~/.cache/casadi_design``).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import pickle
@@ -45,12 +47,25 @@ def digest(*parts: bytes) -> str:
 def stored(kind: str, key: str, make: Callable[[], T]) -> T:
     """The value ``make()`` kept as ``<kind>-<key>.pickle`` (``key``: :func:`digest` of all it
     is computed from): read when it is there, else computed and written."""
-    path = cache_dir() / f"{kind}-{key}.pickle"
+    value = read(kind, key)
+    if value is None:
+        value = make()
+        write(kind, key, value)
+    return value
+
+
+def read(kind: str, key: str) -> object | None:
+    """The value kept as ``<kind>-<key>.pickle``, or None when there is none to read."""
     try:
-        return pickle.loads(path.read_bytes())
+        return pickle.loads((cache_dir() / f"{kind}-{key}.pickle").read_bytes())
     except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError):
-        pass
-    value = make()
+        return None
+
+
+def write(kind: str, key: str, value: object) -> None:
+    """Keep ``value`` as ``<kind>-<key>.pickle`` (to a temporary name, then renamed; a file
+    that cannot be written is left out)."""
+    path = cache_dir() / f"{kind}-{key}.pickle"
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{kind}-", delete=False) as f:
@@ -58,4 +73,19 @@ def stored(kind: str, key: str, make: Callable[[], T]) -> T:
         os.replace(f.name, path)
     except OSError:
         pass
-    return value
+
+
+@functools.cache
+def code_digest() -> str:
+    """A name for this package's code and the libraries it computes with: every source file of
+    the package and the versions of numpy, scipy, CasADi and Pinocchio (:func:`digest`)."""
+    import casadi
+    import numpy
+    import pinocchio
+    import scipy
+
+    root = Path(__file__).parent
+    files = sorted(root.rglob("*.py"))
+    return digest(*(part for f in files for part in (str(f.relative_to(root)).encode(), f.read_bytes())),
+                  *(v.encode() for v in (numpy.__version__, scipy.__version__, casadi.__version__,
+                                         pinocchio.__version__)))

@@ -18,6 +18,9 @@ os.environ.setdefault("CASADI_DESIGN_COMPILE", "0")
 # What the package keeps between runs (casadi_design.cache: the capsules fitted around the
 # meshes) goes to a folder of the test runs, not the user's cache.
 os.environ.setdefault("CASADI_DESIGN_CACHE", os.path.join(tempfile.gettempdir(), f"casadi-design-tests-{os.getuid()}"))
+# The approximate designs are computed in each test, not read back from an earlier run's
+# (tests/test_cache.py checks reading them back).
+os.environ.setdefault("CASADI_DESIGN_KEEP_DESIGNS", "0")
 fixed_blas()  # as the command does, before numpy and CasADi load (casadi_design.launch)
 
 from casadi_design.build import build_problem, load_problem  # noqa: E402

@@ -71,3 +71,66 @@ def test_the_ur10_capsules_read_back_as_fitted(directory, monkeypatch):
     assert pickle.dumps(again) == pickle.dumps(fitted)  # the same capsules to the bit
     with pytest.raises(AssertionError, match="fitted again"):  # other inputs: fitted anew
         capsules_from_geometry(model, geometry, 1)
+
+
+@pytest.fixture
+def kept_designs(directory, monkeypatch):
+    """Approximate designs kept on disk (the suite turns it off), none in this process yet."""
+    from casadi_design import bound
+
+    monkeypatch.setenv(bound.KEEP_ON_DISK, "1")
+    monkeypatch.setattr(bound, "_COMPUTED", {})
+    return bound
+
+
+def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_designs, monkeypatch, paper):
+    """An approximate design computed once is read back from the disk by a later process (here:
+    this one with its in-process designs cleared) without computing, to the bit and marked
+    ``kept``; another pool, steps or criterion is computed."""
+    bound = kept_designs
+    first = bound.approximate_designs(paper, ["test-pose", "D"], 2, 50)
+    assert not any(a.kept for a in first.values())
+    monkeypatch.setattr(bound, "_COMPUTED", {})
+    computing = []
+    real = bound.approximate_one
+    monkeypatch.setattr(bound, "approximate_one", lambda *a, **k: computing.append(a[1:4]) or real(*a, **k))
+    again = bound.approximate_designs(paper, ["test-pose", "D"], 2, 50)
+    assert computing == [] and all(a.kept for a in again.values())
+    for c, a in first.items():
+        b = again[c]
+        for name in ("Q", "F", "weights", "W", "mu"):
+            np.testing.assert_array_equal(getattr(b, name), getattr(a, name))
+        assert (b.value, b.certified, b.d_max, b.history, b.checked, b.pool_size, b.wall_s) == \
+            (a.value, a.certified, a.d_max, a.history, a.checked, a.pool_size, a.wall_s)
+    bound.approximate_designs(paper, ["test-pose"], 2, 60)
+    bound.approximate_designs(paper, ["test-pose"], 1, 50)
+    assert computing == [("test-pose", 2, 60), ("test-pose", 1, 50)]
+
+
+def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
+    """A URDF edited in place (a joint moved by 1 um) keeps the problem's path and checked data
+    but not its fingerprint: what was kept for it is not read back."""
+    import tomli_w
+
+    from casadi_design import build
+    from casadi_design.robots import urdf_file
+    from tests.conftest import ROOT, read_raw
+
+    urdf = tmp_path / "ur10.urdf"
+    text = urdf_file(UR10).read_text()
+    urdf.write_text(text)
+    raw = read_raw(ROOT / "problems" / "ur10_drilling.toml")
+    raw.pop("cell")
+    raw["robot"]["urdf"] = str(urdf)
+    path = tmp_path / "case.toml"
+    path.write_text(tomli_w.dumps(raw))
+
+    def built():
+        monkeypatch.setattr(build, "_BUILT", {})  # built anew, as in a later run
+        return build.load_problem(path)
+
+    before = built()
+    assert 'xyz="0.0 0.0 0.1273"' in text  # the shoulder joint's origin
+    urdf.write_text(text.replace('xyz="0.0 0.0 0.1273"', 'xyz="0.0 0.0 0.127301"', 1))
+    after = built()
+    assert after.digest == before.digest and after.fingerprint != before.fingerprint

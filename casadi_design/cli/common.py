@@ -232,11 +232,15 @@ def plan_request(args: argparse.Namespace, problem: Problem, all_m: bool = False
 
 
 def say_approximate(args: argparse.Namespace, approx: dict) -> None:
-    """A line saying how long each approximate design took (on a worker, beside the starts)."""
+    """A line saying how long each approximate design took (on a worker, beside the starts),
+    and which were read back from the disk instead (:func:`casadi_design.bound.computed`)."""
     if approx:
+        kept = [c for c, a in approx.items() if a.kept]
         say(args, f"approximate designs of {', '.join(approx)}: "
                   f"{', '.join(f'{a.wall_s:.1f}' for a in approx.values())} s "
-                  f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})")
+                  f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})"
+                  + (f"; {', '.join(kept)} read back from the cache (the times are of the run "
+                     "that computed them)" if kept else ""))
 
 
 def output_folder(args: argparse.Namespace, command: str, resume_files: tuple[str, ...] = ()) -> Path | None:
