@@ -284,7 +284,7 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
             lo, hi = o.draw(ax, lo, hi)
         for setter, a, b in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), lo, hi):
             setter(a, b)
-        ax.set_box_aspect(hi - lo)  # true proportions
+        ax.set_box_aspect(hi - lo, zoom=0.85)  # true proportions, room for the z label
         ax.view_init(elev=25, azim=-70)
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
