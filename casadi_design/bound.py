@@ -470,11 +470,11 @@ def approximate_design(
     exceeds ``phi``; every ``form.moves`` steps (the criterion's
     :attr:`~casadi_design.criteria.BoundForm.moves`) also the heavy support points moved
     together with W (:func:`_moved`). When the best certified value is within ``rtol``
-    (relative; D: ``rtol L`` on log det) of the best value on a pool (then both are within rtol of the hull's
-    optimum), when no candidate or maximum exceeds ``phi`` (the equivalence theorem: the pool
-    holds the hull's optimum, up to the search for the maximum), or at the last of
-    ``iterations`` steps, an independent search from a fresh sample checks the best
-    certificate (:func:`_verified`). The steps stop when it finds no d larger by more than
+    (relative; D: ``rtol L`` on log det) of the best value on a pool (then both are within
+    rtol of the hull's optimum), when no candidate or maximum exceeds ``phi`` (the
+    equivalence theorem: the pool holds the hull's optimum, up to the search for the
+    maximum), or at the last of ``iterations`` steps, an independent search from a fresh
+    sample checks the best certificate (:func:`_verified`). The steps stop when it finds no d larger by more than
     ``rtol``; otherwise what it found joins the candidates (and the pool) and the steps go on,
     so a maximum the exchange missed moves the design instead of only loosening the bound.
     ``progress`` is called with the best certified value after each step; ``maximise`` runs
@@ -604,7 +604,7 @@ def _moved(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, w: np
     goes astray costs time only. One run, without adding the rows a point ends past: on the
     UR10 it keeps about 60 % of the heavy points; growing the rows as a design's start does
     (:func:`casadi_design.solve.solve_start`) kept nearly all, but the moves took twice as long
-    and the test-pose certificate ended 0.6 % from its relaxation instead of 0.06 %."""
+    and the test-pose certificate ended 0.6 % from its relaxation instead of 0.05 %."""
     w = w / w.sum()
     order = np.argsort(w)[::-1]
     K = int(np.searchsorted(np.cumsum(w[order]), 1.0 - MOVE_TAIL)) + 1
@@ -613,14 +613,14 @@ def _moved(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, w: np
     nlp = build_nlp(problem, criterion, K, B0_at_test_poses(problem),
                     active=pose_constraints(problem).near(Q, START_MARGIN_M), weights=K * w[heavy],
                     fixed=K * np.einsum("k,kij->ij", w[light], A[light]))
-    solver = nlp.solver("move", {**QUIET, "ipopt.mu_init": MOVE_MU, "ipopt.max_iter": MOVE_ITERATIONS,
-                                 "ipopt.tol": MOVE_TOL})
+    solver = nlp.solver("move", {**QUIET, "ipopt.mu_init": MOVE_MU,
+                                 "ipopt.max_iter": MOVE_ITERATIONS, "ipopt.tol": MOVE_TOL})
     with ipopt_call():
         sol = solver(x0=nlp.start(Q, F), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     Qm, Fm = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
     Qm = joint_limits(problem).wrap(Qm)
-    ok = np.array([not plan_violations(problem, q[None], f[None], meshes=False) for q, f in zip(Qm, Fm)],
-                  dtype=bool)
+    ok = np.array([not plan_violations(problem, q[None], f[None], meshes=False)
+                   for q, f in zip(Qm, Fm)], dtype=bool)
     ok[ok] = _untouched(problem, Qm[ok])
     return Qm[ok], Fm[ok]
 
@@ -789,7 +789,7 @@ def _on_disk() -> bool:
 
 
 def _disk_key(problem: Problem, criterion: str, steps: int, pool: int) -> str:
-    return digest(problem.fingerprint.encode(), criterion.encode(), str(steps).encode(), str(pool).encode())
+    return digest(*(str(v).encode() for v in (problem.fingerprint, criterion, steps, pool)))
 
 
 def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,

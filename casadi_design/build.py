@@ -148,9 +148,11 @@ class Problem:
         mesh file is another problem, though its path is the same), the package's code, the
         libraries' versions and the BLAS kernels."""
         cell = self.cell
-        geometry = pickle.dumps(self.robot.model) + (
-            b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry)) + repr(cell.capsules).encode())
-        return digest(spec_digest_blob(self.spec), geometry, code_digest().encode(), blas_kernels().encode())
+        robot = pickle.dumps(self.robot.model)
+        geometry = b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry))
+        capsules = b"" if cell is None else repr(cell.capsules).encode()
+        return digest(spec_digest_blob(self.spec), robot, geometry, capsules, code_digest().encode(),
+                      blas_kernels().encode())
 
 
 def load_problem(path: str | Path) -> Problem:

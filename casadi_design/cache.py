@@ -86,6 +86,6 @@ def code_digest() -> str:
 
     root = Path(__file__).parent
     files = sorted(root.rglob("*.py"))
-    return digest(*(part for f in files for part in (str(f.relative_to(root)).encode(), f.read_bytes())),
-                  *(v.encode() for v in (numpy.__version__, scipy.__version__, casadi.__version__,
-                                         pinocchio.__version__)))
+    sources = (part for f in files for part in (str(f.relative_to(root)).encode(), f.read_bytes()))
+    versions = (numpy.__version__, scipy.__version__, casadi.__version__, pinocchio.__version__)
+    return digest(*sources, *(v.encode() for v in versions))
