@@ -474,12 +474,12 @@ def approximate_design(
     rtol of the hull's optimum), when no candidate or maximum exceeds ``phi`` (the
     equivalence theorem: the pool holds the hull's optimum, up to the search for the
     maximum), or at the last of ``iterations`` steps, an independent search from a fresh
-    sample checks the best certificate (:func:`_verified`). The steps stop when it finds no d larger by more than
-    ``rtol``; otherwise what it found joins the candidates (and the pool) and the steps go on,
-    so a maximum the exchange missed moves the design instead of only loosening the bound.
-    ``progress`` is called with the best certified value after each step; ``maximise`` runs
-    the IPOPT searches of a step (None: :func:`maximise_d`, here, one after the other; the
-    same maxima either way).
+    sample checks the best certificate (:func:`_verified`). The steps stop when it finds no d
+    larger by more than ``rtol``; otherwise what it found joins the candidates (and the pool)
+    and the steps go on, so a maximum the exchange missed moves the design instead of only
+    loosening the bound. ``progress`` is called with the best certified value after each
+    step; ``maximise`` runs the IPOPT searches of a step (None: :func:`maximise_d`, here, one
+    after the other; the same maxima either way).
 
     The best certificate is kept with its W, mu, d_max and support, the best checked one once
     checked: the reported certificate is always one an independent search confirmed; ``value``

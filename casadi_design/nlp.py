@@ -103,7 +103,7 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     nlp = reduced_nlp(problem, criterion, m, B0, scale, power, active, weights, fixed)
     oracle, options = nlp.functions()
     lbx, ubx = plan_bounds(problem, m, loads)
-    lbg, ubg = rule_bounds(problem, m, loads, nlp.active, pairs=weights is None)
+    lbg, ubg = rule_bounds(problem, m, loads, nlp.active, pairs=len(nlp.pairs) > 0)
     if nlp.n_rows:  # the epigraph: t >= 0; rho_j - t <= 0
         lbx, ubx = np.append(lbx, 0.0), np.append(ubx, np.inf)
         s = nlp.n_rows
