@@ -38,5 +38,6 @@ def run(args: argparse.Namespace) -> int:
     for a in approx.values():
         common.say(args, f"{a.criterion}: {len(a.weights)} support points, pool {a.pool_size}, "
                          f"{len(a.history)} exchange steps, {len(a.checked)} independent checks, "
-                         f"{a.wall_s:.2f} s")
+                         f"{a.wall_s:.2f} s" + (" (read back from the cache: the time of the run that "
+                                                "computed it)" if a.kept else ""))
     return 0
