@@ -252,7 +252,8 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
     from .cell import world_capsules
 
     cell, robot = problem.cell, problem.robot
-    fig = Figure(figsize=(6.0 * len(designs), 6.0), layout="constrained")
+    # no constrained layout: it placed the 3-D panels so that their titles were cut off
+    fig = Figure(figsize=(6.0 * len(designs), 6.0))
     colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown",
                "tab:pink", "tab:gray", "tab:olive", "tab:cyan"]
     path = problem.test_poses.position_m * 1e3
@@ -292,6 +293,7 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
         ax.set_title(f"{CRITERIA[d.criterion].legend}, m = {d.m}: "
                      f"{d.scores.max_rms_error_m * 1e3:.4f} mm", fontsize=10)
         ax.legend(fontsize=8, loc="upper left")
+    fig.subplots_adjust(left=0.0, right=0.95, bottom=0.02, top=0.95, wspace=0.08)
     return fig
 
 
