@@ -70,7 +70,8 @@ def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: st
     ``how``: "cold" (IPOPT's own start), "warm" (from the primal and dual point it is given,
     :data:`WARM_START`) or "resumed" (the same with the barrier parameter ``RESUME_MU``: a
     run stopped on its way); ``max_iter``: instead of the problem's; ``watch``: it stops at an
-    iterate that breaks a capsule row the NLP does not hold (:class:`_Watch`)."""
+    iterate that breaks a capsule row the NLP does not hold (:class:`_Watch`); in a cell every
+    run stops when it stalls (:data:`STALL_ITERATIONS`)."""
     settings = problem.solver
     opts = {**QUIET, "ipopt.max_iter": settings.max_iter if max_iter is None else max_iter,
             "ipopt.tol": settings.tol}
@@ -81,27 +82,46 @@ def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: st
     if verbose:
         opts.update({"ipopt.print_level": 5, "print_time": True, "show_eval_warnings": True})
     opts.update({f"ipopt.{k}": v for k, v in settings.ipopt})
-    if watch:
-        opts["iteration_callback"] = _Watch(problem, nlp)
+    if watch or pose_constraints(problem).collision is not None:
+        opts["iteration_callback"] = _Watch(problem, nlp, rows=watch)
     solver = nlp.solver(f"design_m{nlp.m}", opts)
     solver.watch = opts.get("iteration_callback")  # alive as long as the solver
     return solver
 
 
-#: IPOPT's status of a run that :class:`_Watch` stopped.
+#: IPOPT's status of a run that :class:`_Watch` stopped at a row it does not hold, and the
+#: status a start records for a run it stopped as stalled.
 STOPPED = "User_Requested_Stop"
+STALLED = "Stalled"
+#: A run in a cell stalls when for ``STALL_ITERATIONS`` iterations no iterate makes progress:
+#: a plan that keeps every row the NLP holds with an objective lower by ``STALL_RTOL``
+#: (relative) than every such plan before it, or, while none has kept them, a largest row
+#: violation lower by ``STALL_RTOL`` than every earlier one. A stalled run ends its start
+#: (status :data:`STALLED`, not converged). IPOPT can cycle at a fixed barrier parameter (the
+#: UR10 test-pose design at m = 12: four iterates repeating for 2700 iterations) or stay in
+#: its restoration phase (at m = 9: 1900 and 2400 iterations), up to the start's max_iter.
+#: Chosen by measurement on both studies (README, Speed): the winning starts of their 20
+#: designs run at most 269 iterations without progress (the ABB's test-pose design at m = 6),
+#: the starts left at max_iter 2130 to 2933; some converged starts that lose 1043 to 1259.
+STALL_ITERATIONS = 500
+STALL_RTOL = 1e-6
 
 
 class _Watch(ca.Callback):
-    """IPOPT's iteration callback for an NLP that holds some of the capsule rows: it stops the
-    run (status :data:`STOPPED`) at the first iterate whose plan breaks a row the NLP does not
-    hold, so that the rows that can bind there join before the iterates go farther."""
+    """IPOPT's iteration callback of a run in a cell. It stops the run at an iterate that
+    makes no progress in :data:`STALL_ITERATIONS` (``stalled`` is then True), and, with
+    ``rows``, at the first iterate whose plan breaks a capsule row the NLP does not hold
+    (status :data:`STOPPED`), so that the rows that can bind there join before the iterates
+    go farther."""
 
-    def __init__(self, problem: Problem, nlp: DesignNLP):
+    def __init__(self, problem: Problem, nlp: DesignNLP, rows: bool = True):
         ca.Callback.__init__(self)
         self._rules, self._plan, self._active = pose_constraints(problem), nlp.plan, nlp.active
+        self._rows, self._lbg, self._ubg = rows, nlp.lbg, nlp.ubg
         self._sizes = {"x": nlp.lbx.size, "g": nlp.lbg.size, "f": 1, "lam_x": nlp.lbx.size,
                        "lam_g": nlp.lbg.size}
+        self.iteration, self.last_progress, self.stalled = 0, 0, False
+        self.best_f, self.best_h = np.inf, np.inf
         self.construct("watch", {})
 
     def get_n_in(self) -> int:
@@ -116,7 +136,27 @@ class _Watch(ca.Callback):
     def get_sparsity_in(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(self._sizes.get(ca.nlpsol_out(i), 0), 1)
 
+    def _progress(self, f: float, g: np.ndarray) -> bool:
+        """Whether the iterate of objective ``f`` and rows ``g`` makes progress (see
+        :data:`STALL_ITERATIONS`)."""
+        h = float(np.max(np.maximum(self._lbg - g, g - self._ubg), initial=0.0))
+        if h <= FEASIBILITY_TOL:
+            better = f < self.best_f - STALL_RTOL * abs(self.best_f)
+            self.best_f, self.best_h = min(self.best_f, f), 0.0
+            return better
+        better = h < self.best_h * (1 - STALL_RTOL)
+        self.best_h = min(self.best_h, h)
+        return better
+
     def eval(self, arg) -> list[int]:
+        self.iteration += 1
+        if self._progress(float(arg[1]), np.asarray(arg[2]).ravel()):
+            self.last_progress = self.iteration
+        if self.iteration - self.last_progress >= STALL_ITERATIONS:
+            self.stalled = True
+            return [1]
+        if not self._rows:
+            return [0]
         slack = self._rules.capsule_slack(self._plan(np.asarray(arg[0]).ravel())[0])
         return [int(_left_out_broken(slack, self._active, WATCH_DEPTH_M))]
 
@@ -266,8 +306,10 @@ def solve_start(
     Q0, F0 = _polished(problem, ds, Q0, F0)
     rules = pose_constraints(problem)
     active = rules.near(Q0, START_MARGIN_M)
-    x, duals, last, iterations, runs = None, {}, None, 0, 0
+    x, duals, last, iterations, runs, status = None, {}, None, 0, 0, None
     for k in range(len(ds.powers)):
+        if status == STALLED:  # a stalled run ends its start
+            break
         how, restarted = ("warm" if k else "cold"), False
         for run in range(MAX_ROUNDS):
             watch = rules.collision is not None and run < MAX_ROUNDS - 1
@@ -284,8 +326,10 @@ def solve_start(
             x, duals, last = sol["x"], {"lam_x0": sol["lam_x"], "lam_g0": sol["lam_g"]}, nlp
             stats = solver.stats()
             iterations, runs = iterations + int(stats.get("iter_count", 0)), runs + 1
-            status = stats["return_status"]
+            status = STALLED if solver.watch is not None and solver.watch.stalled else stats["return_status"]
             if rules.collision is None:
+                break
+            if status == STALLED:
                 break
             if status not in (*CONVERGED, STOPPED):
                 if restarted or run == MAX_ROUNDS - 1:
@@ -302,7 +346,7 @@ def solve_start(
     Q = joint_limits(problem).wrap(Q)
     scores = plan_scores(problem, Q, F, B0)
     rec = StartRecord(
-        status=str(stats["return_status"]),
+        status=str(status),
         iterations=iterations,
         value=scores.value(nlp.criterion),
         max_rms_error_m=scores.max_rms_error_m,

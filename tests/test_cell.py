@@ -350,3 +350,37 @@ def test_a_plan_table_without_clearances_has_no_clearance_columns(ur10):
         header, rows = plan_table(ur10, Q, F, near)
         assert all(len(row) == len(header) for row in rows)
         assert ("clearance_mm" in " ".join(header)) == (near is not None)
+
+
+def test_a_run_stops_as_stalled_only_after_its_iterates_stop_making_progress(ur10):
+    """The stall rule of a run in a cell (:data:`casadi_design.solve.STALL_ITERATIONS`): a
+    cycle of plans that keep every row stops the run that many iterations after its last new
+    best objective; a slowly falling objective, or a violation that keeps shrinking while the
+    objective rises (a run on its way to a feasible plan), never does."""
+    from casadi_design.solve import STALL_ITERATIONS, _Watch
+
+    nlp = build_nlp(ur10, "test-pose", 1, B0_at_test_poses(ur10))
+    lb, ub = np.asarray(nlp.lbg, dtype=float), np.asarray(nlp.ubg, dtype=float)
+    inside = np.select([np.isfinite(lb) & np.isfinite(ub), np.isfinite(lb), np.isfinite(ub)],
+                       [(lb + ub) / 2, lb + 1.0, ub - 1.0], 0.0)  # a value that keeps every row
+    assert np.all(inside >= lb) and np.all(inside <= ub)
+    broken = np.flatnonzero(np.isfinite(lb))[0]
+
+    def run(iterates):
+        watch, stops = _Watch(ur10, nlp, rows=False), []
+        x = ca.DM.zeros(nlp.lbx.size)
+        for k, (f, h) in enumerate(iterates, start=1):
+            g = inside.copy()
+            g[broken] = lb[broken] - h
+            if watch.eval([x, ca.DM(f), ca.DM(g), x, ca.DM(g), ca.DM()])[0]:
+                stops.append(k)
+                break
+        return stops, watch.stalled
+
+    n = 3 * STALL_ITERATIONS
+    cycle = [(v, 0.0) for v in (1.0, 1.1, 0.99, 1.05)] * n  # the last new best: iteration 3
+    assert run(cycle) == ([3 + STALL_ITERATIONS], True)
+    assert run([(1.0 - 1e-4 * k, 0.0) for k in range(n)]) == ([], False)
+    climb = [(k, 1.0 / (k + 1)) for k in range(n)]  # infeasible, the violation falling
+    assert run(climb) == ([], False)
+    assert run(climb[:10] + [(20.0, 0.5)] * n)[0] == [10 + STALL_ITERATIONS]

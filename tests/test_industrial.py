@@ -307,3 +307,25 @@ def test_pivoting_matches_lapack_and_breaks_ties_by_order():
     T = np.column_stack([rng.normal(size=(50, 2)) * 0.1, u, u, u])  # three tied unit columns
     order, diag = pivoted_columns(T)
     assert list(order[:1]) == [2] and diag[1] > 1e-3 and 3 in order[-2:] and 4 in order[-2:]
+
+
+@pytest.mark.slow  # 4 to 6 min: two designs of 20 starts, each solved twice, compiled
+@pytest.mark.parametrize("case, m", [("ur10_drilling.toml", 9), ("abb_irb6640_machining.toml", 6)])
+def test_stopping_stalled_runs_keeps_the_winner_of_the_case_studies(case, m, monkeypatch):
+    """The stall rule (:data:`casadi_design.solve.STALL_ITERATIONS`) ends starts that make no
+    progress, and only those: the test-pose design of each shipped cell case at its smallest
+    m, solved from its seeded starts with the rule and without it, has the same winner and
+    plan to the bit; some starts stall, in fewer iterations than they took without the rule,
+    and every other start is the same."""
+    from casadi_design import solve
+
+    monkeypatch.setenv("CASADI_DESIGN_COMPILE", "1")
+    p = load_problem(ROOT / "problems" / case)
+    ruled = solve_design(p, "test-pose", m)
+    monkeypatch.setattr(solve, "STALL_ITERATIONS", p.solver.max_iter + 1)
+    plain = solve_design(p, "test-pose", m)
+    np.testing.assert_array_equal(ruled.Q, plain.Q)
+    assert ruled.scores.max_rms_error_m == plain.scores.max_rms_error_m
+    stalled = [i for i, s in enumerate(ruled.starts) if s.status == solve.STALLED]
+    assert stalled and all(ruled.starts[i].iterations < plain.starts[i].iterations for i in stalled)
+    assert all(a == b for i, (a, b) in enumerate(zip(ruled.starts, plain.starts)) if i not in stalled)
