@@ -309,7 +309,7 @@ def test_pivoting_matches_lapack_and_breaks_ties_by_order():
     assert list(order[:1]) == [2] and diag[1] > 1e-3 and 3 in order[-2:] and 4 in order[-2:]
 
 
-@pytest.mark.slow  # 4 to 6 min: two designs of 20 starts, each solved twice, compiled
+@pytest.mark.slow  # 3.5 min: two designs of 16 seeded starts, each solved twice, compiled
 @pytest.mark.parametrize("case, m", [("ur10_drilling.toml", 9), ("abb_irb6640_machining.toml", 6)])
 def test_stopping_stalled_runs_keeps_the_winner_of_the_case_studies(case, m, monkeypatch):
     """The stall rule (:data:`casadi_design.solve.STALL_ITERATIONS`) ends starts that make no
