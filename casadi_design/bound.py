@@ -73,7 +73,9 @@ ADDED_CANDIDATES = 40
 NEW_WEIGHT = 0.1
 #: Maxima closer than this (relative, in their information matrices) are one candidate.
 DISTINCT_RTOL = 1e-6
-#: IPOPT starts of the final, independent search for max_x d (16 found too few maxima, above).
+#: IPOPT starts of the final, independent search for max_x d from a sample of SAMPLE_SIZE (16
+#: found too few maxima, above); a smaller sample (``--bound-pool``) polishes as large a part of
+#: it, POLISH_STARTS at least (:func:`verify_starts`).
 VERIFY_STARTS = 64
 #: Smallest eigenvalue of the first pool's mean information, relative to the largest.
 POOL_RCOND = 1e-12
@@ -676,11 +678,17 @@ def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndar
     return Qp[keep], Fp[keep], Ap[keep], dp[keep], [u for u, k in zip(up, keep) if k]
 
 
+def verify_starts(size: int) -> int:
+    """IPOPT starts of the independent search over a fresh sample of ``size`` experiments:
+    ``VERIFY_STARTS`` per ``SAMPLE_SIZE``, ``POLISH_STARTS`` at least (64 of 3000, 16 of 300)."""
+    return max(POLISH_STARTS, VERIFY_STARTS * size // SAMPLE_SIZE)
+
+
 def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: float,
               Hj: np.ndarray | None, rng: np.random.Generator, size: int, maximise: Maximise
               ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """The certificate of ``W`` (scaled by c) and ``mu`` once more, with max_x d searched over a
-    fresh sample of ``size`` experiments and IPOPT from its ``VERIFY_STARTS`` best: a search
+    fresh sample of ``size`` experiments and IPOPT from its :func:`verify_starts` best: a search
     independent of the exchange, whose own maxima went into the pool. Returns the certified
     value, d_max (the larger of ``d_max`` and the new search's) and the experiments of the new
     search with d above ``d_max`` (the sample's and the maxima's: Q (k, n), F (k, nF), their
@@ -689,7 +697,7 @@ def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: 
     Q, F = _sample(problem, size, rng)
     A = c * _information(problem, Q, F)
     d = np.einsum("kij,ij->k", A, G)
-    best = np.argsort(d)[::-1][:VERIFY_STARTS]
+    best = np.argsort(d)[::-1][:verify_starts(size)]
     Qp, Fp, Ap, dp, _ = _maxima(problem, G, c, Q[best], F[best], d[best], [None] * len(best), d_max, maximise)
     above = best[d[best] > d_max]
     d_max = float(max(d_max, d.max(), dp.max(initial=0.0)))
