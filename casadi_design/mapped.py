@@ -1,7 +1,9 @@
-"""Evaluate a CasADi function on many stacked inputs at once (a mapped call, chunked).
+"""Evaluate a CasADi function on many stacked inputs at once (a mapped call, chunked), or on
+one input after another through a kept buffer.
 
 The batched numerics of the identification (every Gauss-Newton step) and of the virtual
-calibration (every simulated trial) go through :func:`evaluate`.
+calibration (every simulated trial) go through :func:`evaluate`; the sequential scan of a
+robot move (each sample's step depends on the rows at the last) through :class:`OneByOne`.
 """
 
 from __future__ import annotations
@@ -25,6 +27,28 @@ EXACT = 64
 #: Threads of the mapped evaluations: every core (the cases are independent, so the results do
 #: not depend on it).
 THREADS = cpu_count()
+
+
+class OneByOne:
+    """``fn`` (one dense input, one dense output) called on one input at a time through one
+    buffer kept for every call (``Function.buffer``): the input is copied in, the output
+    copied out, no CasADi matrices on the way. On the UR10's 109 cell rows in CasADi's
+    virtual machine 21 us a call instead of 43 us through ``fn(q)`` (the same bits). Not
+    for two threads at once: the buffer is shared."""
+
+    def __init__(self, fn: ca.Function):
+        if fn.n_in() != 1 or fn.n_out() != 1 or not (fn.sparsity_in(0).is_dense() and fn.sparsity_out(0).is_dense()):
+            raise ValueError(f"OneByOne: {fn.name()} must have one dense input and one dense output")
+        self.x, self.y = np.zeros(fn.numel_in(0)), np.zeros(fn.numel_out(0))
+        self.buffer, self.call = fn.buffer()
+        self.buffer.set_arg(0, memoryview(self.x))
+        self.buffer.set_res(0, memoryview(self.y))
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """``fn(x)`` as a flat array (column-major), a fresh copy."""
+        self.x[:] = np.ravel(x, order="F")
+        self.call()
+        return self.y.copy()
 
 
 @functools.lru_cache(maxsize=128)

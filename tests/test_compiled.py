@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from casadi_design import compiled as cc
-from casadi_design.mapped import evaluate
+from casadi_design.mapped import OneByOne, evaluate
 from casadi_design.reduced import experiment_functions
 from casadi_design.rules import pose_constraints
 from casadi_design.sampling import random_plan
@@ -69,8 +69,24 @@ def test_every_rule_row_of_a_configuration_gives_the_same_bits(cache, ur10):
     fast = move_rules(ur10).g
     assert fast.class_name() == "External" and fast is cc.compiled(g)
     _same(g, fast, Q)
-    for q in Q[:3]:  # called one configuration at a time, as a move's scan does
+    at = move_rules(ur10).at  # one configuration at a time through a kept buffer, as a move's scan
+    for q in Q[:3]:
         assert np.array_equal(np.asarray(g(q)), np.asarray(fast(q)))
+        assert np.array_equal(np.asarray(g(q)).ravel(), at(q))
+
+
+def test_one_by_one_gives_each_input_its_own_output():
+    """:class:`OneByOne` on CasADi's virtual machine: the bits of ``fn(x)`` for each input in
+    turn, a copy that the next call does not change; a function it cannot serve is refused."""
+    x = ca.SX.sym("x", 3)
+    fn = ca.Function("f", [x], [ca.vertcat(ca.sin(x[0]) * x[1], x[2] ** 2, ca.dot(x, x))])
+    at, rng = OneByOne(fn), np.random.default_rng(5)
+    X = rng.normal(size=(4, 3))
+    out = [at(xi) for xi in X]
+    for xi, y in zip(X, out):
+        assert np.array_equal(np.asarray(fn(xi)).ravel(), y)
+    with pytest.raises(ValueError, match="one dense input"):
+        OneByOne(ca.Function("two", [x, ca.SX.sym("y")], [x]))
 
 
 def test_some_capsule_rows_give_the_same_bits(cache, ur10):

@@ -48,7 +48,7 @@ from ..cell import clearances
 from ..collision import capsule_names, carrier
 from ..compiled import compiled
 from ..export import is_prismatic
-from ..mapped import evaluate
+from ..mapped import OneByOne, evaluate
 from ..rules import FEASIBILITY_TOL, joint_limits, pose_constraints
 from .order import TimeModel
 
@@ -103,6 +103,7 @@ class MoveRules:
     reach_m: np.ndarray
     step_m: float
     clearance_m: float
+    at: OneByOne
 
     def rows(self, Q: np.ndarray) -> np.ndarray:
         """Every row (k, rows) at the configurations ``Q`` (k, n)."""
@@ -125,11 +126,12 @@ def move_rules(problem: Problem) -> MoveRules | None:
     index = np.arange(len(rules.labels))
     sight = np.array([k >= screen and label.startswith("line of sight") for k, label in enumerate(rules.labels)])
     capsule = index >= screen
-    clearance = cell.spec.clearance_m
-    return MoveRules(compiled(rules.g), rules.lb, rules.labels,
+    clearance, g = cell.spec.clearance_m, compiled(rules.g)
+    return MoveRules(g, rules.lb, rules.labels,
                      index[capsule & ~sight], index[sight], index[(index < screen) & (np.array(rules.units) == "cos")],
                      row_reach(problem, rules.labels),
-                     STEP_FRACTION * clearance if clearance > 0 else STEP_WITHOUT_CLEARANCE_M, clearance)
+                     STEP_FRACTION * clearance if clearance > 0 else STEP_WITHOUT_CLEARANCE_M, clearance,
+                     OneByOne(g))
 
 
 def row_reach(problem: Problem, labels: tuple[str, ...]) -> np.ndarray:
@@ -215,7 +217,7 @@ def scan(rules: MoveRules, qa: np.ndarray, qb: np.ndarray, stop: bool = False) -
     slack = 2 * rules.step_m  # c / 2
     s, S, G = 0.0, [], []
     while True:
-        g = np.asarray(rules.g(qa + s * (qb - qa))).ravel()
+        g = rules.at(qa + s * (qb - qa))
         S.append(s)
         G.append(g)
         col = g[rules.collision]
