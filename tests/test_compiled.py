@@ -96,7 +96,7 @@ def test_some_capsule_rows_give_the_same_bits(cache, ur10):
     rng = np.random.default_rng(4)
     Q = np.array([random_plan(ur10, 1, rng)[0][0] for _ in range(8)])
     w = np.concatenate([evaluate(rows.points, Q, threads=1)[0][:, :, 0], np.zeros((len(Q), 1))], axis=1)
-    for r in rng.choice(len(rows.cases), size=6, replace=False):
+    for r in rng.choice(len(rows.cases), size=3, replace=False):  # a gcc run each: ~1 s
         fast = cc.compiled_group(rows.cases[r], min_instructions=0)
         assert {f.class_name() for f in fast} == {"External"}
         for plain, compiled in zip(rows.cases[r], fast):
