@@ -143,14 +143,12 @@ def test_fixed_load_plans_need_no_force_columns(tmp_path):
     assert plan_violations(p, Q, F) == []
 
 
-def test_solve_writes_plans_and_a_report_that_links_its_figures(tmp_path):
-    out = tmp_path / "out"
-    assert main(["solve", str(PAPER), "--starts", "3", "--m", "1,5", "--criteria", "test-pose,D",
-                 "--out", str(out), "--jobs", "1", "--quiet", "--bound-pool", "300"]) == 0
+def test_solve_writes_plans_and_a_report_that_links_its_figures(paper_solve_out):
+    out = paper_solve_out  # the paper's criteria test-pose, D, E at m = 1, 5
     report = (out / "report.md").read_text()
     assert report.startswith("# Calibration plan: paper_planar_2r")
     assert "| calibration load | equal, \\|F\\| = 100 N |" in report
     assert "![Fig. 1: +/- sqrt(rho) along the test poses](fig1.png)" in report and (out / "fig1.png").exists()
     assert "### D plan, m = 5" in report
     assert sorted(p.name for p in (out / "plans").iterdir()) == [
-        "D_m1.csv", "D_m5.csv", "test-pose_m1.csv", "test-pose_m5.csv"]
+        "D_m1.csv", "D_m5.csv", "E_m1.csv", "E_m5.csv", "test-pose_m1.csv", "test-pose_m5.csv"]
