@@ -37,7 +37,6 @@ import coal
 import numpy as np
 import pinocchio as pin
 import scipy
-from scipy.optimize import minimize
 
 from .cache import digest, stored
 from .errors import ProblemError
@@ -193,6 +192,9 @@ def fit_capsule(frame: str, points_m: np.ndarray, inflation_m: np.ndarray | None
             return np.pi * 4 / 3 * r**3, centre, centre, r
         return np.pi * r**2 * (tb - ta + 4 * r / 3), c + ta * u, c + tb * u, r
 
+    # imported here: a fit runs only when the capsules are not on disk, and at the top it cost
+    # every process 0.15 to 0.27 s of start-up
+    from scipy.optimize import minimize
     best = None
     for k in range(3):
         basis = np.roll(Vt, -k, axis=0)
