@@ -103,7 +103,12 @@ class MoveRules:
     reach_m: np.ndarray
     step_m: float
     clearance_m: float
-    at: OneByOne
+
+    @functools.cached_property
+    def at(self) -> OneByOne:
+        """``g`` called one configuration at a time, as a move's scan does, through one kept
+        buffer (:class:`~casadi_design.mapped.OneByOne`)."""
+        return OneByOne(self.g)
 
     def rows(self, Q: np.ndarray) -> np.ndarray:
         """Every row (k, rows) at the configurations ``Q`` (k, n)."""
@@ -126,12 +131,11 @@ def move_rules(problem: Problem) -> MoveRules | None:
     index = np.arange(len(rules.labels))
     sight = np.array([k >= screen and label.startswith("line of sight") for k, label in enumerate(rules.labels)])
     capsule = index >= screen
-    clearance, g = cell.spec.clearance_m, compiled(rules.g)
-    return MoveRules(g, rules.lb, rules.labels,
+    clearance = cell.spec.clearance_m
+    return MoveRules(compiled(rules.g), rules.lb, rules.labels,
                      index[capsule & ~sight], index[sight], index[(index < screen) & (np.array(rules.units) == "cos")],
                      row_reach(problem, rules.labels),
-                     STEP_FRACTION * clearance if clearance > 0 else STEP_WITHOUT_CLEARANCE_M, clearance,
-                     OneByOne(g))
+                     STEP_FRACTION * clearance if clearance > 0 else STEP_WITHOUT_CLEARANCE_M, clearance)
 
 
 def row_reach(problem: Problem, labels: tuple[str, ...]) -> np.ndarray:
