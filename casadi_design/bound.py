@@ -54,7 +54,7 @@ from .errors import DesignError
 from .ipopt import QUIET, WARM_START, ipopt_call
 from .nlp import B0_at_test_poses, build_nlp, plan_bounds, rule_bounds
 from .reduced import NumericFunction, experiment_functions
-from .rules import ADD_MARGIN_M, START_MARGIN_M, joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
+from .rules import ADD_MARGIN_M, START_MARGIN_M, CollisionRows, joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
 from .sampling import random_plan
 #: Candidate experiments of the first pool, and of the dense sample searched for max_x d.
 POOL_SIZE = 300
@@ -273,14 +273,21 @@ class Search:
     bind: the NLP of :meth:`solvers` has room for K capsule rows, and which rows is a parameter
     (a place left over takes index R: a row 0 without bounds), so one NLP per size serves every
     set of rows. ``fixed`` are the functions of z (and G) of the objective and the other rows:
-    values, first and second derivatives; ``row`` switches over the capsule rows (``value``,
-    ``slope`` (1 x p) and ``curvature`` (z, lam) -> ``lam d2g_r/dz2``, each row's own SX
-    function), mapped over the K places: each row is evaluated and differentiated only where it
-    is held. ``fixed`` is compiled code (:mod:`casadi_design.compiled`; a UR10 search 12.5 ->
-    7.8 ms, the same iterations, for 7 s of gcc once per robot and cell). Of 100 UR10 capsule
-    rows a search holds about ten: IPOPT's work, the Jacobian and the Hessian of the Lagrangian
-    shrink with them (339 131 instructions of the Hessian with every row; 39 673 for the
-    objective and about 4 200 per capsule row)."""
+    values, first and second derivatives, compiled (:mod:`casadi_design.compiled`). The
+    capsule rows go through the world points of the capsules' ends, as in the design NLP
+    (:class:`~casadi_design.rules.CollisionRows`): ``row["points"]`` gives ``w(q)`` (3K) and
+    ``dw/dq`` once per evaluation, ``row["value"]``, ``row["slope"]`` and ``row["curvature"]``
+    the held rows place by place through the rows' compiled switches of ``w_r`` (mapped over
+    the K places), by the chain rule
+
+        dg_r/dz = dg_r/dw_r dw_r/dz,
+        lam_r d2g_r/dz2 = lam_r (dw_r/dz)^T d2g_r/dw_r2 (dw_r/dz) + d2(c^T w)/dz2,
+
+    with ``c = sum_r lam_r dg_r/dw`` summed over the places first, so the kinematics' second
+    derivatives (``row["points_curvature"]``) are evaluated once, not once per row. Of 100 UR10
+    capsule rows a search holds about ten; a held row costs about 5 us an evaluation of the
+    Hessian of the Lagrangian instead of 35 us for its own Hessian in z in the virtual
+    machine."""
 
     fixed: dict
     row: dict
@@ -309,10 +316,17 @@ class Search:
             g, J = c0, fx["dc"](z)
             H = lam_f * fx["d2f"](z, G) + fx["d2c"](z, lam_g[:n0])
             if K:
-                g = ca.vertcat(g, row["value"].map(K, [False, True], [False])(rows, z).T)
-                J = ca.vertcat(J, ca.reshape(row["slope"].map(K, [False, True], [False])(rows, z),
-                                             z.numel(), K).T)
-                H += row["curvature"].map(K, [False, True, False], [True])(rows, z, lam_g[n0:].T)
+                n, p_z = row["points"].size1_in(0), z.numel()
+                w, dw = row["points"](z[:n])
+                w = ca.vertcat(w, 0.0)  # the filler coordinate of CollisionRows.inputs
+                dw = ca.vertcat(ca.horzcat(dw, ca.MX(dw.size1(), p_z - n)), ca.MX(1, p_z))
+                g = ca.vertcat(g, row["value"].map(K, [False, True], [False])(rows, w).T)
+                J = ca.vertcat(J, ca.reshape(row["slope"].map(K, [False, True, True], [False])(rows, w, dw),
+                                             p_z, K).T)
+                Hr, c = row["curvature"].map(K, [False, True, True, False], [True, True])(rows, w, dw,
+                                                                                        lam_g[n0:].T)
+                Hw = row["points_curvature"](z[:n], c[:-1])
+                H += Hr + (Hw if p_z == n else ca.diagcat(Hw, ca.MX(p_z - n, p_z - n)))
             f = fx["f"](z, G)
             opts = {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200, "no_nlp_grad": True, "calc_lam_p": False,
                     "grad_f": ca.Function("grad_f", [z, p], [f, fx["df"](z, G)], ["x", "p"], ["f", "grad_f_x"]),
@@ -341,7 +355,7 @@ def _search(problem: Problem) -> Search:
     """The :class:`Search` of the problem (built once per problem)."""
     fns, loads = experiment_functions(problem), load_variables(problem)
     L = problem.model.L
-    z, G, lam = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L), ca.SX.sym("lam")
+    z, G = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L)
     B, c, _ = fns.values(z)
     f, lam_c = -ca.dot(B @ G, B), ca.SX.sym("lam_c", c.numel())
     fixed = {"f": ca.Function("d", [z, G], [f]), "df": ca.Function("dd", [z, G], [ca.gradient(f, z)]),
@@ -351,22 +365,55 @@ def _search(problem: Problem) -> Search:
              "d2c": ca.Function("d2rules", [z, lam_c], [ca.densify(ca.hessian(ca.dot(lam_c, c), z)[0])])}
     fixed = dict(zip(fixed, compiled_group(list(fixed.values()))))
     rules = pose_constraints(problem)
-    caps = (rules.g(z[: fns.n])[rules.collision.first:] if rules.collision is not None  # after the
-            else ca.SX(0, 1))                                           # others, as in rule_bounds
-    cases = {"value": [], "slope": [], "curvature": []}
-    for r in range(caps.numel()):
-        cases["value"].append(ca.Function(f"capsule_row_{r}", [z], [caps[r]]))
-        cases["slope"].append(ca.Function(f"capsule_slope_{r}", [z], [ca.densify(ca.jacobian(caps[r], z))]))
-        cases["curvature"].append(ca.Function(f"capsule_curvature_{r}", [z, lam],
-                                              [ca.densify(lam * ca.hessian(caps[r], z)[0])]))
-    left_over = {"value": ca.Function("free", [z], [ca.SX.zeros(1, 1)]),
-                 "slope": ca.Function("free_slope", [z], [ca.SX.zeros(1, fns.p)]),
-                 "curvature": ca.Function("free_curvature", [z, lam], [ca.SX.zeros(fns.p, fns.p)])}
-    row = {k: ca.Function.conditional(f"capsule_{k}", v, left_over[k]) for k, v in cases.items()
-           if v}  # none without a cell
+    R = 0 if rules.collision is None else len(rules.collision.cases)
+    row = {} if rules.collision is None else _search_rows(rules.collision, fns.n, fns.p)  # none without a cell
     lbx, ubx = plan_bounds(problem, 1, loads)
     lbg, ubg = rule_bounds(problem, 1, loads)
-    return Search(fixed, row, np.arange(c.numel(), c.numel() + caps.numel()), lbx, ubx, lbg, ubg)
+    return Search(fixed, row, np.arange(c.numel(), c.numel() + R), lbx, ubx, lbg, ubg)
+
+
+def _search_rows(rows: CollisionRows, n: int, p: int) -> dict:
+    """The capsule rows of :class:`Search` through the world points ``w(q)`` (3K) of
+    ``rows``: ``points`` ``q -> (w, dw/dq)`` and ``points_curvature`` ``(q, c) -> d2(c^T
+    w)/dq2`` (n x n), compiled; and per place, with ``r`` the row (R: a place left over, whose
+    outputs are 0), ``wx = (w, 0)`` (3K + 1) and ``Jx`` its derivative in z (3K + 1, p):
+    ``value`` ``(r, wx) -> g_r``, ``slope`` ``(r, wx, Jx) -> dg_r/dz`` (1 x p) and
+    ``curvature`` ``(r, wx, Jx, lam) -> (lam Jx_r^T d2g_r/dw_r2 Jx_r, lam dg_r/dwx)`` (p x p,
+    3K + 1). The rows' own functions are the compiled switches of ``rows``; choosing row r's
+    coordinates ``w_r = wx[inputs[r]]`` (and putting its slope back in place) are switches of
+    copies."""
+    K3, R = rows.points.numel_out(0), len(rows.cases)
+    q, c = ca.SX.sym("q", n), ca.SX.sym("c", K3)
+    w = rows.points(q)
+    points = compiled_group([ca.Function("search_points", [q], [w, ca.densify(ca.jacobian(w, q))]),
+                             ca.Function("search_points_curvature", [q, c],
+                                         [ca.densify(ca.hessian(ca.dot(c, w), q)[0])])])
+    wx, Jx, v = ca.SX.sym("wx", K3 + 1), ca.SX.sym("Jx", K3 + 1, p), ca.SX.sym("v", rows.inputs.shape[1])
+    take, take_J, put = [], [], []
+    for r, idx in enumerate(rows.inputs):
+        back = ca.SX.zeros(K3 + 1)
+        for i, k in enumerate(idx):
+            back[k] += v[i]
+        take.append(ca.Function(f"take_{r}", [wx], [wx[idx]]))
+        take_J.append(ca.Function(f"take_J_{r}", [Jx], [Jx[idx, :]]))
+        put.append(ca.Function(f"put_{r}", [v], [back]))
+    take, take_J, put = (ca.Function.conditional(name, f, f[0])
+                         for name, f in (("take", take), ("take_J", take_J), ("put", put)))
+    r, lam = ca.MX.sym("r"), ca.MX.sym("lam")
+    wm, Jm = ca.MX.sym("wx", K3 + 1), ca.MX.sym("Jx", K3 + 1, p)
+    wr, Jr = take(r, wm), take_J(r, Jm)
+    held = r < R
+
+    def only(e: ca.MX) -> ca.MX:
+        return ca.if_else(held, e, ca.MX.zeros(e.sparsity()))
+
+    slope_w = rows.slope(r, wr)
+    return {"points": points[0], "points_curvature": points[1],
+            "value": ca.Function("capsule_value", [r, wm], [only(rows.value(r, wr))]),
+            "slope": ca.Function("capsule_slope", [r, wm, Jm], [only(slope_w @ Jr)]),
+            "curvature": ca.Function("capsule_curvature", [r, wm, Jm, lam],
+                                     [only(lam * (Jr.T @ rows.curvature(r, wr) @ Jr)),
+                                      only(put(r, lam * slope_w.T))])}
 
 
 #: The multipliers of a maximum of d (of z's bounds, of the rule rows) per unit of d: a warm

@@ -32,7 +32,7 @@ import numpy as np
 
 from .build import Problem, per_model
 from .cell import cell_rows, touching
-from .compiled import compiled, compiled_switch
+from .compiled import MAPPED_MIN_INSTRUCTIONS, compiled_group, compiled_switch
 from .mapped import evaluate
 from .collision import PointRows
 from .symbolic import joint_axis
@@ -317,8 +317,10 @@ def load_variables(problem: Problem) -> LoadVariables:
 def _rows_at(f: ca.Function, Q: np.ndarray) -> np.ndarray:
     """The rows of ``f`` (a function of one configuration) at each configuration of ``Q``
     (k x n): shape (k, rows); one mapped call per chunk, in this thread (a worker's starts
-    and approximate designs run one per core)."""
-    return evaluate(compiled(f), np.asarray(Q, dtype=float), threads=1)[0].reshape(len(Q), f.numel_out(0))
+    and approximate designs run one per core), compiled from
+    :data:`~casadi_design.compiled.MAPPED_MIN_INSTRUCTIONS` on (the screen rows too)."""
+    fn = compiled_group([f], MAPPED_MIN_INSTRUCTIONS)[0]
+    return evaluate(fn, np.asarray(Q, dtype=float), threads=1)[0].reshape(len(Q), f.numel_out(0))
 
 
 def _amount(v: float, unit: str, lb: float) -> str:
