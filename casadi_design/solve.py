@@ -148,17 +148,29 @@ class _Watch(ca.Callback):
         self.best_h = min(self.best_h, h)
         return better
 
-    def eval(self, arg) -> list[int]:
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg, res) -> int:
+        # CasADi's buffers of x, f and g as views, valid during the call: without the DM
+        # conversions of ``eval``, which cost 0.45 ms an iteration on a UR10 plan of 12
+        x, f, g = (np.frombuffer(a, dtype=float) if a is not None else np.zeros(0) for a in arg[:3])
+        np.frombuffer(res[0], dtype=float)[0] = self._stop(x, float(f[0]), g)
+        return 0
+
+    def _stop(self, x: np.ndarray, f: float, g: np.ndarray) -> int:
+        """1 to stop the run at the iterate x (objective f, rows g): stalled, or (``rows``) a
+        capsule row it does not hold broken."""
         self.iteration += 1
-        if self._progress(float(arg[1]), np.asarray(arg[2]).ravel()):
+        if self._progress(f, g):
             self.last_progress = self.iteration
         if self.iteration - self.last_progress >= STALL_ITERATIONS:
             self.stalled = True
-            return [1]
+            return 1
         if not self._rows:
-            return [0]
-        slack = self._rules.capsule_slack(self._plan(np.asarray(arg[0]).ravel())[0])
-        return [int(_left_out_broken(slack, self._active, WATCH_DEPTH_M))]
+            return 0
+        slack = self._rules.capsule_slack(self._plan(x)[0])
+        return int(_left_out_broken(slack, self._active, WATCH_DEPTH_M))
 
 
 def check_ipopt_options(problem: Problem) -> None:

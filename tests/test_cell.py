@@ -372,7 +372,7 @@ def test_a_run_stops_as_stalled_only_after_its_iterates_stop_making_progress(ur1
         for k, (f, h) in enumerate(iterates, start=1):
             g = inside.copy()
             g[broken] = lb[broken] - h
-            if watch.eval([x, ca.DM(f), ca.DM(g), x, ca.DM(g), ca.DM()])[0]:
+            if float(watch(x, ca.DM(f), ca.DM(g), x, ca.DM(g), ca.DM())) == 1.0:  # as IPOPT calls it
                 stops.append(k)
                 break
         return stops, watch.stalled
