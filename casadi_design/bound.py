@@ -87,12 +87,8 @@ EXCHANGE_RTOL = 1e-3
 EXCHANGE_ITERATIONS = 40
 #: Weights below this fraction of the largest are left out of the reported support.
 WEIGHT_RTOL = 1e-4
-#: Plans of :func:`rounded_plans`, and the step of the jittered ones (fraction of the joint range).
-#: The rounded starts are the best of a design more often than not on the UR10 and their D and
-#: A starts cheap: of 12 (the UR10 study's six bounded designs, seeded 7), the best were the
-#: 8th, 4th, 6th and 6th (test-pose at m = 9 0.0232 -> 0.0226 mm with 4 -> 12 of them, at m = 12
-#: 0.0191 -> 0.0189 mm, D at m = 9 log det 42.08 -> 42.38), none beyond the 8th.
-ROUNDED_PLANS = 8
+#: The step of the jittered plans of :func:`rounded_plans` (fraction of the joint range); how
+#: many plans: the criterion's :attr:`~casadi_design.criteria.BoundForm.rounded`.
 ROUNDING_JITTER = 0.02
 #: Seed id of the bound's random numbers (beside the criteria's ids 0..6).
 SEED_ID = 100
@@ -770,15 +766,17 @@ def apportion(weights: np.ndarray, m: int) -> np.ndarray:
 
 
 def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
-                  count: int = ROUNDED_PLANS) -> list[tuple[np.ndarray, np.ndarray]]:
+                  count: int | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Plans of m experiments from the approximate design, as extra starts of
     :func:`casadi_design.solve.solve_design` (``initial_plans``).
 
+    ``count`` plans (None: the criterion's :attr:`~casadi_design.criteria.BoundForm.rounded`).
     The first repeats support point i ``n_i`` times (:func:`apportion`); the other ``count - 1``
     move each of its joint values by a normal step of ``ROUNDING_JITTER`` times the joint's
     range (seeded by ``problem.solver.seed`` and m), so repeated experiments can separate.
     Returns ``(Q0, F0)`` pairs: Q0 shape (m, n), rad; F0 shape (m, nF), N.
     """
+    count = CRITERIA[approx.criterion].bound.rounded if count is None else count
     idx = np.repeat(np.arange(len(approx.weights)), apportion(approx.weights, m))
     Q0, F0 = approx.Q[idx], approx.F[idx]
     limits = joint_limits(problem)

@@ -33,7 +33,6 @@ from .bound import (
     BOUND_STEPS,
     POOL_SIZE,
     ROUNDED,
-    ROUNDED_PLANS,
     ApproximateDesign,
     approximate_designs,
     bound,
@@ -127,7 +126,7 @@ def has_bound(criterion: str, settings: Settings) -> bool:
 
 def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings) -> int:
     """IPOPT starts of a campaign (for progress bars), the caller's extra starts left out."""
-    per_m = sum(settings.starts + (ROUNDED_PLANS if has_bound(c, settings) else 0) for c in criteria)
+    per_m = sum(settings.starts + (CRITERIA[c].bound.rounded if has_bound(c, settings) else 0) for c in criteria)
     return len(m_values) * per_m
 
 

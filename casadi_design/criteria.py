@@ -81,12 +81,21 @@ class BoundForm:
         so D has none; A's support is spread (77 to 105 points carry 95 % of the weight) and
         its moves took 1.7x the time for no better bound, so A and I (untried) have none
         either.
+    rounded : starts rounded from the approximate design per design
+        (:func:`casadi_design.bound.rounded_plans`: the apportioned support, then jittered
+        copies; the first four the same whatever the count). Measured on the UR10 study with 12
+        (README, Speed): the best were the 8th (test-pose, m = 9), 6th (test-pose, m = 12), 6th
+        (D, m = 9: log det 42.08 -> 42.38 over the 4) and 4th (A, m = 9). D's and A's rounded
+        starts cost what a seeded one does (50 to 250 IPOPT iterations); test-pose's from m =
+        12 on cost 3 to 10 seeded ones (1000 to 2800 iterations, some stalled), which made the
+        UR10 sweep 1.4x slower with 8: D and A have 8, the others 4.
     """
 
     rows: Callable[[np.ndarray], np.ndarray] | None
     score: Callable[[float, int, float, int], float]
     meaning: str
     moves: int = 0
+    rounded: int = 4
 
     @property
     def log_det(self) -> bool:
@@ -185,14 +194,14 @@ CRITERIA: dict[str, Criterion] = {
                   {"color": "tab:blue", "ls": "--", "lw": 1.5}, 1, LogDet(),
                   "log_det_M", "D: log det M", log_value=True,
                   bound=BoundForm(None, lambda c, m, sigma, L: L * np.log(m) + c,
-                                  "upper bound of log_det_M of any plan of m experiments")),
+                                  "upper bound of log_det_M of any plan of m experiments", rounded=8)),
         Criterion("A", "min", "trace_M_inv", _regular(lambda sp: float(np.sum(1.0 / sp.lam)), np.inf),
                   "trace M^-1 (A-optimality)", "A-optimality",
                   {"color": "tab:green", "ls": "-.", "lw": 1.5}, 2, TraceInverse(),
                   "trace_M_inv", "A: trace M^-1",
                   bound=BoundForm(lambda B0: _outer(np.eye(B0.shape[2])[None]),
                                   lambda c, m, sigma, L: c / m,
-                                  "lower bound of trace_M_inv of any plan of m experiments")),
+                                  "lower bound of trace_M_inv of any plan of m experiments", rounded=8)),
         Criterion("E", "max", "s_min", lambda sp: float(sp.sv[-1]),
                   "smallest singular value s_L (E-optimality, SVD approach)", "SVD approach (E-optimality)",
                   {"color": "tab:purple", "ls": ":", "lw": 2.0}, 3,

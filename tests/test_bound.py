@@ -9,6 +9,7 @@ import pytest
 from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _search_one, _information, _pool_optimum, _sample, apportion,
                                  approximate_design, bound, rounded_plans)
 from casadi_design.build import load_problem
+from casadi_design.criteria import CRITERIA
 from casadi_design.errors import DesignError
 from casadi_design.nlp import B0_at_test_poses
 from casadi_design.rules import plan_violations, pose_constraints
@@ -193,6 +194,11 @@ def test_rounded_plans_are_feasible_starts(paper, paper_tp):
         assert not plan_violations(paper, Q0, F0)
     best = solve_design(paper, "test-pose", 5, starts=1, initial_plans=plans)
     assert best.scores.max_rms_error_m >= bound(paper, 5, paper_tp).value
+    # as many as the criterion's registry entry says, and more plans only add to the same first ones
+    assert len(plans) == CRITERIA["test-pose"].bound.rounded == 4 and CRITERIA["D"].bound.rounded == 8
+    more = rounded_plans(paper, paper_tp, 5, 8)
+    assert len(more) == 8 and all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+                                  for a, b in zip(plans, more))
 
 
 def test_too_small_a_pool_is_refused(capsys):

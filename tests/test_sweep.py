@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from casadi_design.bound import ROUNDED_PLANS
-from casadi_design.criteria import BOUND_CRITERIA
+from casadi_design.criteria import BOUND_CRITERIA, CRITERIA
 
 import casadi_design.campaign as campaign_module
 import casadi_design.sweep as sweep_module
@@ -73,7 +72,7 @@ def test_sweep_writes_table_csv_json_plots_plans_and_report(swept):
         assert r["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
         # the warm start from m = 2 on; the rounded plans of the approximate design (test-pose, D)
         bounded = r["criterion"] in BOUND_CRITERIA
-        assert int(r["starts"]) == STARTS + (int(r["m"]) > 1) + ROUNDED_PLANS * bounded
+        assert int(r["starts"]) == STARTS + (int(r["m"]) > 1) + (CRITERIA[r["criterion"]].bound.rounded if bounded else 0)
         assert (float(r["gap_percent"]) >= -1e-6) if bounded else r["gap_percent"] in ("", "None")
     for name in ("sweep_max_error.png", "fig1.png"):
         _png_is_a_real_image(out / name)
