@@ -329,3 +329,27 @@ def test_stopping_stalled_runs_keeps_the_winner_of_the_case_studies(case, m, mon
     stalled = [i for i, s in enumerate(ruled.starts) if s.status == solve.STALLED]
     assert stalled and all(ruled.starts[i].iterations < plain.starts[i].iterations for i in stalled)
     assert all(a == b for i, (a, b) in enumerate(zip(ruled.starts, plain.starts)) if i not in stalled)
+
+
+@pytest.mark.slow  # 30 s: three UR10 starts of 20 experiments in the cell, compiled
+def test_seeded_starts_of_many_experiments_end_on_plans_that_keep_every_row(monkeypatch):
+    """A start holds the capsule rows that can bind and adds rows round after round
+    (:data:`casadi_design.solve.MAX_ROUNDS`): with 20 UR10 experiments in the cell the plans
+    meet new rows for more than 12 rounds, and with 12 every seeded start ended on a plan
+    that breaks capsule rows (the sweep to m = 20 failed). The first three seeded test-pose
+    starts at m = 20 end on plans that keep every rule, the real meshes included, and at
+    least one needed more than 12 rounds."""
+    from casadi_design.nlp import B0_at_test_poses
+    from casadi_design.rules import plan_violations
+    from casadi_design.solve import make_design_solver, seeded_plans, solve_start
+
+    monkeypatch.setenv("CASADI_DESIGN_COMPILE", "1")
+    p = load_problem(ROOT / "problems" / "ur10_drilling.toml")
+    B0 = B0_at_test_poses(p)
+    ds = make_design_solver(p, "test-pose", 20, B0)
+    runs = []
+    for Q0, F0 in seeded_plans(p, "test-pose", 20, 3):
+        rec, Q, F, _ = solve_start(p, ds, B0, Q0, F0)
+        assert rec.feasible and not plan_violations(p, Q, F), rec
+        runs.append(rec.runs)
+    assert max(runs) > 12, runs
