@@ -43,6 +43,7 @@ from .errors import ProblemError
 from .obstacles import Capsule, Obstacle, vector3
 from .robots import Robot
 from .symbolic import compose, joint_axis, rotation_about
+from .threads import blas_kernels
 
 #: ``delta`` of the smoothed distance ``sqrt(D^2 + delta^2) - delta`` (m): differentiable where
 #: the segments touch, below the exact distance by at most ``delta``.
@@ -296,8 +297,10 @@ def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_
 
     The fit takes seconds (Nelder-Mead on each capsule); its result is kept on disk
     (:func:`casadi_design.cache.stored`), named by the pieces' bytes, ``per_link``, the code of
-    this module and of :class:`Capsule`'s, and the numpy and scipy versions: a later run reads
-    the same capsules.
+    this module and of :class:`Capsule`'s, the numpy and scipy versions and the BLAS kernels
+    (the fit rounds differently with other kernels: capsules fitted by a library caller on its
+    machine's own kernels differ in the last bits from the command's, and so would every plan
+    made with them): a later run reads the same capsules.
     """
     parts: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
     for go in geom_model.geometryObjects:
@@ -318,7 +321,7 @@ def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_
         return tuple(out)
 
     code = (Path(__file__).read_bytes(), Path(sys.modules[Capsule.__module__].__file__).read_bytes())
-    key = digest(*code, np.__version__.encode(), scipy.__version__.encode(),
+    key = digest(*code, np.__version__.encode(), scipy.__version__.encode(), blas_kernels().encode(),
                  str(per_link).encode(), *(part for name, pieces in links for c, r in pieces
                                           for part in (name.encode(), np.ascontiguousarray(c).tobytes(),
                                                        np.ascontiguousarray(r).tobytes())))
