@@ -47,7 +47,7 @@ import numpy as np
 
 from .build import Problem, per_model
 from .cache import digest, read, write
-from .compiled import compiled
+from .compiled import compiled_group
 from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import Bound
 from .errors import DesignError
@@ -263,43 +263,33 @@ SEARCH_SIZES = (8, 16, 32, 64)
 
 @dataclass(frozen=True, eq=False)
 class Search:
-    """IPOPT on one experiment ``z = (q, v)``: ``max d(z) = tr(G B(z)^T B(z))`` within its
-    rules, with parameter ``vec G`` (L x L), started cold or from a point and its multipliers
-    (warm, :data:`WARM_SEARCH`); the bounds of z and of every rule row (``lbg``, ``ubg``; the
-    capsule rows are rows ``capsules`` of them, in the order of
+    """IPOPT on one experiment ``z = (q, v)``: ``max tr(G B(z)^T B(z))`` within its rules,
+    with parameter ``vec G`` (L x L), started cold or from a point and its multipliers (warm,
+    :data:`WARM_SEARCH`); the bounds of z and of every rule row (``lbg``, ``ubg``; the capsule
+    rows are rows ``capsules`` of them, in the order of
     :class:`~casadi_design.rules.CollisionRows`).
-
-    The NLP is built on the experiment functions of the design NLP
-    (:func:`casadi_design.reduced.experiment_functions`, compiled: ``values`` ``z -> (B, c,
-    w)``, ``first`` their derivatives, ``second`` the curvature of ``W . B + lam . c + u .
-    w``), with G entering as a matrix, not inside the kinematics' expressions. With ``S = G +
-    G^T`` and ``J_B = d vec(B) / dz`` (the rows of vec(B) in column order, d of them per
-    parameter),
-
-        -d = -<B G, B>,   d(-d)/dz = J_B^T vec(-B S),
-        d2(-d)/dz2 = -J_B^T (S kron I_d) J_B + d2/dz2 (-B S) . B(z)   (-B S held fixed),
-
-    so the Hessian of the objective costs one call of ``second`` shared with the rule rows'
-    curvature, and the functions are those the design NLP compiled already (the ABB's
-    Hessian of d as one expression of z and G was 240 000 instructions and 27 s of compiling).
 
     A search holds the rule rows that are not capsule rows and only the capsule rows that can
     bind: the NLP of :meth:`solvers` has room for K capsule rows, and which rows is a parameter
     (a place left over takes index R: a row 0 without bounds), so one NLP per size serves every
-    set of rows. The capsule rows go through the world points of the capsules' ends ``w(z)``
-    and ``dw/dz``, as in the design NLP (:class:`~casadi_design.rules.CollisionRows`):
-    ``row["value"]``, ``row["slope"]`` and ``row["curvature"]`` are the held rows place by
-    place through the rows' compiled switches of ``w_r`` (mapped over the K places), by the
-    chain rule
+    set of rows. ``fixed`` are the functions of z (and G) of the objective and the other rows:
+    values, first and second derivatives, compiled (:mod:`casadi_design.compiled`). The
+    capsule rows go through the world points of the capsules' ends, as in the design NLP
+    (:class:`~casadi_design.rules.CollisionRows`): ``row["points"]`` gives ``w(q)`` (3K) and
+    ``dw/dq`` once per evaluation, ``row["value"]``, ``row["slope"]`` and ``row["curvature"]``
+    the held rows place by place through the rows' compiled switches of ``w_r`` (mapped over
+    the K places), by the chain rule
 
         dg_r/dz = dg_r/dw_r dw_r/dz,
-        lam_r d2g_r/dz2 = lam_r (dw_r/dz)^T d2g_r/dw_r2 (dw_r/dz) + d2(u^T w)/dz2,
+        lam_r d2g_r/dz2 = lam_r (dw_r/dz)^T d2g_r/dw_r2 (dw_r/dz) + d2(c^T w)/dz2,
 
-    with ``u = sum_r lam_r dg_r/dw`` summed over the places first, so the kinematics' second
-    derivatives enter through the one call of ``second``, not once per row. Of 100 UR10
-    capsule rows a search holds about ten."""
+    with ``c = sum_r lam_r dg_r/dw`` summed over the places first, so the kinematics' second
+    derivatives (``row["points_curvature"]``) are evaluated once, not once per row. Of 100 UR10
+    capsule rows a search holds about ten; a held row costs about 5 us an evaluation of the
+    Hessian of the Lagrangian instead of 35 us for its own Hessian in z in the virtual
+    machine."""
 
-    fns: dict
+    fixed: dict
     row: dict
     capsules: np.ndarray
     lbx: np.ndarray
@@ -317,28 +307,29 @@ class Search:
         """The cold and warm IPOPT of the search with room for ``K`` capsule rows: parameters
         ``(vec G, rows)``, rule rows the others, then the K places."""
         if K not in self.kept:
-            values, first, second = self.fns["values"], self.fns["first"], self.fns["second"]
-            z = ca.MX.sym("z", self.lbx.size)
-            B, c0, w = values(z)
-            dB, dc, dw = first(z)
-            (d, L), n0 = B.shape, c0.numel()
-            G, rows, lam_f = ca.MX.sym("G", L, L), ca.MX.sym("rows", 1, K), ca.MX.sym("lam_f")
-            p, lam_g = ca.vertcat(ca.vec(G), rows.T), ca.MX.sym("lam_g", n0 + K)
-            S = G + G.T
-            f, dfdB = -ca.dot(B @ G, B), -(B @ S)
-            g, J, u = c0, dc, ca.MX.zeros(w.numel())
-            H = -lam_f * (dB.T @ (ca.kron(S, ca.MX.eye(d)) @ dB))
+            fx, row = self.fixed, self.row
+            z, G = ca.MX.sym("z", self.lbx.size), ca.MX.sym("G", *fx["f"].size_in(1))
+            rows = ca.MX.sym("rows", 1, K)
+            p, lam_f = ca.vertcat(ca.vec(G), rows.T), ca.MX.sym("lam_f")
+            c0, n0 = fx["c"](z), fx["c"].numel_out(0)
+            lam_g = ca.MX.sym("lam_g", n0 + K)
+            g, J = c0, fx["dc"](z)
+            H = lam_f * fx["d2f"](z, G) + fx["d2c"](z, lam_g[:n0])
             if K:
-                wx, dwx = ca.vertcat(w, 0.0), ca.vertcat(dw, ca.MX(1, z.numel()))  # the filler of CollisionRows.inputs
-                g = ca.vertcat(g, self.row["value"].map(K, [False, True], [False])(rows, wx).T)
-                J = ca.vertcat(J, ca.reshape(self.row["slope"].map(K, [False, True, True], [False])(rows, wx, dwx),
-                                             z.numel(), K).T)
-                Hr, ux = self.row["curvature"].map(K, [False, True, True, False], [True, True])(rows, wx, dwx,
-                                                                                             lam_g[n0:].T)
-                H, u = H + Hr, ux[:-1]
-            H += second(z, lam_f * dfdB, lam_g[:n0], u)
+                n, p_z = row["points"].size1_in(0), z.numel()
+                w, dw = row["points"](z[:n])
+                w = ca.vertcat(w, 0.0)  # the filler coordinate of CollisionRows.inputs
+                dw = ca.vertcat(ca.horzcat(dw, ca.MX(dw.size1(), p_z - n)), ca.MX(1, p_z))
+                g = ca.vertcat(g, row["value"].map(K, [False, True], [False])(rows, w).T)
+                J = ca.vertcat(J, ca.reshape(row["slope"].map(K, [False, True, True], [False])(rows, w, dw),
+                                             p_z, K).T)
+                Hr, c = row["curvature"].map(K, [False, True, True, False], [True, True])(rows, w, dw,
+                                                                                        lam_g[n0:].T)
+                Hw = row["points_curvature"](z[:n], c[:-1])
+                H += Hr + (Hw if p_z == n else ca.diagcat(Hw, ca.MX(p_z - n, p_z - n)))
+            f = fx["f"](z, G)
             opts = {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 200, "no_nlp_grad": True, "calc_lam_p": False,
-                    "grad_f": ca.Function("grad_f", [z, p], [f, dB.T @ ca.vec(dfdB)], ["x", "p"], ["f", "grad_f_x"]),
+                    "grad_f": ca.Function("grad_f", [z, p], [f, fx["df"](z, G)], ["x", "p"], ["f", "grad_f_x"]),
                     "jac_g": ca.Function("jac_g", [z, p], [g, J], ["x", "p"], ["g", "jac_g_x"]),
                     "hess_lag": ca.Function("hess_lag", [z, p, lam_f, lam_g], [ca.triu(H)],
                                             ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])}
@@ -363,23 +354,40 @@ class Search:
 def _search(problem: Problem) -> Search:
     """The :class:`Search` of the problem (built once per problem)."""
     fns, loads = experiment_functions(problem), load_variables(problem)
-    compiled_fns = dict(zip(("values", "first", "second"), (compiled(f) for f in (fns.values, fns.first, fns.second))))
-    R = 0 if fns.collision is None else len(fns.collision.cases)
-    row = {} if fns.collision is None else _search_rows(fns.collision, fns.p)  # none without a cell
+    L = problem.model.L
+    z, G = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L)
+    B, c, _ = fns.values(z)
+    f, lam_c = -ca.dot(B @ G, B), ca.SX.sym("lam_c", c.numel())
+    fixed = {"f": ca.Function("d", [z, G], [f]), "df": ca.Function("dd", [z, G], [ca.gradient(f, z)]),
+             "d2f": ca.Function("d2d", [z, G], [ca.densify(ca.hessian(f, z)[0])]),
+             "c": ca.Function("rules", [z], [c]),
+             "dc": ca.Function("drules", [z], [ca.densify(ca.jacobian(c, z))]),
+             "d2c": ca.Function("d2rules", [z, lam_c], [ca.densify(ca.hessian(ca.dot(lam_c, c), z)[0])])}
+    fixed = dict(zip(fixed, compiled_group(list(fixed.values()))))
+    rules = pose_constraints(problem)
+    R = 0 if rules.collision is None else len(rules.collision.cases)
+    row = {} if rules.collision is None else _search_rows(rules.collision, fns.n, fns.p)  # none without a cell
     lbx, ubx = plan_bounds(problem, 1, loads)
     lbg, ubg = rule_bounds(problem, 1, loads)
-    return Search(compiled_fns, row, np.arange(fns.nc, fns.nc + R), lbx, ubx, lbg, ubg)
+    return Search(fixed, row, np.arange(c.numel(), c.numel() + R), lbx, ubx, lbg, ubg)
 
 
-def _search_rows(rows: CollisionRows, p: int) -> dict:
-    """The capsule rows of :class:`Search` per place, through the world points ``w`` (3K) of
-    ``rows``, with ``r`` the row (R: a place left over, whose outputs are 0), ``wx = (w, 0)``
-    (3K + 1) and ``Jx`` its derivative in z (3K + 1, p): ``value`` ``(r, wx) -> g_r``,
-    ``slope`` ``(r, wx, Jx) -> dg_r/dz`` (1 x p) and ``curvature`` ``(r, wx, Jx, lam) -> (lam
-    Jx_r^T d2g_r/dw_r2 Jx_r, lam dg_r/dwx)`` (p x p, 3K + 1). The rows' own functions are
-    the compiled switches of ``rows``; choosing row r's coordinates ``w_r = wx[inputs[r]]``
-    (and putting its slope back in place) are switches of copies."""
+def _search_rows(rows: CollisionRows, n: int, p: int) -> dict:
+    """The capsule rows of :class:`Search` through the world points ``w(q)`` (3K) of
+    ``rows``: ``points`` ``q -> (w, dw/dq)`` and ``points_curvature`` ``(q, c) -> d2(c^T
+    w)/dq2`` (n x n), compiled; and per place, with ``r`` the row (R: a place left over, whose
+    outputs are 0), ``wx = (w, 0)`` (3K + 1) and ``Jx`` its derivative in z (3K + 1, p):
+    ``value`` ``(r, wx) -> g_r``, ``slope`` ``(r, wx, Jx) -> dg_r/dz`` (1 x p) and
+    ``curvature`` ``(r, wx, Jx, lam) -> (lam Jx_r^T d2g_r/dw_r2 Jx_r, lam dg_r/dwx)`` (p x p,
+    3K + 1). The rows' own functions are the compiled switches of ``rows``; choosing row r's
+    coordinates ``w_r = wx[inputs[r]]`` (and putting its slope back in place) are switches of
+    copies."""
     K3, R = rows.points.numel_out(0), len(rows.cases)
+    q, c = ca.SX.sym("q", n), ca.SX.sym("c", K3)
+    w = rows.points(q)
+    points = compiled_group([ca.Function("search_points", [q], [w, ca.densify(ca.jacobian(w, q))]),
+                             ca.Function("search_points_curvature", [q, c],
+                                         [ca.densify(ca.hessian(ca.dot(c, w), q)[0])])])
     wx, Jx, v = ca.SX.sym("wx", K3 + 1), ca.SX.sym("Jx", K3 + 1, p), ca.SX.sym("v", rows.inputs.shape[1])
     take, take_J, put = [], [], []
     for r, idx in enumerate(rows.inputs):
@@ -400,7 +408,8 @@ def _search_rows(rows: CollisionRows, p: int) -> dict:
         return ca.if_else(held, e, ca.MX.zeros(e.sparsity()))
 
     slope_w = rows.slope(r, wr)
-    return {"value": ca.Function("capsule_value", [r, wm], [only(rows.value(r, wr))]),
+    return {"points": points[0], "points_curvature": points[1],
+            "value": ca.Function("capsule_value", [r, wm], [only(rows.value(r, wr))]),
             "slope": ca.Function("capsule_slope", [r, wm, Jm], [only(slope_w @ Jr)]),
             "curvature": ca.Function("capsule_curvature", [r, wm, Jm, lam],
                                      [only(lam * (Jr.T @ rows.curvature(r, wr) @ Jr)),
