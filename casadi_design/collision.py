@@ -299,7 +299,7 @@ def capsules_from_geometry(model: pin.Model, geom_model: pin.GeometryModel, per_
     (:func:`casadi_design.cache.stored`), named by the pieces' bytes, ``per_link``, the code of
     this module and of :class:`Capsule`'s, the numpy and scipy versions and the BLAS kernels
     (the fit rounds differently with other kernels: capsules fitted by a library caller on its
-    machine's own kernels differ in the last bits from the command's, and so would every plan
+    machine's own kernels differ in the last bits from the command's, and so could the plans
     made with them): a later run reads the same capsules.
     """
     parts: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
