@@ -394,21 +394,23 @@ def test_the_search_objective_is_minus_d_with_its_derivatives_where_the_load_is_
     the objective's part of the Hessian of the Lagrangian match central differences."""
     abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
     search, rng = _search(abb), np.random.default_rng(11)
-    loads, L, n = load_variables(abb), abb.model.L, abb.robot.n
+    loads, L = load_variables(abb), abb.model.L
     assert loads.nv > 0
-    cold, _ = search.solvers(search.size(0))
+    K = search.size(0)  # no capsule row held: every place left over
+    cold, _ = search.solvers(K)
+    index, where, _, _ = search.rows(np.zeros(0, dtype=int), K)
     f_fn, grad, hess = (cold.get_function(k) for k in ("nlp_f", "nlp_grad_f", "nlp_hess_l"))
     Q, F = _sample(abb, 3, rng)
     for q, f, G in zip(Q, F, (_sym(L, rng), rng.normal(size=(L, L)), _sym(L, rng))):
         z = np.concatenate([q, loads.variables(f[None]).ravel()])
-        p = np.concatenate([G.ravel(order="F"), np.full(search.size(0), float(search.capsules.size))])
+        p = np.concatenate([G.ravel(order="F"), index])
         A = _information(abb, q[None], f[None])[0]
         assert float(f_fn(z, p)) == pytest.approx(-np.sum(G * A), rel=1e-12)
         h = 1e-6 * np.maximum(1.0, np.abs(z))
         E = np.diag(h)
         g_fd = np.array([(float(f_fn(z + e, p)) - float(f_fn(z - e, p))) / (2 * hi) for e, hi in zip(E, h)])
         np.testing.assert_allclose(np.asarray(grad(z, p)[1]).ravel(), g_fd, rtol=1e-6, atol=1e-8 * np.abs(g_fd).max())
-        lam_g = np.zeros(search.lbg.size - search.capsules.size + search.size(0))
+        lam_g = np.zeros(where.size)
         H = np.asarray(hess(z, p, 1.0, lam_g))
         H = np.triu(H) + np.triu(H, 1).T
         H_fd = np.column_stack([(np.asarray(grad(z + e, p)[1]).ravel() - np.asarray(grad(z - e, p)[1]).ravel()) / (2 * hi)
