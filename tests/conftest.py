@@ -75,3 +75,22 @@ def paper_solve_out(tmp_path_factory):
     assert main(["solve", str(PAPER), "--out", str(out), "--starts", str(CLI_STARTS), "--jobs", "1",
                  "--bound-pool", "300", "--quiet"]) == 0
     return out
+
+
+#: Session fixtures that take seconds: the tests that use one run on the same xdist worker
+#: (``--dist loadgroup``, pyproject.toml), so that it is computed once, not once per worker.
+SHARED = ("paper_solve_out", "paper_solved")
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(config, items):
+    """Group the tests for xdist: those of a shared session fixture (:data:`SHARED`) by the
+    fixture, those of a module-scoped fixture by their module; the others run anywhere."""
+    for item in items:
+        names = getattr(item, "fixturenames", ())
+        shared = [f for f in SHARED if f in names]
+        defs = getattr(item, "_fixtureinfo", None)
+        module = defs is not None and any(d[-1].scope == "module" for n, d in defs.name2fixturedefs.items()
+                                          if n in names and d)
+        if shared or module:
+            item.add_marker(pytest.mark.xdist_group("+".join(shared) or item.module.__name__))
