@@ -35,6 +35,7 @@ Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
 from __future__ import annotations
 
 import functools
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +43,7 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 
+from .cache import code_digest, digest, stored
 from .collision import (
     LineOfSight,
     PairSelection,
@@ -58,6 +60,7 @@ from .errors import ProblemError
 from .obstacles import Capsule, HalfSpace, Obstacle
 from .problem import CellSpec, Workspace
 from .robots import Robot, example_robot_data_dir, load_urdf, urdf_file
+from .threads import blas_kernels
 
 #: Largest change (m, rad) of the offset between a DH joint frame and the same joint of
 #: ``collision_urdf`` over test configurations: both must carry the same link.
@@ -154,11 +157,9 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
         if unknown:
             raise ProblemError(f"{where}.disabled_pairs: '{unknown[0]}' carries no capsule; the capsules "
                                f"are on: {', '.join(sorted(links))}")
-    pairs = self_collision_pairs(robot, capsules, spec.clearance_m, spec.disabled_pairs) if capsules else \
-        PairSelection((), {}, ())
     obstacles = spec.obstacles + ((HalfSpace((0.0, 0.0, 1.0), workspace.floor_z_m, "the floor"),)
                                   if workspace.floor_z_m is not None and capsules else ())
-    near, near_skipped = obstacle_pairs(robot, capsules, obstacles, spec.clearance_m) if obstacles else ((), {})
+    pairs, (near, near_skipped) = _pairs(robot, capsules, obstacles, spec.clearance_m, spec.disabled_pairs)
     markers = np.asarray(markers_m, dtype=float)
     centroid = markers.mean(axis=0)
     sights = ((LineOfSight(spec.tracker.position_m, robot.model.frames[robot.frame_id].name, tuple(centroid),
@@ -166,6 +167,27 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
               if spec.tracker is not None and capsules else ())
     check = _check_geometry(robot, capsules, fitted, geometry, bodies, pairs, obstacles, near)
     return Cell(spec, capsules, pairs, obstacles, near, near_skipped, sights, check)
+
+
+def _pairs(robot: Robot, capsules: tuple[Capsule, ...], obstacles: tuple[Obstacle, ...], clearance_m: float,
+           disabled: tuple[tuple[str, str], ...]) -> tuple[PairSelection, tuple]:
+    """The self-collision pairs (:func:`~casadi_design.collision.self_collision_pairs`) and the
+    (capsule, obstacle) pairs (:func:`~casadi_design.collision.obstacle_pairs`) that can meet.
+
+    Both sample configurations (about a second for the UR10's cell, paid by every command and
+    worker process); the result is kept on disk (:func:`casadi_design.cache.stored`), named by
+    the robot's Pinocchio model and limits, the capsules, obstacles, clearance and disabled
+    pairs, the package's code, the libraries' versions and the BLAS kernels: a later run reads
+    the pairs it would have computed."""
+    def select() -> tuple[PairSelection, tuple]:
+        self_pairs = self_collision_pairs(robot, capsules, clearance_m, disabled) if capsules else \
+            PairSelection((), {}, ())
+        return self_pairs, obstacle_pairs(robot, capsules, obstacles, clearance_m) if obstacles else ((), {})
+
+    key = digest(pickle.dumps(robot.model), repr((robot.joints, robot.q_min.tolist(), robot.q_max.tolist(), capsules,
+                                                   obstacles, clearance_m, disabled)).encode(),
+                 code_digest().encode(), blas_kernels().encode())
+    return stored("cell-pairs", key, select)
 
 
 @functools.lru_cache(maxsize=8)

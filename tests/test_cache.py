@@ -13,6 +13,7 @@ from casadi_design import cache, collision
 from casadi_design.cell import _package_dirs
 from casadi_design.collision import capsules_from_geometry, load_collision_geometry
 from casadi_design.robots import load_urdf, urdf_file
+from tests.conftest import ROOT
 
 UR10 = "example-robot-data:ur_description/urdf/ur10_robot.urdf"
 
@@ -75,6 +76,33 @@ def test_the_ur10_capsules_read_back_as_fitted(directory, monkeypatch):
     monkeypatch.setattr(collision, "blas_kernels", lambda: "SkylakeX")
     with pytest.raises(AssertionError, match="fitted again"):
         capsules_from_geometry(model, geometry, 2)
+
+
+def test_the_cells_pairs_read_back_as_selected(directory, monkeypatch):
+    """The pairs of the ABB's cell are selected once (sampled configurations), then read back:
+    the same pairs as a selection computed here; another clearance selects anew."""
+    from casadi_design import cell as cell_module
+    from casadi_design.build import load_problem
+
+    problem = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
+    c = problem.cell
+    args = (problem.robot, c.capsules, c.obstacles, c.spec.clearance_m, c.spec.disabled_pairs)
+    first = cell_module._pairs(*args)
+    assert len(list(directory.glob("cell-pairs-*.pickle"))) == 1
+    selected = collision.self_collision_pairs(*args[:2], args[3], args[4])
+    assert first[0] == selected and first[1] == collision.obstacle_pairs(*args[:3], args[3])
+    assert selected.kept and first[1][0]  # pairs of both kinds are there to compare
+
+    def no_selection(*a, **k):
+        raise AssertionError("selected again")
+
+    monkeypatch.setattr(cell_module, "self_collision_pairs", no_selection)
+    assert pickle.dumps(cell_module._pairs(*args)) == pickle.dumps(first)
+    with pytest.raises(AssertionError, match="selected again"):
+        cell_module._pairs(*args[:3], args[3] + 0.001, args[4])
+    monkeypatch.setattr(cell_module, "blas_kernels", lambda: "SkylakeX")
+    with pytest.raises(AssertionError, match="selected again"):
+        cell_module._pairs(*args)
 
 
 @pytest.fixture
