@@ -72,6 +72,28 @@ def test_sweep_on_processes_equals_serial_sweep(paper):
     _assert_same(pooled.reference, plain.reference)
 
 
+def test_a_one_start_solve_spreads_the_searches_over_the_workers_to_the_same_design(paper, monkeypatch):
+    """A one-start solve's approximate design: each exchange step's searches split over the
+    workers; the same design as computed here. Two to compute on two workers: one per worker,
+    beside the starts (None). The whole pipeline with bounds: the slow test below and
+    test_the_command_gives_the_same_numbers_for_any_jobs."""
+    from casadi_design import bound, campaign
+
+    settings = Settings(1, bound_steps=1, bound_pool=SMALL_POOL)
+    monkeypatch.setattr(bound, "_COMPUTED", {})
+    serial = bound.approximate_designs(paper, ["test-pose"], 1, SMALL_POOL)["test-pose"]
+    monkeypatch.setattr(bound, "_COMPUTED", {})
+    with ProcessExecutor(2) as ex:
+        spread = campaign._spread(paper, ("test-pose",), (1,), settings, {}, ex)["test-pose"]
+        monkeypatch.setattr(bound, "_COMPUTED", {})
+        assert campaign._spread(paper, ("test-pose", "D"), (1,), settings, {}, ex) is None
+    assert (spread.value, spread.certified, spread.d_max, spread.history, spread.checked) == \
+        (serial.value, serial.certified, serial.d_max, serial.history, serial.checked)
+    for field in ("Q", "F", "weights", "W", "mu"):
+        np.testing.assert_array_equal(getattr(spread, field), getattr(serial, field))
+
+
+@pytest.mark.slow  # 10 s: three campaigns with their approximate designs, two on workers
 def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch):
     """On workers the campaign is a pipeline (the approximate designs, the seeded starts of
     later designs, the rounded and warm starts once their inputs returned): the same designs,
