@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import copy
 import os
+import sys
 import tempfile
 import tomllib
 from pathlib import Path
 
 import pytest
 
-from casadi_design.threads import fixed_blas
+# Bytecode is written even where PYTHONDONTWRITEBYTECODE is set (as on the CI machines): the
+# suite starts dozens of Python processes (its two workers, process pools, commands run as
+# scripts) that each compile the package again without it, about 0.2 s of CPU each.
+sys.dont_write_bytecode = False
+
+from casadi_design.threads import fixed_blas  # noqa: E402
 
 # The suite runs CasADi's virtual machine: compiling a robot's functions the first time costs
 # seconds per cell. tests/test_compiled.py checks the compiled code gives the same bits.

@@ -124,8 +124,12 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
     assert not any(a.kept for a in first.values())
     monkeypatch.setattr(bound, "_COMPUTED", {})
     computing = []
-    real = bound.approximate_one
-    monkeypatch.setattr(bound, "approximate_one", lambda *a, **k: computing.append(a[1:4]) or real(*a, **k))
+
+    def computes(*args, **kwargs):
+        computing.append(args[1:4])
+        raise LookupError("computing")
+
+    monkeypatch.setattr(bound, "approximate_one", computes)
     again = bound.approximate_designs(paper, ["test-pose", "D"], 2, 50)
     assert computing == [] and all(a.kept for a in again.values())
     for c, a in first.items():
@@ -134,8 +138,9 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
             np.testing.assert_array_equal(getattr(b, name), getattr(a, name))
         assert (b.value, b.certified, b.d_max, b.history, b.checked, b.pool_size, b.wall_s) == \
             (a.value, a.certified, a.d_max, a.history, a.checked, a.pool_size, a.wall_s)
-    bound.approximate_designs(paper, ["test-pose"], 2, 60)
-    bound.approximate_designs(paper, ["test-pose"], 1, 50)
+    for steps, pool in ((2, 60), (1, 50)):  # not on the disk: computed (here: stopped as it starts)
+        with pytest.raises(LookupError, match="computing"):
+            bound.approximate_designs(paper, ["test-pose"], steps, pool)
     assert computing == [("test-pose", 2, 60), ("test-pose", 1, 50)]
 
 
