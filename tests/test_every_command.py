@@ -34,7 +34,7 @@ CRITERION = "D"
 QUICK = "hessian_approximation=limited-memory"
 #: One exchange step of the approximate design on a pool of 30 candidates (the UR10 and ABB
 #: identify their 27 and 30 parameters with it).
-BOUND = ["--bound-steps", "1", "--bound-pool", "30"]
+BOUND = ["--bound-steps", "1", "--bound-pool", "30", "--jobs", "1"]
 NO_BOUND = ["--bound-steps", "0"]
 #: Experiments of the solved plan the robot program visits (a program's cost grows with its
 #: moves: 9 experiments of the UR10 take 8 s in the virtual machine, 3 take 3 s).

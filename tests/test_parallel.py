@@ -220,6 +220,20 @@ def test_the_command_gives_the_same_numbers_for_any_jobs(tmp_path, monkeypatch):
     assert numbers(records[0]) == numbers(records[1])
 
 
+def test_the_bound_command_prints_the_same_for_any_jobs(monkeypatch, capsys):
+    """``bound --jobs 2`` computes the approximate designs of test-pose and D at the same time,
+    one per worker: the same table as ``--jobs 1``."""
+    from casadi_design import bound
+
+    args = ["bound", str(PAPER), "--m", "1:3", "--bound-steps", "2", "--bound-pool", str(SMALL_POOL), "--quiet"]
+    tables = []
+    for jobs in ("1", "2"):
+        monkeypatch.setattr(bound, "_COMPUTED", {})  # computed again
+        assert main([*args, "--jobs", jobs]) == 0
+        tables.append(capsys.readouterr().out)
+    assert tables[0] == tables[1] and len(tables[0].splitlines()) >= 4
+
+
 def test_a_design_without_a_converged_start_is_the_same_error_for_any_jobs(capsys):
     """The pipeline judges the largest m first, but the error names the first failing design
     in campaign order, as a serial run does (one line, exit code 2)."""

@@ -12,7 +12,8 @@ from . import common
 HELP = "certified lower bound of the test-pose error (and upper bound of log det M)"
 DESCRIPTION = ("From the approximate design over single experiments, print per m the certified lower "
                "bound of the max error along the test poses (mm) that no plan of m experiments can "
-               "beat, the relaxation's value, and the upper bound of log det M. No design NLP is solved.")
+               "beat, the relaxation's value, and the upper bound of log det M. No design NLP is solved; "
+               "the approximate designs of test-pose and D run at the same time, one per worker (--jobs).")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -21,17 +22,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--m", type=common.m_values, metavar="RANGE",
                    help="numbers of experiments, e.g. 1:10 or 1,5 (default: the smallest "
                         "identifiable m to the largest [experiments].m)")
+    common.add_workers(p)
     common.add_bound_steps(p, minimum=1)
     common.add_common(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    problem = common.load(args, check_solver=False)
-    ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
-    check_m_values(problem, ms)
-    settings = Settings(problem.solver.starts, args.bound_steps, args.bound_pool)
-    approx = approximate(problem, ("test-pose", "D"), settings)
+    with common.executor(args) as ex:  # the two approximate designs at the same time, one per worker
+        problem = common.load(args, check_solver=False)
+        ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
+        check_m_values(problem, ms)
+        settings = Settings(problem.solver.starts, args.bound_steps, args.bound_pool)
+        approx = approximate(problem, ("test-pose", "D"), settings, ex)
     print(common.case_line(problem))
     print(format_bounds([bound(problem, m, approx["test-pose"]) for m in ms],
                         [bound(problem, m, approx["D"]) for m in ms]))

@@ -151,15 +151,21 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str) -> None:
                         "(default: [design].criteria of the problem)")
     p.add_argument("--starts", type=integer("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
-    p.add_argument("--jobs", "-j", type=integer("--jobs"), metavar="N",
-                   help=f"local worker processes for the starts (default: the number of CPUs, "
-                        f"here {cpu_count()}; 1 = serial in this process). Results do not depend on it")
-    p.add_argument("--dask-scheduler", metavar="ADDRESS",
-                   help="run the starts on a Dask cluster, e.g. tcp://10.0.0.1:8786 (overrides "
-                        "--jobs; needs pip install casadi-design[dask]; start workers with "
-                        "--nthreads 1)")
+    add_workers(p)
     add_bound_steps(p)
     add_common(p)
+
+
+def add_workers(p: argparse.ArgumentParser) -> None:
+    """``--jobs`` and ``--dask-scheduler``: where the starts and approximate designs run."""
+    p.add_argument("--jobs", "-j", type=integer("--jobs"), metavar="N",
+                   help=f"local worker processes for the starts and approximate designs (default: the "
+                        f"number of CPUs, here {cpu_count()}; 1 = serial in this process). Results do "
+                        "not depend on it")
+    p.add_argument("--dask-scheduler", metavar="ADDRESS",
+                   help="run them on a Dask cluster, e.g. tcp://10.0.0.1:8786 (overrides "
+                        "--jobs; needs pip install casadi-design[dask]; start workers with "
+                        "--nthreads 1)")
 
 
 def add_output(p: argparse.ArgumentParser, out_help: str) -> None:
