@@ -225,7 +225,7 @@ def test_the_bound_command_prints_the_same_for_any_jobs(monkeypatch, capsys):
     one per worker: the same table as ``--jobs 1``."""
     from casadi_design import bound
 
-    args = ["bound", str(PAPER), "--m", "1:3", "--bound-steps", "2", "--bound-pool", str(SMALL_POOL), "--quiet"]
+    args = ["bound", str(PAPER), "--m", "1:3", "--bound-steps", "1", "--bound-pool", str(SMALL_POOL), "--quiet"]
     tables = []
     for jobs in ("1", "2"):
         monkeypatch.setattr(bound, "_COMPUTED", {})  # computed again
