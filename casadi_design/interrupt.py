@@ -27,10 +27,23 @@ def _handler(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _unraisable(unraisable: object) -> None:
+    """Python's hook for an exception it cannot raise (in a weakref callback of the import
+    machinery, a ``__del__``): the ``KeyboardInterrupt`` of :func:`_handler` raised there is
+    recorded already (:func:`check` raises it again), so nothing is printed; any other
+    exception goes to Python's own hook."""
+    if isinstance(getattr(unraisable, "exc_value", None), KeyboardInterrupt) and _HIT.is_set():
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def install() -> None:
-    """Record Ctrl-C (SIGINT) for :func:`check`; call from the main thread."""
+    """Record Ctrl-C (SIGINT) for :func:`check`; call from the main thread. A Ctrl-C that lands
+    where Python cannot raise it (a weakref callback while the package is imported) prints no
+    "Exception ignored" traceback (:func:`_unraisable`)."""
     _HIT.clear()
     signal.signal(signal.SIGINT, _handler)
+    sys.unraisablehook = _unraisable
 
 
 def ignore() -> None:
