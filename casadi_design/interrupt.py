@@ -32,7 +32,7 @@ def _unraisable(unraisable: object) -> None:
     machinery, a ``__del__``): the ``KeyboardInterrupt`` of :func:`_handler` raised there is
     recorded already (:func:`check` raises it again), so nothing is printed; any other
     exception goes to Python's own hook."""
-    if isinstance(getattr(unraisable, "exc_value", None), KeyboardInterrupt) and _HIT.is_set():
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and _HIT.is_set():
         return
     sys.__unraisablehook__(unraisable)
 

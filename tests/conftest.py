@@ -93,10 +93,8 @@ def pytest_collection_modifyitems(config, items):
     """Group the tests for xdist: those of a shared session fixture (:data:`SHARED`) by the
     fixture, those of a module-scoped fixture by their module; the others run anywhere."""
     for item in items:
-        names = getattr(item, "fixturenames", ())
-        shared = [f for f in SHARED if f in names]
-        defs = getattr(item, "_fixtureinfo", None)
-        module = defs is not None and any(d[-1].scope == "module" for n, d in defs.name2fixturedefs.items()
-                                          if n in names and d)
+        shared = [f for f in SHARED if f in item.fixturenames]
+        # pytest keeps an item's fixture definitions in _fixtureinfo (no public accessor)
+        module = any(d and d[-1].scope == "module" for d in item._fixtureinfo.name2fixturedefs.values())
         if shared or module:
             item.add_marker(pytest.mark.xdist_group("+".join(shared) or item.module.__name__))

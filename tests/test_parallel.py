@@ -76,7 +76,7 @@ def test_a_one_start_solve_spreads_the_searches_over_the_workers_to_the_same_des
     """A one-start solve's approximate design: each exchange step's searches split over the
     workers; the same design as computed here. Two to compute on two workers: one per worker,
     beside the starts (None). The whole pipeline with bounds: the slow test below and
-    test_the_command_gives_the_same_numbers_for_any_jobs."""
+    test_the_commands_give_the_same_numbers_for_any_jobs."""
     from casadi_design import bound, campaign
 
     settings = Settings(1, bound_steps=1, bound_pool=SMALL_POOL)
@@ -206,19 +206,19 @@ def test_the_commands_give_the_same_numbers_for_any_jobs(tmp_path, monkeypatch, 
 
     from casadi_design import bound
 
-    settings = ["--criteria", "test-pose,D", "--bound-steps", "2", "--bound-pool", str(SMALL_POOL), "--quiet"]
+    bounds = ["--bound-steps", "2", "--bound-pool", str(SMALL_POOL), "--quiet"]
     records, tables = [], []
     for jobs in ("1", "2"):
         monkeypatch.setattr(bound, "_COMPUTED", {})  # the approximate designs computed again
         if jobs == "2":
-            assert main(["bound", str(PAPER), "--m", "1:3", *settings[2:], "--jobs", jobs]) == 0
+            assert main(["bound", str(PAPER), "--m", "1:3", *bounds, "--jobs", jobs]) == 0
             tables.append(capsys.readouterr().out)
             monkeypatch.setattr(bound, "_COMPUTED", {})
-        assert main(["solve", str(PAPER), "--m", "1,3", "--starts", "3", *settings, "--jobs", jobs,
-                     "--out", str(tmp_path / f"jobs{jobs}")]) == 0
+        assert main(["solve", str(PAPER), "--m", "1,3", "--criteria", "test-pose,D", "--starts", "3", *bounds,
+                     "--jobs", jobs, "--out", str(tmp_path / f"jobs{jobs}")]) == 0
         capsys.readouterr()
         if jobs == "1":  # the bound of the designs just computed here
-            assert main(["bound", str(PAPER), "--m", "1:3", *settings[2:], "--jobs", jobs]) == 0
+            assert main(["bound", str(PAPER), "--m", "1:3", *bounds, "--jobs", jobs]) == 0
             tables.append(capsys.readouterr().out)
         records.append(json.loads((tmp_path / f"jobs{jobs}" / "results.json").read_text()))
 
