@@ -122,7 +122,7 @@ def test_the_capsule_rows_give_the_same_bits(cache, ur10):
         plain = ca.Function.conditional(name, [c[k] for c in rows.cases], rows.cases[0][k])
         fast = getattr(rows, name)
         assert fast.class_name() == "Switch"
-        built = cc._groups[tuple(id(c[k]) for c in rows.cases)][1]  # what the switch was made of
+        built = cc._groups[(cc.MIN_INSTRUCTIONS, *(id(c[k]) for c in rows.cases))][1]  # what the switch was made of
         assert {f.class_name() for f in built} == {"External"}
         _same(plain, fast, index, args)
     assert len(list(cache.glob("*.so"))) >= 3
@@ -165,10 +165,15 @@ def test_a_library_is_built_once_and_found_again(cache, monkeypatch):
 
     monkeypatch.setattr(cc, "_groups", {})  # another process: only the disk remembers
     monkeypatch.setattr(cc, "_build", no_compiler)
+    monkeypatch.setattr(cc, "_source", no_compiler)  # found by its serialization, no code written
     again = cc.compiled_group([fn], min_instructions=0)[0]
     X = np.random.default_rng(0).normal(size=(16, 4))
     _same(fn, again, X)
     _same(first, again, X)
+    # the same name and shape, one constant changed: another library, not the first one's
+    other = ca.Function("f", [x], [ca.sin(x) * ca.exp(x[0] * x[1]) + ca.sqrt(ca.sumsqr(x) + 2)])
+    with pytest.raises(AssertionError, match="compiled again"):
+        cc.compiled_group([other], min_instructions=0)
 
 
 def test_small_functions_and_switched_off_compiling_stay_as_they_are(cache, monkeypatch):
