@@ -238,7 +238,12 @@ def check_move(problem: Problem, qa: np.ndarray, qb: np.ndarray, meshes: bool = 
     if rules is None:
         return FREE
     qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
-    S, G = scan(rules, qa, qb)
+    move = _scanned(rules, qa, qb, *scan(rules, qa, qb))
+    return on_meshes(problem, move) if meshes else move
+
+
+def _scanned(rules: MoveRules, qa: np.ndarray, qb: np.ndarray, S: np.ndarray, G: np.ndarray) -> Move:
+    """The :class:`Move` from the whole scan ``S``, ``G`` of :func:`scan`, its meshes not checked."""
     col = G[:, rules.collision]
     worst = col.min(axis=1) if col.size else np.full(len(S), np.inf)
     closest = rules.labels[rules.collision[np.argmin(col[np.argmin(worst)])]] if col.size else ""
@@ -252,19 +257,8 @@ def check_move(problem: Problem, qa: np.ndarray, qb: np.ndarray, meshes: bool = 
     minima = [i for i in range(len(worst)) if (i == 0 or worst[i] <= worst[i - 1])
               and (i == len(worst) - 1 or worst[i] <= worst[i + 1])]
     at = sorted(minima, key=lambda i: worst[i])[:MESH_SAMPLES]
-    move = Move(float(worst.min()) + rules.clearance_m, closest, np.nan, None, beam, len(S), rules.clearance_m,
+    return Move(float(worst.min()) + rules.clearance_m, closest, np.nan, None, beam, len(S), rules.clearance_m,
                 qa + S[at, None] * (qb - qa))
-    return on_meshes(problem, move) if meshes else move
-
-
-def breaks_clearance(problem: Problem, qa: np.ndarray, qb: np.ndarray) -> bool:
-    """Whether the move breaks the clearance somewhere (:func:`scan` up to the first sample
-    that does)."""
-    rules = move_rules(problem)
-    if rules is None:
-        return False
-    _, G = scan(rules, qa, qb, stop=True)
-    return bool(rules.collision.size) and float(G[-1, rules.collision].min()) < -FEASIBILITY_TOL
 
 
 def on_meshes(problem: Problem, move: Move) -> Move:
@@ -325,23 +319,33 @@ class MoveSearch:
         self.anchors = np.asarray(anchors, dtype=float)
         self.checked: dict[bytes, Move] = {}
         self.broken: dict[bytes, bool] = {}
+        self.scanned: dict[bytes, Move] = {}  # moves found clear by :meth:`blocked`, scanned whole
         self.rng = np.random.default_rng(VIA_SEED)
 
     def move(self, qa: np.ndarray, qb: np.ndarray) -> Move:
         """The move checked on the capsule rows (each move once; the meshes: :meth:`confirm`)."""
         key = np.concatenate([qa, qb]).tobytes()
         if key not in self.checked:
-            self.checked[key] = self.checked[np.concatenate([qb, qa]).tobytes()] = check_move(
-                self.problem, qa, qb, meshes=False)
+            self.checked[key] = self.checked[np.concatenate([qb, qa]).tobytes()] = (
+                self.scanned.pop(key, None) or check_move(self.problem, qa, qb, meshes=False))
         return self.checked[key]
 
     def blocked(self, qa: np.ndarray, qb: np.ndarray) -> bool:
-        """Whether the move breaks the clearance (:func:`breaks_clearance`, once per move)."""
+        """Whether the move breaks the clearance (:func:`scan` up to the first sample that does,
+        once per move). A move found clear was scanned whole: :meth:`move` takes that scan."""
         key = np.concatenate([qa, qb]).tobytes()
         if key in self.checked:
             return self.checked[key].blocked
         if key not in self.broken:
-            self.broken[key] = self.broken[np.concatenate([qb, qa]).tobytes()] = breaks_clearance(self.problem, qa, qb)
+            broken = False
+            if self.rules is not None:
+                qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
+                S, G = scan(self.rules, qa, qb, stop=True)
+                col = G[-1, self.rules.collision]
+                broken = bool(col.size) and float(col.min()) < -FEASIBILITY_TOL
+                if not broken:
+                    self.scanned[key] = _scanned(self.rules, qa, qb, S, G)
+            self.broken[key] = self.broken[np.concatenate([qb, qa]).tobytes()] = broken
         return self.broken[key]
 
     @functools.cached_property
