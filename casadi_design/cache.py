@@ -15,6 +15,7 @@ or ``~/.cache/casadi_design``).
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import hashlib
 import os
@@ -46,11 +47,28 @@ def digest(*parts: bytes) -> str:
 
 def stored(kind: str, key: str, make: Callable[[], T]) -> T:
     """The value ``make()`` kept as ``<kind>-<key>.pickle`` (``key``: :func:`digest` of all it
-    is computed from): read when it is there, else computed and written."""
+    is computed from): read when it is there, else computed and written. Processes that ask for
+    the same value at once compute it once: the first holds a lock on ``<kind>-<key>.lock``
+    while it computes, the others wait for it and read (the test workers or a command's worker
+    processes on a fresh machine: the UR10's capsules take 3 s to fit)."""
     value = read(kind, key)
-    if value is None:
-        value = make()
-        write(kind, key, value)
+    if value is not None:
+        return value
+    try:
+        cache_dir().mkdir(parents=True, exist_ok=True)
+        lock = open(cache_dir() / f"{kind}-{key}.lock", "w")
+    except OSError:  # no lock where nothing can be written: compute here
+        lock = None
+    try:
+        if lock is not None:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            value = read(kind, key)  # computed by the process that held the lock
+        if value is None:
+            value = make()
+            write(kind, key, value)
+    finally:
+        if lock is not None:
+            lock.close()
     return value
 
 

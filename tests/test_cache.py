@@ -5,6 +5,8 @@ around a URDF's meshes read back as the fit gives them."""
 from __future__ import annotations
 
 import pickle
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -35,9 +37,29 @@ def test_a_value_is_computed_once_and_read_again(directory):
     first = cache.stored("test", key, make)
     again = cache.stored("test", key, make)
     assert calls == [1] and np.array_equal(first["x"], again["x"])
-    assert [p.name for p in directory.iterdir()] == [f"test-{key}.pickle"]  # no temporary left
+    assert sorted(p.name for p in directory.iterdir()) == [f"test-{key}.lock", f"test-{key}.pickle"]  # no temporary
     other = cache.stored("test", cache.digest(b"other inputs", b"code"), make)  # another key: computed
     assert np.array_equal(other["x"], first["x"]) and calls == [1, 1]
+
+
+def test_a_value_asked_for_at_once_is_computed_once(directory):
+    """Two askers at the same time (two processes on a fresh machine; here two threads, whose
+    own opens of the lock file exclude each other as processes do): one computes, the other
+    waits and reads what it wrote."""
+    calls, got = [], []
+
+    def make():
+        calls.append(1)
+        time.sleep(0.5)
+        return np.arange(4.0) / 3
+
+    key = cache.digest(b"at once")
+    askers = [threading.Thread(target=lambda: got.append(cache.stored("test", key, make))) for _ in range(2)]
+    for t in askers:
+        t.start()
+    for t in askers:
+        t.join()
+    assert calls == [1] and len(got) == 2 and np.array_equal(got[0], got[1])
 
 
 def test_the_digest_tells_its_parts_apart():
