@@ -29,8 +29,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    spec = common.read_spec(args)  # a malformed file fails before any worker starts
     with common.executor(args) as ex:  # the two approximate designs at the same time, one per worker
-        problem = common.load(args, check_solver=False)
+        problem = common.load(args, check_solver=False, spec=spec)
         ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
         check_m_values(problem, ms)
         settings = Settings(problem.solver.starts, args.bound_steps, args.bound_pool)

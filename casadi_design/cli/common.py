@@ -30,7 +30,7 @@ from ..errors import DesignError, OutputError
 from ..files import load_partial, partial_record, prepare_out
 from ..parallel import WorkerLost
 from ..threads import cpu_count
-from ..problem import MAX_EXPERIMENTS
+from ..problem import MAX_EXPERIMENTS, ProblemSpec
 
 #: Figure formats ``plot --format`` writes.
 FIGURE_FORMATS = ("png", "pdf", "svg")
@@ -184,20 +184,28 @@ def say(args: argparse.Namespace, *lines: str) -> None:
         print(*lines, sep="\n")
 
 
-def load(args: argparse.Namespace, check_solver: bool = True) -> Problem:
-    """Read and build the problem file of ``args``, with the ``--ipopt`` options over its
-    [solver.ipopt]; with ``check_solver``, also try the IPOPT options."""
+def read_spec(args: argparse.Namespace) -> ProblemSpec:
+    """Read and check the problem file of ``args`` (:func:`casadi_design.problem.read_problem`,
+    no robot built yet), with the ``--ipopt`` options over its [solver.ipopt]. A command that
+    starts worker processes reads it first, so a malformed file fails before any worker starts."""
     from dataclasses import replace
 
-    from ..build import build_problem
     from ..problem import read_problem
-    from ..solve import check_ipopt_options
 
     spec = read_problem(args.problem)
     if getattr(args, "ipopt", None):
         options = {**dict(spec.solver.ipopt), **dict(args.ipopt)}
         spec = replace(spec, solver=replace(spec.solver, ipopt=tuple(sorted(options.items()))))
-    problem = build_problem(spec)
+    return spec
+
+
+def load(args: argparse.Namespace, check_solver: bool = True, spec: ProblemSpec | None = None) -> Problem:
+    """Build the problem of ``args`` (``spec``: as :func:`read_spec` read it; None: read it
+    now); with ``check_solver``, also try the IPOPT options."""
+    from ..build import build_problem
+    from ..solve import check_ipopt_options
+
+    problem = build_problem(read_spec(args) if spec is None else spec)
     interrupt.check()  # a Ctrl-C that CasADi's argument conversion swallowed while building
     if check_solver:
         check_ipopt_options(problem)
@@ -296,8 +304,9 @@ def campaign(args: argparse.Namespace, label: str,
     before anything is solved)."""
     from ..progress import progress_bar
 
-    with executor(args) as ex:  # first: worker processes start while the problem loads
-        problem = load(args)
+    spec = read_spec(args)  # a malformed file fails before any worker starts
+    with executor(args) as ex:  # then worker processes start while the robot and cell build
+        problem = load(args, spec=spec)
         criteria, ms, settings = plan_request(args, problem)
         panels = fig_m(getattr(args, "fig_m", None), ms, problem.m_values)
         total = len(ms) * len(criteria)
