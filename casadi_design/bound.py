@@ -37,7 +37,6 @@ sigma^2 t / m`` in m^2.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -46,7 +45,7 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem, per_model
-from .cache import digest, read, write
+from .cache import digest, keeping_designs, read, write
 from .compiled import compiled_group
 from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import Bound
@@ -797,8 +796,7 @@ KEEP_COMPUTED = 32
 #: They are kept on disk too (:mod:`casadi_design.cache`, named by the problem's
 #: :attr:`~casadi_design.build.Problem.fingerprint`, the criterion, steps and pool), so a later
 #: run of any command on the same problem reads them back, to the bit, instead of computing
-#: them again; not when this variable is 0.
-KEEP_ON_DISK = "CASADI_DESIGN_KEEP_DESIGNS"
+#: them again; not when :data:`casadi_design.cache.KEEP_DESIGNS` is 0.
 DISK_KIND = "approximate-design"
 
 
@@ -818,7 +816,7 @@ def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = P
     ``kept``), and the criteria still to compute."""
     wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
     for c in wanted:
-        if (problem.digest, c, steps, pool) not in _COMPUTED and _on_disk():
+        if (problem.digest, c, steps, pool) not in _COMPUTED and keeping_designs():
             kept = read(DISK_KIND, _disk_key(problem, c, steps, pool))
             if isinstance(kept, ApproximateDesign):
                 _remember(problem, steps, pool, dataclasses.replace(kept, kept=True))
@@ -831,7 +829,7 @@ def keep(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> 
     """Keep ``approx`` (of ``problem`` with ``steps`` and ``pool``) for the commands that run
     after this one in this process and on this machine (:func:`computed`)."""
     _remember(problem, steps, pool, approx)
-    if _on_disk():
+    if keeping_designs():
         write(DISK_KIND, _disk_key(problem, approx.criterion, steps, pool), approx)
 
 
@@ -839,10 +837,6 @@ def _remember(problem: Problem, steps: int, pool: int, approx: ApproximateDesign
     _COMPUTED[problem.digest, approx.criterion, steps, pool] = approx
     while len(_COMPUTED) > KEEP_COMPUTED:
         _COMPUTED.pop(next(iter(_COMPUTED)))
-
-
-def _on_disk() -> bool:
-    return os.environ.get(KEEP_ON_DISK, "1") != "0"
 
 
 def _disk_key(problem: Problem, criterion: str, steps: int, pool: int) -> str:

@@ -1,7 +1,8 @@
 """What the package keeps on disk between runs, per machine: the compiled CasADi functions
 (:mod:`casadi_design.compiled`), the capsules fitted around a robot's meshes
-(:func:`casadi_design.collision.capsules_from_geometry`) and the approximate designs behind the
-bounds (:func:`casadi_design.bound.approximate_designs`).
+(:func:`casadi_design.collision.capsules_from_geometry`), the cell's pairs, the approximate
+designs behind the bounds (:func:`casadi_design.bound.approximate_designs`) and the designs'
+starts (:func:`casadi_design.solve.solve_start`).
 
 Everything kept is named by a hash of all it is computed from (the inputs' bytes and the code
 that computes it), so a cached value is the value that would be computed, to the bit, and a
@@ -10,7 +11,8 @@ killed run leaves no half-written file, and a file that cannot be read or writte
 again (the cache only saves time).
 
 Environment: ``CASADI_DESIGN_CACHE`` (the directory; default ``$XDG_CACHE_HOME/casadi_design``
-or ``~/.cache/casadi_design``).
+or ``~/.cache/casadi_design``); ``CASADI_DESIGN_KEEP_DESIGNS`` (0: the approximate designs and
+the designs' starts are computed in every run, not kept, :func:`keeping_designs`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,17 @@ from pathlib import Path
 from typing import TypeVar
 
 T = TypeVar("T")
+
+
+#: 0: the approximate designs (:func:`casadi_design.bound.approximate_designs`) and the
+#: designs' starts (:func:`casadi_design.solve.solve_start`) are neither read from nor written to
+#: the disk (the test suite: each test computes its own).
+KEEP_DESIGNS = "CASADI_DESIGN_KEEP_DESIGNS"
+
+
+def keeping_designs() -> bool:
+    """Whether approximate designs and starts are kept on disk (:data:`KEEP_DESIGNS`)."""
+    return os.environ.get(KEEP_DESIGNS, "1") != "0"
 
 
 def cache_dir() -> Path:

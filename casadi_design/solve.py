@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem
+from .cache import digest, keeping_designs, read, write
 from .cell import clearances
 from .criteria import CRITERIA
 from .design import CONVERGED, SEEDED, Design, StartRecord
@@ -320,7 +321,30 @@ def solve_start(
     (:mod:`casadi_design.parallel`). With a cell, each stage runs in rounds holding the
     capsule rows that can bind (see :data:`START_MARGIN_M`). Returns the start's record, its
     plan ``Q`` (m, n), rad, ``F`` (m, nF), N, and the plan's scores.
+
+    A start is a pure function of the problem, the criterion, m, ``B0`` and its start plan, so
+    it is kept on disk (:mod:`casadi_design.cache`, ``start-<key>``, named by the problem's
+    :attr:`~casadi_design.build.Problem.fingerprint` and those) and a later command reads it
+    back to the bit: a sweep after the study, a one-start solve, a run stopped by Ctrl-C and
+    started again. Not with ``verbose`` (IPOPT's output is asked for) nor when
+    :data:`casadi_design.cache.KEEP_DESIGNS` is 0.
     """
+    if ds.verbose or not keeping_designs():
+        return _solved_start(problem, ds, B0, Q0, F0)
+    arrays = (np.ascontiguousarray(a, dtype=float) for a in (B0, Q0, F0))
+    key = digest(problem.fingerprint.encode(), ds.criterion.encode(), str(ds.m).encode(),
+                 *(a.tobytes() + str(a.shape).encode() for a in arrays))
+    kept = read("start", key)
+    if kept is None:
+        kept = _solved_start(problem, ds, B0, Q0, F0)
+        write("start", key, kept)
+    return kept
+
+
+def _solved_start(
+    problem: Problem, ds: DesignSolver, B0: np.ndarray, Q0: np.ndarray, F0: np.ndarray
+) -> tuple[StartRecord, np.ndarray, np.ndarray, Scores]:
+    """:func:`solve_start` computed."""
     Q0, F0 = _polished(problem, ds, Q0, F0)
     rules = pose_constraints(problem)
     active = rules.near(Q0, START_MARGIN_M)

@@ -132,7 +132,7 @@ def kept_designs(directory, monkeypatch):
     """Approximate designs kept on disk (the suite turns it off), none in this process yet."""
     from casadi_design import bound
 
-    monkeypatch.setenv(bound.KEEP_ON_DISK, "1")
+    monkeypatch.setenv(cache.KEEP_DESIGNS, "1")
     monkeypatch.setattr(bound, "_COMPUTED", {})
     return bound
 
@@ -164,6 +164,35 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
         with pytest.raises(LookupError, match="computing"):
             bound.approximate_designs(paper, ["test-pose"], steps, pool)
     assert computing == [("test-pose", 2, 60), ("test-pose", 1, 50)]
+
+
+def test_a_design_read_back_start_by_start_is_the_design_computed(directory, monkeypatch, paper):
+    """A design's starts are kept on disk (:func:`casadi_design.solve.solve_start`): the same
+    design again reads every start back without IPOPT and is the same to the bit; another m,
+    ``verbose`` (IPOPT's output asked for) or ``CASADI_DESIGN_KEEP_DESIGNS=0`` computes."""
+    from casadi_design import solve
+
+    monkeypatch.setenv(cache.KEEP_DESIGNS, "1")
+    first = solve.solve_design(paper, "test-pose", 2, starts=4)
+    assert len(list(directory.glob("start-*.pickle"))) == 4
+    solved = []
+    computed = solve._solved_start
+
+    def computes(*args):
+        solved.append(args[1].m)
+        return computed(*args)
+
+    monkeypatch.setattr(solve, "_solved_start", computes)
+    again = solve.solve_design(paper, "test-pose", 2, starts=4)
+    assert solved == []
+    np.testing.assert_array_equal(again.Q, first.Q)
+    assert again.starts == first.starts
+    np.testing.assert_array_equal(again.scores.rms_error_m, first.scores.rms_error_m)
+    solve.solve_design(paper, "test-pose", 3, starts=1)
+    solve.solve_design(paper, "test-pose", 2, starts=1, verbose=True)
+    monkeypatch.setenv(cache.KEEP_DESIGNS, "0")
+    solve.solve_design(paper, "test-pose", 2, starts=1)
+    assert solved == [3, 2, 2]
 
 
 def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
