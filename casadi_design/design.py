@@ -85,6 +85,8 @@ class Design:
     bound : the certified bound of the criterion for m experiments, when it was computed.
     clearances : with a ``[cell]``, each experiment's clearance on the real geometry
         (:func:`casadi_design.cell.clearances`), else None.
+    kept_starts : how many of ``starts`` were read back from the disk, computed by an earlier
+        run (:func:`casadi_design.solve.solve_start`; not in results files).
     """
 
     criterion: str
@@ -98,6 +100,7 @@ class Design:
     seed: int
     bound: Bound | None = None
     clearances: tuple[Clearance, ...] | None = None
+    kept_starts: int = 0
 
     @property
     def gap_percent(self) -> float | None:

@@ -335,10 +335,16 @@ def solve_start(
     key = digest(problem.fingerprint.encode(), ds.criterion.encode(), str(ds.m).encode(),
                  *(a.tobytes() + str(a.shape).encode() for a in arrays))
     kept = read("start", key)
-    if kept is None:
-        kept = _solved_start(problem, ds, B0, Q0, F0)
-        write("start", key, kept)
-    return kept
+    if kept is not None:
+        return KeptStart(kept)
+    solved = _solved_start(problem, ds, B0, Q0, F0)
+    write("start", key, solved)
+    return solved
+
+
+class KeptStart(tuple):
+    """A start's result read back from the disk (:func:`solve_start`): the same tuple, marked
+    so that its design can say how many of its starts were read back."""
 
 
 def _solved_start(
@@ -505,8 +511,10 @@ def best_design(problem: Problem, criterion: str, m: int, results: Iterable[Star
         When no start converged to a feasible plan (the message lists the IPOPT statuses).
     """
     crit = CRITERIA[criterion]
-    records, best, why = [], None, []
-    for (rec, Q, F, scores), origin in zip(results, origins):
+    records, best, why, kept = [], None, [], 0
+    for result, origin in zip(results, origins):
+        rec, Q, F, scores = result
+        kept += isinstance(result, KeptStart)
         rec = dataclasses.replace(rec, origin=origin)
         records.append(rec)
         why.append("" if rec.feasible else " (singular M: the plan does not identify every parameter)"
@@ -528,4 +536,4 @@ def best_design(problem: Problem, criterion: str, m: int, results: Iterable[Star
     rec, Q, F, scores = best
     return Design(criterion, m, Q, F, scores, rec.status, tuple(records),
                   time.perf_counter() - t0, problem.solver.seed,
-                  clearances=tuple(clearances(problem.cell, Q)) if problem.cell else None)
+                  clearances=tuple(clearances(problem.cell, Q)) if problem.cell else None, kept_starts=kept)

@@ -48,6 +48,7 @@ def format_solver_lines(designs: list[Design]) -> str:
             f"{spread['min_max_rms_error_m'] * 1e3:.4f}..{spread['max_max_rms_error_m'] * 1e3:.4f} mm"
             + ("" if d.bound is None else f"  {d.gap_percent:.1f} % from the bound")
             + ("" if d.winner is None or d.winner.origin == SEEDED else f"  (won by the {d.winner.origin})")
+            + (f"  ({d.kept_starts} of {len(d.starts)} starts read back from the cache)" if d.kept_starts else "")
         )
     return "\n".join(out)
 

@@ -186,7 +186,7 @@ def test_a_design_read_back_start_by_start_is_the_design_computed(directory, mon
     again = solve.solve_design(paper, "test-pose", 2, starts=4)
     assert solved == []
     np.testing.assert_array_equal(again.Q, first.Q)
-    assert again.starts == first.starts
+    assert again.starts == first.starts and (first.kept_starts, again.kept_starts) == (0, 4)
     np.testing.assert_array_equal(again.scores.rms_error_m, first.scores.rms_error_m)
     solve.solve_design(paper, "test-pose", 3, starts=1)
     solve.solve_design(paper, "test-pose", 2, starts=1, verbose=True)
