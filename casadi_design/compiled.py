@@ -12,8 +12,9 @@ the cache directory, named by a hash of the function's serialization
 (``Function.serialize``, the exact algorithm), the CasADi version that writes its code and
 the compiler command, and loads it (``casadi.external``); a later run, or another process,
 finds the library there and pays only the serialization (the code is written only for a
-library to build: for the UR10's 300 capsule-row functions 0.25 s instead of 1.07 s). Libraries are written under a lock to a temporary name and
-renamed, so a killed run leaves no half-written library and two processes never build one twice.
+library to build: for the UR10's 300 capsule-row functions 0.25 s instead of 1.07 s).
+Libraries are written under a lock to a temporary name and renamed, so a killed run leaves no
+half-written library and two processes never build one twice.
 
 The C code performs the same floating-point operations in the same order as the virtual machine:
 no ``-ffast-math`` and no contraction into fused multiply-adds (``-ffp-contract=off``), so the
