@@ -20,6 +20,8 @@ from collections.abc import Iterator
 EXIT_INTERRUPTED = 130
 
 _HIT = threading.Event()
+#: What CasADi writes to ``sys.stderr`` when a ``KeyboardInterrupt`` stopped its solver.
+_CASADI_INTERRUPTED = "KeyboardInterruptException"
 
 
 def _handler(signum: int, frame: object) -> None:
@@ -71,13 +73,17 @@ def solver_call() -> Iterator[None]:
     """Run a CasADi solver call; raise ``KeyboardInterrupt`` after it if Ctrl-C was pressed.
 
     What CasADi writes to ``sys.stderr`` meanwhile is passed on, unless the call was
-    interrupted (then it is CasADi's ``KeyboardInterruptException`` warning).
+    interrupted (then it is CasADi's ``KeyboardInterruptException`` warning). Without
+    :func:`install` (the package used as a library) that warning is how the interrupt shows:
+    CasADi ends the run early and returns, and the start would go on from a cut-short run (a
+    result no uninterrupted run gives, kept on disk by
+    :func:`casadi_design.solve.solve_start`); it is raised as ``KeyboardInterrupt`` too.
     """
     said = io.StringIO()
     try:
         with contextlib.redirect_stderr(said):
             yield
     finally:
-        if _HIT.is_set():
+        if _HIT.is_set() or _CASADI_INTERRUPTED in said.getvalue():
             raise KeyboardInterrupt
         sys.stderr.write(said.getvalue())

@@ -113,3 +113,54 @@ def test_a_ctrl_c_where_python_cannot_raise_it_prints_no_traceback(capsys):
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = sys.__unraisablehook__
         interrupt._HIT.clear()
+
+
+#: A tiny IPOPT solve whose objective sends Ctrl-C to its own process at the 5th evaluation,
+#: once by CasADi alone, then inside the package's ipopt_call; no handler installed (a library
+#: user's process).
+_LIBRARY_CTRL_C = '''
+import os, signal
+import casadi as ca
+from casadi_design.ipopt import ipopt_call
+
+class Sigint(ca.Callback):
+    def __init__(self):
+        ca.Callback.__init__(self)
+        self.calls = 0
+        self.construct("sigint", {"enable_fd": True})
+    def get_n_in(self): return 1
+    def get_n_out(self): return 1
+    def get_sparsity_in(self, i): return ca.Sparsity.dense(2)
+    def eval(self, arg):
+        self.calls += 1
+        if self.calls == 5:
+            os.kill(os.getpid(), signal.SIGINT)
+        return [ca.sumsqr(arg[0] - 3)]
+
+def solver(f):
+    x = ca.MX.sym("x", 2)
+    return ca.nlpsol("s", "ipopt", {"x": x, "f": f(x)}, {"print_time": False, "ipopt.print_level": 0, "ipopt.sb": "yes"})
+
+first, second = Sigint(), Sigint()  # alive as long as their solvers
+alone = solver(first)
+alone(x0=[0, 0])
+print("casadi:", alone.stats()["return_status"])
+try:
+    with ipopt_call():
+        solver(second)(x0=[0, 0])
+    print("package: returned")
+except KeyboardInterrupt:
+    print("package: KeyboardInterrupt")
+'''
+
+
+def test_ctrl_c_in_library_use_raises_instead_of_ending_the_run_early():
+    """Used as a library (no handler of the command), Ctrl-C inside IPOPT made CasADi end that
+    run and return: a start went on from a cut-short run and was kept on disk as if computed.
+    Inside the package's solver call it raises ``KeyboardInterrupt`` and CasADi's warning is
+    not printed."""
+    proc = subprocess.run([sys.executable, "-c", _LIBRARY_CTRL_C], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == ["casadi: NonIpopt_Exception_Thrown", "package: KeyboardInterrupt"]
+    assert proc.stderr.count("KeyboardInterruptException") == 1  # CasADi's own, for the first run
