@@ -754,13 +754,16 @@ def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: 
 def apportion(weights: np.ndarray, m: int) -> np.ndarray:
     """Pukelsheim's efficient apportionment of m experiments to the support points of
     ``weights`` (k,): ``n_i = ceil((m - k/2) w_i)``, then one at a time to the smallest
-    ``n_i / w_i`` (or from the largest ``(n_i - 1) / w_i``) until ``sum n_i = m``."""
+    ``n_i / w_i`` (or from the largest ``(n_i - 1) / w_i``) until ``sum n_i = m``; of equal
+    ratios, the heaviest point gains first and the lightest loses first. With fewer
+    experiments than half the support (m < k/2: every ``n_i`` starts at 0, all ratios equal),
+    the m heaviest points get one each."""
     w = np.asarray(weights, dtype=float)
     n = np.maximum(np.ceil((m - len(w) / 2) * w), 0).astype(int)
     while n.sum() < m:
-        n[np.argmin(n / w)] += 1
+        n[np.lexsort((-w, n / w))[0]] += 1
     while n.sum() > m:
-        n[np.argmax((n - 1) / w)] -= 1
+        n[np.lexsort((w, -(n - 1) / w))[0]] -= 1
     return n
 
 

@@ -187,7 +187,13 @@ def test_D_gap_zero_for_joint_offsets():
 
 def test_rounded_plans_are_feasible_starts(paper, paper_tp):
     assert apportion(np.array([0.5, 0.3, 0.2]), 4).tolist() == [2, 1, 1]
-    assert apportion(np.array([0.5, 0.3, 0.2]), 1).sum() == 1
+    assert apportion(np.array([0.2, 0.5, 0.3]), 1).tolist() == [0, 1, 0]  # the heaviest point
+    # fewer experiments than half the support: every n_i starts at 0, the m heaviest get one each
+    assert apportion(np.array([0.1, 0.25, 0.05, 0.2, 0.15, 0.25]), 2).tolist() == [0, 1, 0, 0, 0, 1]
+    w = np.random.default_rng(0).dirichlet(np.ones(40))
+    assert np.flatnonzero(apportion(w, 9)).tolist() == sorted(np.argsort(w)[::-1][:9].tolist())
+    # too many after the ceilings: the lightest of equal (n_i - 1) / w_i loses first
+    assert apportion(np.array([0.26, 0.26, 0.24, 0.24]), 3).tolist() == [1, 1, 0, 1]
     plans = rounded_plans(paper, paper_tp, 5)
     for Q0, F0 in plans:
         assert Q0.shape == (5, 2) and F0.shape == (5, 2)
