@@ -54,7 +54,7 @@ from .robots import (
     planar_arm,
 )
 from .symbolic import symbolic_kinematics
-from .threads import blas_kernels
+from .threads import blas_kernels, blas_threads
 
 T = TypeVar("T")
 
@@ -146,13 +146,13 @@ class Problem:
         between runs (:mod:`casadi_design.cache`): its checked data, the robot's Pinocchio
         model, the cell's capsules and real geometry (the meshes' vertices: an edited URDF or
         mesh file is another problem, though its path is the same), the package's code, the
-        libraries' versions and the BLAS kernels."""
+        libraries' versions, the BLAS kernels and thread count."""
         cell = self.cell
         robot = pickle.dumps(self.robot.model)
         geometry = b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry))
         capsules = b"" if cell is None else repr(cell.capsules).encode()
         return digest(spec_digest_blob(self.spec), robot, geometry, capsules, code_digest().encode(),
-                      blas_kernels().encode())
+                      blas_kernels().encode(), str(blas_threads()).encode())
 
 
 def load_problem(path: str | Path) -> Problem:

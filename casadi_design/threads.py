@@ -74,6 +74,17 @@ def blas_kernels() -> str:
     return ",".join(kernels) or "none"
 
 
+def blas_threads() -> int:
+    """The most threads any BLAS or OpenMP library loaded in this process runs: 1 wherever
+    :func:`fixed_blas` ran first (the commands, their workers, the test suite); a library
+    caller that did not call it gets one per core, and other rounding (the approximate designs'
+    numpy products: another certificate to the last bits, another plan from some starts), so
+    what is kept on disk is named by it too (:attr:`casadi_design.build.Problem.fingerprint`)."""
+    from threadpoolctl import threadpool_info
+
+    return max((int(i["num_threads"]) for i in threadpool_info()), default=1)
+
+
 def cpu_count() -> int:
     """CPUs this process may use (the default of ``--jobs``)."""
     try:

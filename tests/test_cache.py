@@ -222,3 +222,26 @@ def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
     urdf.write_text(text.replace('xyz="0.0 0.0 0.1273"', 'xyz="0.0 0.0 0.127301"', 1))
     after = built()
     assert after.digest == before.digest and after.fingerprint != before.fingerprint
+
+
+def test_the_fingerprint_names_the_blas_thread_count(monkeypatch):
+    """A library caller whose BLAS runs on several threads rounds differently (the commands and
+    this suite fix one thread first, casadi_design.threads): what it keeps is not read back by a
+    command, nor the other way round."""
+    from threadpoolctl import threadpool_limits
+
+    from casadi_design import build
+    from casadi_design.threads import blas_threads
+    from tests.conftest import PAPER
+
+    def built():
+        monkeypatch.setattr(build, "_BUILT", {})  # built anew, as in another process
+        return build.load_problem(PAPER)
+
+    assert blas_threads() == 1
+    one = built().fingerprint
+    with threadpool_limits(limits=2):
+        assert blas_threads() == 2
+        two = built()
+        assert two.fingerprint != one
+    assert two.digest == built().digest and built().fingerprint == one
