@@ -46,7 +46,7 @@ from .build import Problem, build_problem
 from .errors import DesignError
 from .interrupt import pressed
 from .problem import ProblemSpec
-from .threads import KERNEL_VARIABLE, blas_kernels, cpu_count, fixed_blas
+from .threads import KERNEL_VARIABLE, blas_kernels, blas_threads, cpu_count, fixed_blas
 from .solve import StartPlan, StartResult, make_design_solver, solve_start
 
 #: Seconds to wait for a Dask scheduler before giving up.
@@ -371,6 +371,12 @@ class ProcessExecutor(_Workers):
         self.close(interrupted=exc_type is not None and (issubclass(exc_type, KeyboardInterrupt) or pressed()))
 
 
+def blas_setup() -> tuple[str, int]:
+    """This process's OpenBLAS kernels and BLAS thread count: what its numbers are computed with
+    (run on every Dask worker, :meth:`DaskExecutor._check_kernels`)."""
+    return blas_kernels(), blas_threads()
+
+
 class MissingExtraError(ImportError):
     """An optional dependency is not installed; the message says what to install."""
 
@@ -407,18 +413,21 @@ class DaskExecutor(_Workers):
         self._check_kernels()
 
     def _check_kernels(self) -> None:
-        """The workers compute with this process's OpenBLAS kernels (:mod:`casadi_design.threads`),
-        or their starts would give other numbers than ``--jobs``: a clear error otherwise."""
-        here = blas_kernels()
-        other = {w: k for w, k in self.client.run(blas_kernels).items() if k != here}
+        """The workers compute with this process's OpenBLAS kernels and BLAS threads
+        (:mod:`casadi_design.threads`), or their starts would give other numbers than ``--jobs``
+        (and an approximate design computed there would be kept under this process's name,
+        :attr:`casadi_design.build.Problem.fingerprint`): a clear error otherwise."""
+        here = blas_setup()
+        other = {w: k for w, k in self.client.run(blas_setup).items() if tuple(k) != here}
         if other:
-            worker, kernels = next(iter(other.items()))
+            worker, (kernels, threads) = next(iter(other.items()))
             if self._own:
                 self.client.close()
             raise DesignError(
-                f"--dask-scheduler: {len(other)} worker(s) compute with other OpenBLAS kernels "
-                f"than this command ({worker}: {kernels}; here: {here}), so their starts would end "
-                f"elsewhere; start the workers with {KERNEL_VARIABLE}={here} OPENBLAS_NUM_THREADS=1 "
+                f"--dask-scheduler: {len(other)} worker(s) compute with other OpenBLAS kernels or "
+                f"BLAS threads than this command ({worker}: {kernels}, {threads} thread(s); here: "
+                f"{here[0]}, {here[1]} thread(s)), so their starts would end elsewhere; start the workers with "
+                f"{KERNEL_VARIABLE}={here[0]} OPENBLAS_NUM_THREADS={here[1]} "
                 f"dask worker {self.client.scheduler.address} --nthreads 1")
 
     @property

@@ -16,6 +16,7 @@ from casadi_design.parallel import (
     make_executor,
     run_start,
 )
+from casadi_design.errors import DesignError
 from casadi_design.solve import solve_design
 from casadi_design.bound import ROUNDED
 from casadi_design.campaign import Settings
@@ -169,6 +170,30 @@ def test_executor_choice():
         assert isinstance(ex, ProcessExecutor) and ex.jobs == 2
     with pytest.raises(ValueError, match="--jobs: expected a positive number of processes, got 0"):
         make_executor(0)
+
+
+def test_dask_workers_with_other_blas_threads_or_kernels_are_refused():
+    """A worker whose BLAS runs on other threads or kernels than the command would give other
+    numbers (and its approximate designs would be kept under the command's name): one error
+    that says how to start the workers."""
+    from types import SimpleNamespace
+
+    from casadi_design.parallel import blas_setup
+    from casadi_design.threads import KERNEL
+
+    here = blas_setup()
+    assert here == (KERNEL, 1)  # this process, as the command (tests/conftest.py)
+    for setup in [(KERNEL, 4), ("SkylakeX", 1)]:
+        client = SimpleNamespace(run=lambda fn, s=setup: {"tcp://w1": s, "tcp://w2": fn()},
+                                 scheduler=SimpleNamespace(address="tcp://10.0.0.1:8786"))
+        ex = object.__new__(DaskExecutor)
+        ex.client, ex._own = client, False
+        with pytest.raises(DesignError, match=rf"1 worker\(s\) .* \(tcp://w1: {setup[0]}, {setup[1]} thread\(s\); "
+                                              rf"here: {KERNEL}, 1 thread\(s\)\).*OPENBLAS_NUM_THREADS=1 "
+                                              r"dask worker tcp://10.0.0.1:8786 --nthreads 1"):
+            ex._check_kernels()
+    ex.client = SimpleNamespace(run=lambda fn: {"tcp://w1": fn()})
+    ex._check_kernels()  # the same setup everywhere: no error
 
 
 def test_missing_dask_gives_the_install_hint(monkeypatch, capsys):
