@@ -46,7 +46,7 @@ from .build import Problem, build_problem
 from .errors import DesignError
 from .interrupt import pressed
 from .problem import ProblemSpec
-from .threads import KERNEL_VARIABLE, blas_kernels, blas_threads, cpu_count, fixed_blas
+from .threads import KERNEL_VARIABLE, THREAD_VARIABLES, blas_kernels, blas_threads, cpu_count, fixed_blas
 from .solve import StartPlan, StartResult, make_design_solver, solve_start
 
 #: Seconds to wait for a Dask scheduler before giving up.
@@ -427,7 +427,7 @@ class DaskExecutor(_Workers):
                 f"--dask-scheduler: {len(other)} worker(s) compute with other OpenBLAS kernels or "
                 f"BLAS threads than this command ({worker}: {kernels}, {threads} thread(s); here: "
                 f"{here[0]}, {here[1]} thread(s)), so their starts would end elsewhere; start the workers with "
-                f"{KERNEL_VARIABLE}={here[0]} OPENBLAS_NUM_THREADS={here[1]} "
+                f"{KERNEL_VARIABLE}={here[0]} {' '.join(f'{v}={here[1]}' for v in THREAD_VARIABLES)} "
                 f"dask worker {self.client.scheduler.address} --nthreads 1")
 
     @property

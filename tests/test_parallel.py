@@ -189,7 +189,7 @@ def test_dask_workers_with_other_blas_threads_or_kernels_are_refused():
         ex = object.__new__(DaskExecutor)
         ex.client, ex._own = client, False
         with pytest.raises(DesignError, match=rf"1 worker\(s\) .* \(tcp://w1: {setup[0]}, {setup[1]} thread\(s\); "
-                                              rf"here: {KERNEL}, 1 thread\(s\)\).*OPENBLAS_NUM_THREADS=1 "
+                                              rf"here: {KERNEL}, 1 thread\(s\)\).*OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 "
                                               r"dask worker tcp://10.0.0.1:8786 --nthreads 1"):
             ex._check_kernels()
     ex.client = SimpleNamespace(run=lambda fn: {"tcp://w1": fn()})
