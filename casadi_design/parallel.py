@@ -46,7 +46,7 @@ from .build import Problem, build_problem
 from .errors import DesignError
 from .interrupt import pressed
 from .problem import ProblemSpec
-from .threads import KERNEL_VARIABLE, THREAD_VARIABLES, blas_kernels, blas_threads, cpu_count, fixed_blas
+from .threads import KERNEL_VARIABLE, THREAD_VARIABLES, blas_setup, cpu_count, fixed_blas
 from .solve import StartPlan, StartResult, make_design_solver, solve_start
 
 #: Seconds to wait for a Dask scheduler before giving up.
@@ -371,12 +371,6 @@ class ProcessExecutor(_Workers):
         self.close(interrupted=exc_type is not None and (issubclass(exc_type, KeyboardInterrupt) or pressed()))
 
 
-def blas_setup() -> tuple[str, int]:
-    """This process's OpenBLAS kernels and BLAS thread count: what its numbers are computed with
-    (run on every Dask worker, :meth:`DaskExecutor._check_kernels`)."""
-    return blas_kernels(), blas_threads()
-
-
 class MissingExtraError(ImportError):
     """An optional dependency is not installed; the message says what to install."""
 
@@ -410,15 +404,16 @@ class DaskExecutor(_Workers):
                     f"{DASK_CONNECT_TIMEOUT_S:g} s ({reason}); check the address (tcp://host:8786) "
                     "or start one with `dask scheduler`") from None
             self._own = True
-        self._check_kernels()
+        self._check_blas()
 
-    def _check_kernels(self) -> None:
+    def _check_blas(self) -> None:
         """The workers compute with this process's OpenBLAS kernels and BLAS threads
         (:mod:`casadi_design.threads`), or their starts would give other numbers than ``--jobs``
         (and an approximate design computed there would be kept under this process's name,
         :attr:`casadi_design.build.Problem.fingerprint`): a clear error otherwise."""
         here = blas_setup()
         other = {w: k for w, k in self.client.run(blas_setup).items() if tuple(k) != here}
+        kernels_here, threads_here = here
         if other:
             worker, (kernels, threads) = next(iter(other.items()))
             if self._own:
@@ -426,8 +421,9 @@ class DaskExecutor(_Workers):
             raise DesignError(
                 f"--dask-scheduler: {len(other)} worker(s) compute with other OpenBLAS kernels or "
                 f"BLAS threads than this command ({worker}: {kernels}, {threads} thread(s); here: "
-                f"{here[0]}, {here[1]} thread(s)), so their starts would end elsewhere; start the workers with "
-                f"{KERNEL_VARIABLE}={here[0]} {' '.join(f'{v}={here[1]}' for v in THREAD_VARIABLES)} "
+                f"{kernels_here}, {threads_here} thread(s)), so their starts would end elsewhere; start the "
+                f"workers with {KERNEL_VARIABLE}={kernels_here} "
+                f"{' '.join(f'{v}={threads_here}' for v in THREAD_VARIABLES)} "
                 f"dask worker {self.client.scheduler.address} --nthreads 1")
 
     @property

@@ -85,6 +85,13 @@ def blas_threads() -> int:
     return max((int(i["num_threads"]) for i in threadpool_info()), default=1)
 
 
+def blas_setup() -> tuple[str, int]:
+    """This process's OpenBLAS kernels and BLAS thread count (:func:`blas_kernels`,
+    :func:`blas_threads`): what its numbers are computed with (run on every Dask worker,
+    :meth:`casadi_design.parallel.DaskExecutor._check_blas`)."""
+    return blas_kernels(), blas_threads()
+
+
 def cpu_count() -> int:
     """CPUs this process may use (the default of ``--jobs``)."""
     try:

@@ -178,7 +178,7 @@ def test_dask_workers_with_other_blas_threads_or_kernels_are_refused():
     that says how to start the workers."""
     from types import SimpleNamespace
 
-    from casadi_design.parallel import blas_setup
+    from casadi_design.threads import blas_setup
     from casadi_design.threads import KERNEL
 
     here = blas_setup()
@@ -191,9 +191,9 @@ def test_dask_workers_with_other_blas_threads_or_kernels_are_refused():
         with pytest.raises(DesignError, match=rf"1 worker\(s\) .* \(tcp://w1: {setup[0]}, {setup[1]} thread\(s\); "
                                               rf"here: {KERNEL}, 1 thread\(s\)\).*OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 "
                                               r"dask worker tcp://10.0.0.1:8786 --nthreads 1"):
-            ex._check_kernels()
+            ex._check_blas()
     ex.client = SimpleNamespace(run=lambda fn: {"tcp://w1": fn()})
-    ex._check_kernels()  # the same setup everywhere: no error
+    ex._check_blas()  # the same setup everywhere: no error
 
 
 def test_missing_dask_gives_the_install_hint(monkeypatch, capsys):
