@@ -54,7 +54,7 @@ from .robots import (
     planar_arm,
 )
 from .symbolic import symbolic_kinematics
-from .threads import blas_kernels, blas_threads
+from .threads import blas_setup
 
 T = TypeVar("T")
 
@@ -152,7 +152,7 @@ class Problem:
         geometry = b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry))
         capsules = b"" if cell is None else repr(cell.capsules).encode()
         return digest(spec_digest_blob(self.spec), robot, geometry, capsules, code_digest().encode(),
-                      blas_kernels().encode(), str(blas_threads()).encode())
+                      *(str(v).encode() for v in blas_setup()))
 
 
 def load_problem(path: str | Path) -> Problem:

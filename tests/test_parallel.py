@@ -178,8 +178,7 @@ def test_dask_workers_with_other_blas_threads_or_kernels_are_refused():
     that says how to start the workers."""
     from types import SimpleNamespace
 
-    from casadi_design.threads import blas_setup
-    from casadi_design.threads import KERNEL
+    from casadi_design.threads import KERNEL, blas_setup
 
     here = blas_setup()
     assert here == (KERNEL, 1)  # this process, as the command (tests/conftest.py)
