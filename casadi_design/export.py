@@ -173,12 +173,34 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
     return Q, F
 
 
+def _plan_lines(path: str) -> list[tuple[int, str]]:
+    """The (line number, text) of a plan file's header and rows: empty lines and ``#``
+    comments dropped."""
+    lines = [(i, ln) for i, ln in enumerate(_plan_text(path).splitlines(), start=1)
+             if ln.strip(" \t,") and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise ProblemError(f"{path}: empty plan file; give a header row and one row per experiment")
+    return lines
+
+
+def plan_header(path: Path | str) -> list[str]:
+    """The column names of a plan file as it spells them (trailing empty names dropped)."""
+    header = _csv_cells(_plan_lines(str(path))[0][1])
+    while header and not header[-1]:
+        header.pop()
+    return header
+
+
 def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] = (),
-                    extra_hint: str = "") -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[int]]:
+                    extra_hint: str = "", rename: dict[str, str] | None = None,
+                    ignore_unknown: bool = False,
+                    ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[int]]:
     """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m);
     the ``extra`` columns that are present (e.g. measured coordinates), as floats with NaN for
     empty cells; and the line of the file of each row (1-based). ``extra_hint`` names the extra
-    columns in the message on an unknown column.
+    columns in the message on an unknown column. ``rename`` maps a column as the file spells it
+    to the name read here (messages keep the file's spelling); with ``ignore_unknown`` other
+    columns are skipped instead of refused (:func:`plan_header` tells which).
 
     UTF-8 text, with or without a byte-order mark. Trailing empty cells (as Excel writes
     them) are dropped, and so are lines of empty cells and lines starting with ``#``. Row
@@ -192,10 +214,7 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
         disagreeing unit columns (one line each).
     """
     path = str(path)
-    lines = [(i, ln) for i, ln in enumerate(_plan_text(path).splitlines(), start=1)
-             if ln.strip(" \t,") and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise ProblemError(f"{path}: empty plan file; give a header row and one row per experiment")
+    lines = _plan_lines(path)
     (_, head), body = lines[0], lines[1:]
     if ";" in head:
         decimal = " and ',' as decimal point" if any("," in ln for _, ln in body) else ""
@@ -205,9 +224,11 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
     if len(body) > _MAX_PLAN_ROWS:
         raise ProblemError(f"{path}: has {len(body)} rows; a plan has at most {_MAX_PLAN_ROWS} "
                            "experiments; give a smaller plan")
-    header = _csv_cells(head)
-    while header and not header[-1]:
-        header.pop()
+    spelled = _csv_cells(head)
+    while spelled and not spelled[-1]:
+        spelled.pop()
+    rename = rename or {}
+    header = [rename.get(h, h) for h in spelled]
     rows = [(i, _csv_cells(ln)) for i, ln in body]
     if not rows:
         raise ProblemError(f"{path}: no experiments below the header; give one row per experiment")
@@ -224,17 +245,19 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
         raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
                            "name it or delete the column")
     unknown = [h for h in header if h not in allowed]
-    if unknown:
+    if unknown and not ignore_unknown:
         si, people, _ = joint_units(problem, 0)
         raise ProblemError(
             f"{path}: unknown column '{unknown[0]}'; allowed: q1_{people} or q1_{si} ... "
             f"q{robot.n}_<unit> (or joint names {', '.join(robot.joints)} with the unit suffix)"
             + (f", {', '.join(forces)}" if forces else "") + ", experiment, x_mm, y_mm, z_mm"
             + (f", {extra_hint}" if extra_hint else ""))
-    repeated = next((h for h in header if header.count(h) > 1), None)
-    if repeated:
-        raise ProblemError(f"{path}: column '{repeated}' is given {header.count(repeated)} times; "
-                           "give each column once")
+    repeated = next((c for c, h in enumerate(header) if header.count(h) > 1 and h in allowed), None)
+    if repeated is not None:
+        twins = [spelled[c] for c, h in enumerate(header) if h == header[repeated]]
+        raise ProblemError(f"{path}: column '{spelled[repeated]}' is given {len(twins)} times"
+                           + (f" (as {', '.join(twins)})" if len(set(twins)) > 1 else "")
+                           + "; give each column once")
     for i, cells in rows:
         if len(cells) > len(header) and not any(cells[len(header):]):
             del cells[len(header):]  # trailing empty cells
@@ -245,7 +268,7 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
 
     def number(r: int, c: int, empty_allowed: bool = False) -> float:
         line, cell = rows[r][0], rows[r][1][c]
-        where = f"{path}: row {line}, column '{header[c]}'"
+        where = f"{path}: row {line}, column '{spelled[c]}'"
         try:
             v = float(cell) if cell else math.nan
         except ValueError:
@@ -269,7 +292,7 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
         spread = np.max(np.ptp(values, axis=0))
         if spread > UNIT_AGREEMENT_TOL:
             raise ProblemError(
-                f"{path}: the columns {', '.join(header[c] for c, _ in given)} of joint {j} "
+                f"{path}: the columns {', '.join(spelled[c] for c, _ in given)} of joint {j} "
                 f"disagree by {spread:.3g} (rad or m); give one of them or fix the values")
         # the SI column when given (exact), else the people's unit converted
         Q[:, k] = values[next((i for i, (_, scale) in enumerate(given) if scale == 1.0), 0)]

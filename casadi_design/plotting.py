@@ -304,35 +304,59 @@ PREDICTED_STYLE = {"color": "tab:green"}
 AXIS_STYLES = ({"color": "tab:red"}, {"color": "tab:green"}, {"color": "tab:blue"})
 
 
+REGISTRATION_STYLE = {"color": "tab:orange"}
+
+
 def identification_figure(calibration) -> Figure:
     """The identification of measured data (a :class:`casadi_design.identification.calibrate.
-    Calibration`), mm: (a) residuals per experiment and axis (RMS over its points; outliers
-    marked), (b) validation errors per pose, nominal (registered) vs calibrated, beside the
-    predicted RMS, (c) at the test poses the predicted ``sqrt(rho)``, and the measured error
-    where a validation pose is a test pose."""
+    Calibration`), mm: (a) residuals per experiment and axis (RMS over its points, one marker
+    per axis; outliers marked), (b) the validation errors of each model sorted (the curve of
+    their distribution: registration only, nominal and calibrated in the training frame, the
+    prediction; poses outside the training range marked), (c) at the test poses the predicted
+    ``sqrt(rho)``, and the measured error where a validation pose is a test pose."""
     c = calibration
     fig = Figure(figsize=(16, 4.5), layout="constrained")
     ax_r, ax_v, ax_t = fig.subplots(1, 3)
     axes = [a for a in range(3) if np.isfinite(c.residual_axes_m[:, :, a]).any()]
-    per_axis = {a: np.sqrt(np.nanmean(c.residual_axes_m[:, :, a] ** 2, axis=1)) * 1e3 for a in axes}
-    rows = [str(line) + ("*" if not used else "") for line, used in zip(c.measurements.lines, c.fit.used)]
-    draw_errors_per_pose(ax_r, [(f"{'xyz'[a]} residual", AXIS_STYLES[a], per_axis[a]) for a in axes],
-                         "residual, RMS over the points (mm)", rows)
-    ax_r.set_xlabel("experiment (row of the file; * outlier, not in the fit)")
-    ax_r.set_title(f"(a) residuals: RMS {np.sqrt(np.mean(c.residual_rms_m[c.fit.used] ** 2)) * 1e3:.4f} mm")
+    x = np.arange(1, c.measurements.m + 1)
+    for k, a in enumerate(axes):
+        e = np.sqrt(np.nanmean(c.residual_axes_m[:, :, a] ** 2, axis=1)) * 1e3
+        ax_r.plot(x + 0.2 * (k - 1), e, "o", ms=3.5, label=f"{'xyz'[a]} residual", **AXIS_STYLES[a])
+    out = ~c.fit.used
+    if out.any():
+        top = np.nanmax(np.sqrt(np.nanmean(c.residual_axes_m[out] ** 2, axis=1)), axis=1) * 1e3
+        ax_r.plot(x[out], top, "kx", ms=8, label="outlier (not in the fit)")
+    every = max(1, len(x) // 20)
+    ax_r.set_xticks(x[::every], [str(line) for line in c.measurements.lines][::every], fontsize=8)
+    ax_r.set_ylabel("residual, RMS over the points (mm)")
+    ax_r.set_xlabel("experiment (row of the file)")
+    ax_r.grid(alpha=0.3)
+    ax_r.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=4)
+    ax_r.set_title(f"(a) residuals ({c.model} model): RMS {np.sqrt(np.mean(c.residual_rms_m[c.fit.used] ** 2)) * 1e3:.4f} mm")
     v = c.validation
     if v is None:
         ax_v.text(0.5, 0.5, "no validation set (--validation)", ha="center", va="center",
                   transform=ax_v.transAxes)
         ax_v.set_axis_off()
     else:
-        draw_errors_per_pose(ax_v, [("nominal (registered)", NOMINAL_STYLE, v.nominal_m * 1e3),
-                                    ("calibrated", CALIBRATED_STYLE, v.calibrated_m * 1e3),
-                                    ("predicted", PREDICTED_STYLE, v.predicted_m * 1e3)],
-                             "error, RMS over the points (mm)", [str(line) for line in v.lines])
-        ax_v.set_yscale("log")
-        ax_v.set_xlabel("validation pose (row of the file)")
-        ax_v.set_title("(b) validation: nominal vs calibrated")
+        n = len(v.lines)
+        share = np.arange(1, n + 1) / n * 100
+        for label, style, e in (("registration only", REGISTRATION_STYLE, v.registration_m),
+                                ("nominal", NOMINAL_STYLE, v.nominal_m),
+                                ("calibrated", CALIBRATED_STYLE, v.calibrated_m),
+                                ("predicted", PREDICTED_STYLE, v.predicted_m)):
+            order = np.argsort(e)
+            ax_v.plot(share, e[order] * 1e3, "-", lw=1.8, label=f"{label}: RMS {np.sqrt(np.mean(e**2)) * 1e3:.3f} mm",
+                      **style)
+            if label == "calibrated" and v.out_of_range.any():
+                rank = np.flatnonzero(v.out_of_range[order])
+                ax_v.plot(share[rank], e[order][rank] * 1e3, "o", mfc="none", ms=6, color="k",
+                          label=f"calibrated, outside the training range ({int(v.out_of_range.sum())})")
+        ax_v.set_xlabel("share of the validation poses with a smaller error (%)")
+        ax_v.set_ylabel("error, RMS over the points (mm)")
+        ax_v.grid(alpha=0.3)
+        ax_v.legend(fontsize=8, loc="upper left")
+        ax_v.set_title(f"(b) the {n} validation poses, errors sorted (training frame)")
     bars = [("predicted sqrt(rho)", PREDICTED_STYLE, c.predicted_rms_m * 1e3)]
     measured = c.test_pose_errors_m
     if measured is not None:

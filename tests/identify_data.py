@@ -102,7 +102,7 @@ def measurement_csv(problem, Q, F, P_m, hidden: tuple[tuple[int, int], ...] = ()
     header, rows = plan_table(problem, Q, F)
     columns = measurement_columns(problem)
     axes = measured_axes(problem)
-    header = header[:len(rows[0])] + [c for point in columns for c in point]  # no clearance columns
+    header = header[:len(rows[0])] + [f"{c}_mm" for point in columns for c in point]  # no clearance columns
     for i, row in enumerate(rows):
         for c in range(len(columns)):
             row += ["" if (i, c) in hidden else float(P_m[i, c, a] * 1e3) for a in axes]

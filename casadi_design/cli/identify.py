@@ -13,16 +13,19 @@ from ..files import prepare_out, write_atomic, write_json
 HELP = "identify the robot from tracker measurements, export the calibrated model (casadi-design identify --help)"
 DESCRIPTION = (
     "Identify the robot from measured points: MEAS.csv is a plan CSV of casadi-design solve (joint "
-    "and load columns) with the measured coordinates appended in mm: meas_x_mm, meas_y_mm, "
-    "meas_z_mm for one measured point, meas1_x_mm ... measK_z_mm for the markers of markers_m (an "
-    "empty cell: a marker not seen). The tracker frame is registered in closed form, then the "
-    "parameters and the frame are fitted together by weighted nonlinear least squares "
-    "(Levenberg-Marquardt, the code of casadi-design validate); outliers are excluded one at a "
-    "time. Writes to --out: identification.json (SI units), identification.md and "
-    "identification.png, compensated_test_poses.csv, calibrated.urdf, calibrated.toml (a "
-    "problem file of the calibrated robot), for a DH robot calibrated_dh.toml (the same with the "
-    "corrected DH table, Hayati's beta for nearly parallel axes) and, with compliances, "
-    "identified_compliances.toml.")
+    "and load columns) with the measured coordinates appended: meas_x_mm, meas_y_mm, meas_z_mm "
+    "for one measured point, meas1_x_mm ... measK_z_mm for the markers of markers_m (_m for "
+    "metres; an empty cell: a marker not seen); FIGAROH's layout (x1, y1, z1 ... in m, bare "
+    "joint names) is read as it is. The tracker frame is registered in closed form (the "
+    "measured points located when they are far off), candidate models (registration only, + "
+    "joint offsets, + the most significant parameters, the problem's own) are cross-validated "
+    "on the rows and one is chosen (--model), and its parameters and the frame are fitted "
+    "together by weighted nonlinear least squares (scipy's trust region, exact Jacobian); "
+    "outliers are excluded one at a time. Writes to --out: identification.json (SI units), "
+    "identification.md and identification.png, compensated_test_poses.csv, calibrated.urdf, "
+    "calibrated.toml (a problem file of the calibrated robot), for a DH robot calibrated_dh.toml "
+    "(the same with the corrected DH table, Hayati's beta for nearly parallel axes) and, with "
+    "compliances, identified_compliances.toml.")
 
 
 def _positive(text: str) -> float:
@@ -31,7 +34,17 @@ def _positive(text: str) -> float:
     except ValueError:
         v = math.nan
     if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"--outlier-sigma takes a positive number, got '{text}'")
+        raise argparse.ArgumentTypeError(f"takes a positive number, got '{text}'")
+    return v
+
+
+def _non_negative(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"takes a number >= 0 (rad or m), got '{text}'")
     return v
 
 
@@ -54,7 +67,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from ..identification.calibrate import OUTLIER_SIGMA
+    from ..identification.choice import MODELS
     from ..identification.fit import FRAMES
+    from ..identification.lsq import LOSS_SCALE_SIGMA, LOSSES
+    from ..identification.measurements import COORDINATE_UNITS, LIMIT_TOLERANCE
 
     p.add_argument("problem", help="problem file (TOML) of the measured robot, e.g. problems/ur10_drilling.toml")
     p.add_argument("--measurements", required=True, metavar="CSV",
@@ -66,6 +82,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--outlier-sigma", type=_positive, default=OUTLIER_SIGMA, metavar="S",
                    help=f"a row whose residual exceeds S sigma is excluded and the rest refitted "
                         f"(default {OUTLIER_SIGMA:g})")
+    p.add_argument("--model", choices=MODELS, default="auto",
+                   help="the model identified: registration (frame and measured point), offsets (+ joint "
+                        "offsets), identifiable (the problem's parameters) or auto (default: chosen by "
+                        "cross-validation on the rows)")
+    p.add_argument("--loss", choices=LOSSES, default="linear",
+                   help=f"least-squares loss: linear (default) or a robust loss that down-weights residuals "
+                        f"beyond {LOSS_SCALE_SIGMA:g} sigma (bad shots)")
+    p.add_argument("--units", choices=tuple(COORDINATE_UNITS), default=None,
+                   help="unit of coordinate columns without a unit suffix (FIGAROH's layout: m)")
+    p.add_argument("--joint-units", default="rad,m", metavar="U[,U]",
+                   help="units of joint columns named without a unit (bare joint names): rad or deg for "
+                        "revolute joints, m or mm for prismatic ones (default rad,m)")
+    p.add_argument("--columns", default="", metavar="FILE=OURS,...",
+                   help="read the file's columns under our names, e.g. x1=meas1_x,y1=meas1_y,z1=meas1_z")
+    p.add_argument("--limit-tolerance", type=_non_negative, default=LIMIT_TOLERANCE, metavar="TOL",
+                   help=f"joint readings up to TOL (rad or m) past a joint limit are accepted with a note "
+                        f"(default {LIMIT_TOLERANCE:g})")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the files (created if missing)")
     p.add_argument("--force", action="store_true",
                    help="write into --out even if it exists and is not empty (overwrites our files)")
@@ -81,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         an ``--out`` that cannot be written (before anything is computed).
     """
     from ..identification.calibrate import calibrate
-    from ..identification.measurements import read_measurements
+    from ..identification.measurements import FileFormat, parse_columns, read_measurements
     from ..identification.dh_table import calibrated_dh, has_dh_table
     from ..identification.problem_file import calibrated_dh_problem, calibrated_problem, toml_text
     from ..identification.report import (
@@ -95,12 +128,15 @@ def run(args: argparse.Namespace) -> int:
 
     out = prepare_out(args.out, args.force)
     t0 = time.perf_counter()
+    fmt = FileFormat(args.units, tuple(u.strip() for u in args.joint_units.split(",") if u.strip()),
+                     parse_columns(args.columns), args.limit_tolerance)
     problem = load_without_cell(args.problem)
-    meas = read_measurements(problem, args.measurements)
-    valid = None if args.validation is None else read_measurements(problem, args.validation)
+    meas = read_measurements(problem, args.measurements, fmt)
+    valid = None if args.validation is None else read_measurements(problem, args.validation, fmt)
     if valid is not None and valid.path == meas.path:
         raise ProblemError(f"--validation {valid.path}: is the file of the fit; give poses not used in the fit")
-    cal = calibrate(problem, meas, args.frame, valid, args.outlier_sigma)
+    cal = calibrate(problem, meas, args.frame, valid, args.outlier_sigma, args.loss, args.model)
+    problem = cal.problem  # with the measured points located when they were far off
     print("\n".join(summary_lines(cal)))
     print(f"identification time {time.perf_counter() - t0:.2f} s")
 
@@ -109,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     f = cal.fit
     chain = calibrated_chain(problem, f.fit.model.parameter_names, f.robot_X)
     header = (f"calibrated by casadi-design identify from {meas.path} ({problem.path}, frame "
-              f"{args.frame})")
+              f"{args.frame}, {cal.model} model)")
     # every text first, the figure (the slow part) next, then the texts at once: Ctrl-C leaves
     # the folder as it was, or the figure alone
     texts = {"calibrated.urdf": urdf_text(problem, chain),
@@ -117,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
              "compensated_test_poses.csv": compensated_csv(cal)}
     robot = problem.spec.robot
     if has_dh_table(robot):
-        texts["calibrated_dh.toml"] = toml_text(calibrated_dh_problem(problem, calibrated_dh(robot, chain)), header + (
+        texts["calibrated_dh.toml"] = toml_text(calibrated_dh_problem(problem, calibrated_dh(robot, chain), out), header + (
             "\nthe calibrated DH table: beta_deg is Hayati's rotation about y for nearly parallel axes"))
     elif robot.source == "dh":
         print(f"no calibrated_dh.toml: the robot is measured at '{robot.frame}', not at its flange "

@@ -14,25 +14,38 @@ Statistics of a fit with N measured values and L parameters (whitened residuals 
   design's measure, :func:`design_information`), the error of the compensated robot
   in the frame of the measurements (where the workpiece is registered: the frame's
   uncertainty included, as the design's base errors are);
-* validation rows (not in the fit): the nominal model after its own best rigid registration,
-  and the calibrated one with the identified tracker frame; the error per pose is the RMS over
-  its points of ``|P - T p(X)|`` (mm for people), predicted
+* validation rows (not in the fit), judged as the robot is used: every model with the tracker
+  frame fitted on the training rows: the nominal robot (the closed-form frame), registration
+  only (frame and measured point fitted), the calibrated robot; and, for the shape error alone,
+  nominal and calibrated each re-registered on the validation rows themselves. The error per
+  pose is the RMS over its points of ``|P - T p(X)|`` (mm for people), predicted
   ``sqrt((sigma^2 trace(B_v M^-1 B_v^T) + d_v sigma^2) / k)`` (model error and the validation
-  measurement's own noise, d_v values of k points).
+  measurement's own noise, d_v values of k points); a measured error beyond
+  ``PREDICTION_RATIO`` times the prediction is what the model does not hold (compliance,
+  backlash, the tracker), and is reported. A validation pose with a joint outside the range of
+  the training rows is out of range (extrapolation), marked and summarised apart.
+* the model (:mod:`.choice`): registration only, + joint offsets, + the most significant of
+  the problem's parameters, or all of them, given or chosen by cross-validation on the training
+  rows less the outliers of the problem's own model; the chosen model is then fitted with its
+  own outlier test.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 from ..build import Problem
-from ..errors import ProblemError
+from ..errors import DesignError, ProblemError
 from ..measures import information_matrix, rho_at_test_poses
+from .choice import MODELS, Candidate, candidates, choose
 from .compensate import compensate
-from .fit import Fit, FitModel, fit, fit_model, frame_matrix, model_points, registration
-from .lsq import nominal_poses
+from .fit import (Fit, FitModel, fit, frame_matrix, in_tracker, model_points, point_errors, pose_rms,
+                  register, row_errors)
+from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
 
@@ -44,17 +57,29 @@ CORRELATION_LIMIT = 0.9
 SAME_POSE_RAD = 1e-6
 #: Level of the chi-square test of the noise.
 CONFIDENCE = 0.95
+#: A validation RMS beyond this times its prediction is reported as what the model misses.
+PREDICTION_RATIO = 1.5
 
 
 @dataclass(frozen=True, eq=False)
 class PoseErrors:
-    """Errors per pose (m): RMS over each pose's points of ``|measured - model|``, nominal and
-    calibrated, and the predicted RMS of the calibrated model's error (with the noise)."""
+    """Errors per validation pose (m): RMS over each pose's points of ``|measured - model|``
+    (module docstring), the predicted RMS of the calibrated model's error (with the noise), and
+    which poses lie outside the training rows' joint ranges."""
 
     lines: tuple[int, ...]
     nominal_m: np.ndarray
+    registration_m: np.ndarray
     calibrated_m: np.ndarray
+    nominal_reregistered_m: np.ndarray
+    calibrated_reregistered_m: np.ndarray
     predicted_m: np.ndarray
+    out_of_range: np.ndarray
+
+    def rms(self, name: str, where: np.ndarray | None = None) -> float:
+        e = getattr(self, f"{name}_m")
+        e = e if where is None else e[where]
+        return float(np.sqrt(np.mean(e**2))) if e.size else math.nan
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,6 +100,10 @@ class Calibration:
     q_compensated : ndarray, shape (s, n): commands that put the calibrated robot's measured
         frame on the nominal targets of the test poses (machining wrench included).
     validation : :class:`PoseErrors` of the validation rows, or None.
+    model : the model identified (:data:`~.choice.MODELS`), ``candidates`` every candidate with
+        its cross-validated error; ``loss`` the loss of the fit.
+    notes : what a person should read (measured points located, a refit refused, a model
+        worse than registration only, a validation beyond its prediction).
     """
 
     problem: Problem
@@ -96,6 +125,16 @@ class Calibration:
     validation: PoseErrors | None
     validation_path: str | None
     validation_Q: np.ndarray | None
+    model: str = "identifiable"
+    candidates: tuple[Candidate, ...] = ()
+    loss: str = "linear"
+    notes: tuple[str, ...] = ()
+    model_request: str = "auto"
+
+    @property
+    def model_chosen(self) -> bool:
+        """Whether the model was chosen by cross-validation (``--model auto``)."""
+        return self.model_request == "auto"
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -136,40 +175,30 @@ def row_sigmas(f: Fit, sigma: float) -> np.ndarray:
 
 
 def fit_without_outliers(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray,
-                         threshold: float) -> tuple[Fit, list[tuple[int, float]]]:
+                         threshold: float, loss: str = "linear",
+                         ) -> tuple[Fit, list[tuple[int, float]], list[str]]:
     """Fit, then exclude the worst row while its ``|r| / sigma`` exceeds ``threshold`` and the
-    remaining rows still identify the parameters; refit after each exclusion."""
+    remaining rows still identify the parameters; refit after each exclusion. A refit that
+    fails (the rest do not identify X, or it does not converge) keeps the last good fit, and
+    the returned notes say so."""
     used = np.ones(meas.m, dtype=bool)
-    f = fit(problem, fm, meas, T0, used)
+    f = fit(problem, fm, meas, T0, used, loss)
     outliers: list[tuple[int, float]] = []
     while True:
         score = np.where(used, row_sigmas(f, problem.sigma_m), -np.inf)
         worst = int(np.argmax(score))
         if not score[worst] > threshold:
-            return f, outliers
+            return f, outliers, []
         trial = used.copy()
         trial[worst] = False
         try:
-            refit = fit(problem, fm, meas, T0, trial)
-        except ProblemError:  # the rest cannot identify X: keep the row
-            return f, outliers
+            refit = fit(problem, fm, meas, T0, trial, loss)
+        except (ProblemError, DesignError) as e:  # keep the row and the last good fit
+            why = str(e).split(": ", 1)[-1]
+            return f, outliers, [f"row {meas.lines[worst]} ({score[worst]:.1f} sigma) kept: the fit "
+                                 f"without it failed ({why}); the fit with it is reported"]
         outliers.append((meas.lines[worst], float(score[worst])))
         used, f = trial, refit
-
-
-def point_errors(problem: Problem, P: np.ndarray, model_P: np.ndarray) -> np.ndarray:
-    """Per point ``|P - model_P|`` over the measured axes (m, k), NaN where not seen."""
-    axes = list(measured_axes(problem))
-    return np.sqrt(np.sum((P - model_P)[:, :, axes] ** 2, axis=2))
-
-
-def pose_rms(e: np.ndarray) -> np.ndarray:
-    """RMS over each row's seen points, shape (m,)."""
-    return np.sqrt(np.nanmean(e**2, axis=1))
-
-
-def in_tracker(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return p @ T[:3, :3].T + T[:3, 3]
 
 
 def design_information(f: Fit, meas: Measurements) -> np.ndarray:
@@ -181,21 +210,23 @@ def design_information(f: Fit, meas: Measurements) -> np.ndarray:
     return information_matrix(B)
 
 
-def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray) -> PoseErrors:
-    """Errors of the nominal (its own best rigid registration) and calibrated model at the
-    validation rows, and the predicted RMS (module docstring)."""
+def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
+                  registered: Fit | None, training: Measurements) -> PoseErrors:
+    """Errors at the validation rows of the nominal, registration-only (``registered``; None:
+    the nominal's) and calibrated models in the training frame, of the nominal and calibrated
+    models re-registered on the rows, and the predicted RMS (module docstring)."""
     fm, axes = f.fit, measured_axes(problem)
     model, sigma = fm.model, problem.sigma_m
     seen = valid.seen
+
+    def reregistered(points: np.ndarray) -> np.ndarray:
+        found = rigid_fit(points[seen], valid.P_m[seen], axes) if fm.frame == "tracker" else None
+        return pose_rms(point_errors(problem, valid.P_m, in_tracker(
+            f.T0 if found is None and fm.frame == "tracker" else np.eye(4) if found is None else frame_matrix(*found), points)))
+
     nominal = model_points(model, valid.Q, valid.F, np.zeros(model.L))
-    if fm.frame == "tracker":
-        found = rigid_fit(nominal[seen], valid.P_m[seen], axes)
-        T_nominal = f.T0 if found is None else frame_matrix(*found)
-    else:
-        T_nominal = np.eye(4)
-    e_nominal = point_errors(problem, valid.P_m, in_tracker(T_nominal, nominal))
-    calibrated = model_points(model, valid.Q, valid.F, f.X)
-    e_cal = point_errors(problem, valid.P_m, in_tracker(f.T0, calibrated))
+    calibrated = model_points(model, valid.Q, valid.F, f.robot_X)
+    e_nominal = pose_rms(point_errors(problem, valid.P_m, in_tracker(f.T0, nominal)))
     Bv = model.B_stack(valid.Q, valid.F) * model.column_scale  # for the physical X of the fit
     per = len(axes)
     mask = np.repeat(seen, per, axis=1)
@@ -203,12 +234,22 @@ def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray) 
     k = seen.sum(axis=1)
     model_var = rho_at_test_poses(M, Bv, sigma)  # sigma^2 trace(B_v M^-1 B_v^T)
     predicted = np.sqrt((model_var + mask.sum(axis=1) * sigma**2) / k)
-    return PoseErrors(valid.lines, pose_rms(e_nominal), pose_rms(e_cal), predicted)
+    Qt = training.Q[f.used]
+    outside = np.any((valid.Q < Qt.min(axis=0) - SAME_POSE_RAD) | (valid.Q > Qt.max(axis=0) + SAME_POSE_RAD), axis=1)
+    return PoseErrors(valid.lines, e_nominal,
+                      e_nominal if registered is None else row_errors(problem, registered, valid),
+                      row_errors(problem, f, valid), reregistered(nominal), reregistered(calibrated),
+                      predicted, outside)
 
 
 def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
-              validation: Measurements | None = None, threshold: float = OUTLIER_SIGMA) -> Calibration:
+              validation: Measurements | None = None, threshold: float = OUTLIER_SIGMA,
+              loss: str = "linear", model: str = "auto") -> Calibration:
     """Identify the robot of ``problem`` from ``meas`` (module docstring).
+
+    The measured points are located first when they are far off (:func:`~.fit.register`:
+    ``Calibration.problem`` is then the problem with the located points); the model is
+    ``model`` of :data:`~.choice.MODELS`.
 
     Raises
     ------
@@ -221,9 +262,19 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
 
     if not threshold > 0:
         raise ProblemError(f"--outlier-sigma {threshold:g}: give a positive number of sigma, e.g. 4")
-    fm = fit_model(problem, frame)
-    T0 = registration(problem, fm, meas)
-    f, outliers = fit_without_outliers(problem, fm, meas, T0, threshold)
+    check_loss(loss)
+    if model not in MODELS:
+        raise ProblemError(f"--model {model}: allowed: {', '.join(MODELS)}")
+    problem, own, T0, notes = register(problem, frame, meas)
+    try:  # the rows the candidates are judged on: without the problem's own model's outliers
+        rows = fit_without_outliers(problem, own, meas, T0, threshold, loss)[0].used
+    except (ProblemError, DesignError):
+        rows = np.ones(meas.m, dtype=bool)
+    found = candidates(problem, frame, meas, T0, loss, rows)
+    chosen, warnings = choose(found, model)
+    fm = chosen.fit_model
+    f, outliers, refused = fit_without_outliers(problem, fm, meas, T0, threshold, loss)
+    notes += refused + warnings
     sigma, L = problem.sigma_m, fm.model.L
     Minv = np.linalg.inv(f.information)
     C = sigma**2 * Minv
@@ -245,9 +296,20 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     predicted = np.sqrt(rho_at_test_poses(M0, B0, sigma))
     target = nominal_poses(fm.model, tp.q, tp.F)
     qc, done, _ = compensate(fm.model, tp.q, tp.F, target, np.tile(f.robot_X, (tp.s, 1)), sigma)
+    valid = None
+    if validation is not None:
+        base = found[0]
+        registered = None if math.isnan(base.training_rms_m) else (
+            f if base is chosen else fit(problem, base.fit_model, meas, T0, f.used, loss))
+        valid = validate_rows(problem, f, validation, M0, registered, meas)
+        if valid.rms("calibrated") > PREDICTION_RATIO * valid.rms("predicted"):
+            notes.append(f"the validation RMS {valid.rms('calibrated') * 1e3:.3f} mm is "
+                         f"{valid.rms('calibrated') / valid.rms('predicted'):.1f}x its prediction "
+                         f"{valid.rms('predicted') * 1e3:.3f} mm: the model misses what the robot "
+                         "does (compliance, backlash, the tracker), or sigma is too small")
     return Calibration(
         problem, meas, f, tuple(outliers), std, correlation,
         float(np.sqrt(ssr / dof)) if dof > 0 else float("nan"), ssr / sigma**2, dof, interval,
-        pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done,
-        None if validation is None else validate_rows(problem, f, validation, M0),
-        None if validation is None else validation.path, None if validation is None else validation.Q)
+        pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done, valid,
+        None if validation is None else validation.path, None if validation is None else validation.Q,
+        chosen.name, tuple(found), loss, tuple(notes), model)

@@ -10,8 +10,9 @@ rigid motion ``T`` of the base frame: ``P = T p``. ``T = T0 E(delta)``:
    the fit's parameters are ``(delta, X)`` of one measurement model; the robot parameters the
    frame absorbs (a combination of ``delta`` and the parameters before them, tested on the
    column-normalised Jacobian stacked over random poses) are dropped and reported;
-3. weighted least squares ``min |W (y - h(delta, X))|^2`` by Levenberg-Marquardt
-   (:func:`~.lsq.identify_nonlinear`, the code of every simulated calibration of ``validate``),
+3. weighted least squares ``min |W (y - h(delta, X))|^2`` (or a robust loss) by scipy's trust
+   region with the exact Jacobian (:func:`~.lsq.identify_nonlinear`, the solver of every
+   simulated calibration of ``validate``),
    with ``y = Wh (T0^-1 P - p_ref)`` the whitened deviations of the measured points from the
    nominal ones and ``W`` the mask of the markers seen.
 
@@ -33,7 +34,7 @@ from ..mapped import evaluate
 from ..measures import SINGULAR_RTOL, information_matrix
 from ..models import CalibrationModel, calibration_model
 from ..symbolic import PLACEMENT_ERRORS
-from .lsq import Identification, identify_nonlinear, measurement_slopes, nominal_poses
+from .lsq import Identification, identify_nonlinear, measurement_jacobian, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
 
@@ -70,17 +71,15 @@ class FitModel:
         return np.arange(len(self.frame_names), self.model.L)
 
 
-def fit_model(problem: Problem, frame: str) -> FitModel:
-    """The fit's measurement model for measurements in the ``frame`` (module docstring)."""
+def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None) -> FitModel:
+    """The fit's measurement model for measurements in the ``frame`` (module docstring), of the
+    robot parameters ``names`` (default the problem's own)."""
     if frame not in FRAMES:
         raise ProblemError(f"--frame {frame}: allowed: {', '.join(FRAMES)}")
     model = problem.model
-    if frame == "base":
-        return FitModel(model, frame, (), model.parameter_names, ())
+    names = model.parameter_names if names is None else tuple(names)
     kin = model.kinematics
-    compliant = tuple(p for p in model.parameter_names if p.startswith("k."))
-    geometric = tuple(p for p in model.parameter_names if p not in compliant and p not in FRAME_PARAMETERS)
-    absorbed = [(p, "the tracker frame's placement") for p in model.parameter_names if p in FRAME_PARAMETERS]
+    compliant = tuple(p for p in names if p.startswith("k."))
     case = "both" if compliant else "geometric"
 
     def build(names: tuple[str, ...]) -> CalibrationModel:
@@ -89,6 +88,10 @@ def fit_model(problem: Problem, frame: str) -> FitModel:
         args["compliant"] = tuple(p[2:] for p in names if p.startswith("k.")) or None
         return calibration_model(kin, case, **args)
 
+    if frame == "base":
+        return FitModel(model if names == model.parameter_names else build(names), frame, (), names, ())
+    geometric = tuple(p for p in names if p not in compliant and p not in FRAME_PARAMETERS)
+    absorbed = [(p, "the tracker frame's placement") for p in names if p in FRAME_PARAMETERS]
     candidates = build(FRAME_PARAMETERS + geometric + compliant)
     S = stacked_jacobian(candidates, np.random.default_rng(ABSORB_SEED))
     norms = np.linalg.norm(S, axis=0)
@@ -142,7 +145,7 @@ class Fit:
     used : ndarray of bool, shape (m,): the rows in the fit.
     r : ndarray, shape (m, d), m: whitened residuals ``y - h(X)`` (0 where not measured).
     J : ndarray, shape (m, d, L): ``dh/dX`` at ``X`` (masked).
-    identification : iterations and convergence of Levenberg-Marquardt.
+    identification : evaluations and convergence of the least squares.
     """
 
     fit: FitModel
@@ -177,6 +180,21 @@ class Fit:
         return information_matrix(self.J[self.used])
 
 
+def point_errors(problem: Problem, P: np.ndarray, model_P: np.ndarray) -> np.ndarray:
+    """Per point ``|P - model_P|`` over the measured axes (m, k), NaN where not seen."""
+    axes = list(measured_axes(problem))
+    return np.sqrt(np.sum((P - model_P)[:, :, axes] ** 2, axis=2))
+
+
+def pose_rms(e: np.ndarray) -> np.ndarray:
+    """RMS over each row's seen points, shape (m,)."""
+    return np.sqrt(np.nanmean(e**2, axis=1))
+
+
+def in_tracker(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
 def whitening(problem: Problem) -> np.ndarray:
     """``Wh = sigma Sigma^-1/2`` of one experiment's values (identity by default)."""
     wh = problem.spec.measurement.whitening
@@ -191,14 +209,15 @@ def model_points(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, X: np.nd
     return p[:, None, :] + np.einsum("tij,kj->tki", R, model.markers_m)
 
 
-def registration(problem: Problem, fm: FitModel, meas: Measurements) -> np.ndarray:
-    """``T0`` (4 x 4): the closed-form tracker frame of the nominal model, identity in the base
-    frame; the measurements must lie within ``REGISTRATION_TOL_M`` RMS of the nominal model.
+def registration(problem: Problem, fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float, int]:
+    """``T0`` (4 x 4): the closed-form tracker frame of the nominal model (identity in the base
+    frame), the RMS distance (m) of the measured points from the nominal ones it leaves, and
+    the row (index) of the worst.
 
     Raises
     ------
     ProblemError
-        When the points do not determine the frame, or lie too far from the nominal robot.
+        When the points do not determine the frame.
     """
     axes = measured_axes(problem)
     nominal = model_points(fm.model, meas.Q, meas.F, np.zeros(fm.model.L))
@@ -215,17 +234,135 @@ def registration(problem: Problem, fm: FitModel, meas: Measurements) -> np.ndarr
                 "base-frame coordinates with --frame base")
         T0 = frame_matrix(*found)
     off = (B - (A @ T0[:3, :3].T + T0[:3, 3]))[:, list(axes)]
-    rms = float(np.sqrt(np.mean(np.sum(off**2, axis=1))))
-    if rms > REGISTRATION_TOL_M:
-        rows = np.nonzero(seen)[0]
-        worst = int(rows[np.argmax(np.sum(off**2, axis=1))])
-        how = "after the best rigid fit" if fm.frame == "tracker" else "in the base frame (--frame base)"
-        raise ProblemError(
-            f"{meas.path}: cannot be registered to the nominal robot of {problem.path}: {how} the "
-            f"measured points are {rms * 1e3:.1f} mm RMS off it (row {meas.lines[worst]} the "
-            f"worst); check that the file belongs to this case file, the order and units of the "
-            "joint columns, the coordinates in mm" + ("" if fm.frame == "tracker" else ", and the --frame"))
-    return T0
+    rows = np.nonzero(seen)[0]
+    return T0, float(np.sqrt(np.mean(np.sum(off**2, axis=1)))), int(rows[np.argmax(np.sum(off**2, axis=1))])
+
+
+def with_points(problem: Problem, d: np.ndarray, build: bool = True):
+    """``problem`` with its measured points moved by ``d`` (k x 3, m, in the measured frame):
+    ``[robot].tool_xyz_m`` for one point, ``[measurement].markers_m`` for markers; its spec
+    only when not ``build``."""
+    from dataclasses import replace
+
+    from ..build import build_problem
+    from ..robots import placement_from_xyz_rpy
+
+    spec = problem.spec
+    if spec.measurement.markers_m is not None:
+        markers = tuple(tuple(float(v) for v in np.add(m, dm)) for m, dm in zip(spec.measurement.markers_m, d))
+        moved = replace(spec, measurement=replace(spec.measurement, markers_m=markers))
+        return build_problem(moved) if build else moved
+    r = spec.robot
+    xyz = np.zeros(3) if r.tool_xyz_m is None else np.asarray(r.tool_xyz_m, float)
+    rot = np.eye(3) if r.tool_rpy_rad is None else placement_from_xyz_rpy(xyz, r.tool_rpy_rad).rotation
+    tool = tuple(float(v) for v in xyz + rot @ d[0])
+    moved = replace(spec, robot=replace(r, tool_xyz_m=tool))
+    return build_problem(moved) if build else moved
+
+
+def point_keys(problem: Problem) -> str:
+    return "[measurement].markers_m" if problem.spec.measurement.markers_m is not None else "[robot].tool_xyz_m"
+
+
+def point_values(problem) -> str:
+    """The measured points of a problem (or its spec) as its file would give them (m)."""
+    spec = getattr(problem, "spec", problem)
+    pts = spec.measurement.markers_m if spec.measurement.markers_m is not None else [spec.robot.tool_xyz_m or (0.0, 0.0, 0.0)]
+    text = ", ".join("[" + ", ".join(f"{v:.5f}" for v in pt) + "]" for pt in pts)
+    return f"[{text}]" if spec.measurement.markers_m is not None else text
+
+
+def register(problem: Problem, frame: str, meas: Measurements) -> tuple[Problem, FitModel, np.ndarray, list[str]]:
+    """The problem to fit (its measured points located when they are far off), its fit model,
+    ``T0`` of :func:`registration`, and a note when the points were located.
+
+    The measurements must lie within ``REGISTRATION_TOL_M`` RMS of the nominal model after the
+    closed-form frame. When they do not and x, y, z are measured in the tracker frame, the
+    measured points are located with the frame (:func:`locate_points`); if that leaves them
+    within the gate, the problem with the located points is fitted.
+
+    Raises
+    ------
+    ProblemError
+        When the points do not determine the frame, or lie too far from the nominal robot even
+        with the points located (the message names the keys and the located points).
+    """
+    fm = fit_model(problem, frame)
+    T0, rms, worst = registration(problem, fm, meas)
+    if rms <= REGISTRATION_TOL_M:
+        return problem, fm, T0, []
+    located = ""
+    if frame == "tracker" and len(measured_axes(problem)) == 3:
+        d, left = locate_points(fm, meas)
+        where = f"{point_keys(problem)} = {point_values(with_points(problem, d, build=False))} m"
+        if left > REGISTRATION_TOL_M:
+            located = f"; with the measured points located at {where} they are still {left * 1e3:.1f} mm RMS off"
+        else:
+            try:
+                moved = with_points(problem, d)
+            except ProblemError as e:  # e.g. test poses the moved tool cannot reach
+                located = f"; with the measured points located at {where} ({left * 1e3:.2f} mm RMS left) {e}"
+            else:
+                fm = fit_model(moved, frame)
+                T0, _, _ = registration(moved, fm, meas)
+                return moved, fm, T0, [
+                    f"the measured points of {problem.path} lie {rms_of(d) * 1e3:.1f} mm off "
+                    f"{point_keys(problem)} (the nominal robot {rms * 1e3:.1f} mm RMS off the "
+                    f"measurements): located with the tracker frame at {where} ({left * 1e3:.2f} mm "
+                    "RMS left) and fitted from there"]
+    how = "after the best rigid fit" if fm.frame == "tracker" else "in the base frame (--frame base)"
+    raise ProblemError(
+        f"{meas.path}: cannot be registered to the nominal robot of {problem.path}: {how} the "
+        f"measured points are {rms * 1e3:.1f} mm RMS off it (row {meas.lines[worst]} the "
+        f"worst){located}; check {point_keys(problem)}, that the file belongs to this case file, "
+        "the order and units of the joint and coordinate columns" + ("" if fm.frame == "tracker" else ", and the --frame"))
+
+
+def rms_of(d: np.ndarray) -> float:
+    """RMS length (m) of the rows of ``d``."""
+    return float(np.sqrt(np.mean(np.sum(np.asarray(d) ** 2, axis=-1))))
+
+
+#: The alternating registration with the points free stops when no point moves by more than
+#: this (m), or after ``LOCATE_ITERATIONS`` rounds.
+LOCATE_TOL_M = 1e-9
+LOCATE_ITERATIONS = 2000
+
+
+def locate_points(fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float]:
+    """The measured points' offsets from their nominal place, in the measured frame, found
+    with the tracker frame: ``min over T, d_c of sum_ic |T (R_i (m_c + d_c) + p_i) - P_ic|^2``
+    (nominal robot, poses ``(R_i, p_i)`` of the measured frame, nominal points ``m_c``).
+
+    Alternating closed forms: for the frame ``T`` the Kabsch fit (:func:`rigid_fit`); for the
+    points ``d_c = mean_i R_i^T (T^-1 P_ic - p_i) - m_c``. Three measured components only.
+
+    Returns
+    -------
+    d : ndarray, shape (k, 3), m.  rms_m : float, the RMS distance left, m.
+    """
+    model = fm.model
+    ref = nominal_poses(model, meas.Q, meas.F)
+    R, p = ref[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), ref[:, 9:]
+    seen, P = meas.seen, meas.P_m
+    markers = np.asarray(model.markers_m, float)
+    d = np.zeros_like(markers)
+    for _ in range(LOCATE_ITERATIONS):
+        points = p[:, None, :] + np.einsum("tij,kj->tki", R, markers + d)
+        found = rigid_fit(points[seen], P[seen], (0, 1, 2))
+        if found is None:
+            break
+        Rt, t = found
+        local = np.einsum("tji,tkj->tki", R, (P - t) @ Rt - p[:, None, :]) - markers  # R_i^T (T^-1 P - p_i)
+        new = np.array([np.mean(local[seen[:, c], c], axis=0) for c in range(len(markers))])
+        moved = float(np.max(np.abs(new - d)))
+        d = new
+        if moved < LOCATE_TOL_M:
+            break
+    points = p[:, None, :] + np.einsum("tij,kj->tki", R, markers + d)
+    found = rigid_fit(points[seen], P[seen], (0, 1, 2))
+    off = P[seen] - (points[seen] @ found[0].T + found[1]) if found is not None else np.full(3, np.nan)
+    return d, float(np.sqrt(np.mean(np.sum(off**2, axis=-1))))
 
 
 def measured_values(problem: Problem, fm: FitModel, meas: Measurements,
@@ -275,8 +412,10 @@ def check_identifiable(problem: Problem, fm: FitModel, meas: Measurements, used:
             f"{L}); measure more, and more varied, poses (a plan of casadi-design solve)")
 
 
-def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used: np.ndarray) -> Fit:
-    """Levenberg-Marquardt on the rows ``used`` of ``meas`` (module docstring).
+def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used: np.ndarray,
+        loss: str = "linear", prior_std: np.ndarray | None = None) -> Fit:
+    """Least squares (``loss``: :data:`~.lsq.LOSSES`) on the rows ``used`` of ``meas`` (module
+    docstring).
 
     Raises
     ------
@@ -290,14 +429,22 @@ def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used
     model, sigma = fm.model, problem.sigma_m
     m = len(y)
     X, ident = identify_nonlinear(model, meas.Q[used], meas.F[used], ref[used], y[used].reshape(1, -1),
-                                  sigma, mask=mask[used].reshape(-1))
+                                  sigma, mask=mask[used].reshape(-1), loss=loss,
+                                  prior_std=prior_std)
     if ident.non_converged:
         raise DesignError(
-            f"{meas.path}: the fit did not converge in {ident.iterations} Levenberg-Marquardt "
-            "iterations; the robot is far from its nominal model or the rows disagree: check the "
-            "file, or calibrate in two steps (fewer parameters first)")
+            f"{meas.path}: the fit did not meet its tolerances in {ident.iterations} evaluations "
+            "of the model; the robot is far from its nominal model or the rows disagree: check the "
+            "file, or fit fewer parameters first (--model offsets)")
     X = X[0]
-    h = evaluate(model.measurement, meas.Q, meas.F, np.tile(X, (m, 1)), ref)[0][:, :, 0]
-    J = evaluate(measurement_slopes(model), meas.Q, meas.F, np.tile(X, (m, 1)), ref,
-                 np.zeros((m, model.L)))[0]
+    h, J = evaluate(measurement_jacobian(model), meas.Q, meas.F, np.tile(X, (m, 1)), ref)
+    h = h[:, :, 0]
     return Fit(fm, X, T0, ref, y, mask, used, np.where(mask, y - h, 0.0), J * mask[:, :, None], ident)
+
+
+def row_errors(problem: Problem, f: Fit, meas: Measurements, rows: np.ndarray | None = None) -> np.ndarray:
+    """RMS over each row's points of ``|P - T0 p(X)|`` (m) of the fit ``f`` at the rows ``rows``
+    (indices or mask, default all) of ``meas``, in the frame the fit identified."""
+    sub = meas if rows is None else meas.subset(rows)
+    model_P = in_tracker(f.T0, model_points(f.fit.model, sub.Q, sub.F, f.X))
+    return pose_rms(point_errors(problem, sub.P_m, model_P))

@@ -1,27 +1,90 @@
-"""Measurement CSVs: a plan CSV of ``solve`` with the measured coordinates appended.
+"""Measurement CSVs: a plan CSV of ``solve`` with the measured coordinates appended, or the
+files real data comes in.
 
 The joint columns (``<joint>_deg`` / ``_rad``, or ``q1_deg``...) and load columns are those of a
-plan (:func:`casadi_design.export.read_plan_table`); the measured coordinates (mm) follow:
+plan (:func:`casadi_design.export.read_plan_table`); the measured coordinates follow:
 ``meas_x_mm, meas_y_mm, meas_z_mm`` for one measured point, ``meas1_x_mm, ..., measK_z_mm`` for
 the K markers of ``markers_m`` in their order, one column per measured position component
-(``[measurement].components``). An empty cell is a marker the tracker did not see; a marker's
-coordinates are all given or all empty.
+(``[measurement].components``); ``_m`` instead of ``_mm`` for metres. An empty cell is a marker
+the tracker did not see; a marker's coordinates are all given or all empty.
+
+Real files (:class:`FileFormat`): joint columns by their bare names (``torso_lift_joint``) in
+``joint_units``; coordinate columns without a unit (``meas1_x``) in ``units``; a column map from
+the file's names to these; FIGAROH's layout (``x1, y1, z1, ..., x4, y4, z4`` in m, bare joint
+names in rad and m) recognised by its header. Columns of neither kind are ignored with a note;
+joint readings up to ``limit_tolerance`` past a joint limit are accepted with a note.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..build import Problem
 from ..errors import ProblemError
-from ..export import joint_units, read_plan_table
+from ..export import is_prismatic, joint_units, plan_header, read_plan_table
 
 #: The position components a tracker measures, in the order of the columns.
 AXES = ("x", "y", "z")
-#: Joint values this far outside their limits (rad or m) are still accepted (rounding in a CSV).
+#: Joint values this far outside their limits (rad or m) are accepted silently (rounding in a CSV).
 LIMIT_TOL = 1e-6
+#: Default of ``--limit-tolerance`` (rad or m): readings this far past a limit are accepted with
+#: a note (a real encoder reads past the URDF's limit: TIAGo's torso 0.35018 m of 0.35 m).
+LIMIT_TOLERANCE = 1e-3
+#: Units of coordinates (SI per unit) and of bare joint columns.
+COORDINATE_UNITS = {"mm": 1e-3, "m": 1.0}
+REVOLUTE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
+PRISMATIC_UNITS = {"m": 1.0, "mm": 1e-3}
+
+
+@dataclass(frozen=True)
+class FileFormat:
+    """How to read a measurement file (module docstring).
+
+    units : "mm" or "m": coordinate columns without a unit suffix (None: FIGAROH's layout in m,
+        other files must name the unit).
+    joint_units : units of bare joint columns: one of rad / deg (revolute) and one of m / mm
+        (prismatic), default rad and m.
+    columns : (file's name, name read here) pairs, e.g. ("x1", "meas1_x").
+    limit_tolerance : rad or m past a joint limit accepted with a note.
+    """
+
+    units: str | None = None
+    joint_units: tuple[str, ...] = ("rad", "m")
+    columns: tuple[tuple[str, str], ...] = ()
+    limit_tolerance: float = LIMIT_TOLERANCE
+
+    def __post_init__(self):
+        if self.units is not None and self.units not in COORDINATE_UNITS:
+            raise ProblemError(f"--units {self.units}: allowed: {', '.join(COORDINATE_UNITS)}")
+        for u in self.joint_units:
+            if u not in REVOLUTE_UNITS and u not in PRISMATIC_UNITS:
+                raise ProblemError(f"--joint-units {u}: allowed: rad or deg (revolute joints), m or mm "
+                                   "(prismatic joints), e.g. --joint-units deg,mm")
+        if not (math.isfinite(self.limit_tolerance) and self.limit_tolerance >= 0):
+            raise ProblemError(f"--limit-tolerance {self.limit_tolerance:g}: give a number >= 0 (rad or m)")
+
+    @property
+    def revolute(self) -> str:
+        return next((u for u in self.joint_units if u in REVOLUTE_UNITS), "rad")
+
+    @property
+    def prismatic(self) -> str:
+        return next((u for u in self.joint_units if u in PRISMATIC_UNITS and u not in REVOLUTE_UNITS), "m")
+
+
+def parse_columns(text: str) -> tuple[tuple[str, str], ...]:
+    """``--columns x1=meas1_x,y1=meas1_y`` -> (("x1", "meas1_x"), ("y1", "meas1_y"))."""
+    pairs = []
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        theirs, _, ours = item.partition("=")
+        if not theirs.strip() or not ours.strip():
+            raise ProblemError(f"--columns: '{item}' is not FILE_COLUMN=OUR_COLUMN; give e.g. "
+                               "--columns x1=meas1_x,y1=meas1_y,z1=meas1_z")
+        pairs.append((theirs.strip(), ours.strip()))
+    return tuple(pairs)
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,6 +98,8 @@ class Measurements:
     Q : ndarray, shape (m, n), rad (m): joint values;  F : ndarray, shape (m, nF), N (N m).
     P_m : ndarray, shape (m, k, 3), m: measured coordinates of the k measured points, in the
         frame of the measurements; NaN for a marker not seen and for a component not measured.
+    notes : what the reader did that a person should know (columns ignored, the layout
+        recognised, readings past a joint limit).
     """
 
     path: str
@@ -42,6 +107,13 @@ class Measurements:
     Q: np.ndarray
     F: np.ndarray
     P_m: np.ndarray
+    notes: tuple[str, ...] = ()
+
+    def subset(self, rows: np.ndarray) -> "Measurements":
+        """The rows ``rows`` (indices or a bool mask) of these measurements."""
+        i = np.arange(self.m)[rows]
+        return Measurements(self.path, tuple(self.lines[k] for k in i), self.Q[i], self.F[i],
+                            self.P_m[i], self.notes)
 
     @property
     def m(self) -> int:
@@ -62,22 +134,72 @@ def measured_axes(problem: Problem) -> tuple[int, ...]:
 
 
 def measurement_columns(problem: Problem) -> list[list[str]]:
-    """Per measured point, its column names (mm), e.g. ``[["meas_x_mm", "meas_y_mm"]]``."""
+    """Per measured point, its column names without unit, e.g. ``[["meas_x", "meas_y"]]``."""
     axes = [AXES[a] for a in measured_axes(problem)]
     if problem.spec.measurement.markers_m is None:
-        return [[f"meas_{a}_mm" for a in axes]]
-    return [[f"meas{c + 1}_{a}_mm" for a in axes] for c in range(len(problem.model.markers_m))]
+        return [[f"meas_{a}" for a in axes]]
+    return [[f"meas{c + 1}_{a}" for a in axes] for c in range(len(problem.model.markers_m))]
 
 
-def read_measurements(problem: Problem, path: str) -> Measurements:
-    """Read a measurement CSV of ``problem`` (module docstring).
+def _figaroh(header: list[str]) -> bool:
+    """FIGAROH's layout: x1, y1, z1 (then x2 ...) and no column of ours for the coordinates."""
+    return {"x1", "y1", "z1"} <= set(header) and not any(h.startswith("meas") for h in header)
+
+
+def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str
+             ) -> tuple[dict[str, str], dict[str, float], list[str], list[str]]:
+    """How to read ``header``: the renames (file -> ours, with unit), the SI per unit of each of
+    our coordinate columns, the columns that will be ignored, and notes."""
+    notes: list[str] = []
+    columns = dict(fmt.columns)
+    units = fmt.units
+    if _figaroh(header) and not columns:
+        k = 1 if problem.spec.measurement.markers_m is None else len(problem.model.markers_m)
+        base = (lambda c: "meas") if problem.spec.measurement.markers_m is None else (lambda c: f"meas{c}")
+        columns = {f"{a}{c}": f"{base(c)}_{a}" for c in range(1, k + 1) for a in AXES}
+        units = units or "m"
+        notes.append(f"read as FIGAROH's layout: {', '.join(columns)} as the measured point"
+                     + ("s" if k > 1 else "") + f" in {units}, bare joint names in "
+                     f"{fmt.revolute} / {fmt.prismatic}")
+    ours = [c for point in measurement_columns(problem) for c in point]
+    robot = problem.robot
+    rename: dict[str, str] = {}
+    scales: dict[str, float] = {}
+    for h in header:
+        name = columns.get(h, h)
+        unit = None
+        for u in COORDINATE_UNITS:
+            if name.endswith(f"_{u}") and name[: -len(u) - 1] in ours:
+                name, unit = name[: -len(u) - 1], u
+                break
+        if name in ours:
+            if unit is None:
+                if units is None:
+                    raise ProblemError(f"{path}: column '{h}' has no unit; name it {name}_mm or {name}_m, "
+                                       "or give the unit of the coordinates with --units mm or --units m")
+                unit = units
+            rename[h] = f"{name}_mm"
+            scales[f"{name}_mm"] = COORDINATE_UNITS[unit]
+        elif name in robot.joints:
+            k = robot.joints.index(name)
+            unit = fmt.prismatic if is_prismatic(problem, k) else fmt.revolute
+            si, people, _ = joint_units(problem, k)
+            rename[h] = f"{name}_{si}" if unit in ("rad", "m") else f"{name}_{people}"
+        elif name != h:
+            rename[h] = name
+    return rename, scales, [], notes
+
+
+def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat()) -> Measurements:
+    """Read a measurement CSV of ``problem`` in the format ``fmt`` (module docstring).
 
     Raises
     ------
     ProblemError
         The errors of a plan CSV, and: orientation components measured, a missing coordinate
         column, a marker with some coordinates empty, a row without any measured point, joint
-        values outside the joint limits (one line each, naming the file, row and column).
+        values beyond ``fmt.limit_tolerance`` outside the joint limits (one line each, naming
+        the file, row and column as the file spells it).
     """
     path = str(path)
     components = problem.spec.measurement.components
@@ -86,39 +208,77 @@ def read_measurements(problem: Problem, path: str) -> Measurements:
             f"{problem.path}: [measurement].components has {list(components)}; identify reads "
             "measured positions (x, y, z) only; measure positions, e.g. three markers for the pose")
     columns = measurement_columns(problem)
-    names = tuple(c for point in columns for c in point)
-    hint = ", ".join(names) + " (measured coordinates, mm)"
-    Q, F, values, lines = read_plan_table(problem, path, names, hint)
+    names = tuple(f"{c}_mm" for point in columns for c in point)
+    hint = ", ".join(names) + " (measured coordinates, mm; _m for metres)"
+    header = plan_header(path)
+    rename, scales, _, notes = _reading(problem, header, fmt, path)
+    Q, F, values, lines = read_plan_table(problem, path, names, hint, rename, ignore_unknown=True)
+    spelled = {ours: theirs for theirs, ours in rename.items()}
     missing = [c for c in names if c not in values]
     if missing:
         raise ProblemError(f"{path}: missing column '{missing[0]}'; append the measured coordinates "
-                           f"in mm: {', '.join(names)}")
+                           f"in mm: {', '.join(names)} (or name the file's columns with --columns)")
+    known = set(names) | _plan_columns(problem)
+    ignored = [h for h in header if rename.get(h, h) not in known]
+    if ignored:
+        notes.append(f"ignored column{'s' if len(ignored) > 1 else ''} {', '.join(ignored)} "
+                     "(neither a joint, a load nor a measured coordinate of this problem)")
     m, axes = len(Q), measured_axes(problem)
     P = np.full((m, len(columns), 3), np.nan)
     for c, point in enumerate(columns):
-        block = np.column_stack([values[name] for name in point]) * 1e-3
+        point = [f"{name}_mm" for name in point]
+        block = np.column_stack([values[name] * scales.get(name, 1e-3) for name in point])
         given = np.isfinite(block)
         partial = np.flatnonzero(given.any(axis=1) & ~given.all(axis=1))
         if partial.size:
             i = int(partial[0])
-            empty = point[int(np.flatnonzero(~given[i])[0])]
+            empty = spelled.get(point[int(np.flatnonzero(~given[i])[0])], point[int(np.flatnonzero(~given[i])[0])])
             raise ProblemError(f"{path}: row {lines[i]}, column '{empty}': empty while the other "
-                               f"coordinates of the point are given; give all of {', '.join(point)} "
+                               f"coordinates of the point are given; give all of "
+                               f"{', '.join(spelled.get(n, n) for n in point)} "
                                "or leave all empty (a marker the tracker did not see)")
         P[:, c, list(axes)] = block
     blind = np.flatnonzero(~np.any(np.isfinite(P), axis=(1, 2)))
     if blind.size:
         raise ProblemError(f"{path}: row {lines[int(blind[0])]}: no measured coordinate in "
-                           f"{', '.join(names)}; fill them in or delete the row")
+                           f"{', '.join(spelled.get(n, n) for n in names)}; fill them in or delete the row")
+    notes += _check_limits(problem, path, header, rename, Q, lines, fmt.limit_tolerance)
+    return Measurements(path, tuple(lines), Q, F, P, tuple(notes))
+
+
+def _plan_columns(problem: Problem) -> set[str]:
+    """The names of a plan's own columns (joints in every unit, loads, bookkeeping)."""
+    from ..export import CLEARANCE_COLUMNS, POSITION_COLUMNS, force_columns
+
+    names = {"experiment", *POSITION_COLUMNS, *CLEARANCE_COLUMNS, *force_columns(problem)}
+    for k, j in enumerate(problem.robot.joints):
+        si, people, _ = joint_units(problem, k)
+        names |= {f"{base}_{u}" for base in (f"q{k + 1}", j) for u in (si, people)}
+    return names
+
+
+def _check_limits(problem: Problem, path: str, header: list[str], rename: dict[str, str],
+                  Q: np.ndarray, lines: list[int], tolerance: float) -> list[str]:
+    """Notes on the readings past a joint limit by at most ``tolerance``; an error beyond."""
     robot = problem.robot
-    outside = (Q < robot.q_min - LIMIT_TOL) | (Q > robot.q_max + LIMIT_TOL)
-    if outside.any():
-        i, k = (int(v[0]) for v in np.nonzero(outside))
-        _, people, scale = joint_units(problem, k)
-        j = robot.joints[k]
-        raise ProblemError(
-            f"{path}: row {lines[i]}, column of joint {k + 1} ({j}_{people} or q{k + 1}_{people}): "
-            f"{Q[i, k] / scale:.6g} {people} is outside the joint limits [{robot.q_min[k] / scale:.6g}, "
-            f"{robot.q_max[k] / scale:.6g}] {people} of {problem.path}; check the units, the order "
-            "of the joint columns and that the file belongs to this case")
-    return Measurements(path, tuple(lines), Q, F, P)
+    past = np.maximum(robot.q_min - Q, Q - robot.q_max)
+    notes = []
+    for k, j in enumerate(robot.joints):
+        si, people, scale = joint_units(problem, k)
+        ours = {f"{base}_{u}" for base in (f"q{k + 1}", j) for u in (si, people)}
+        column = next((h for h in header if rename.get(h, h) in ours), f"{j}_{people}")
+        unit = next((u for u in (si, people) if rename.get(column, column).endswith(f"_{u}")), people)
+        per = 1.0 if unit == si else scale
+        i = int(np.argmax(past[:, k]))
+        if past[i, k] > tolerance:
+            raise ProblemError(
+                f"{path}: row {lines[i]}, column '{column}': {Q[i, k] / per:.6g} {unit} is outside the "
+                f"joint limits [{robot.q_min[k] / per:.6g}, {robot.q_max[k] / per:.6g}] {unit} of "
+                f"{problem.path} by more than --limit-tolerance {tolerance:g} (rad or m); check the "
+                "units, the order of the joint columns and that the file belongs to this case")
+        over = np.flatnonzero(past[:, k] > LIMIT_TOL)
+        if over.size:
+            notes.append(f"column '{column}': {over.size} reading{'s' if over.size > 1 else ''} past the "
+                         f"joint limits by at most {past[i, k] / per:.3g} {unit} (row {lines[i]}), within "
+                         f"--limit-tolerance {tolerance:g}: accepted")
+    return notes

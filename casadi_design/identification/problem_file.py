@@ -8,13 +8,15 @@ frame ``measured_point``, which holds the identified tool point); capsules on th
 frame move to ``measured_point``, and a DH robot's kinematic URDF has no meshes, so its
 capsules stay those of the file (``capsules_per_link = 0``). In ``calibrated_dh.toml`` (DH
 robots) the robot keeps its fields and frames and gets the calibrated table
-(:mod:`.dh_table`), so the cell stays as it is (a relative ``collision_urdf`` made absolute).
+(:mod:`.dh_table`), so the cell stays as it is (``collision_urdf`` relative to the folder
+written). The measured points are those fitted (identify locates points far off).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import tomllib
 from pathlib import Path
@@ -80,14 +82,26 @@ def _calibrated_record(problem: Problem, suffix: str) -> dict:
     if problem.model.nF:
         poses["forces_N"] = tp.F.tolist()
     record["test_poses"] = poses
+    spec = problem.spec  # the measured points as fitted (identify may have located them)
+    if spec.measurement.markers_m is not None:
+        record["measurement"]["markers_m"] = [list(m) for m in spec.measurement.markers_m]
+    if spec.robot.tool_xyz_m is not None:
+        record["robot"]["tool_xyz_m"] = list(spec.robot.tool_xyz_m)
     return record
+
+
+def _relative(path: str, problem: Problem, out: Path) -> str:
+    """``path`` of ``problem``'s file (relative to its folder, or absolute) relative to ``out``."""
+    if path.startswith("example-robot-data:"):
+        return path
+    return os.path.relpath((Path(problem.path).parent / path).resolve(), Path(out).resolve())
 
 
 def calibrated_problem(problem: Problem, urdf: Path) -> dict:
     """The table of ``calibrated.toml`` (module docstring); ``urdf``: the calibrated URDF."""
     record = _calibrated_record(problem, "_calibrated")
     source = problem.spec.robot.source
-    robot = {"urdf": str(Path(urdf).resolve()), "frame": MEASURED_POINT}
+    robot = {"urdf": Path(urdf).name, "frame": MEASURED_POINT}  # calibrated.toml is beside it
     if "joint_limits_rad" in record.get("robot", {}):
         robot["joint_limits_rad"] = record["robot"]["joint_limits_rad"]
     record["robot"] = robot
@@ -106,9 +120,9 @@ def _degrees(values) -> list[float]:
     return [math.degrees(v) + 0.0 for v in values]  # + 0.0: no -0.0 in the file
 
 
-def calibrated_dh_problem(problem: Problem, robot: RobotSpec) -> dict:
-    """The table of ``calibrated_dh.toml`` (module docstring); ``robot``: the calibrated DH
-    robot of :func:`.dh_table.calibrated_dh`."""
+def calibrated_dh_problem(problem: Problem, robot: RobotSpec, out: Path) -> dict:
+    """The table of ``calibrated_dh.toml`` (module docstring), written in ``out``; ``robot``:
+    the calibrated DH robot of :func:`.dh_table.calibrated_dh`."""
     record = _calibrated_record(problem, "_calibrated_dh")
     raw_rows = record["robot"]["dh"]["joints"]
     record["robot"]["dh"] = {
@@ -121,6 +135,6 @@ def calibrated_dh_problem(problem: Problem, robot: RobotSpec) -> dict:
                    for raw, r in zip(raw_rows, robot.dh_rows)]}
     cell = record.get("cell", {})
     urdf = cell.get("collision_urdf", "")
-    if urdf and not urdf.startswith("example-robot-data:"):
-        cell["collision_urdf"] = str((Path(problem.path).parent / urdf).resolve())
+    if urdf:
+        cell["collision_urdf"] = _relative(urdf, problem, out)
     return record

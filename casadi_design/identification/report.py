@@ -84,8 +84,11 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
         "tracker_from_base": f.tracker_from_base.tolist(),
         "tracker_from_base_std": tracker_std(c).tolist(),
         "tracker_from_base_unit": "m (4 x 4 homogeneous: base-frame points to tracker-frame points)",
-        "levenberg_marquardt": {"iterations": f.identification.iterations,
-                                "converged": f.identification.non_converged == 0},
+        "least_squares": {**f.identification.as_dict(), "converged": f.identification.non_converged == 0},
+        "model": c.model,
+        "model_choice": "leave-one-out cross-validation, one-standard-error rule" if c.model_chosen else "given (--model)",
+        "candidates": [k.as_dict() for k in c.candidates],
+        "notes": list(c.measurements.notes) + list(c.notes),
         "noise": {"sigma_m": problem.sigma_m, "sigma_estimated_m": c.sigma_hat_m, "chi2": c.chi2,
                   "dof": c.dof, "chi2_interval": list(c.chi2_interval), "confidence": 0.95,
                   "consistent": c.noise_consistent},
@@ -103,15 +106,27 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
                        "compensation_converged": c.compensation_converged.tolist()},
         "validation": None if valid is None else {
             "file": c.validation_path, "rows": list(valid.lines),
-            "nominal_m": valid.nominal_m.tolist(), "calibrated_m": valid.calibrated_m.tolist(),
-            "predicted_m": valid.predicted_m.tolist(),
-            "nominal_rms_m": float(np.sqrt(np.mean(valid.nominal_m**2))),
-            "calibrated_rms_m": float(np.sqrt(np.mean(valid.calibrated_m**2))),
-            "predicted_rms_m": float(np.sqrt(np.mean(valid.predicted_m**2))),
-            "nominal_max_m": float(np.max(valid.nominal_m)),
-            "calibrated_max_m": float(np.max(valid.calibrated_m))},
+            "frame": "nominal, registration and calibrated: the tracker frame fitted on the training rows; "
+                     "*_reregistered: each model's own best rigid fit to the validation rows",
+            **{f"{k}_m": getattr(valid, f"{k}_m").tolist() for k in VALIDATION_ERRORS},
+            "out_of_range": valid.out_of_range.tolist(),
+            **{f"{k}_rms_m": valid.rms(k) for k in VALIDATION_ERRORS},
+            **{f"{k}_out_of_range_rms_m": none_if_nan(valid.rms(k, valid.out_of_range)) for k in VALIDATION_ERRORS},
+            **{f"{k}_max_m": float(np.max(getattr(valid, f"{k}_m"))) for k in VALIDATION_ERRORS}},
         "files": files,
     }
+
+
+#: The validation errors of :class:`~.calibrate.PoseErrors`, in the order of the tables.
+VALIDATION_ERRORS = ("nominal", "registration", "calibrated", "nominal_reregistered",
+                     "calibrated_reregistered", "predicted")
+VALIDATION_LABELS = {"nominal": "nominal", "registration": "registration only",
+                     "calibrated": "calibrated", "nominal_reregistered": "nominal, re-registered",
+                     "calibrated_reregistered": "calibrated, re-registered", "predicted": "predicted"}
+
+
+def none_if_nan(v: float) -> float | None:
+    return None if math.isnan(v) else v
 
 
 def _value_for_people(value: float, unit: str) -> tuple[float, str]:
@@ -126,9 +141,18 @@ def summary_lines(calibration: Calibration) -> list[str]:
     def label(name: str) -> str:
         return f"tracker frame {name[len('base.'):]}" if name in f.fit.frame_names else name
 
-    lines = [(f"identified {len(c.names)} parameters from {int(used.sum())} of {c.measurements.m} rows "
-              f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; Levenberg-Marquardt "
-              f"{f.identification.iterations} iterations"),
+    lines = [f"note: {n}" for n in (*c.measurements.notes, *c.notes)]
+    lines.append("models (leave-one-out cross-validation on the rows without the outliers of the "
+                 "problem's own model; RMS of the rows left out, mm):")
+    for k in c.candidates:
+        cv = "not cross-validated: " + k.why if math.isnan(k.cv_rms_m) else f"{k.cv_rms_m * 1e3:8.4f} +- {k.cv_se_m * 1e3:.4f}"
+        lines.append(f"  {'*' if k.name == c.model else ' '} {k.name:16s} {k.L:3d} parameters, training "
+                     f"{k.training_rms_m * 1e3:8.4f}, cross-validated {cv}")
+    lines += [(f"identified {len(c.names)} parameters ({c.model} model, "
+               f"{'chosen by cross-validation' if c.model_chosen else 'given by --model'}) from "
+               f"{int(used.sum())} of {c.measurements.m} rows "
+               f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; least squares, loss "
+               f"{f.identification.loss}, {f.identification.iterations} evaluations"),
              f"{'parameter':28s} {'value':>12s} {'std':>10s}  unit"]
     for n, x, s in zip(c.names, f.X, c.std):
         (v, unit), (sd, _) = _value_for_people(x, parameter_unit(c, n)), _value_for_people(s, parameter_unit(c, n))
@@ -149,10 +173,11 @@ def summary_lines(calibration: Calibration) -> list[str]:
                      "is predicted, not checked on poses outside the fit")
     else:
         v = c.validation
-        lines.append(f"validation, {len(v.lines)} rows: nominal (registered) RMS "
-                     f"{np.sqrt(np.mean(v.nominal_m**2)) * 1e3:.4f} mm (max {np.max(v.nominal_m) * 1e3:.4f}), "
-                     f"calibrated RMS {np.sqrt(np.mean(v.calibrated_m**2)) * 1e3:.4f} mm (max "
-                     f"{np.max(v.calibrated_m) * 1e3:.4f}), predicted {np.sqrt(np.mean(v.predicted_m**2)) * 1e3:.4f} mm")
+        out = int(v.out_of_range.sum())
+        lines.append(f"validation, {len(v.lines)} rows ({out} out of the training range), RMS (max) mm:")
+        for k in VALIDATION_ERRORS:
+            rest = f", out of range {v.rms(k, v.out_of_range) * 1e3:.4f}" if out else ""
+            lines.append(f"  {VALIDATION_LABELS[k]:26s} {v.rms(k) * 1e3:8.4f} ({np.max(getattr(v, f'{k}_m')) * 1e3:.4f}){rest}")
     if not c.compensation_converged.all():
         lines.append(f"warning: {int((~c.compensation_converged).sum())} test poses could not be "
                      "compensated (the calibrated robot cannot reach their targets)")

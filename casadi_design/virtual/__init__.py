@@ -12,8 +12,9 @@ load-point moment, joint deflection fixed point and noise model included):
    nominal value);
 2. the plan's measurements (:mod:`.simulate`): ``model.measurement`` of the true robot, whose
    values are whitened, plus noise ``sigma`` per value;
-3. identification (:mod:`.identify`): Levenberg-Marquardt on ``model.measurement``, the code
-   that identifies a robot from measured data (:mod:`casadi_design.identification`);
+3. identification (:mod:`.identify`): least squares on ``model.measurement`` (scipy's trust
+   region, exact Jacobian), the code that identifies a robot from measured data
+   (:mod:`casadi_design.identification`);
 4. compensation (:mod:`.compensate`): at each test pose ``(q0_j, F0_j)`` the command ``q_c`` for
    which the identified robot puts the frame on the nominal target (``model.accuracy`` = 0,
    machining wrench included; Newton-chord iterations); the residual error is
@@ -22,8 +23,9 @@ load-point moment, joint deflection fixed point and noise model included):
    ``model.B_stack`` and :func:`casadi_design.measures.score_plan`), with a chi-square
    confidence interval (:mod:`.statistics`).
 
-Every trial of a plan runs at once (CasADi functions mapped over the stacked trials, numpy for
-the batched linear algebra). Plans with the same m share their true robots and noise draws
+The simulation and the compensation of every trial of a plan run at once (CasADi functions
+mapped over the stacked trials, numpy for the batched linear algebra); the fits one after
+another. Plans with the same m share their true robots and noise draws
 (common random numbers, generator ``default_rng([seed, m])``), which sharpens the comparison
 between criteria.
 

@@ -132,7 +132,7 @@ def simulate_plan(problem: Problem, plan: Plan, spreads: ErrorSpreads, trials: i
         )
     X_true = draw_true_parameters(model, spreads, trials, rng)
     ref, y = simulate_measurements(model, plan, X_true, sigma, spreads, rng)
-    X_hat, ident = identify_nonlinear(model, plan.Q, plan.F, ref, y, sigma)
+    X_hat, ident = identify_nonlinear(model, plan.Q, plan.F, ref, y, sigma, jacobian="taylor")
 
     target = nominal_poses(model, tp.q, tp.F)
     qc, done, miss = _compensate(model, tp.q, tp.F, target, np.repeat(X_hat, s, axis=0), sigma)

@@ -1,0 +1,170 @@
+"""Which model to identify: nested candidates judged by k-fold cross-validation on the training rows.
+
+A real robot differs from its model in ways no parameter set captures (compliance, backlash, the
+tracker's own errors), and the richest identifiable set fits those too: it fits the training
+rows best and can predict new poses worst. The candidates, nested:
+
+* ``registration``: the tracker frame and the measured point (``tool.tx, ty, tz``; with
+  markers also ``tool.rx, ry, rz``): the nominal robot, placed;
+* ``offsets``: + every joint's zero offset (those the frame does not absorb);
+* ``offsets + k``: + the k most significant other parameters of the problem's own set, in the
+  order of ``|X_j| / std_j`` of its fit to every training row;
+* ``identifiable``: the problem's own parameters (``[calibration].parameters``, e.g. its
+  identifiable base set).
+
+Each is judged by leave-one-out cross-validation: the error at each row of the fit to all the
+other rows, which predicts the row with the frame it fitted (the use: a frame measured once,
+the robot then used). For a least-squares fit it has a closed form at the estimate (linearised,
+no refit): with the row's whitened residuals ``r_i`` and Jacobian ``J_i`` and ``H = J^T J``,
+the row left out is off by ``(I - J_i H^-1 J_i^T)^-1 r_i`` (the PRESS residual of a block of
+values; Cook and Weisberg, Residuals and Influence in Regression, 1982). A row that the model
+needs to be identified (``I - J_i H^-1 J_i^T`` singular) makes it not cross-validated. The
+cross-validated error is the RMS over the rows of each row's RMS point error (m), with its
+standard error ``se = std(e_i^2) / (2 cv sqrt(N))`` (delta method).
+``auto`` takes the fewest parameters whose error is within one
+standard error of the smallest (the one-standard-error rule of Hastie, Tibshirani and Friedman,
+The Elements of Statistical Learning, 7.10): the best error is itself noisy, and of models
+that predict as well the smaller one holds further from the training poses.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..build import Problem
+from ..errors import DesignError, ProblemError
+from ..measures import information_matrix
+from .fit import Fit, FitModel, fit, fit_model, row_errors, whitening
+from .measurements import Measurements, measured_axes
+
+MODELS = ("auto", "registration", "offsets", "identifiable")
+#: A row whose leave-one-out matrix ``I - J_i H^-1 J_i^T`` has a smallest singular value below
+#: this is needed to identify the model (its left-out error is not defined).
+LEVERAGE_RTOL = 1e-8
+#: A model predicts worse than registration only when its cross-validated error is larger by
+#: more than this fraction.
+TIE_RTOL = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One candidate model: its fit model, the RMS of its fit to all training rows (m) and
+    its cross-validated error (m; NaN when it could not be cross-validated, ``why``)."""
+
+    name: str
+    fit_model: FitModel
+    training_rms_m: float
+    cv_rms_m: float
+    cv_se_m: float = math.nan
+    why: str = ""
+
+    @property
+    def L(self) -> int:
+        return self.fit_model.model.L
+
+    def as_dict(self) -> dict:
+        return {"model": self.name, "parameters": self.L, "training_rms_m": self.training_rms_m,
+                "cross_validated_rms_m": None if math.isnan(self.cv_rms_m) else self.cv_rms_m,
+                "cross_validated_se_m": None if math.isnan(self.cv_se_m) else self.cv_se_m,
+                "not_cross_validated_because": self.why or None}
+
+
+def candidate_parameters(problem: Problem, name: str) -> tuple[str, ...]:
+    """The robot parameters of the candidate ``name`` (module docstring); the problem's
+    compliances ``k.<joint>`` are in every candidate (what an elasto-static case identifies)."""
+    own = problem.model.parameter_names
+    if name == "identifiable":
+        return own
+    rotations = problem.spec.measurement.markers_m is not None
+    tool = tuple(f"tool.{e}" for e in ("tx", "ty", "tz") + (("rx", "ry", "rz") if rotations else ()))
+    compliances = tuple(p for p in own if p.startswith("k."))
+    if name == "registration":
+        return tool + compliances
+    return tool + tuple(f"{j}.offset" for j in problem.robot.joints) + compliances
+
+
+def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float, float, str]:
+    """The leave-one-out RMS error (m) of the fit ``f`` over its rows of ``meas`` and its
+    standard error (module docstring), or NaN and why not."""
+    used = np.flatnonzero(f.used)
+    J, r = f.J[used], f.r[used]
+    d = J.shape[1]
+    Hinv = np.linalg.inv(information_matrix(J))
+    A = np.eye(d) - np.einsum("kai,ij,kbj->kab", J, Hinv, J)
+    smallest = np.linalg.svd(A, compute_uv=False)[:, -1]
+    if np.any(smallest < LEVERAGE_RTOL):
+        i = int(np.argmin(smallest))
+        return math.nan, math.nan, f"row {meas.lines[used[i]]} is needed to identify it"
+    left_out = np.linalg.solve(A, r[:, :, None])[:, :, 0] @ np.linalg.inv(whitening(problem)).T
+    points = f.mask[used].sum(axis=1) / len(measured_axes(problem))
+    e = np.sqrt(np.sum(left_out**2, axis=1) / points)
+    cv = float(np.sqrt(np.mean(e**2)))
+    return cv, float(np.std(e**2) / (2 * cv * math.sqrt(len(e)))) if cv > 0 else 0.0, ""
+
+
+def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
+               loss: str, rows: np.ndarray) -> list[Candidate]:
+    """Every candidate (module docstring), fewest parameters first, fitted to the ``rows``
+    (bool mask: those the problem's own model does not find outliers) and cross-validated;
+    models equal to a smaller one (parameters absorbed) are left out."""
+    every = rows
+
+    def candidate(name: str, names: tuple[str, ...]) -> tuple[Candidate, object]:
+        fm = fit_model(problem, frame, names)
+        try:
+            f = fit(problem, fm, meas, T0, every, loss)
+        except (ProblemError, DesignError) as e:
+            return Candidate(name, fm, math.nan, math.nan, math.nan, str(e).split(": ", 1)[-1]), None
+        cv, se, why = cross_validate(problem, f, meas)
+        return Candidate(name, fm, float(np.sqrt(np.mean(row_errors(problem, f, meas, rows) ** 2))), cv, se, why), f
+
+    offsets = candidate_parameters(problem, "offsets")
+    found = [candidate("registration", candidate_parameters(problem, "registration"))[0],
+             candidate("offsets", offsets)[0]]
+    full, f = candidate("identifiable", candidate_parameters(problem, "identifiable"))
+    if f is not None:
+        names = full.fit_model.model.parameter_names
+        std = problem.sigma_m * np.sqrt(np.diagonal(np.linalg.inv(f.information)))
+        t = np.abs(f.X) / std
+        order = [names[i] for i in np.argsort(-t, kind="stable")
+                 if names[i] not in full.fit_model.frame_names and names[i] not in offsets]
+        for k in range(1, len(order)):
+            found.append(candidate(f"offsets + {k}", offsets + tuple(order[:k]))[0])
+    found.append(full)
+    kept: list[Candidate] = []
+    for c in found:
+        if not any(set(c.fit_model.model.parameter_names) == set(k.fit_model.model.parameter_names) for k in kept):
+            kept.append(c)
+    return kept
+
+
+def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
+    """The candidate ``model`` names, or for ``auto`` the one of smallest cross-validated
+    error; and the warnings a person should read (a choice worse than registration only)."""
+    if model not in MODELS:
+        raise ProblemError(f"--model {model}: allowed: {', '.join(MODELS)}")
+    valid = [c for c in found if not math.isnan(c.cv_rms_m)]
+    if model == "auto":
+        if not valid:
+            raise ProblemError("--model auto: no candidate model could be cross-validated ("
+                               + "; ".join(f"{c.name}: {c.why}" for c in found)
+                               + "); measure more rows, or give --model")
+        best = min(valid, key=lambda c: c.cv_rms_m)
+        chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.L)
+    else:
+        chosen = next((c for c in found if c.name == model), None)
+        if chosen is None:  # the same parameters as a smaller candidate
+            chosen = found[-1] if model == "identifiable" else found[0]
+    warnings = []
+    base = found[0]
+    if (chosen is not base and not math.isnan(base.cv_rms_m)
+            and not chosen.cv_rms_m <= base.cv_rms_m * (1 + TIE_RTOL)):
+        got = "could not be cross-validated" if math.isnan(chosen.cv_rms_m) else \
+            f"predicts new poses worse ({chosen.cv_rms_m * 1e3:.3f} mm cross-validated)"
+        warnings.append(f"the {chosen.name} model {got} than registration only "
+                        f"({base.cv_rms_m * 1e3:.3f} mm): it fits what the model misses; "
+                        "--model auto chooses by cross-validation")
+    return chosen, warnings
