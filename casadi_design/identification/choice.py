@@ -117,7 +117,7 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
         try:
             f = fit(problem, fm, meas, T0, every, loss)
         except (ProblemError, DesignError) as e:
-            return Candidate(name, fm, math.nan, math.nan, math.nan, str(e).split(": ", 1)[-1]), None
+            return Candidate(name, fm, math.nan, math.nan, math.nan, str(e)), None
         cv, se, why = cross_validate(problem, f, meas)
         return Candidate(name, fm, float(np.sqrt(np.mean(row_errors(problem, f, meas, rows) ** 2))), cv, se, why), f
 
@@ -147,18 +147,20 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
     if model not in MODELS:
         raise ProblemError(f"--model {model}: allowed: {', '.join(MODELS)}")
     valid = [c for c in found if not math.isnan(c.cv_rms_m)]
+    warnings = []
+    if model == "auto" and not valid:  # too few rows to judge: the problem's own model
+        own = found[-1]
+        if math.isnan(own.training_rms_m):
+            raise ProblemError(own.why)
+        return own, [f"no model could be cross-validated ({'; '.join(f'{c.name}: {c.why}' for c in found)}): "
+                     "the problem's own parameters are fitted; measure more rows to choose"]
     if model == "auto":
-        if not valid:
-            raise ProblemError("--model auto: no candidate model could be cross-validated ("
-                               + "; ".join(f"{c.name}: {c.why}" for c in found)
-                               + "); measure more rows, or give --model")
         best = min(valid, key=lambda c: c.cv_rms_m)
         chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.L)
     else:
         chosen = next((c for c in found if c.name == model), None)
         if chosen is None:  # the same parameters as a smaller candidate
             chosen = found[-1] if model == "identifiable" else found[0]
-    warnings = []
     base = found[0]
     if (chosen is not base and not math.isnan(base.cv_rms_m)
             and not chosen.cv_rms_m <= base.cv_rms_m * (1 + TIE_RTOL)):

@@ -73,9 +73,6 @@ class Identification:
                 "non_converged": self.non_converged}
 
 
-METHOD = "trust-region least squares (scipy trf, exact Jacobian)"
-
-
 @functools.lru_cache(maxsize=8)
 def measurement_jacobian(model: CalibrationModel) -> ca.Function:
     """``(q, F, X, ref) -> (y, J)``: ``model.measurement`` and ``J = dy/dX`` (d x L, physical
@@ -198,4 +195,5 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
         X[t] = found.x
         evaluations = max(evaluations, int(found.nfev))
         stopped += int(found.status <= 0)
-    return X, Identification(METHOD, evaluations, stopped, loss)
+    return X, Identification(f"trust-region least squares (scipy trf, {jacobian} Jacobian)",
+                             evaluations, stopped, loss)
