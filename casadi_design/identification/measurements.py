@@ -147,9 +147,9 @@ def _figaroh(header: list[str]) -> bool:
 
 
 def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str
-             ) -> tuple[dict[str, str], dict[str, float], list[str], list[str]]:
+             ) -> tuple[dict[str, str], dict[str, float], list[str]]:
     """How to read ``header``: the renames (file -> ours, with unit), the SI per unit of each of
-    our coordinate columns, the columns that will be ignored, and notes."""
+    our coordinate columns, and notes."""
     notes: list[str] = []
     columns = dict(fmt.columns)
     units = fmt.units
@@ -187,7 +187,7 @@ def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str
             rename[h] = f"{name}_{si}" if unit in ("rad", "m") else f"{name}_{people}"
         elif name != h:
             rename[h] = name
-    return rename, scales, [], notes
+    return rename, scales, notes
 
 
 def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat()) -> Measurements:
@@ -211,7 +211,7 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
     names = tuple(f"{c}_mm" for point in columns for c in point)
     hint = ", ".join(names) + " (measured coordinates, mm; _m for metres)"
     header = plan_header(path)
-    rename, scales, _, notes = _reading(problem, header, fmt, path)
+    rename, scales, notes = _reading(problem, header, fmt, path)
     Q, F, values, lines = read_plan_table(problem, path, names, hint, rename, ignore_unknown=True)
     spelled = {ours: theirs for theirs, ours in rename.items()}
     missing = [c for c in names if c not in values]
