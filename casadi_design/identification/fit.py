@@ -413,7 +413,7 @@ def check_identifiable(problem: Problem, fm: FitModel, meas: Measurements, used:
 
 
 def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used: np.ndarray,
-        loss: str = "linear", prior_std: np.ndarray | None = None) -> Fit:
+        loss: str = "linear") -> Fit:
     """Least squares (``loss``: :data:`~.lsq.LOSSES`) on the rows ``used`` of ``meas`` (module
     docstring).
 
@@ -429,8 +429,7 @@ def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used
     model, sigma = fm.model, problem.sigma_m
     m = len(y)
     X, ident = identify_nonlinear(model, meas.Q[used], meas.F[used], ref[used], y[used].reshape(1, -1),
-                                  sigma, mask=mask[used].reshape(-1), loss=loss,
-                                  prior_std=prior_std)
+                                  sigma, mask=mask[used].reshape(-1), loss=loss)
     if ident.non_converged:
         raise DesignError(
             f"{meas.path}: the fit did not meet its tolerances in {ident.iterations} evaluations "
