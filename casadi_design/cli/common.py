@@ -8,6 +8,7 @@ commands that design plans), prints and writes. Nothing here computes.
 from __future__ import annotations
 
 import argparse
+import math
 import contextlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -48,6 +49,21 @@ def integer(what: str, minimum: int = 1):
         except ValueError:
             v = minimum - 1
         if v < minimum:
+            raise argparse.ArgumentTypeError(f"{what} takes {kind}, got '{text}'")
+        return v
+    return parse
+
+
+def number(what: str, kind: str, strict: bool = True):
+    """An option's finite number ``> 0`` (``strict``) or ``>= 0``; ``kind`` says it for people
+    ("a positive number", "a time in s >= 0")."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            v = math.nan
+        if not (math.isfinite(v) and (v > 0 if strict else v >= 0)):
             raise argparse.ArgumentTypeError(f"{what} takes {kind}, got '{text}'")
         return v
     return parse

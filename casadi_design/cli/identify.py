@@ -4,11 +4,11 @@
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 from ..errors import ProblemError
 from ..files import prepare_out, write_atomic, write_json
+from .common import number
 
 HELP = "identify the robot from tracker measurements, export the calibrated model (casadi-design identify --help)"
 DESCRIPTION = (
@@ -26,26 +26,6 @@ DESCRIPTION = (
     "calibrated.toml (a problem file of the calibrated robot), for a DH robot calibrated_dh.toml "
     "(the same with the corrected DH table, Hayati's beta for nearly parallel axes) and, with "
     "compliances, identified_compliances.toml.")
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"takes a positive number, got '{text}'")
-    return v
-
-
-def _non_negative(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"takes a number >= 0 (rad or m), got '{text}'")
-    return v
 
 
 def load_without_cell(path: str):
@@ -79,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="poses measured for validation only (same format), not used in the fit")
     p.add_argument("--frame", choices=FRAMES, default="tracker",
                    help="frame of the coordinates: tracker (default: its placement is identified) or base")
-    p.add_argument("--outlier-sigma", type=_positive, default=OUTLIER_SIGMA, metavar="S",
+    p.add_argument("--outlier-sigma", type=number("--outlier-sigma", "a positive number"), default=OUTLIER_SIGMA, metavar="S",
                    help=f"a row whose residual exceeds S sigma is excluded and the rest refitted "
                         f"(default {OUTLIER_SIGMA:g})")
     p.add_argument("--model", choices=MODELS, default="auto",
@@ -96,7 +76,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "revolute joints, m or mm for prismatic ones (default rad,m)")
     p.add_argument("--columns", default="", metavar="FILE=OURS,...",
                    help="read the file's columns under our names, e.g. x1=meas1_x,y1=meas1_y,z1=meas1_z")
-    p.add_argument("--limit-tolerance", type=_non_negative, default=LIMIT_TOLERANCE, metavar="TOL",
+    p.add_argument("--limit-tolerance", type=number("--limit-tolerance", "a number >= 0 (rad or m)", strict=False), default=LIMIT_TOLERANCE, metavar="TOL",
                    help=f"joint readings up to TOL (rad or m) past a joint limit are accepted with a note "
                         f"(default {LIMIT_TOLERANCE:g})")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the files (created if missing)")

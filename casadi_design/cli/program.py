@@ -24,16 +24,6 @@ DESCRIPTION = ("Order the experiments of a plan CSV to save time (load changes f
 MEASURE_S = 3.0
 
 
-def seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"--measure-s takes a time in s >= 0, got '{text}'")
-    return v
-
-
 def add_parser(sub: argparse._SubParsersAction) -> None:
     from ..program.formats import FILES
 
@@ -44,7 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--home", metavar="DEG,...",
                    help="home pose, one joint value per joint in deg (mm for prismatic joints); default: the test "
                         "poses' seed_q_deg, else the middle of the joint limits")
-    p.add_argument("--measure-s", type=seconds, default=MEASURE_S, metavar="S",
+    p.add_argument("--measure-s", type=common.number("--measure-s", "a time in s >= 0", strict=False), default=MEASURE_S, metavar="S",
                    help=f"measuring time per experiment, s (default {MEASURE_S:g})")
     p.add_argument("--out", metavar="DIR", help="folder for the program file (created if missing)")
     p.add_argument("--force", action="store_true", help="write into --out even if it is not empty")
