@@ -33,6 +33,8 @@ from .problem import WRENCH_ROWS
 
 #: Largest disagreement (rad or m) between the two unit columns of one joint in a plan CSV.
 UNIT_AGREEMENT_TOL = 1e-6
+#: Joint values this far outside their limits (rad or m) are accepted silently (rounding in a CSV).
+LIMIT_TOL = 1e-6
 POSITION_COLUMNS = ("x_mm", "y_mm", "z_mm")
 #: Columns written for people with a [cell] and ignored when read: the experiment's clearance on
 #: the real geometry (mm) and the two closest bodies.
@@ -247,6 +249,12 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
     unknown = [h for h in header if h not in allowed]
     if unknown and not ignore_unknown:
         si, people, _ = joint_units(problem, 0)
+        joint, _, unit = unknown[0].rpartition("_")
+        if joint and unit in ("deg", "rad", "mm", "m") and not any(h in columns for h in header):
+            raise ProblemError(
+                f"{path}: column '{unknown[0]}' names joint '{joint}', which the robot of "
+                f"{problem.path} does not have ({', '.join(robot.joints)}): the plan is for another "
+                "problem; give the plan made for this one")
         raise ProblemError(
             f"{path}: unknown column '{unknown[0]}'; allowed: q1_{people} or q1_{si} ... "
             f"q{robot.n}_<unit> (or joint names {', '.join(robot.joints)} with the unit suffix)"
@@ -310,6 +318,48 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
                            f"calibration load of each experiment: {', '.join(forces)} (N, N m)")
     F = np.array([[number(r, header.index(h)) for r in range(m)] for h in forces]).T  # checked column by column
     return Q, F, values, lines_of_rows
+
+
+
+def check_joint_limits(problem: Problem, path: str, Q: np.ndarray, lines: list[int],
+                       tolerance: float = LIMIT_TOL, header: list[str] | None = None,
+                       rename: dict[str, str] | None = None) -> list[str]:
+    """Notes on the joint values of a plan file ``path`` past a limit by at most ``tolerance``
+    (rad or m; a real encoder reads past the URDF's limit), and one error beyond: the row as
+    ``lines`` numbers it and the column as the file spells it (``header``, ``rename`` as for
+    :func:`read_plan_table`; by default the file's own header).
+
+    Raises
+    ------
+    ProblemError
+        A joint value outside its limits by more than ``tolerance``.
+    """
+    robot = problem.robot
+    header = plan_header(path) if header is None else header
+    rename = rename or {}
+    past = np.maximum(robot.q_min - Q, Q - robot.q_max)
+    allowed = (f"by more than --limit-tolerance {tolerance:g} (rad or m)" if tolerance > LIMIT_TOL
+               else "(the robot cannot reach it)")
+    notes = []
+    for k, j in enumerate(robot.joints):
+        si, people, scale = joint_units(problem, k)
+        ours = {f"{base}_{u}" for base in (f"q{k + 1}", j) for u in (si, people)}
+        column = next((h for h in header if rename.get(h, h) in ours), f"{j}_{people}")
+        unit = next((u for u in (si, people) if rename.get(column, column).endswith(f"_{u}")), people)
+        per = 1.0 if unit == si else scale
+        i = int(np.argmax(past[:, k]))
+        if past[i, k] > tolerance:
+            raise ProblemError(
+                f"{path}: row {lines[i]}, column '{column}': {Q[i, k] / per:.6g} {unit} is outside the "
+                f"joint limits [{robot.q_min[k] / per:.6g}, {robot.q_max[k] / per:.6g}] {unit} of "
+                f"{problem.path} {allowed}; check the units, the order of the joint columns and "
+                "that the file belongs to this case")
+        over = np.flatnonzero(past[:, k] > LIMIT_TOL)
+        if over.size:
+            notes.append(f"column '{column}': {over.size} reading{'s' if over.size > 1 else ''} past the "
+                         f"joint limits by at most {past[i, k] / per:.3g} {unit} (row {lines[i]}), within "
+                         f"--limit-tolerance {tolerance:g}: accepted")
+    return notes
 
 
 def _md_table(header: list[str], rows: list[list[str]]) -> str:

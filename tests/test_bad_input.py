@@ -178,3 +178,66 @@ def test_plan_check_covers_the_flange_and_tool_frames():
         for name in ("tool0", "ee_link", "wrist_3_link", "forearm_link", robot.frame):
             z = data.oMf[robot.model.getFrameId(name)].translation[2]
             assert np.min(np.abs(g - z)) < 1e-12, name
+
+
+UR10 = ROOT / "problems" / "ur10_drilling.toml"
+UR10_PLAN = ROOT / "tests" / "data" / "ur10_D_m12_without_cell.csv"
+
+
+def _plan_rows():
+    import csv
+
+    with open(UR10_PLAN) as f:
+        return list(csv.reader(f))
+
+
+def _write(path, rows):
+    import csv
+
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    return path
+
+
+def _one_error_line(capsys):
+    _, err = capsys.readouterr()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+def test_an_absurd_measured_coordinate_is_one_line_naming_row_and_column(tmp_path, capsys):
+    rows = _plan_rows()
+    rows = [rows[0] + ["meas_x_mm", "meas_y_mm", "meas_z_mm"]] + [r + r[-3:] for r in rows[1:]]
+    rows[3][-1] = "1e300"
+    meas = _write(tmp_path / "meas.csv", rows)
+    assert main(["identify", str(UR10), "--measurements", str(meas), "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys)
+    assert "row 4, column 'meas_z_mm'" in line and "beyond 100 m" in line
+    assert not (tmp_path / "o").exists()
+
+
+def test_program_refuses_a_plan_joint_beyond_its_limit(tmp_path, capsys):
+    rows = _plan_rows()
+    rows[1][1], rows[1][7] = repr(math.degrees(9.0)), "9.0"  # shoulder_pan 9 rad, limits +-2 pi
+    plan = _write(tmp_path / "plan.csv", rows)
+    assert main(["program", str(UR10), "--plan", str(plan), "--format", "urscript", "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys)
+    assert "row 2, column 'shoulder_pan_joint_deg'" in line and "outside the joint limits [-360, 360] deg" in line
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_plan_of_another_robot_names_the_plan_file(capsys):
+    assert main(["program", str(PAPER), "--plan", str(UR10_PLAN), "--format", "urscript"]) == 2
+    line = _one_error_line(capsys)
+    assert str(UR10_PLAN) in line and "names joint 'shoulder_pan_joint'" in line and "--format" not in line
+
+
+def test_a_design_no_start_can_make_leaves_no_partial_file(tmp_path, capsys):
+    out = tmp_path / "o"
+    # IPOPT stopped after 8 iterations: m = 1 converges, m = 5 does not (measured)
+    assert main(["solve", str(PAPER), "--m", "1,5", "--criteria", "D", "--ipopt", "max_iter=8",
+                 "--out", str(out), "-q"]) == 2
+    _, err = capsys.readouterr()
+    assert "criterion D, m = 5: none of" in err
+    assert not out.exists()

@@ -371,6 +371,16 @@ def keeping(partial: Path | None, finished: Callable[[], int], total: int) -> It
         if interrupt.pressed():
             raise Interrupted(f"interrupted: {kept()}") from None
         raise DesignError(f"{exc}; {kept()}") from None
+    except DesignError:
+        if interrupt.pressed():
+            raise Interrupted(f"interrupted: {kept()}") from None
+        # a design no start could make: the same settings fail again, so --resume cannot help
+        # and the file of the designs before it is not left behind
+        if partial is not None:
+            partial.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                partial.parent.rmdir()  # only when empty: the folder this command created
+        raise
     except Exception:
         if not interrupt.pressed():
             raise

@@ -64,14 +64,15 @@ def home_pose(problem, text: str | None) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..export import read_plan_csv
+    from ..export import check_joint_limits, read_plan_table
     from ..program.formats import FILES, check_format, program_text
     from ..program.sequence import make_program
 
     out = common.output_folder(args, "program")
     problem = common.load(args, check_solver=False)
+    Q, F, _, lines = read_plan_table(problem, args.plan)  # a plan of another robot names the plan
+    check_joint_limits(problem, str(args.plan), Q, lines)
     check_format(problem, args.format)
-    Q, F = read_plan_csv(problem, args.plan)
     home = home_pose(problem, args.home)
     t0 = time.perf_counter()
     program = make_program(problem, Q, F, home, args.measure_s)

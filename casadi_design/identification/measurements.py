@@ -24,15 +24,15 @@ import numpy as np
 
 from ..build import Problem
 from ..errors import ProblemError
-from ..export import is_prismatic, joint_units, plan_header, read_plan_table
+from ..export import check_joint_limits, is_prismatic, joint_units, plan_header, read_plan_table
 
 #: The position components a tracker measures, in the order of the columns.
 AXES = ("x", "y", "z")
-#: Joint values this far outside their limits (rad or m) are accepted silently (rounding in a CSV).
-LIMIT_TOL = 1e-6
 #: Default of ``--limit-tolerance`` (rad or m): readings this far past a limit are accepted with
 #: a note (a real encoder reads past the URDF's limit: TIAGo's torso 0.35018 m of 0.35 m).
 LIMIT_TOLERANCE = 1e-3
+#: Largest measured coordinate (m): a laser tracker reaches 80 m, motion capture a room.
+MAX_COORDINATE_M = 100.0
 #: Units of coordinates (SI per unit) and of bare joint columns.
 COORDINATE_UNITS = {"mm": 1e-3, "m": 1.0}
 REVOLUTE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
@@ -237,12 +237,20 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
                                f"coordinates of the point are given; give all of "
                                f"{', '.join(spelled.get(n, n) for n in point)} "
                                "or leave all empty (a marker the tracker did not see)")
+        far = np.flatnonzero(np.nan_to_num(np.abs(block)).max(axis=1) > MAX_COORDINATE_M)
+        if far.size:
+            i = int(far[0])
+            a = int(np.nanargmax(np.abs(block[i])))
+            name = spelled.get(point[a], point[a])
+            raise ProblemError(f"{path}: row {lines[i]}, column '{name}': {block[i, a]:.6g} m from the "
+                               f"tracker's origin, beyond {MAX_COORDINATE_M:g} m; check the value and the "
+                               "unit of the coordinates (_mm or _m in the column name, or --units)")
         P[:, c, list(axes)] = block
     blind = np.flatnonzero(~np.any(np.isfinite(P), axis=(1, 2)))
     if blind.size:
         raise ProblemError(f"{path}: row {lines[int(blind[0])]}: no measured coordinate in "
                            f"{', '.join(spelled.get(n, n) for n in names)}; fill them in or delete the row")
-    notes += _check_limits(problem, path, header, rename, Q, lines, fmt.limit_tolerance)
+    notes += check_joint_limits(problem, path, Q, lines, fmt.limit_tolerance, header, rename)
     return Measurements(path, tuple(lines), Q, F, P, tuple(notes))
 
 
@@ -255,30 +263,3 @@ def _plan_columns(problem: Problem) -> set[str]:
         si, people, _ = joint_units(problem, k)
         names |= {f"{base}_{u}" for base in (f"q{k + 1}", j) for u in (si, people)}
     return names
-
-
-def _check_limits(problem: Problem, path: str, header: list[str], rename: dict[str, str],
-                  Q: np.ndarray, lines: list[int], tolerance: float) -> list[str]:
-    """Notes on the readings past a joint limit by at most ``tolerance``; an error beyond."""
-    robot = problem.robot
-    past = np.maximum(robot.q_min - Q, Q - robot.q_max)
-    notes = []
-    for k, j in enumerate(robot.joints):
-        si, people, scale = joint_units(problem, k)
-        ours = {f"{base}_{u}" for base in (f"q{k + 1}", j) for u in (si, people)}
-        column = next((h for h in header if rename.get(h, h) in ours), f"{j}_{people}")
-        unit = next((u for u in (si, people) if rename.get(column, column).endswith(f"_{u}")), people)
-        per = 1.0 if unit == si else scale
-        i = int(np.argmax(past[:, k]))
-        if past[i, k] > tolerance:
-            raise ProblemError(
-                f"{path}: row {lines[i]}, column '{column}': {Q[i, k] / per:.6g} {unit} is outside the "
-                f"joint limits [{robot.q_min[k] / per:.6g}, {robot.q_max[k] / per:.6g}] {unit} of "
-                f"{problem.path} by more than --limit-tolerance {tolerance:g} (rad or m); check the "
-                "units, the order of the joint columns and that the file belongs to this case")
-        over = np.flatnonzero(past[:, k] > LIMIT_TOL)
-        if over.size:
-            notes.append(f"column '{column}': {over.size} reading{'s' if over.size > 1 else ''} past the "
-                         f"joint limits by at most {past[i, k] / per:.3g} {unit} (row {lines[i]}), within "
-                         f"--limit-tolerance {tolerance:g}: accepted")
-    return notes
