@@ -33,6 +33,14 @@ AXES = ("x", "y", "z")
 LIMIT_TOLERANCE = 1e-3
 #: Largest measured coordinate (m): a laser tracker reaches 80 m, motion capture a room.
 MAX_COORDINATE_M = 100.0
+#: Orientation columns of a 6-D pose of the measured frame (beside its position ``meas_x, meas_y,
+#: meas_z``): a unit quaternion, or roll, pitch, yaw (``R = Rz(yaw) Ry(pitch) Rx(roll)``, as in
+#: URDF and ROS) with ``_rad`` or ``_deg``.
+ORIENTATIONS = {"quaternion": ("meas_qw", "meas_qx", "meas_qy", "meas_qz"),
+                "rpy": ("meas_roll", "meas_pitch", "meas_yaw")}
+ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
+#: A quaternion whose norm is further from 1 is not a rotation (a wrong column).
+QUATERNION_NORM_TOL = 1e-3
 #: Units of coordinates (SI per unit) and of bare joint columns.
 COORDINATE_UNITS = {"mm": 1e-3, "m": 1.0}
 REVOLUTE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
@@ -146,10 +154,10 @@ def _figaroh(header: list[str]) -> bool:
     return {"x1", "y1", "z1"} <= set(header) and not any(h.startswith("meas") for h in header)
 
 
-def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str
-             ) -> tuple[dict[str, str], dict[str, float], list[str]]:
+def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str,
+             points: list[list[str]]) -> tuple[dict[str, str], dict[str, float], list[str]]:
     """How to read ``header``: the renames (file -> ours, with unit), the SI per unit of each of
-    our coordinate columns, and notes."""
+    our coordinate columns (those of ``points``) and orientation angles, and notes."""
     notes: list[str] = []
     columns = dict(fmt.columns)
     units = fmt.units
@@ -161,7 +169,7 @@ def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str
         notes.append(f"read as FIGAROH's layout: {', '.join(columns)} as the measured point"
                      + ("s" if k > 1 else "") + f" in {units}, bare joint names in "
                      f"{fmt.revolute} / {fmt.prismatic}")
-    ours = [c for point in measurement_columns(problem) for c in point]
+    ours = [c for point in points for c in point]
     robot = problem.robot
     rename: dict[str, str] = {}
     scales: dict[str, float] = {}
@@ -172,7 +180,14 @@ def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str
             if name.endswith(f"_{u}") and name[: -len(u) - 1] in ours:
                 name, unit = name[: -len(u) - 1], u
                 break
-        if name in ours:
+        angle = next((a for a in ORIENTATIONS["rpy"] if name in (f"{a}_rad", f"{a}_deg")), None)
+        if angle is not None:
+            rename[h] = f"{angle}_rad"
+            scales[f"{angle}_rad"] = ANGLE_UNITS[name.rpartition("_")[2]]
+        elif name in ORIENTATIONS["quaternion"]:
+            if name != h:
+                rename[h] = name
+        elif name in ours:
             if unit is None:
                 if units is None:
                     raise ProblemError(f"{path}: column '{h}' has no unit; name it {name}_mm or {name}_m, "
@@ -190,13 +205,56 @@ def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str
     return rename, scales, notes
 
 
+def _orientation(problem: Problem, header: list[str], fmt: FileFormat, path: str) -> str | None:
+    """The orientation convention of ``ORIENTATIONS`` whose columns the file has (after the
+    column map), or None for positions only."""
+    columns = dict(fmt.columns)
+    names = {columns.get(h, h).removesuffix("_rad").removesuffix("_deg") for h in header}
+    given = [c for c, cols in ORIENTATIONS.items() if any(n in names for n in cols)]
+    if not given:
+        return None
+    convention = given[0]
+    missing = [n for n in ORIENTATIONS[convention] if n not in names]
+    if len(given) > 1 or missing:
+        raise ProblemError(f"{path}: the orientation columns are incomplete or of two kinds; give "
+                           + " or ".join(", ".join(cols) + (" (_rad or _deg)" if c == "rpy" else "")
+                                         for c, cols in ORIENTATIONS.items()))
+    markers = problem.spec.measurement.markers_m
+    spread = 0 if markers is None else np.linalg.matrix_rank(
+        np.asarray(markers) - np.mean(markers, axis=0), tol=1e-6)
+    if spread < 2 or set(problem.spec.measurement.components) != set(AXES):
+        raise ProblemError(
+            f"{path}: has 6-D poses ({', '.join(ORIENTATIONS[convention])}); they are read as the "
+            f"markers of [measurement].markers_m placed by each pose, so {problem.path} needs "
+            "components = [\"x\", \"y\", \"z\"] and at least three markers not on a line, in the "
+            "measured frame (m), e.g. markers_m = [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]]")
+    return convention
+
+
+def pose_rotations(convention: str, values: np.ndarray) -> np.ndarray:
+    """Rotation matrices (m, 3, 3) of ``values`` (m, 4) quaternions ``w, x, y, z`` or (m, 3)
+    roll, pitch, yaw (rad): ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    if convention == "quaternion":
+        w, x, y, z = (values / np.linalg.norm(values, axis=1, keepdims=True)).T
+        return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                         np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                         np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+    r, p, y = values.T
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.stack([np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+                     np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+                     np.stack([-sp, cp * sr, cp * cr], -1)], 1)
+
+
 def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat()) -> Measurements:
     """Read a measurement CSV of ``problem`` in the format ``fmt`` (module docstring).
 
     Raises
     ------
     ProblemError
-        The errors of a plan CSV, and: orientation components measured, a missing coordinate
+        The errors of a plan CSV, and: orientation components measured, incomplete orientation
+        columns, 6-D poses for a problem without three markers, a quaternion not of norm 1, a
+        pose partly empty, a missing coordinate
         column, a marker with some coordinates empty, a row without any measured point, joint
         values beyond ``fmt.limit_tolerance`` outside the joint limits (one line each, naming
         the file, row and column as the file spells it).
@@ -207,18 +265,21 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
         raise ProblemError(
             f"{problem.path}: [measurement].components has {list(components)}; identify reads "
             "measured positions (x, y, z) only; measure positions, e.g. three markers for the pose")
-    columns = measurement_columns(problem)
-    names = tuple(f"{c}_mm" for point in columns for c in point)
-    hint = ", ".join(names) + " (measured coordinates, mm; _m for metres)"
     header = plan_header(path)
-    rename, scales, notes = _reading(problem, header, fmt, path)
-    Q, F, values, lines = read_plan_table(problem, path, names, hint, rename, ignore_unknown=True)
+    convention = _orientation(problem, header, fmt, path)
+    columns = measurement_columns(problem) if convention is None else [[f"meas_{a}" for a in AXES]]
+    names = tuple(f"{c}_mm" for point in columns for c in point)
+    angles = () if convention is None else tuple(
+        n + ("_rad" if convention == "rpy" else "") for n in ORIENTATIONS[convention])
+    hint = ", ".join(names) + " (measured coordinates, mm; _m for metres)"
+    rename, scales, notes = _reading(problem, header, fmt, path, columns)
+    Q, F, values, lines = read_plan_table(problem, path, names + angles, hint, rename, ignore_unknown=True)
     spelled = {ours: theirs for theirs, ours in rename.items()}
     missing = [c for c in names if c not in values]
     if missing:
         raise ProblemError(f"{path}: missing column '{missing[0]}'; append the measured coordinates "
                            f"in mm: {', '.join(names)} (or name the file's columns with --columns)")
-    known = set(names) | _plan_columns(problem)
+    known = set(names) | set(angles) | _plan_columns(problem)
     ignored = [h for h in header if rename.get(h, h) not in known]
     if ignored:
         notes.append(f"ignored column{'s' if len(ignored) > 1 else ''} {', '.join(ignored)} "
@@ -246,6 +307,10 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
                                f"tracker's origin, beyond {MAX_COORDINATE_M:g} m; check the value and the "
                                "unit of the coordinates (_mm or _m in the column name, or --units)")
         P[:, c, list(axes)] = block
+    if convention is not None:
+        P = _posed_markers(problem, path, convention, P[:, 0], values, angles, spelled, scales, lines)
+        notes.append(f"read 6-D poses ({', '.join(spelled.get(a, a) for a in angles)}) as the "
+                     f"{len(problem.model.markers_m)} markers of [measurement].markers_m placed by each pose")
     blind = np.flatnonzero(~np.any(np.isfinite(P), axis=(1, 2)))
     if blind.size:
         raise ProblemError(f"{path}: row {lines[int(blind[0])]}: no measured coordinate in "
@@ -263,3 +328,32 @@ def _plan_columns(problem: Problem) -> set[str]:
         si, people, _ = joint_units(problem, k)
         names |= {f"{base}_{u}" for base in (f"q{k + 1}", j) for u in (si, people)}
     return names
+
+
+def _posed_markers(problem: Problem, path: str, convention: str, p: np.ndarray, values: dict,
+                   angles: tuple[str, ...], spelled: dict[str, str], scales: dict[str, float],
+                   lines: list[int]) -> np.ndarray:
+    """The markers (m, k, 3), m, of ``markers_m`` at the measured poses: ``p + R c`` with
+    ``p`` (m, 3) the measured position and ``R`` the orientation read from the ``angles``
+    columns; a row with the pose left empty is a pose not seen (NaN)."""
+    A = np.column_stack([values[a] * scales.get(a, 1.0) for a in angles])
+    given = np.isfinite(A).all(axis=1)
+    bad = np.flatnonzero(np.isfinite(A).any(axis=1) & ~given | (np.isfinite(p).all(axis=1) != given))
+    if bad.size:
+        raise ProblemError(f"{path}: row {lines[int(bad[0])]}: the pose is partly empty; give its "
+                           f"position and {', '.join(spelled.get(a, a) for a in angles)}, or leave "
+                           "all empty (a pose not seen)")
+    if convention == "quaternion":
+        norm = np.linalg.norm(np.where(given[:, None], A, 1.0), axis=1)
+        off = np.flatnonzero(given & (np.abs(norm - 1) > QUATERNION_NORM_TOL))
+        if off.size:
+            i = int(off[0])
+            raise ProblemError(f"{path}: row {lines[i]}: the quaternion "
+                               f"({', '.join(spelled.get(a, a) for a in angles)}) has norm {norm[i]:.6g}, "
+                               "not 1; give w, x, y, z of a unit quaternion in those columns")
+    identity = [1.0, 0.0, 0.0, 0.0] if convention == "quaternion" else [0.0, 0.0, 0.0]
+    R = pose_rotations(convention, np.where(given[:, None], A, identity))
+    markers = np.asarray(problem.model.markers_m, dtype=float)
+    P = p[:, None, :] + np.einsum("mij,kj->mki", R, markers)
+    P[~given] = np.nan
+    return P
