@@ -268,7 +268,9 @@ def test_plan_of_another_robot_and_bad_controller_are_refused(abb, tmp_path, cap
     paper = load_problem(PAPER)
     plan = _plan_csv(tmp_path / "plan.csv", paper, np.zeros((2, 2)), np.tile([100.0, 0.0], (2, 1)))
     assert main(["program", str(ABB), "--plan", plan, "--format", "json", "--quiet"]) == 2
-    assert "unknown column 'joint1_deg'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{plan}: column 'joint1_deg' names joint 'joint1', which the robot of" in err
+    assert "the plan is for another problem" in err
     raw = paper_raw()
     case, plan = tmp_path / "paper.toml", _plan_csv(tmp_path / "paper.csv", paper, np.zeros((2, 2)),
                                                     np.tile([100.0, 0.0], (2, 1)))
