@@ -59,10 +59,9 @@ from .sampling import random_plan
 POOL_SIZE = 300
 SAMPLE_SIZE = 3000
 #: IPOPT starts of the search for max_x d besides the support points: the best candidates.
-#: (8 until the searches held only the rows that can bind: an independent search of 64 starts
-#: from another sample then found maxima of d up to 2.5 % (UR10 test-pose), 4 % (ABB
-#: test-pose) higher than the exchange had, so its certificates were optimistic; with 16 the
-#: exchange finds those maxima itself, in the same time.)
+#: With 8, an independent search of 64 starts from another sample finds maxima of d up to
+#: 2.5 % (UR10 test-pose), 4 % (ABB test-pose) higher than the exchange's, so its certificates
+#: are optimistic; with 16 the exchange finds those maxima itself.
 POLISH_STARTS = 16
 #: Support points polished per step, the heaviest first.
 POLISH_SUPPORT = 24
@@ -73,7 +72,7 @@ NEW_WEIGHT = 0.1
 #: Maxima closer than this (relative, in their information matrices) are one candidate.
 DISTINCT_RTOL = 1e-6
 #: IPOPT starts of the final, independent search for max_x d from a sample of SAMPLE_SIZE (16
-#: found too few maxima, above); a smaller sample (``--bound-pool``) polishes as large a part of
+#: find too few maxima, above); a smaller sample (``--bound-pool``) polishes as large a part of
 #: it, POLISH_STARTS at least (:func:`verify_starts`).
 VERIFY_STARTS = 64
 #: Smallest eigenvalue of the first pool's mean information, relative to the largest.
@@ -621,12 +620,12 @@ def approximate_design(
 #: A move of the support (:func:`_moved`, every ``BoundForm.moves`` exchange steps): the
 #: heavy points, those carrying all the weight but ``MOVE_TAIL``, by one IPOPT run of at most
 #: ``MOVE_ITERATIONS`` from the support (barrier parameter ``MOVE_MU``: the support is nearly
-#: optimal already). Measured on the UR10 test-pose design: moves every 6 steps gave the
-#: certificate's gap 0.05 % in 37 steps, 37.7 s (0.58 % in 40 steps, 31.1 s without); every 4
-#: steps 0.07 % in 42 s, every 2 0.07 % in 64 s, every step 0.04 % in 99 s. Moving every
-#: support point (62 at step 12) hit 3000 iterations and 59 s: the points of tiny weight
-#: barely steer their rows. A's 77 to 105 heavy points took 8 to 13 s a move (30 of them 0.2
-#: to 1.6 s, no better bound), so A has no moves; D's moves capped at 30 points ended 0.002
+#: optimal already). On the UR10 test-pose design, moves every 6 steps bring the
+#: certificate's gap to 0.05 % in 37 steps, 37.7 s (0.58 % in 40 steps, 31.1 s without); every
+#: 4 steps 0.07 % in 42 s, every 2 0.07 % in 64 s, every step 0.04 % in 99 s. Moving every
+#: support point (62 at step 12) runs to 3000 iterations and 59 s: the points of tiny weight
+#: barely steer their rows. A's 77 to 105 heavy points take 8 to 13 s a move (30 of them 0.2
+#: to 1.6 s, no better bound), so A has no moves; D's moves capped at 30 points end 0.002
 #: above the uncapped bound of log det.
 MOVE_TAIL = 0.05
 MOVE_MU = 1e-4
@@ -645,14 +644,14 @@ def _moved(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, w: np
     over their experiments z_i, from where they are (the criterion's design NLP,
     :func:`casadi_design.nlp.build_nlp` with ``weights`` and the light points' information
     ``fixed``, holding the capsule rows near the support). The exchange moves the support only
-    through the maxima of d at the current W, one step behind the W they change (the value fell
-    a few 1e-4 per step at the end, and the certificate lagged): this moves the points and W
+    through the maxima of d at the current W, one step behind the W they change (the value falls
+    a few 1e-4 per step at the end, and the certificate lags): this moves the points and W
     together. Returns the moved points that keep every rule and the cell's real geometry; they
     join the pool as candidates, whose optimum decides their weights, so a move that fails or
     goes astray costs time only. One run, without adding the rows a point ends past: on the
     UR10 it keeps about 60 % of the heavy points; growing the rows as a design's start does
-    (:func:`casadi_design.solve.solve_start`) kept nearly all, but the moves took twice as long
-    and the test-pose certificate ended 0.6 % from its relaxation instead of 0.05 %."""
+    (:func:`casadi_design.solve.solve_start`) keeps nearly all, but the moves take twice as long
+    and the test-pose certificate ends 0.6 % from its relaxation instead of 0.05 %."""
     w = w / w.sum()
     order = np.argsort(w)[::-1]
     K = int(np.searchsorted(np.cumsum(w[order]), 1.0 - MOVE_TAIL)) + 1
@@ -786,7 +785,7 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     span = limits.upper - limits.lower
     plans = [(Q0, F0)]
     for _ in range(count - 1):
-        step = rng.normal(size=Q0.shape[::-1]).T  # drawn as (n, m): the streams of earlier versions
+        step = rng.normal(size=Q0.shape[::-1]).T  # drawn as (n, m): fixes each seed's starts
         plans.append((limits.wrap(Q0 + ROUNDING_JITTER * span * step), F0.copy()))
     return plans
 

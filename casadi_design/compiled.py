@@ -4,7 +4,7 @@ The large functions of a 6-axis robot in its cell (the kinematics and its deriva
 :mod:`casadi_design.reduced`, the capsule rows and their curvature, the rule rows of one
 configuration) run 3 to 16 times faster as C than in CasADi's virtual machine, and the
 objective and non-capsule rules of the bound's searches over one experiment (a UR10 search
-12.5 -> 7.8 ms); the searches reach their capsule rows through the capsules' points and the
+about 1.6 times faster); the searches reach their capsule rows through the capsules' points and the
 rows' compiled switches of the design NLP (:func:`casadi_design.bound._search_rows`), not a
 library per row of z. :func:`compiled` writes a function's C code
 (``casadi.CodeGenerator``), compiles it with the system's C compiler into a shared library in
@@ -53,11 +53,11 @@ MIN_INSTRUCTIONS = 1000
 MAPPED_MIN_INSTRUCTIONS = 100
 #: The compiler's flags: optimised, but exactly IEEE (no reassociation, no fused multiply-add).
 #: ``-Og`` rather than ``-O1``: gcc's register allocation over one straight-line function of
-#: tens of thousands of temporaries is most of a compile, and ``-Og`` does it in a fraction of
-#: the time (the UR10 search Hessian ``d2d``, 935 kB of C: 11.8 -> 2.7 s) for code as fast
-#: (a warm UR10 start 1.02x, the approximate designs within the machine's noise); from an
-#: empty cache ``solve problems/ur10_drilling.toml --m 9 --criteria test-pose --starts 1``
-#: took 75.5 -> 55.3 s, the ABB's at m = 6 86.9 -> 77.4 s, the same results.
+#: tens of thousands of temporaries is most of a compile, and ``-Og`` does it in about a
+#: quarter of the time (the UR10 search Hessian ``d2d``, 935 kB of C) for code as fast (a warm
+#: UR10 start within 2 %, the approximate designs within the machine's noise) and the same
+#: results, so a solve from an empty cache (a UR10 or ABB design of one start) takes a tenth to
+#: a quarter less time.
 FLAGS = ("-Og", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
 
 _groups: dict[tuple[int, ...], tuple[list, list]] = {}  # (min_instructions, ids): fns, compiled

@@ -74,21 +74,21 @@ class BoundForm:
     meaning : what ``bound.value`` of a results record bounds, with units.
     moves : exchange steps between two moves of the heavy support points
         (:func:`casadi_design.bound._moved`); 0: the support moves only through the maxima of
-        d. Measured on the UR10 cell (README, Speed): every 6 steps the test-pose certificate's
-        gap fell from 0.58 % to 0.05 % for 1.17x the time (ABB: 0.85 % to 0.02 %, 1.42x).
-        D's bound tightened by 0.008 in log det (48.2306 -> 48.2221 at m = 9), but its rounded
-        starts changed and the study's D plan at m = 9 got worse (log det 42.218 -> 42.081),
-        so D has none; A's support is spread (77 to 105 points carry 95 % of the weight) and
-        its moves took 1.7x the time for no better bound, so A and I (untried) have none
-        either.
+        d. On the UR10 cell (README, Speed), moves every 6 steps narrow the test-pose
+        certificate's gap from 0.58 % to 0.05 % for 1.17x the time (ABB: 0.85 % to 0.02 %,
+        1.42x), so test-pose has 6. For D they tighten the bound by only 0.008 in log det at
+        m = 9 and change its rounded starts, and the study's D plan at m = 9 is worse with
+        them, so D has none; A's support is spread (77 to 105 points carry 95 % of the weight)
+        and its moves take 1.7x the time for no better bound, so A and I (not measured) have
+        none either.
     rounded : starts rounded from the approximate design per design
         (:func:`casadi_design.bound.rounded_plans`: the apportioned support, then jittered
-        copies; the first four the same whatever the count). Measured on the UR10 study with 12
-        (README, Speed): the best were the 8th (test-pose, m = 9), 6th (test-pose, m = 12), 6th
-        (D, m = 9: log det 42.08 -> 42.38 over the 4) and 4th (A, m = 9). D's and A's rounded
-        starts cost what a seeded one does (50 to 250 IPOPT iterations); test-pose's from m =
-        12 on cost 3 to 10 seeded ones (1000 to 2800 iterations, some stalled), which made the
-        UR10 sweep 1.4x slower with 8: D and A have 8, the others 4.
+        copies; the first four the same whatever the count). Of 12 on the UR10 study (README,
+        Speed), the best is the 8th (test-pose, m = 9), 6th (test-pose, m = 12), 6th (D, m = 9:
+        0.3 higher in log det than the best of the first 4) and 4th (A, m = 9). D's and A's
+        rounded starts cost what a seeded one does (50 to 250 IPOPT iterations), so D and A
+        have 8; test-pose's from m = 12 on cost 3 to 10 seeded ones (1000 to 2800 iterations,
+        some stall), and 8 make the UR10 sweep 1.4x slower, so the others have 4.
     """
 
     rows: Callable[[np.ndarray], np.ndarray] | None

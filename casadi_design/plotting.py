@@ -252,7 +252,7 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
     from .cell import world_capsules
 
     cell, robot = problem.cell, problem.robot
-    # no constrained layout: it placed the 3-D panels so that their titles were cut off
+    # no constrained layout: it places the 3-D panels so that their titles are cut off
     fig = Figure(figsize=(6.0 * len(designs), 6.0))
     colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown",
                "tab:pink", "tab:gray", "tab:olive", "tab:cyan"]

@@ -43,7 +43,7 @@ def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.
         return Q, np.tile(np.array(force.vector_N), (m, 1))
     if force.mode == "direction":
         return Q, force.magnitude_N * np.outer(rng.uniform(0.5, 1.0, m), force.direction)
-    d = rng.normal(size=(model.nF, m)).T  # drawn as (nF, m): the seeded streams of earlier versions
+    d = rng.normal(size=(model.nF, m)).T  # drawn as (nF, m): the order fixes each seed's plans
     return Q, force.magnitude_N * d / np.linalg.norm(d, axis=1)[:, None]
 
 

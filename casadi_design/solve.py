@@ -154,8 +154,9 @@ class _Watch(ca.Callback):
 
     def eval_buffer(self, arg, res) -> int:
         # CasADi's buffers of x, f and g as views, valid during the call, instead of ``eval``'s
-        # DM arguments (UR10 test-pose, m = 12: IPOPT's CheckConvergence 0.79 -> 0.70 s over 783
-        # iterations; the callback's call costs about 0.45 ms an iteration inside CasADi either way)
+        # DM arguments: no conversion per iteration (about a tenth of IPOPT's CheckConvergence
+        # time on the UR10 test-pose design at m = 12; the callback's call itself costs about
+        # 0.45 ms an iteration inside CasADi either way)
         x, f, g = (np.frombuffer(a, dtype=float) if a is not None else np.zeros(0) for a in arg[:3])
         np.frombuffer(res[0], dtype=float)[0] = self._stop(x, float(f[0]), g)
         return 0
@@ -260,12 +261,12 @@ def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
 #: ``MAX_ROUNDS`` runs is not stopped, and its plan is checked as any other (a plan breaking a
 #: row is not feasible). The margins were chosen by measurement on the UR10 and ABB cells
 #: (see the README's speed section; the margins are :data:`casadi_design.rules.START_MARGIN_M`
-#: and :data:`~casadi_design.rules.ADD_MARGIN_M`). ``MAX_ROUNDS`` was 12: on the UR10 from m =
-#: 12 on, the plan meets new rows round after round, and 91 of the 118 starts of the sweep to m
-#: = 20 that used all 12 ended on plans breaking capsule rows by up to 80 mm (at m = 20 all 16
-#: seeded starts, so one unlucky warm start ended the sweep with "none of 21 starts converged
-#: to a feasible plan"); the first three seeded starts at m = 20 end feasible after 15, 15 and
-#: 25 runs. The shared ``max_iter`` bounds a start's cost whatever the rounds.
+#: and :data:`~casadi_design.rules.ADD_MARGIN_M`). ``MAX_ROUNDS`` leaves room for many rounds:
+#: on the UR10 from m = 12 on, the plan meets new rows round after round; the first three
+#: seeded starts at m = 20 end feasible after 15, 15 and 25 runs, and with at most 12 runs
+#: most starts of a sweep to m = 20 that use them all end on plans breaking capsule rows by up
+#: to 80 mm (at m = 20 every seeded start, so that the design there rests on the warm start
+#: alone). The shared ``max_iter`` bounds a start's cost whatever the rounds.
 WATCH_DEPTH_M = 0.05
 RESUME_MU = 1e-3
 MAX_ROUNDS = 40
