@@ -135,6 +135,16 @@ class Problem:
         return self.spec.solver
 
     @functools.cached_property
+    def B0(self) -> np.ndarray:
+        """``B0_j = de_j/dX`` at every test pose j, shape (s, r, L): how the required
+        components ``e`` (``[test_poses].components``, under the test pose's wrench) move with
+        the parameters X; ``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)``."""
+        tp = self.test_poses
+        B0 = self.model.B_stack(tp.q, tp.F, accuracy=True)
+        B0.setflags(write=False)  # shared by every design of the problem
+        return B0
+
+    @functools.cached_property
     def digest(self) -> str:
         """SHA-256 (hex) of the problem's checked data: what a resumed sweep and a worker's
         cache recognise a problem by."""

@@ -78,9 +78,8 @@ class DesignNLP:
 
 
 def B0_at_test_poses(problem: Problem) -> np.ndarray:
-    """``B0_j`` at every test pose, shape (s, r, L)."""
-    tp = problem.test_poses
-    return problem.model.B_stack(tp.q, tp.F, accuracy=True)
+    """``B0_j`` at every test pose, shape (s, r, L) (:attr:`Problem.B0`)."""
+    return problem.B0
 
 
 def information_scale(L: int, B0: np.ndarray) -> float:
