@@ -235,9 +235,10 @@ def test_a_plan_of_another_robot_names_the_plan_file(capsys):
 
 def test_a_design_no_start_can_make_leaves_no_partial_file(tmp_path, capsys):
     out = tmp_path / "o"
-    # IPOPT stopped after 8 iterations: m = 1 converges, m = 5 does not (measured)
+    # IPOPT stopped after 8 iterations: m = 1 converges (saved in solve.partial.json), then
+    # m = 5 does not (measured)
     assert main(["solve", str(PAPER), "--m", "1,5", "--criteria", "D", "--ipopt", "max_iter=8",
-                 "--out", str(out), "-q"]) == 2
+                 "--starts", "2", "--bound-steps", "0", "--jobs", "1", "--out", str(out), "-q"]) == 2
     _, err = capsys.readouterr()
     assert "criterion D, m = 5: none of" in err
     assert not out.exists()
