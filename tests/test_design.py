@@ -24,13 +24,26 @@ def test_table4(designs, key):
 
 
 @pytest.mark.parametrize("m", [1, 5])
-def test_test_pose_plan_beats_every_D_and_E_optimal_plan(designs, m):
-    """Not only the chosen D/E plans: every converged start of D and E is no better."""
-    best = designs["test-pose", m].scores.max_rms_error_m
+def test_test_pose_plan_beats_every_D_and_E_optimal_plan(paper, designs, m):
+    """Not only the chosen D/E plans: every start of D and E converges (the paper's problem does
+    from every seed) and none is more accurate."""
+    tp = designs["test-pose", m]
+    best = tp.scores.max_rms_error_m
+    assert tp.winner is not None and tp.winner.converged, [s.status for s in tp.starts]
+    B0 = B0_at_test_poses(paper)
     for c in ("D", "E"):
-        for s in designs[c, m].starts:
-            if s.converged:
-                assert best <= s.max_rms_error_m * (1 + 1e-9)
+        d = designs[c, m]
+        converged = [s for s in d.starts if s.converged]
+        # the paper's problem converges from every seeded start: a comparison with none is no test
+        assert len(converged) == len(d.starts) > 0, [s.status for s in d.starts]
+        assert d.winner in converged  # the design's own plan is one of them ...
+        # ... and its error, recomputed from its plan, is the one its start recorded
+        again = plan_scores(paper, d.Q, d.F, B0).max_rms_error_m
+        assert again == pytest.approx(d.winner.max_rms_error_m, rel=1e-12)
+        assert best <= again * (1 + 1e-9)
+        for s in converged:
+            assert np.isfinite(s.max_rms_error_m) and s.max_rms_error_m > 0
+            assert best <= s.max_rms_error_m * (1 + 1e-9)
 
 
 def test_more_experiments_help_more_than_repeating_one(designs):

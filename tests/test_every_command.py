@@ -1,4 +1,6 @@
-"""Every subcommand on every file in problems/, with tiny settings: no traceback anywhere.
+"""Every subcommand on every file in problems/, with tiny settings: exit code 0 and nothing on
+stderr; a bug raises out of main(), and the command as a process of its own (``python -m
+casadi_design``, where a bug's traceback would reach stderr) runs clean.
 
 Tiny settings (identify: the solved plan measured on the nominal robot; program: its first
 three experiments): the D criterion, one start, IPOPT with a limited-memory Hessian, the smallest m,
@@ -9,6 +11,8 @@ xdist runs side by side).
 """
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pinocchio as pin
@@ -25,7 +29,7 @@ from casadi_design.problem import read_problem
 from casadi_design.robots import frame_placement, make_robot
 from casadi_design.rules import FEASIBILITY_TOL
 from casadi_design.sampling import random_plan
-from tests.conftest import PROBLEM_FILES
+from tests.conftest import PAPER, PROBLEM_FILES, ROOT
 from tests.identify_data import measurement_csv
 
 #: Criterion of the tiny runs: cheap on every problem; an IPOPT option through --ipopt (a
@@ -73,8 +77,10 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     first.write_text("\n".join(rows[:1 + PROGRAM_EXPERIMENTS]) + "\n")
     assert main(["program", str(path), "--plan", str(first), "--format", "json", "--measure-s", "1",
                  "--out", str(tmp_path / "program"), "--quiet"]) == 0
-    out, err = capsys.readouterr()
-    assert "Traceback" not in out + err and "error" not in err
+    # main() returns 2 after one line "error: ..." on stderr and raises on a bug (its traceback
+    # is the report, test_a_bug_raises_and_the_command_as_a_process_runs_clean): the codes above
+    # and an empty stderr are what no error looks like
+    assert capsys.readouterr().err == ""
 
     design = json.loads((solved / "results.json").read_text())["designs"][0]
     evaluation = json.loads((tmp_path / "evaluate" / "evaluation.json").read_text())
@@ -102,8 +108,38 @@ def test_the_bound_command_runs_on_every_problem(path, capsys):
     m = problem.m_min
     assert main(["bound", str(path), "--m", f"{m}:{m + 1}", *BOUND, "--quiet"]) == 0
     out, err = capsys.readouterr()
-    assert "Traceback" not in out + err and "error" not in err
+    assert err == ""  # (main() raises on a bug, and returns 2 after an "error: ..." line)
     assert len([line for line in out.splitlines() if line.split()[:1] in ([str(m)], [str(m + 1)])]) == 2
     approx = approximate_designs(problem, ["D"], 1, POOL)  # those of the bound command (kept in this process)
     Q, F = random_plan(problem, m, np.random.default_rng(0))  # a feasible plan: its log det M is below the bound
     assert bound(problem, m, approx["D"]).value >= np.linalg.slogdet(information_matrix(problem.model.B_stack(Q, F)))[1]
+
+
+def test_a_bug_raises_and_the_command_as_a_process_runs_clean(tmp_path, monkeypatch, capsys):
+    """A bug is not an input error: main() raises it (no "error: ..." line, no code 2). The
+    command run as a process (``python -m casadi_design``: the launch, then main), where a
+    bug's traceback would go to stderr, exits 0 with nothing on stderr and prints what main()
+    prints."""
+    import casadi_design.cli.evaluate as evaluate
+
+    plan = tmp_path / "plan.csv"
+    plan.write_text("q1_deg,q2_deg,fx_N,fy_N\n0,90,0,100\n90,-90,100,0\n45,-120,-60,80\n")
+    argv = ["evaluate", str(PAPER), "--plan", str(plan)]
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    assert err == "" and "max" in out
+
+    def broken(args):
+        raise ZeroDivisionError("a bug in the command")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(evaluate, "run", broken)
+        with pytest.raises(ZeroDivisionError, match="a bug in the command"):
+            main(argv)
+    assert capsys.readouterr().err == ""  # raised, not reported as a user's error
+
+    run = subprocess.run([sys.executable, "-m", "casadi_design", *argv], cwd=ROOT,
+                         capture_output=True, text=True, check=False, timeout=120)
+    assert "Traceback" not in run.stderr, run.stderr
+    assert (run.returncode, run.stderr) == (0, "")
+    assert run.stdout == out

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from casadi_design.cli import main
+from casadi_design.criteria import CRITERIA
 from casadi_design.errors import ProblemError
 from casadi_design.export import plan_table, read_plan_csv, write_plan_csv
 from casadi_design.rules import plan_violations
@@ -68,6 +69,28 @@ def test_joint_names_and_radians_give_the_same_scores(paper, hand_csv, tmp_path,
     Qb, Fb = read_plan_csv(paper, other)
     np.testing.assert_allclose(Qa, Qb, rtol=0, atol=1e-15)
     np.testing.assert_array_equal(Fa, Fb)
+    # the scores: evaluate on each file, as a user runs it
+    scores = []
+    for name, plan in (("deg", hand_csv), ("rad", other)):
+        assert main(["evaluate", str(PAPER), "--plan", str(plan), "--out", str(tmp_path / name),
+                     "--quiet"]) == 0
+        scores.append(json.loads((tmp_path / name / "evaluation.json").read_text()))
+    deg, rad = scores
+    assert capsys.readouterr().err == ""
+    keys = [c.score for c in CRITERIA.values()]  # each criterion's (max_rms_error_m, log_det_M...)
+    assert set(keys) <= set(deg) and set(keys) <= set(rad)
+    for key in keys:
+        assert rad[key] == pytest.approx(deg[key], rel=1e-9), key
+    np.testing.assert_allclose(rad["rms_error_m"], deg["rms_error_m"], rtol=1e-9)
+    assert rad["observability"] == pytest.approx(deg["observability"], rel=1e-9)
+    assert rad["violations"] == deg["violations"] == []
+    # and they are the plan's: the paper's formulas on the poses in degrees, outside the package
+    M = sum(_A(q, f).T @ _A(q, f) for q, f in zip(np.radians(HAND_DEG), HAND_F))
+    rho = [paper.sigma_m**2 * np.trace(_A(q0, f0) @ np.linalg.solve(M, _A(q0, f0).T))
+           for q0, f0 in zip(paper.test_poses.q, paper.test_poses.F)]
+    assert rad["max_rms_error_m"] == pytest.approx(np.sqrt(max(rho)), rel=1e-9)
+    np.testing.assert_allclose(rad["rms_error_m"], np.sqrt(rho), rtol=1e-9)
+    assert rad["log_det_M"] == pytest.approx(np.log(np.linalg.det(M)), rel=1e-9)
 
 
 def test_exported_plan_reads_back_exactly_and_scores_like_the_design(paper, tmp_path):
