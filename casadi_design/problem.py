@@ -58,7 +58,8 @@ SECTIONS: dict[str, set[str] | None] = {
     "robot.dh": {"convention", "joints", "base_xyz_m", "base_rpy_deg", "flange_xyz_m", "flange_rpy_deg"},
     "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "beta_deg", "limits_deg"},
     "robot.joint_limits_rad": None,  # joint names: checked against the model when built
-    "calibration": {"case", "parameters", "compliant_joints", "wrench_components"},
+    "calibration": {"case", "parameters", "compliant_joints", "wrench_components", "prior"},
+    "calibration.prior": {"length_m", "angle_rad", "offset_rad", "compliance_rad_per_Nm"},
     "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
     "test_poses": {"components", "joints_rad", "points_m", "line_m", "path", "tool_rpy_deg", "seed_q_deg",
                    "elbow", "force_N", "forces_N", "segment_forces_N"},
@@ -151,14 +152,32 @@ class RobotSpec:
 
 
 @dataclass(frozen=True)
+class PriorSpec:
+    """What is known of the robot's parameters before measuring (``[calibration.prior]``): the
+    standard deviation of a zero-mean normal prior per group (None: no prior on the group),
+    e.g. a factory calibration's accuracy. Groups: the joint placement errors' translations
+    (``length_m``, m; also the zero offsets of prismatic joints) and rotations (``angle_rad``,
+    rad), the zero offsets of revolute joints (``offset_rad``, rad), the joint compliances
+    (``compliance_rad_per_Nm``, rad/(N m)). The tracker frame and the measured points (``tool.*``)
+    have none: registration places them."""
+
+    length_m: float | None = None
+    angle_rad: float | None = None
+    offset_rad: float | None = None
+    compliance_rad_per_Nm: float | None = None
+
+
+@dataclass(frozen=True)
 class CalibrationSpec:
     """What is identified. ``parameters`` is a tuple of names or ``"identifiable"``;
-    ``compliant_joints`` None means every joint of the chain."""
+    ``compliant_joints`` None means every joint of the chain; ``prior``: ``[calibration.prior]``
+    (None without one)."""
 
     case: str
     parameters: tuple[str, ...] | str = ()
     compliant_joints: tuple[str, ...] | None = None
     wrench_components: tuple[str, ...] = ()
+    prior: PriorSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -640,7 +659,21 @@ def _calibration(cal: _Reader) -> CalibrationSpec:
         cal.names("compliant_joints", default=None, hint="joint names, e.g. [\"joint1\", \"joint2\"]",
                   noun="joints") if elastic else None,
         cal.names("wrench_components", WRENCH_ROWS, hint="the wrench components of F, e.g. [\"fx\", \"fy\"]") if elastic else (),
+        _prior(cal.sub("prior")),
     )
+
+
+def _prior(prior: _Reader | None) -> PriorSpec | None:
+    """``[calibration.prior]``: one positive standard deviation per group given."""
+    if prior is None:
+        return None
+    hints = {"length_m": "a std in m, e.g. 1e-3", "angle_rad": "a std in rad, e.g. 1e-3",
+             "offset_rad": "a std in rad, e.g. 0.01", "compliance_rad_per_Nm": "a std in rad/(N m), e.g. 1e-6"}
+    values = {k: prior.number(k, None, hint=h, positive=True) for k, h in hints.items()}
+    if all(v is None for v in values.values()):
+        raise prior.error("gives no standard deviation", f"give one or more of {', '.join(hints)}, "
+                          "or remove the table")
+    return PriorSpec(**values)
 
 
 def _measurement(meas: _Reader) -> MeasurementSpec:

@@ -64,8 +64,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         f"(default {OUTLIER_SIGMA:g})")
     p.add_argument("--model", choices=MODELS, default="auto",
                    help="the model identified: registration (frame and measured point), offsets (+ joint "
-                        "offsets), identifiable (the problem's parameters) or auto (default: chosen by "
-                        "cross-validation on the rows)")
+                        "offsets), identifiable (the problem's parameters), prior (those, MAP under the "
+                        "problem's [calibration.prior]) or auto (default: chosen by cross-validation on the rows)")
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help=f"least-squares loss: linear (default) or a robust loss that down-weights residuals "
                         f"beyond {LOSS_SCALE_SIGMA:g} sigma (bad shots)")

@@ -204,10 +204,12 @@ def fit_without_outliers(problem: Problem, fm: FitModel, meas: Measurements, T0:
 def design_information(f: Fit, meas: Measurements) -> np.ndarray:
     """``M = sum B_i^T B_i`` of the rows and values of ``meas`` the fit used, ``B`` at X = 0
     for the physical parameters: the information matrix of the design's measure for the plan
-    that was measured (the standard deviations use ``J`` at the estimate)."""
+    that was measured (the standard deviations use ``J`` at the estimate), plus a MAP fit's
+    prior ``diag((sigma / std)^2)``."""
     model = f.fit.model
     B = model.B_stack(meas.Q[f.used], meas.F[f.used]) * model.column_scale * f.mask[f.used][:, :, None]
-    return information_matrix(B)
+    M = information_matrix(B)
+    return M if f.prior_information is None else M + np.diag(f.prior_information)
 
 
 def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,

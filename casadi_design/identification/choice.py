@@ -10,7 +10,10 @@ rows best and can predict new poses worst. The candidates, nested:
 * ``offsets + k``: + the k most significant other parameters of the problem's own set, in the
   order of ``|X_j| / std_j`` of its fit to every training row;
 * ``identifiable``: the problem's own parameters (``[calibration].parameters``, e.g. its
-  identifiable base set).
+  identifiable base set);
+* ``prior`` (with ``[calibration.prior]``): the problem's own parameters, regularised: the MAP
+  estimate ``min |r / sigma|^2 + |X / std|^2``, whose ``H = J^T J + diag((sigma / std)^2)``
+  (ridge regression); its size is its effective number of parameters ``tr(J^T J H^-1)``.
 
 Each is judged by leave-one-out cross-validation: the error at each row of the fit to all the
 other rows, which predicts the row with the frame it fitted (the use: a frame measured once,
@@ -21,7 +24,7 @@ values; Cook and Weisberg, Residuals and Influence in Regression, 1982). A row t
 needs to be identified (``I - J_i H^-1 J_i^T`` singular) makes it not cross-validated. The
 cross-validated error is the RMS over the rows of each row's RMS point error (m), with its
 standard error ``se = std(e_i^2) / (2 cv sqrt(N))`` (delta method).
-``auto`` takes the fewest parameters whose error is within one
+``auto`` takes the fewest (effective) parameters whose error is within one
 standard error of the smallest (the one-standard-error rule of Hastie, Tibshirani and Friedman,
 The Elements of Statistical Learning, 7.10): the best error is itself noisy, and of models
 that predict as well the smaller one holds further from the training poses.
@@ -36,11 +39,10 @@ import numpy as np
 
 from ..build import Problem
 from ..errors import DesignError, ProblemError
-from ..measures import information_matrix
 from .fit import Fit, FitModel, fit, fit_model, row_errors, whitening
 from .measurements import Measurements, measured_axes
 
-MODELS = ("auto", "registration", "offsets", "identifiable")
+MODELS = ("auto", "registration", "offsets", "identifiable", "prior")
 #: A row whose leave-one-out matrix ``I - J_i H^-1 J_i^T`` has a smallest singular value below
 #: this is needed to identify the model (its left-out error is not defined).
 LEVERAGE_RTOL = 1e-8
@@ -60,13 +62,20 @@ class Candidate:
     cv_rms_m: float
     cv_se_m: float = math.nan
     why: str = ""
+    dof: float = math.nan
 
     @property
     def L(self) -> int:
         return self.fit_model.model.L
 
+    @property
+    def size(self) -> float:
+        """The effective number of parameters (``L`` of a least-squares fit)."""
+        return self.L if math.isnan(self.dof) else self.dof
+
     def as_dict(self) -> dict:
-        return {"model": self.name, "parameters": self.L, "training_rms_m": self.training_rms_m,
+        return {"model": self.name, "parameters": self.L, "effective_parameters": self.size,
+                "training_rms_m": self.training_rms_m,
                 "cross_validated_rms_m": None if math.isnan(self.cv_rms_m) else self.cv_rms_m,
                 "cross_validated_se_m": None if math.isnan(self.cv_se_m) else self.cv_se_m,
                 "not_cross_validated_because": self.why or None}
@@ -92,7 +101,7 @@ def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float,
     used = np.flatnonzero(f.used)
     J, r = f.J[used], f.r[used]
     d = J.shape[1]
-    Hinv = np.linalg.inv(information_matrix(J))
+    Hinv = np.linalg.inv(f.information)  # with a MAP fit's prior: the PRESS of ridge regression
     A = np.eye(d) - np.einsum("kai,ij,kbj->kab", J, Hinv, J)
     smallest = np.linalg.svd(A, compute_uv=False)[:, -1]
     if np.any(smallest < LEVERAGE_RTOL):
@@ -112,14 +121,17 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
     models equal to a smaller one (parameters absorbed) are left out."""
     every = rows
 
-    def candidate(name: str, names: tuple[str, ...]) -> tuple[Candidate, object]:
-        fm = fit_model(problem, frame, names)
+    def candidate(name: str, names: tuple[str, ...], prior: bool = False) -> tuple[Candidate, object]:
+        fm = fit_model(problem, frame, names, prior)
         try:
             f = fit(problem, fm, meas, T0, every, loss)
         except (ProblemError, DesignError) as e:
             return Candidate(name, fm, math.nan, math.nan, math.nan, str(e)), None
         cv, se, why = cross_validate(problem, f, meas)
-        return Candidate(name, fm, float(np.sqrt(np.mean(row_errors(problem, f, meas, rows) ** 2))), cv, se, why), f
+        dof = math.nan if f.prior_information is None else float(np.trace(
+            np.linalg.solve(f.information, f.information - np.diag(f.prior_information))))
+        return Candidate(name, fm, float(np.sqrt(np.mean(row_errors(problem, f, meas, rows) ** 2))),
+                         cv, se, why, dof), f
 
     offsets = candidate_parameters(problem, "offsets")
     found = [candidate("registration", candidate_parameters(problem, "registration"))[0],
@@ -134,9 +146,12 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
         for k in range(1, len(order)):
             found.append(candidate(f"offsets + {k}", offsets + tuple(order[:k]))[0])
     found.append(full)
+    if problem.spec.calibration.prior is not None:
+        found.append(candidate("prior", candidate_parameters(problem, "identifiable"), prior=True)[0])
     kept: list[Candidate] = []
     for c in found:
-        if not any(set(c.fit_model.model.parameter_names) == set(k.fit_model.model.parameter_names) for k in kept):
+        if c.name == "prior" or not any(set(c.fit_model.model.parameter_names) ==
+                                        set(k.fit_model.model.parameter_names) for k in kept):
             kept.append(c)
     return kept
 
@@ -149,18 +164,21 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
     valid = [c for c in found if not math.isnan(c.cv_rms_m)]
     warnings = []
     if model == "auto" and not valid:  # too few rows to judge: the problem's own model
-        own = found[-1]
+        own = [c for c in found if c.name != "prior"][-1]
         if math.isnan(own.training_rms_m):
             raise ProblemError(own.why)
         return own, [f"no model could be cross-validated ({'; '.join(f'{c.name}: {c.why}' for c in found)}): "
                      "the problem's own parameters are fitted; measure more rows to choose"]
     if model == "auto":
         best = min(valid, key=lambda c: c.cv_rms_m)
-        chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.L)
+        chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.size)
     else:
         chosen = next((c for c in found if c.name == model), None)
+        if chosen is None and model == "prior":
+            raise ProblemError("--model prior: the problem file has no [calibration.prior]; add one "
+                               "(a standard deviation per group, e.g. length_m = 1e-3, angle_rad = 1e-3)")
         if chosen is None:  # the same parameters as a smaller candidate
-            chosen = found[-1] if model == "identifiable" else found[0]
+            chosen = [c for c in found if c.name != "prior"][-1] if model == "identifiable" else found[0]
     base = found[0]
     if (chosen is not base and not math.isnan(base.cv_rms_m)
             and not chosen.cv_rms_m <= base.cv_rms_m * (1 + TIE_RTOL)):

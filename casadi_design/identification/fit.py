@@ -23,7 +23,7 @@ parameters are the problem's own X. Units: SI (m, rad, rad/(N m)).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -56,7 +56,9 @@ class FitModel:
 
     ``model.parameter_names`` are the frame's kept parameters (``frame_names``, tracker frame
     only), then the robot's (``robot_names``); ``absorbed``: (name, why) of the problem's
-    parameters the frame absorbs or that have no effect.
+    parameters the frame absorbs or that have no effect; ``prior_std`` (L,), physical units:
+    the prior's standard deviation of each parameter (inf: none) of a MAP fit, None for least
+    squares.
     """
 
     model: CalibrationModel
@@ -64,6 +66,7 @@ class FitModel:
     frame_names: tuple[str, ...]
     robot_names: tuple[str, ...]
     absorbed: tuple[tuple[str, str], ...]
+    prior_std: np.ndarray | None = None
 
     @property
     def robot_columns(self) -> np.ndarray:
@@ -71,9 +74,34 @@ class FitModel:
         return np.arange(len(self.frame_names), self.model.L)
 
 
-def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None) -> FitModel:
+def prior_std(problem: Problem, names: tuple[str, ...]) -> np.ndarray:
+    """The standard deviation (physical units; inf: none) of each parameter ``names`` under the
+    problem's ``[calibration.prior]`` (:class:`~casadi_design.problem.PriorSpec`)."""
+    from ..export import is_prismatic
+
+    prior = problem.spec.calibration.prior
+    joints = problem.robot.joints
+    std = np.full(len(names), np.inf)
+    for i, name in enumerate(names):
+        owner, _, e = name.rpartition(".")
+        if prior is None or owner in ("base", "tool"):
+            continue
+        if owner == "k":
+            value = prior.compliance_rad_per_Nm
+        elif e == "offset":
+            prismatic = owner in joints and is_prismatic(problem, joints.index(owner))
+            value = prior.length_m if prismatic else prior.offset_rad
+        else:
+            value = prior.length_m if e.startswith("t") else prior.angle_rad
+        std[i] = np.inf if value is None else value
+    return std
+
+
+def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None,
+              prior: bool = False) -> FitModel:
     """The fit's measurement model for measurements in the ``frame`` (module docstring), of the
-    robot parameters ``names`` (default the problem's own)."""
+    robot parameters ``names`` (default the problem's own); with ``prior`` a MAP fit under the
+    problem's ``[calibration.prior]``."""
     if frame not in FRAMES:
         raise ProblemError(f"--frame {frame}: allowed: {', '.join(FRAMES)}")
     model = problem.model
@@ -89,7 +117,8 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
         return calibration_model(kin, case, **args)
 
     if frame == "base":
-        return FitModel(model if names == model.parameter_names else build(names), frame, (), names, ())
+        fm = FitModel(model if names == model.parameter_names else build(names), frame, (), names, ())
+        return replace(fm, prior_std=prior_std(problem, names)) if prior else fm
     geometric = tuple(p for p in names if p not in compliant and p not in FRAME_PARAMETERS)
     absorbed = [(p, "the tracker frame's placement") for p in names if p in FRAME_PARAMETERS]
     candidates = build(FRAME_PARAMETERS + geometric + compliant)
@@ -110,7 +139,8 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
             absorbed.append((name, ABSORBED))
     names = tuple(candidates.parameter_names[i] for i in kept)
     frame_names = tuple(p for p in names if p in FRAME_PARAMETERS)
-    return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed))
+    return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed),
+                    prior_std(problem, names) if prior else None)
 
 
 def frame_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -146,6 +176,8 @@ class Fit:
     r : ndarray, shape (m, d), m: whitened residuals ``y - h(X)`` (0 where not measured).
     J : ndarray, shape (m, d, L): ``dh/dX`` at ``X`` (masked).
     identification : evaluations and convergence of the least squares.
+    prior_information : ndarray, shape (L,), m^2 per parameter unit^2: ``(sigma / std)^2`` of a
+        MAP fit's prior (0: none), None for least squares.
     """
 
     fit: FitModel
@@ -158,6 +190,7 @@ class Fit:
     r: np.ndarray
     J: np.ndarray
     identification: Identification
+    prior_information: np.ndarray | None = None
 
     @property
     def tracker_from_base(self) -> np.ndarray:
@@ -176,8 +209,10 @@ class Fit:
 
     @property
     def information(self) -> np.ndarray:
-        """``M = J^T J`` of the rows used (whitened, m^2 per parameter unit^2)."""
-        return information_matrix(self.J[self.used])
+        """``M = J^T J`` of the rows used (whitened, m^2 per parameter unit^2), plus
+        ``diag((sigma / std)^2)`` of a MAP fit's prior: ``sigma^2 M^-1`` is the covariance."""
+        M = information_matrix(self.J[self.used])
+        return M if self.prior_information is None else M + np.diag(self.prior_information)
 
 
 def point_errors(problem: Problem, P: np.ndarray, model_P: np.ndarray) -> np.ndarray:
@@ -415,7 +450,7 @@ def check_identifiable(problem: Problem, fm: FitModel, meas: Measurements, used:
 def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used: np.ndarray,
         loss: str = "linear") -> Fit:
     """Least squares (``loss``: :data:`~.lsq.LOSSES`) on the rows ``used`` of ``meas`` (module
-    docstring).
+    docstring); the MAP estimate when ``fm`` has a prior.
 
     Raises
     ------
@@ -429,7 +464,8 @@ def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used
     model, sigma = fm.model, problem.sigma_m
     m = len(y)
     X, ident = identify_nonlinear(model, meas.Q[used], meas.F[used], ref[used], y[used].reshape(1, -1),
-                                  sigma, mask=mask[used].reshape(-1), loss=loss)
+                                  sigma, mask=mask[used].reshape(-1), loss=loss,
+                                  prior_std=fm.prior_std)
     if ident.non_converged:
         raise DesignError(
             f"{meas.path}: the fit did not meet its tolerances in {ident.iterations} evaluations "
@@ -438,7 +474,9 @@ def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used
     X = X[0]
     h, J = evaluate(measurement_jacobian(model), meas.Q, meas.F, np.tile(X, (m, 1)), ref)
     h = h[:, :, 0]
-    return Fit(fm, X, T0, ref, y, mask, used, np.where(mask, y - h, 0.0), J * mask[:, :, None], ident)
+    prior = None if fm.prior_std is None else (sigma / fm.prior_std) ** 2
+    return Fit(fm, X, T0, ref, y, mask, used, np.where(mask, y - h, 0.0), J * mask[:, :, None], ident,
+               prior)
 
 
 def row_errors(problem: Problem, f: Fit, meas: Measurements, rows: np.ndarray | None = None) -> np.ndarray:

@@ -118,8 +118,8 @@ def check_loss(loss: str) -> str:
 def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, ref: np.ndarray,
                        y: np.ndarray, sigma: float, max_iterations: int = LSQ_MAX_EVALUATIONS,
                        mask: np.ndarray | None = None, loss: str = "linear",
-                       X0: np.ndarray | None = None,
-                       jacobian: str = "exact") -> tuple[np.ndarray, Identification]:
+                       X0: np.ndarray | None = None, jacobian: str = "exact",
+                       prior_std: np.ndarray | None = None) -> tuple[np.ndarray, Identification]:
     """Fit X to each row of ``y`` (module docstring), from ``X0`` (default 0), with the
     ``jacobian`` of ``JACOBIANS``.
 
@@ -132,6 +132,9 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
     mask : ndarray of bool, shape (m d,): the values that were measured (default all); the
         others (NaN allowed in ``y``) leave the residuals and the Jacobian.
     max_iterations : largest number of model evaluations of one fit.
+    prior_std : ndarray, shape (L,), physical units: the standard deviation of a zero-mean
+        normal prior on each parameter (inf: none); the fit is then the MAP estimate,
+        ``min |r / sigma|^2 + |X / prior_std|^2``.
 
     Returns
     -------
@@ -166,6 +169,15 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
             return h.reshape(-1) * w / s, J0 + T @ X
     norms = np.linalg.norm(J0, axis=0)
     x_scale = 1.0 / (s * np.where(norms > 0, norms, 1.0))  # parameter units per m of the values
+    if prior_std is not None:
+        weight = 1.0 / np.asarray(prior_std, dtype=float)  # 0 where no prior
+        plain = model_at
+
+        def model_at(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            h, J = plain(X)
+            return np.concatenate([h, -weight * X]), np.vstack([J, -np.diag(weight)])
+
+        y = np.hstack([y, np.zeros((trials, L))])
     # MINPACK's Levenberg-Marquardt (a trust region in C) for least squares, 1.4x faster than
     # the trust-region reflective method at the same optimum; trf for the robust losses and
     # for fewer values than parameters, which MINPACK refuses

@@ -146,12 +146,14 @@ def summary_lines(calibration: Calibration) -> list[str]:
                  "problem's own model; RMS of the rows left out, mm):")
     for k in c.candidates:
         cv = "not cross-validated: " + k.why if math.isnan(k.cv_rms_m) else f"{k.cv_rms_m * 1e3:8.4f} +- {k.cv_se_m * 1e3:.4f}"
-        lines.append(f"  {'*' if k.name == c.model else ' '} {k.name:16s} {k.L:3d} parameters, training "
+        size = f"{k.L:3d} parameters" + ("" if k.size == k.L else f" ({k.size:.1f} effective)")
+        lines.append(f"  {'*' if k.name == c.model else ' '} {k.name:16s} {size}, training "
                      f"{k.training_rms_m * 1e3:8.4f}, cross-validated {cv}")
     lines += [(f"identified {len(c.names)} parameters ({c.model} model, "
                f"{'chosen by cross-validation' if c.model_chosen else 'given by --model'}) from "
                f"{int(used.sum())} of {c.measurements.m} rows "
-               f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; least squares, loss "
+               f"({int(f.mask[used].sum())} values), frame: {f.fit.frame}; "
+               f"{'least squares' if f.prior_information is None else 'MAP under [calibration.prior]'}, loss "
                f"{f.identification.loss}, {f.identification.iterations} evaluations"),
              f"{'parameter':28s} {'value':>12s} {'std':>10s}  unit"]
     for n, x, s in zip(c.names, f.X, c.std):
