@@ -90,6 +90,9 @@ class CalibrationModel:
         ``q -> p``, nominal position (m) of the measured frame's origin.
     points : casadi.Function
         ``q -> P``, 3 x k nominal positions (m) of the measured points.
+    gravity : bool
+        The compliant joints deflect under the robot's own weight too (``g(q)`` of the URDF's
+        inertias, :attr:`SymbolicKinematics.gravity_torque`), beside the wrench ``W``.
     """
 
     kinematics: SymbolicKinematics
@@ -107,6 +110,7 @@ class CalibrationModel:
     B0: ca.Function
     position: ca.Function
     points: ca.Function
+    gravity: bool = False
 
     @property
     def L(self) -> int:
@@ -161,6 +165,7 @@ def calibration_model(
     load_point_m: np.ndarray | None = None,
     whitening: np.ndarray | None = None,
     column_scale: np.ndarray | None = None,
+    gravity: bool = False,
 ) -> CalibrationModel:
     """Build the measurement model of a calibration case (see :class:`CalibrationModel`).
 
@@ -183,6 +188,9 @@ def calibration_model(
         (default identity).
     column_scale : ndarray, shape (L,)
         Scales of the parameters (see :class:`CalibrationModel`); ones by default.
+    gravity : the compliant joints deflect under the robot's own weight too:
+        ``dq = diag(k) (J(q + dq)^T W - g(q + dq))`` (an elasto-static case without loads then
+        needs no ``force``).
     """
     if case not in CASES:
         raise ProblemError(f"[calibration].case: '{case}'; allowed: {', '.join(CASES)}")
@@ -226,7 +234,8 @@ def calibration_model(
             )
         comp_idx = [robot.joints.index(j) for j in compliant]
         names += [f"k.{j}" for j in compliant]
-        f_rows = row_indices(tuple(force), WRENCH_ROWS, "[calibration].wrench_components")
+        f_rows = row_indices(tuple(force), WRENCH_ROWS, "[calibration].wrench_components") \
+            if force or not gravity else ()
     d = len([r for r in m_rows if r < 3]) * len(markers) + len([r for r in m_rows if r >= 3])
     if whitening is not None and np.shape(whitening) != (d, d):
         raise ProblemError(
@@ -257,7 +266,8 @@ def calibration_model(
         dq, step = ca.SX.zeros(robot.n), ca.SX(0)
         if comp_idx:
             for _ in range(iterations):
-                new = k * (jacobian(q + dq, Pi).T @ W)
+                tau = jacobian(q + dq, Pi).T @ W
+                new = k * (tau - kinematics.gravity_torque(q + dq) if gravity else tau)
                 dq, step = new, ca.mmax(ca.fabs(new - dq))
         R, p = kinematics.placement(q + dq, Pi)
         return R, p, step
@@ -313,4 +323,5 @@ def calibration_model(
         position=ca.Function("p", [q], [ref0[9:12]], ["q"], ["p"]),
         points=ca.Function("points", [q], [ref0[9:12] + ca.reshape(ref0[0:9], 3, 3) @ ca.DM(markers.T)],
                            ["q"], ["P"]),
+        gravity=gravity,
     )

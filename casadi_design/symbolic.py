@@ -50,6 +50,11 @@ class SymbolicKinematics:
         by a joint of the chain (link, joint, flange and tool frames), the measured frame last.
     frame_names : tuple of str
         A name for each column of ``frame_origins`` (a frame at that origin).
+    gravity_torque : casadi.Function
+        ``q -> g``: n joint torques (N m; N for prismatic joints) that hold the robot's own
+        weight at ``Pi = 0``, ``g = dV/dq`` with ``V = -sum_b m_b g0 . c_b(q)`` over the bodies the
+        chain moves (the URDF's inertias; the other joints at their neutral values) and ``g0``
+        the model's gravity: Pinocchio's ``computeGeneralizedGravity`` for the chain's joints.
     """
 
     robot: Robot
@@ -60,6 +65,7 @@ class SymbolicKinematics:
     joint_origins: ca.Function
     frame_origins: ca.Function
     frame_names: tuple[str, ...]
+    gravity_torque: ca.Function
 
 
 def rotation_about(axis: np.ndarray, angle: ca.SX) -> ca.SX:
@@ -117,6 +123,8 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
     Pi = ca.SX.sym("Pi", len(names))
     R, p = _error_placement(Pi[0:6])
     origins, carried, carried_names = [], [], []
+    weights = _carried_weights(robot)
+    V = ca.SX(0)
     for k, jid in enumerate(robot.joint_ids):
         base = 6 + 7 * k
         M = model.jointPlacements[jid]
@@ -129,6 +137,8 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
             R = R @ rotation_about(axis, qk)
         else:
             p = p + R @ (ca.SX(axis) * qk)
+        for mass, lever in weights[k]:
+            V -= mass * ca.dot(ca.DM(model.gravity.linear), p + R @ ca.DM(lever))
         points, point_names = _carried_frames(model, jid, R, p, exclude=robot.frame_id)
         carried += points
         carried_names += point_names
@@ -149,7 +159,29 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
         joint_origins=ca.Function("origins", [q], [ca.substitute(ca.horzcat(*origins), Pi, zero)], ["q"], ["P"]),
         frame_origins=ca.Function("frame_origins", [q], [frames], ["q"], ["P"]),
         frame_names=tuple(carried_names) + (robot.frame,),
+        gravity_torque=ca.Function("gravity_torque", [q], [ca.substitute(ca.gradient(V, q), Pi, zero)],
+                                   ["q"], ["g"]),
     )
+
+
+def _carried_weights(robot: Robot) -> list[list[tuple[float, np.ndarray]]]:
+    """Per chain joint, the (mass kg, centre of mass m in the joint's frame) of each body whose
+    nearest chain joint on its way to the root it is (its own body, and those of joints off
+    the chain beyond it, at their neutral values; bodies before the chain do not move)."""
+    model = robot.model
+    chain = {jid: k for k, jid in enumerate(robot.joint_ids)}
+    data = model.createData()
+    pin.forwardKinematics(model, data, robot.full_q(np.zeros(robot.n)))
+    out: list[list[tuple[float, np.ndarray]]] = [[] for _ in robot.joint_ids]
+    for b in range(1, model.njoints):
+        a = b
+        while a and a not in chain:
+            a = model.parents[a]
+        mass = float(model.inertias[b].mass)
+        if a and mass > 0:
+            lever = (data.oMi[a].inverse() * data.oMi[b]).act(np.asarray(model.inertias[b].lever, float))
+            out[chain[a]].append((mass, lever))
+    return out
 
 
 def _carried_frames(model: pin.Model, jid: int, R: ca.SX, p: ca.SX,

@@ -61,8 +61,9 @@ def perturbed(problem, rng, base_like: bool = True, k: np.ndarray | None = None)
     return TrueRobot(model, fid, np.zeros(robot.n) if k is None else np.asarray(k, float), tracker)
 
 
-def true_points(problem, true: TrueRobot, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Points (m, k, 3), m, of the true robot in the base frame, deflected by the loads."""
+def true_points(problem, true: TrueRobot, Q: np.ndarray, F: np.ndarray, gravity: bool = False) -> np.ndarray:
+    """Points (m, k, 3), m, of the true robot in the base frame, deflected by the loads (and
+    with ``gravity`` by its own weight: Pinocchio's generalized gravity of the true model)."""
     robot, spec = problem.robot, problem.spec
     markers = problem.model.markers_m
     lever = np.zeros(3) if spec.force is None else np.asarray(spec.force.load_point_m, float)
@@ -73,25 +74,29 @@ def true_points(problem, true: TrueRobot, Q: np.ndarray, F: np.ndarray) -> np.nd
         wrench = np.zeros(6)
         wrench[list(rows)] = f
         dq = np.zeros(robot.n)
-        for _ in range(30 if true.k.any() else 1):
+        for _ in range(30 if true.k.any() else 1):  # the fixed point
             qf = robot.full_q(q + dq)
             pin.computeJointJacobians(true.model, data, qf)
             pin.framesForwardKinematics(true.model, data, qf)
             M = data.oMf[true.frame_id]
             W = np.concatenate([wrench[:3], wrench[3:] + np.cross(M.rotation @ lever, wrench[:3])])
             J = pin.getFrameJacobian(true.model, data, true.frame_id, pin.LOCAL_WORLD_ALIGNED)
-            J = J[:, [true.model.joints[j].idx_v for j in robot.joint_ids]]
-            dq = true.k * (J.T @ W)
+            cols = [true.model.joints[j].idx_v for j in robot.joint_ids]
+            tau = J[:, cols].T @ W
+            if gravity:
+                tau = tau - pin.computeGeneralizedGravity(true.model, data, qf)[cols]
+            dq = true.k * tau
         pin.framesForwardKinematics(true.model, data, robot.full_q(q + dq))
         M = data.oMf[true.frame_id]
         out.append(M.translation + markers @ M.rotation.T)
     return np.array(out)
 
 
-def measured(problem, true: TrueRobot, Q, F, rng, sigma: float | None = None) -> np.ndarray:
+def measured(problem, true: TrueRobot, Q, F, rng, sigma: float | None = None,
+             gravity: bool = False) -> np.ndarray:
     """Tracker-frame coordinates (m, k, 3), m, with noise sigma per coordinate."""
     sigma = problem.sigma_m if sigma is None else sigma
-    p = true_points(problem, true, Q, F)
+    p = true_points(problem, true, Q, F, gravity)
     P = p @ true.tracker.rotation.T + true.tracker.translation
     return P + sigma * rng.standard_normal(P.shape)
 

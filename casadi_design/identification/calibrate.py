@@ -25,9 +25,11 @@ Statistics of a fit with N measured values and L parameters (whitened residuals 
   backlash, the tracker), and is reported. A validation pose with a joint outside the range of
   the training rows is out of range (extrapolation), marked and summarised apart.
 * the model (:mod:`.choice`): registration only, + joint offsets, + the most significant of
-  the problem's parameters, or all of them, given or chosen by cross-validation on the training
-  rows less the outliers of the problem's own model; the chosen model is then fitted with its
-  own outlier test.
+  the problem's parameters, or all of them, + the joints' compliance under the robot's own
+  weight, or a MAP fit under ``[calibration.prior]``, given or chosen by cross-validation on the
+  training rows less the outliers of the richest model (the problem's own, with the
+  compliances under its weight for a robot with masses: a smaller model would take what it
+  misses for bad shots); the chosen model is fitted on those rows.
 """
 
 from __future__ import annotations
@@ -41,9 +43,9 @@ import numpy as np
 from ..build import Problem
 from ..errors import DesignError, ProblemError
 from ..measures import information_matrix, rho_at_test_poses
-from .choice import MODELS, Candidate, candidates, choose
+from .choice import MODELS, Candidate, candidates, choose, has_weight
 from .compensate import compensate
-from .fit import (Fit, FitModel, fit, frame_matrix, in_tracker, model_points, point_errors, pose_rms,
+from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, in_tracker, model_points, point_errors, pose_rms,
                   register, row_errors)
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
@@ -268,14 +270,24 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     if model not in MODELS:
         raise ProblemError(f"--model {model}: allowed: {', '.join(MODELS)}")
     problem, own, T0, notes = register(problem, frame, meas)
-    try:  # the rows the candidates are judged on: without the problem's own model's outliers
-        rows = fit_without_outliers(problem, own, meas, T0, threshold, loss)[0].used
+    if has_weight(problem):  # a model that misses the sag would take the sagging rows for outliers
+        own = fit_model(problem, frame, problem.model.parameter_names + tuple(
+            f"k.{j}" for j in problem.robot.joints if f"k.{j}" not in problem.model.parameter_names),
+            gravity=True)
+    try:  # the outliers are the richest model's: a smaller one takes what it misses for bad shots
+        rich, outliers, refused = fit_without_outliers(problem, own, meas, T0, threshold, loss)
+        rows = rich.used
     except (ProblemError, DesignError):
-        rows = np.ones(meas.m, dtype=bool)
-    found = candidates(problem, frame, meas, T0, loss, rows)
+        rows, outliers, refused = None, [], []
+    found = candidates(problem, frame, meas, T0, loss, np.ones(meas.m, dtype=bool) if rows is None else rows)
     chosen, warnings = choose(found, model)
     fm = chosen.fit_model
-    f, outliers, refused = fit_without_outliers(problem, fm, meas, T0, threshold, loss)
+    try:  # the chosen model on the rows without the outliers
+        f = fit(problem, fm, meas, T0, rows, loss) if rows is not None else None
+    except (ProblemError, DesignError):
+        f = None
+    if f is None:
+        f, outliers, refused = fit_without_outliers(problem, fm, meas, T0, threshold, loss)
     notes += refused + warnings
     sigma, L = problem.sigma_m, fm.model.L
     Minv = np.linalg.inv(f.information)

@@ -11,6 +11,10 @@ rows best and can predict new poses worst. The candidates, nested:
   order of ``|X_j| / std_j`` of its fit to every training row;
 * ``identifiable``: the problem's own parameters (``[calibration].parameters``, e.g. its
   identifiable base set);
+* ``... + gravity`` (a robot whose URDF gives the links' masses): ``offsets``, the nested
+  candidate of smallest cross-validated error and ``identifiable``, each with every joint's compliance
+  ``k.<joint>`` deflecting it under the robot's own weight (the usual next term on a real arm;
+  compliances without effect, e.g. of a vertical first axis, left out);
 * ``prior`` (with ``[calibration.prior]``): the problem's own parameters, regularised: the MAP
   estimate ``min |r / sigma|^2 + |X / std|^2``, whose ``H = J^T J + diag((sigma / std)^2)``
   (ridge regression); its size is its effective number of parameters ``tr(J^T J H^-1)``.
@@ -95,6 +99,13 @@ def candidate_parameters(problem: Problem, name: str) -> tuple[str, ...]:
     return tool + tuple(f"{j}.offset" for j in problem.robot.joints) + compliances
 
 
+def has_weight(problem: Problem) -> bool:
+    """Whether the robot's own weight loads its joints (the URDF gives the links' masses)."""
+    q = (problem.robot.q_min + problem.robot.q_max) / 2
+    g = np.asarray(problem.model.kinematics.gravity_torque(np.clip(q, -math.pi, math.pi)))
+    return bool(np.any(np.abs(g) > 0))
+
+
 def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float, float, str]:
     """The leave-one-out RMS error (m) of the fit ``f`` over its rows of ``meas`` and its
     standard error (module docstring), or NaN and why not."""
@@ -121,8 +132,9 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
     models equal to a smaller one (parameters absorbed) are left out."""
     every = rows
 
-    def candidate(name: str, names: tuple[str, ...], prior: bool = False) -> tuple[Candidate, object]:
-        fm = fit_model(problem, frame, names, prior)
+    def candidate(name: str, names: tuple[str, ...], prior: bool = False,
+                  gravity: bool = False) -> tuple[Candidate, object]:
+        fm = fit_model(problem, frame, names, prior, gravity)
         try:
             f = fit(problem, fm, meas, T0, every, loss)
         except (ProblemError, DesignError) as e:
@@ -146,14 +158,28 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
         for k in range(1, len(order)):
             found.append(candidate(f"offsets + {k}", offsets + tuple(order[:k]))[0])
     found.append(full)
+    if has_weight(problem):  # + every joint's compliance under the robot's own weight
+        compliances = tuple(f"k.{j}" for j in problem.robot.joints)
+        nested = [c for c in found if not math.isnan(c.cv_rms_m)]
+        best = min(nested, key=lambda c: c.cv_rms_m) if nested else found[1]
+        for c in dict.fromkeys((found[1], best, full)):
+            geometric = tuple(p for p in c.fit_model.model.parameter_names
+                              if p not in c.fit_model.frame_names and not p.startswith("k."))
+            found.append(candidate(f"{c.name} + gravity", geometric + compliances, gravity=True)[0])
     if problem.spec.calibration.prior is not None:
         found.append(candidate("prior", candidate_parameters(problem, "identifiable"), prior=True)[0])
     kept: list[Candidate] = []
     for c in found:
-        if c.name == "prior" or not any(set(c.fit_model.model.parameter_names) ==
-                                        set(k.fit_model.model.parameter_names) for k in kept):
+        if c.name == "prior" or c.fit_model.model.gravity or not any(
+                set(c.fit_model.model.parameter_names) == set(k.fit_model.model.parameter_names)
+                for k in kept if not k.fit_model.model.gravity):
             kept.append(c)
     return kept
+
+
+def _own(found: list[Candidate]) -> Candidate:
+    """The candidate of the problem's own parameters (the last of the nested ones)."""
+    return [c for c in found if c.name != "prior" and not c.fit_model.model.gravity][-1]
 
 
 def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
@@ -164,7 +190,7 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
     valid = [c for c in found if not math.isnan(c.cv_rms_m)]
     warnings = []
     if model == "auto" and not valid:  # too few rows to judge: the problem's own model
-        own = [c for c in found if c.name != "prior"][-1]
+        own = _own(found)
         if math.isnan(own.training_rms_m):
             raise ProblemError(own.why)
         return own, [f"no model could be cross-validated ({'; '.join(f'{c.name}: {c.why}' for c in found)}): "
@@ -178,7 +204,7 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
             raise ProblemError("--model prior: the problem file has no [calibration.prior]; add one "
                                "(a standard deviation per group, e.g. length_m = 1e-3, angle_rad = 1e-3)")
         if chosen is None:  # the same parameters as a smaller candidate
-            chosen = [c for c in found if c.name != "prior"][-1] if model == "identifiable" else found[0]
+            chosen = _own(found) if model == "identifiable" else found[0]
     base = found[0]
     if (chosen is not base and not math.isnan(base.cv_rms_m)
             and not chosen.cv_rms_m <= base.cv_rms_m * (1 + TIE_RTOL)):

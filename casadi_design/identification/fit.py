@@ -98,10 +98,11 @@ def prior_std(problem: Problem, names: tuple[str, ...]) -> np.ndarray:
 
 
 def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None,
-              prior: bool = False) -> FitModel:
+              prior: bool = False, gravity: bool = False) -> FitModel:
     """The fit's measurement model for measurements in the ``frame`` (module docstring), of the
     robot parameters ``names`` (default the problem's own); with ``prior`` a MAP fit under the
-    problem's ``[calibration.prior]``."""
+    problem's ``[calibration.prior]``; with ``gravity`` the compliances ``k.<joint>`` of
+    ``names`` deflect the joints under the robot's own weight too (the URDF's inertias)."""
     if frame not in FRAMES:
         raise ProblemError(f"--frame {frame}: allowed: {', '.join(FRAMES)}")
     model = problem.model
@@ -114,10 +115,11 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
         """The model of the parameters ``names`` (geometric errors and ``k.<joint>``)."""
         args = model_arguments(problem.spec, tuple(p for p in names if not p.startswith("k.")))
         args["compliant"] = tuple(p[2:] for p in names if p.startswith("k.")) or None
-        return calibration_model(kin, case, **args)
+        return calibration_model(kin, case, **args, gravity=gravity)
 
     if frame == "base":
-        fm = FitModel(model if names == model.parameter_names else build(names), frame, (), names, ())
+        fm = FitModel(model if names == model.parameter_names and not gravity else build(names),
+                      frame, (), names, ())
         return replace(fm, prior_std=prior_std(problem, names)) if prior else fm
     geometric = tuple(p for p in names if p not in compliant and p not in FRAME_PARAMETERS)
     absorbed = [(p, "the tracker frame's placement") for p in names if p in FRAME_PARAMETERS]

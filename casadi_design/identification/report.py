@@ -143,7 +143,7 @@ def summary_lines(calibration: Calibration) -> list[str]:
 
     lines = [f"note: {n}" for n in (*c.measurements.notes, *c.notes)]
     lines.append("models (leave-one-out cross-validation on the rows without the outliers of the "
-                 "problem's own model; RMS of the rows left out, mm):")
+                 "richest model; RMS of the rows left out, mm):")
     for k in c.candidates:
         cv = "not cross-validated: " + k.why if math.isnan(k.cv_rms_m) else f"{k.cv_rms_m * 1e3:8.4f} +- {k.cv_se_m * 1e3:.4f}"
         size = f"{k.L:3d} parameters" + ("" if k.size == k.L else f" ({k.size:.1f} effective)")
