@@ -45,7 +45,7 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem, per_model
-from .cache import digest, keeping_designs, read, write
+from .cache import Memo, digest
 from .compiled import compiled_group
 from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import Bound
@@ -790,16 +790,13 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     return plans
 
 
-#: Approximate designs computed in this process, by (the problem's checked data, criterion,
-#: steps, pool): a pure function of them, reused by the commands that run one after the other
-#: in one process (keyed like :func:`casadi_design.build.build_problem`'s problems).
-_COMPUTED: dict[tuple[str, str, int, int], ApproximateDesign] = {}
-KEEP_COMPUTED = 32
-#: They are kept on disk too (:mod:`casadi_design.cache`, named by the problem's
-#: :attr:`~casadi_design.build.Problem.fingerprint`, the criterion, steps and pool), so a later
-#: run of any command on the same problem reads them back, to the bit, instead of computing
-#: them again; not when :data:`casadi_design.cache.KEEP_DESIGNS` is 0.
-DISK_KIND = "approximate-design"
+#: Approximate designs, a pure function of (the problem, criterion, steps, pool): the ones
+#: used last in this process, and on disk (:mod:`casadi_design.cache`, named by the problem's
+#: :attr:`~casadi_design.build.Problem.fingerprint`, the criterion, steps and pool), so that a
+#: later run of any command on the same problem reads them back, to the bit, marked ``kept``;
+#: not when :data:`casadi_design.cache.KEEP_DESIGNS` is 0.
+APPROXIMATE: Memo[ApproximateDesign] = Memo(32, kind="approximate-design",
+                                            on_read=lambda a: dataclasses.replace(a, kept=True))
 
 
 def approximate_one(problem: Problem, criterion: str, steps: int, pool: int,
@@ -811,38 +808,26 @@ def approximate_one(problem: Problem, criterion: str, steps: int, pool: int,
                               sample_size=pool * SAMPLE_SIZE // POOL_SIZE, maximise=maximise)
 
 
+def approximate_key(problem: Problem, criterion: str, steps: int, pool: int) -> str:
+    """The name of an approximate design in :data:`APPROXIMATE` (:func:`~casadi_design.cache.digest`)."""
+    return digest(*(str(v).encode() for v in (problem.fingerprint, criterion, steps, pool)))
+
+
 def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE
              ) -> tuple[dict[str, ApproximateDesign], list[str]]:
     """Of the approximate designs of ``criteria`` that have a bound (none when ``steps`` is 0):
     those computed in this process already or kept on disk by an earlier run (these marked
     ``kept``), and the criteria still to compute."""
     wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
-    for c in wanted:
-        if (problem.digest, c, steps, pool) not in _COMPUTED and keeping_designs():
-            kept = read(DISK_KIND, _disk_key(problem, c, steps, pool))
-            if isinstance(kept, ApproximateDesign):
-                _remember(problem, steps, pool, dataclasses.replace(kept, kept=True))
-    have = {c: _COMPUTED[problem.digest, c, steps, pool] for c in wanted
-            if (problem.digest, c, steps, pool) in _COMPUTED}
+    have = {c: a for c in wanted for a in [APPROXIMATE.lookup(approximate_key(problem, c, steps, pool))]
+            if isinstance(a, ApproximateDesign)}
     return have, [c for c in wanted if c not in have]
 
 
 def keep(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> None:
     """Keep ``approx`` (of ``problem`` with ``steps`` and ``pool``) for the commands that run
     after this one in this process and on this machine (:func:`computed`)."""
-    _remember(problem, steps, pool, approx)
-    if keeping_designs():
-        write(DISK_KIND, _disk_key(problem, approx.criterion, steps, pool), approx)
-
-
-def _remember(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> None:
-    _COMPUTED[problem.digest, approx.criterion, steps, pool] = approx
-    while len(_COMPUTED) > KEEP_COMPUTED:
-        _COMPUTED.pop(next(iter(_COMPUTED)))
-
-
-def _disk_key(problem: Problem, criterion: str, steps: int, pool: int) -> str:
-    return digest(*(str(v).encode() for v in (problem.fingerprint, criterion, steps, pool)))
+    APPROXIMATE.keep(approximate_key(problem, approx.criterion, steps, pool), approx)
 
 
 def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,

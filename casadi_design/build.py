@@ -21,7 +21,7 @@ from typing import TypeVar
 import numpy as np
 import pinocchio as pin
 
-from .cache import code_digest, digest
+from .cache import Memo, code_digest, digest
 from .cell import Cell, build_cell
 from .errors import ProblemError
 from .identifiability import BaseSet, base_set
@@ -172,9 +172,9 @@ def load_problem(path: str | Path) -> Problem:
 
 #: Problems built in this process, by their checked data (a problem is a pure function of it):
 #: commands run one after the other in one process (and worker processes) reuse the robot,
-#: model and the CasADi functions cached on it. At most ``KEEP_BUILT``, the oldest dropped.
-_BUILT: dict[bytes, Problem] = {}
+#: model and the CasADi functions cached on it.
 KEEP_BUILT = 8
+_BUILT: Memo[Problem] = Memo(KEEP_BUILT)
 
 
 def build_problem(spec: ProblemSpec) -> Problem:
@@ -183,33 +183,29 @@ def build_problem(spec: ProblemSpec) -> Problem:
     A spec that differs from a built one only in its solver settings (``--ipopt``) shares its
     robot, model, test poses and cell, and so the functions cached on them (:func:`per_model`).
     """
-    key = spec_digest_blob(dataclasses.replace(spec, solver=SolverSettings()))
-    if key in _BUILT:
-        _BUILT[key] = _BUILT.pop(key)  # the newest
-        return _BUILT[key] if _BUILT[key].spec == spec else dataclasses.replace(_BUILT[key], spec=spec)
+    problem = _BUILT.get(spec_digest_blob(dataclasses.replace(spec, solver=SolverSettings())),
+                         lambda: _build_named(spec))
+    return problem if problem.spec == spec else dataclasses.replace(problem, spec=spec)
+
+
+def _build_named(spec: ProblemSpec) -> Problem:
+    """:func:`_build`, its errors naming the file."""
     try:
-        problem = _build(spec)
+        return _build(spec)
     except ProblemError as exc:
         if str(exc).startswith(f"{spec.path}: "):
             raise
         raise ProblemError(f"{spec.path}: {exc}") from None
-    _BUILT[key] = problem
-    while len(_BUILT) > KEEP_BUILT:
-        _BUILT.pop(next(iter(_BUILT)))
-    return problem
 
 
 def per_model(f: Callable[[Problem], T]) -> Callable[[Problem], T]:
     """Cache ``f(problem)`` by the built parts it depends on (model, cell, workspace, load):
     problems that differ only in their solver settings share them."""
-    cache: dict = {}
+    memo: Memo[T] = Memo(KEEP_BUILT)
 
     @functools.wraps(f)
     def cached(problem: Problem) -> T:
-        key = (problem.model, problem.cell, problem.workspace, problem.force)
-        if key not in cache:
-            cache[key] = f(problem)
-        return cache[key]
+        return memo.get((problem.model, problem.cell, problem.workspace, problem.force), lambda: f(problem))
 
     return cached
 
@@ -267,17 +263,15 @@ def model_arguments(spec: ProblemSpec, geometric: tuple[str, ...]) -> dict:
 
 #: Cells built in this process, by the data they depend on (a cell samples configurations to
 #: select its pairs, which takes seconds; problem variants that keep the cell reuse it).
-_CELLS: dict[str, Cell | None] = {}
+_CELLS: Memo[Cell] = Memo(KEEP_BUILT)
 
 
 def _cell(spec: ProblemSpec, robot: Robot, markers: np.ndarray | None) -> Cell | None:
+    if spec.cell is None:
+        return None
     key = repr((spec.cell, spec.robot, spec.workspace.floor_z_m, None if markers is None else markers.tolist()))
-    if key not in _CELLS:
-        _CELLS[key] = build_cell(spec.cell, robot, spec.workspace, spec.robot.urdf,
-                                 np.zeros((1, 3)) if markers is None else markers)
-        while len(_CELLS) > KEEP_BUILT:
-            _CELLS.pop(next(iter(_CELLS)))
-    return _CELLS[key]
+    return _CELLS.get(key, lambda: build_cell(spec.cell, robot, spec.workspace, spec.robot.urdf,
+                                              np.zeros((1, 3)) if markers is None else markers))
 
 
 def build_robot(r: RobotSpec) -> Robot:

@@ -1,4 +1,5 @@
-"""What the package keeps on disk between runs, per machine: the compiled CasADi functions
+"""What the package keeps: in this process, the values used last (:class:`Memo`: built problems,
+cells, functions per model, approximate designs); on disk between runs, per machine, the compiled CasADi functions
 (:mod:`casadi_design.compiled`), the capsules fitted around a robot's meshes
 (:func:`casadi_design.collision.capsules_from_geometry`), the cell's pairs, the approximate
 designs behind the bounds (:func:`casadi_design.bound.approximate_designs`) and the designs'
@@ -23,9 +24,10 @@ import hashlib
 import os
 import pickle
 import tempfile
-from collections.abc import Callable
+from collections import OrderedDict
+from collections.abc import Callable, Hashable
 from pathlib import Path
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
@@ -120,3 +122,62 @@ def code_digest() -> str:
     sources = (part for f in files for part in (str(f.relative_to(root)).encode(), f.read_bytes()))
     versions = (numpy.__version__, scipy.__version__, casadi.__version__, pinocchio.__version__)
     return digest(*sources, *(v.encode() for v in versions))
+
+
+class Memo(Generic[T]):
+    """The values of a pure function used last: at most ``size`` in this process (the least
+    recently used dropped), and with ``kind`` also on disk as ``<kind>-<key>.pickle``
+    (:func:`read`, :func:`write`) while ``disk()`` is true. A disk key is a :func:`digest` of all
+    the value is computed from, so the value read back is the value that would be computed, to
+    the bit; ``on_read`` marks a value read from the disk (e.g. to count what was kept)."""
+
+    def __init__(self, size: int, kind: str | None = None, disk: Callable[[], bool] = keeping_designs,
+                 on_read: Callable[[T], T] | None = None):
+        self.size, self.kind, self.disk, self.on_read = size, kind, disk, on_read
+        self._values: OrderedDict[Hashable, T] = OrderedDict()
+
+    def lookup(self, key: Hashable) -> T | None:
+        """The value of ``key`` in this process or on disk, or None."""
+        if key in self._values:
+            self._values.move_to_end(key)
+            return self._values[key]
+        if self.kind is not None and self.disk():
+            value = read(self.kind, str(key))
+            if value is not None:
+                value = value if self.on_read is None else self.on_read(value)
+                self._remember(key, value)
+                return value
+        return None
+
+    def keep(self, key: Hashable, value: T) -> None:
+        """Keep ``value`` as the value of ``key`` (in this process, and on disk with ``kind``)."""
+        self._remember(key, value)
+        if self.kind is not None and self.disk():
+            write(self.kind, str(key), value)
+
+    def get(self, key: Hashable, make: Callable[[], T]) -> T:
+        """The value of ``key``: kept, or ``make()`` computed and kept."""
+        value = self.lookup(key)
+        if value is None:
+            value = make()
+            self.keep(key, value)
+        return value
+
+    def clear(self) -> None:
+        """Forget what this process keeps (the disk layer stays)."""
+        self._values.clear()
+
+    def empty(self) -> Memo[T]:
+        """A memo like this one that keeps nothing yet (a test's fresh process)."""
+        return Memo(self.size, self.kind, self.disk, self.on_read)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def _remember(self, key: Hashable, value: T) -> None:
+        if self.size <= 0:
+            return
+        self._values[key] = value
+        self._values.move_to_end(key)
+        while len(self._values) > self.size:
+            self._values.popitem(last=False)

@@ -20,7 +20,7 @@ import casadi as ca
 import numpy as np
 
 from .build import Problem
-from .cache import digest, keeping_designs, read, write
+from .cache import Memo, digest, keeping_designs
 from .cell import clearances
 from .criteria import CRITERIA
 from .design import CONVERGED, SEEDED, Design, StartRecord
@@ -335,17 +335,16 @@ def solve_start(
     arrays = (np.ascontiguousarray(a, dtype=float) for a in (B0, Q0, F0))
     key = digest(problem.fingerprint.encode(), ds.criterion.encode(), str(ds.m).encode(),
                  *(a.tobytes() + str(a.shape).encode() for a in arrays))
-    kept = read("start", key)
-    if kept is not None:
-        return KeptStart(kept)
-    solved = _solved_start(problem, ds, B0, Q0, F0)
-    write("start", key, solved)
-    return solved
+    return STARTS.get(key, lambda: _solved_start(problem, ds, B0, Q0, F0))
 
 
 class KeptStart(tuple):
     """A start's result read back from the disk (:func:`solve_start`): the same tuple, marked
     so that its design can say how many of its starts were read back."""
+
+
+#: The starts' results, on disk only (a process does not meet the same start twice).
+STARTS: Memo[tuple] = Memo(0, kind="start", on_read=KeptStart)
 
 
 def _solved_start(

@@ -133,7 +133,7 @@ def kept_designs(directory, monkeypatch):
     from casadi_design import bound
 
     monkeypatch.setenv(cache.KEEP_DESIGNS, "1")
-    monkeypatch.setattr(bound, "_COMPUTED", {})
+    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
     return bound
 
 
@@ -144,7 +144,7 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
     bound = kept_designs
     first = bound.approximate_designs(paper, ["test-pose", "D"], 2, 50)
     assert not any(a.kept for a in first.values())
-    monkeypatch.setattr(bound, "_COMPUTED", {})
+    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
     computing = []
 
     def computes(*args, **kwargs):
@@ -214,7 +214,7 @@ def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
     path.write_text(tomli_w.dumps(raw))
 
     def built():
-        monkeypatch.setattr(build, "_BUILT", {})  # built anew, as in a later run
+        monkeypatch.setattr(build, "_BUILT", build._BUILT.empty())  # built anew, as in a later run
         return build.load_problem(path)
 
     before = built()
@@ -235,7 +235,7 @@ def test_the_fingerprint_names_the_blas_thread_count(monkeypatch):
     from tests.conftest import PAPER
 
     def built():
-        monkeypatch.setattr(build, "_BUILT", {})  # built anew, as in another process
+        monkeypatch.setattr(build, "_BUILT", build._BUILT.empty())  # built anew, as in another process
         return build.load_problem(PAPER)
 
     assert blas_threads() == 1
@@ -245,3 +245,31 @@ def test_the_fingerprint_names_the_blas_thread_count(monkeypatch):
         two = built()
         assert two.fingerprint != one
     assert two.digest == built().digest and built().fingerprint == one
+
+
+def test_a_memo_keeps_the_values_used_last_and_reads_its_disk_layer(tmp_path, monkeypatch):
+    """The one memo of the package: bounded (the least recently used dropped), ``make`` called
+    once per key, a disk layer only with a kind and while ``disk()`` holds, marked on read."""
+    monkeypatch.setenv("CASADI_DESIGN_CACHE", str(tmp_path))
+    made = []
+
+    def make(k):
+        made.append(k)
+        return k * 10
+
+    memo = cache.Memo(2)
+    assert [memo.get(k, lambda k=k: make(k)) for k in (1, 2, 1, 3, 1, 2)] == [10, 20, 10, 30, 10, 20]
+    assert made == [1, 2, 3, 2] and len(memo) == 2  # 2 was the least recently used when 3 came
+    assert not list(tmp_path.iterdir())  # no kind: nothing on disk
+
+    on_disk = {"on": True}
+    kept = cache.Memo(1, kind="test", disk=lambda: on_disk["on"], on_read=lambda v: ("read", v))
+    assert kept.get("k1", lambda: "v1") == "v1" and (tmp_path / "test-k1.pickle").exists()
+    again = kept.empty()  # a later process: its memory empty, the disk kept
+    assert again.lookup("k1") == ("read", "v1") and again.lookup("k1") == ("read", "v1")
+    on_disk["on"] = False
+    assert kept.empty().lookup("k1") is None  # the disk layer switched off
+    kept.keep("k2", "v2")
+    assert not (tmp_path / "test-k2.pickle").exists() and kept.lookup("k2") == "v2"
+    assert cache.Memo(0, kind="test", disk=lambda: True).get("k3", lambda: "v3") == "v3"
+    assert cache.Memo(0).get("k4", lambda: "v4") == "v4" and len(cache.Memo(0)) == 0
