@@ -51,7 +51,7 @@ from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import Bound
 from .errors import DesignError
 from .ipopt import QUIET, WARM_START, ipopt_call
-from .nlp import B0_at_test_poses, build_nlp, plan_bounds, rule_bounds
+from .nlp import build_nlp, plan_bounds, rule_bounds
 from .reduced import NumericFunction, experiment_functions
 from .rules import ADD_MARGIN_M, START_MARGIN_M, CollisionRows, joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
 from .sampling import random_plan
@@ -554,7 +554,7 @@ def approximate_design(
         raise DesignError(f"approximate design: the first pool of {pool_size} random experiments "
                           f"(--bound-pool) identifies {rank} of the {L} parameters; use a larger pool "
                           f"(default {POOL_SIZE})")
-    Hj = None if form.log_det else c * form.rows(B0_at_test_poses(problem))
+    Hj = None if form.log_det else c * form.rows(problem.B0)
     sense = 1.0 if Hj is None else -1.0  # D's certificate is an upper bound, the others' lower
     pool, w = np.arange(pool_size), np.full(pool_size, 1.0 / pool_size)
     best, value, history = None, -np.inf * sense, []
@@ -657,7 +657,7 @@ def _moved(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, w: np
     K = int(np.searchsorted(np.cumsum(w[order]), 1.0 - MOVE_TAIL)) + 1
     heavy, light = order[:K], order[K:]
     Q, F = Q[heavy], F[heavy]
-    nlp = build_nlp(problem, criterion, K, B0_at_test_poses(problem),
+    nlp = build_nlp(problem, criterion, K,
                     active=pose_constraints(problem).near(Q, START_MARGIN_M), weights=K * w[heavy],
                     fixed=K * np.einsum("k,kij->ij", w[light], A[light]))
     solver = nlp.solver("move", {**QUIET, "ipopt.mu_init": MOVE_MU,

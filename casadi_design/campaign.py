@@ -27,7 +27,6 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
-import numpy as np
 
 from .bound import (
     BOUND_STEPS,
@@ -44,7 +43,6 @@ from .build import Problem
 from .criteria import BOUND_CRITERIA, CRITERIA
 from .design import SEEDED, Design
 from .errors import DesignError, ProblemError
-from .nlp import B0_at_test_poses
 from . import parallel
 from .solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
 
@@ -159,10 +157,9 @@ def run_campaign(
     check_criteria(problem, criteria)
     check_m_values(problem, ms)
     designs: dict[tuple[str, int], Design] = dict(done or {})
-    B0 = B0_at_test_poses(problem)
     if executor is not None and hasattr(executor, "run"):
         approx = _spread(problem, criteria, ms, settings, designs, executor) if approx is None else approx
-        pipeline = _Pipeline(problem, criteria, ms, settings, B0, designs, approx, extra_starts,
+        pipeline = _Pipeline(problem, criteria, ms, settings, designs, approx, extra_starts,
                              on_design, progress)
         for task, result in executor.run(pipeline):
             pipeline.returned(task, result)
@@ -175,7 +172,7 @@ def run_campaign(
                 if progress is not None:
                     progress(len(designs[c, m].starts))
                 continue
-            d = solve_design(problem, c, m, B0, starts=settings.starts, verbose=settings.verbose,
+            d = solve_design(problem, c, m, starts=settings.starts, verbose=settings.verbose,
                              initial_plans=_later_starts(problem, c, m, designs, approx, extra_starts),
                              executor=executor, progress=progress)
             designs[c, m] = d = _bounded(problem, d, approx)
@@ -250,9 +247,9 @@ class _Pipeline:
     before it is judged: the same error, and the same designs kept, as serially."""
 
     def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
-                 settings: Settings, B0: np.ndarray, designs: dict, approx: dict | None,
+                 settings: Settings, designs: dict, approx: dict | None,
                  extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None):
-        self.problem, self.settings, self.B0, self.designs = problem, settings, B0, designs
+        self.problem, self.settings, self.designs = problem, settings, designs
         self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
         self.ref = parallel.ProblemRef.of(problem)
         steps, pool = settings.bound_steps, settings.bound_pool
@@ -302,7 +299,7 @@ class _Pipeline:
             self._completed(i, d)  # its extra and rounded starts, once their inputs are there
             while d.given < len(d.plans) and len(out) < k:
                 Q0, F0 = d.plans[d.given]
-                task = parallel.Task(parallel.run_start, (self.ref, d.criterion, d.m, self.B0, Q0, F0,
+                task = parallel.Task(parallel.run_start, (self.ref, d.criterion, d.m, Q0, F0,
                                                     self.settings.verbose),
                                   f"criterion {d.criterion}, m = {d.m}")
                 self.starts[task] = (d, d.given)

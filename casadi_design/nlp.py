@@ -77,18 +77,12 @@ class DesignNLP:
         return solver
 
 
-def B0_at_test_poses(problem: Problem) -> np.ndarray:
-    """``B0_j`` at every test pose, shape (s, r, L) (:attr:`Problem.B0`)."""
-    return problem.B0
-
-
 def information_scale(L: int, B0: np.ndarray) -> float:
     """The factor of M (and of ``B0^T B0``) inside the NLP: ``L / mean_j |B0_j|_F^2``."""
     return L / max(np.einsum("sij,sij->", B0, B0) / B0.shape[0], np.finfo(float).tiny)
 
 
-def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = None,
-              power: float = 0.0, active: np.ndarray | None = None,
+def build_nlp(problem: Problem, criterion: str, m: int, power: float = 0.0, active: np.ndarray | None = None,
               weights: np.ndarray | None = None, fixed: np.ndarray | None = None) -> DesignNLP:
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem);
     ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``);
@@ -96,10 +90,9 @@ def build_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray | None = 
     ``weights`` (m,) and ``fixed`` (L x L, unscaled): ``M = sum_i w_i B_i^T B_i + fixed``, the
     support of an approximate design (:func:`casadi_design.reduced.reduced_nlp`; no
     joint-distance rows)."""
-    B0 = B0_at_test_poses(problem) if B0 is None else B0
     n, loads = problem.robot.n, load_variables(problem)
-    scale = information_scale(problem.model.L, B0)
-    nlp = reduced_nlp(problem, criterion, m, B0, scale, power, active, weights, fixed)
+    scale = information_scale(problem.model.L, problem.B0)
+    nlp = reduced_nlp(problem, criterion, m, scale, power, active, weights, fixed)
     oracle, options = nlp.functions()
     lbx, ubx = plan_bounds(problem, m, loads)
     lbg, ubg = rule_bounds(problem, m, loads, nlp.active, pairs=len(nlp.pairs) > 0)

@@ -1,7 +1,7 @@
 """Run the starts of a multi-start on local processes or on a Dask cluster.
 
 An executor sends each start to a worker as plain data: the problem's checked data
-(:class:`~casadi_design.problem.ProblemSpec`), the criterion, ``m``, ``B0`` and the start plan
+(:class:`~casadi_design.problem.ProblemSpec`), the criterion, ``m`` and the start plan
 ``(Q0, F0)`` (Q0 (m, n), rad; F0 (m, nF), N). The worker builds the problem and the design NLP once (cached per process) and runs
 :func:`casadi_design.solve.solve_start`, the same code the serial loop runs, so a start gives
 the same numbers wherever it runs. The seeded start plans are drawn by the caller
@@ -26,13 +26,11 @@ Executors (context managers; ``None`` means serial, in this process):
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import multiprocessing
 import os
 import signal
 import sys
 import threading
-from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, InvalidStateError, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -43,6 +41,7 @@ import numpy as np
 
 from .bound import ApproximateDesign, approximate_one, maximise_d
 from .build import Problem, build_problem
+from .cache import Memo
 from .errors import DesignError
 from .interrupt import pressed
 from .problem import ProblemSpec
@@ -91,16 +90,13 @@ class ProblemRef:
 # Worker-side state. One lock per process: CasADi building and IPOPT (MUMPS) are not safe to
 # run from several threads at once, and Dask may run tasks in threads.
 _LOCK = threading.Lock()
-_PROBLEMS: OrderedDict[str, tuple[Problem, dict]] = OrderedDict()
+_PROBLEMS: Memo[tuple[Problem, dict]] = Memo(CACHE_PROBLEMS)
 
 
 def _cached(ref: ProblemRef) -> tuple[Problem, dict]:
-    if ref.key not in _PROBLEMS:  # the problem from build_problem's own cache when built here
-        _PROBLEMS[ref.key] = (build_problem(ref.spec), {})
-        while len(_PROBLEMS) > CACHE_PROBLEMS:
-            _PROBLEMS.popitem(last=False)
-    _PROBLEMS.move_to_end(ref.key)
-    return _PROBLEMS[ref.key]
+    """The problem of ``ref`` (from build_problem's own memo when built in this process) and
+    its design solvers, by (criterion, m, verbose)."""
+    return _PROBLEMS.get(ref.key, lambda: (build_problem(ref.spec), {}))
 
 
 def run_approximate(ref: ProblemRef, criterion: str, steps: int, pool: int) -> ApproximateDesign:
@@ -116,15 +112,15 @@ def run_searches(ref: ProblemRef, scale: float, G: np.ndarray, Q: np.ndarray, F:
         return maximise_d(_cached(ref)[0], scale, G, Q, F, duals)
 
 
-def run_start(ref: ProblemRef, criterion: str, m: int, B0: np.ndarray, Q0: np.ndarray,
+def run_start(ref: ProblemRef, criterion: str, m: int, Q0: np.ndarray,
               F0: np.ndarray, verbose: bool = False) -> StartResult:
     """One start, in a worker: rebuild (or reuse) the problem and NLP, then solve."""
     with _LOCK:
         problem, solvers = _cached(ref)
-        key = (criterion, m, verbose, hashlib.sha256(np.ascontiguousarray(B0).tobytes()).hexdigest())
+        key = (criterion, m, verbose)
         if key not in solvers:
-            solvers[key] = make_design_solver(problem, criterion, m, B0, verbose)
-        return solve_start(problem, solvers[key], B0, Q0, F0)
+            solvers[key] = make_design_solver(problem, criterion, m, verbose)
+        return solve_start(problem, solvers[key], Q0, F0)
 
 
 #: prctl(2) option: the signal the kernel sends a process when its parent dies (Linux).
@@ -243,11 +239,11 @@ class _Workers:
                 yield done.pop(first)
                 first += 1
 
-    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+    def map_starts(self, problem: Problem, criterion: str, m: int,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]:
         """The starts' results in the order of ``plans``."""
         ref = ProblemRef.of(problem)
-        yield from self._map(run_start, [(ref, criterion, m, B0, Q0, F0, verbose) for Q0, F0 in plans],
+        yield from self._map(run_start, [(ref, criterion, m, Q0, F0, verbose) for Q0, F0 in plans],
                              f"criterion {criterion}, m = {m}")
 
     def maximise(self, problem: Problem, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,

@@ -593,7 +593,7 @@ def all_rows(problem: Problem, m: int) -> np.ndarray:
     return np.array([(i, r) for i in range(m) for r in range(R)], dtype=int).reshape(-1, 2)
 
 
-def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
+def reduced_nlp(problem: Problem, criterion: str, m: int,
                 scale: float, power: float = 0.0, active: np.ndarray | None = None,
                 weights: np.ndarray | None = None, fixed: np.ndarray | None = None) -> ReducedNLP:
     """The reduced-space NLP of ``criterion`` for m experiments (``power``: r of E and
@@ -610,6 +610,7 @@ def reduced_nlp(problem: Problem, criterion: str, m: int, B0: np.ndarray,
     fns, objective = experiment_functions(problem), CRITERIA[criterion].objective
     active = all_rows(problem, m) if active is None else np.asarray(active, dtype=int).reshape(-1, 2)
     n, nv = fns.n, fns.nv
+    B0 = problem.B0
     n_rows = B0.shape[0] if objective.epigraph else 0
     idx = np.arange(m)[:, None]
     cols = np.concatenate([idx * n + np.arange(n), n * m + idx * nv + np.arange(nv)], axis=1)

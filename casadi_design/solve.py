@@ -27,7 +27,7 @@ from .design import CONVERGED, SEEDED, Design, StartRecord
 from .errors import DesignError, ProblemError
 from .ipopt import QUIET, WARM_START, ipopt_call
 from .measures import Scores, score_plan
-from .nlp import B0_at_test_poses, DesignNLP, build_nlp
+from .nlp import DesignNLP, build_nlp
 from .rules import ADD_MARGIN_M, FEASIBILITY_TOL, START_MARGIN_M, PoseConstraints, joint_limits, plan_violations, pose_constraints
 from .sampling import random_plan
 
@@ -47,7 +47,7 @@ class StartExecutor(Protocol):
     """Runs the starts of one design and yields their results in the order of ``plans``
     (:mod:`casadi_design.parallel`)."""
 
-    def map_starts(self, problem: Problem, criterion: str, m: int, B0: np.ndarray,
+    def map_starts(self, problem: Problem, criterion: str, m: int,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]: ...
 
     def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
@@ -59,9 +59,9 @@ def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
     return np.random.default_rng([seed, m, CRITERIA[criterion].seed_id])
 
 
-def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B0: np.ndarray) -> Scores:
+def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray) -> Scores:
     """Scores of a plan given as ``Q`` (m, n), rad, and ``F`` (m, nF), N."""
-    return score_plan(problem.model.B_stack(Q, F), B0, problem.sigma_m)
+    return score_plan(problem.model.B_stack(Q, F), problem.B0, problem.sigma_m)
 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: str = "cold",
@@ -206,7 +206,6 @@ class DesignSolver:
     problem: Problem
     criterion: str
     m: int
-    B0: np.ndarray
     verbose: bool = False
     made: dict = field(default_factory=dict, repr=False)
 
@@ -228,7 +227,7 @@ class DesignSolver:
         """The NLP of stage k holding the capsule rows ``active`` (K x 2) and its solver
         (options of :func:`make_solver`)."""
         def make():
-            nlp = build_nlp(self.problem, self.criterion, self.m, self.B0, self.powers[k], active)
+            nlp = build_nlp(self.problem, self.criterion, self.m, self.powers[k], active)
             return nlp, make_solver(self.problem, nlp, self.verbose, how, max_iter, watch)
 
         return self._kept(("stage", k, active.tobytes(), how, max_iter, watch), make)
@@ -237,15 +236,14 @@ class DesignSolver:
         """The D-optimal NLP of the polish run (criteria marked ``polished``) holding the
         capsule rows ``active``, and its solver."""
         def make():
-            nlp = build_nlp(self.problem, "D", self.m, self.B0, active=active)
+            nlp = build_nlp(self.problem, "D", self.m, active=active)
             return nlp, nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
 
         return self._kept(("polish", active.tobytes()), make)
 
 
-def make_design_solver(problem: Problem, criterion: str, m: int, B0: np.ndarray,
-                       verbose: bool = False) -> DesignSolver:
-    return DesignSolver(problem, criterion, m, B0, verbose)
+def make_design_solver(problem: Problem, criterion: str, m: int, verbose: bool = False) -> DesignSolver:
+    return DesignSolver(problem, criterion, m, verbose)
 
 
 #: The rows where they can bind. A start holds the capsule rows closer than
@@ -314,7 +312,7 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
 
 
 def solve_start(
-    problem: Problem, ds: DesignSolver, B0: np.ndarray, Q0: np.ndarray, F0: np.ndarray
+    problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
 ) -> tuple[StartRecord, np.ndarray, np.ndarray, Scores]:
     """One IPOPT start of the design solver from ``Q0`` (m, n), rad, ``F0`` (m, nF), N.
 
@@ -323,7 +321,7 @@ def solve_start(
     capsule rows that can bind (see :data:`START_MARGIN_M`). Returns the start's record, its
     plan ``Q`` (m, n), rad, ``F`` (m, nF), N, and the plan's scores.
 
-    A start is a pure function of the problem, the criterion, m, ``B0`` and its start plan, so
+    A start is a pure function of the problem, the criterion, m and its start plan, so
     it is kept on disk (:mod:`casadi_design.cache`, ``start-<key>``, named by the problem's
     :attr:`~casadi_design.build.Problem.fingerprint` and those) and a later command reads it
     back to the bit: a sweep after the study, a one-start solve, a run stopped by Ctrl-C and
@@ -331,11 +329,11 @@ def solve_start(
     :data:`casadi_design.cache.KEEP_DESIGNS` is 0.
     """
     if ds.verbose or not keeping_designs():
-        return _solved_start(problem, ds, B0, Q0, F0)
-    arrays = (np.ascontiguousarray(a, dtype=float) for a in (B0, Q0, F0))
+        return _solved_start(problem, ds, Q0, F0)
+    arrays = (np.ascontiguousarray(a, dtype=float) for a in (problem.B0, Q0, F0))
     key = digest(problem.fingerprint.encode(), ds.criterion.encode(), str(ds.m).encode(),
                  *(a.tobytes() + str(a.shape).encode() for a in arrays))
-    return STARTS.get(key, lambda: _solved_start(problem, ds, B0, Q0, F0))
+    return STARTS.get(key, lambda: _solved_start(problem, ds, Q0, F0))
 
 
 class KeptStart(tuple):
@@ -348,7 +346,7 @@ STARTS: Memo[tuple] = Memo(0, kind="start", on_read=KeptStart)
 
 
 def _solved_start(
-    problem: Problem, ds: DesignSolver, B0: np.ndarray, Q0: np.ndarray, F0: np.ndarray
+    problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
 ) -> tuple[StartRecord, np.ndarray, np.ndarray, Scores]:
     """:func:`solve_start` computed."""
     Q0, F0 = _polished(problem, ds, Q0, F0)
@@ -392,7 +390,7 @@ def _solved_start(
             active = grown
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(x))
     Q = joint_limits(problem).wrap(Q)
-    scores = plan_scores(problem, Q, F, B0)
+    scores = plan_scores(problem, Q, F)
     rec = StartRecord(
         status=str(status),
         iterations=iterations,
@@ -450,7 +448,6 @@ def solve_design(
     problem: Problem,
     criterion: str,
     m: int,
-    B0: np.ndarray | None = None,
     starts: int | None = None,
     verbose: bool = False,
     *,
@@ -479,16 +476,15 @@ def solve_design(
     DesignError
         When no start converges to a feasible plan (the message lists the IPOPT statuses).
     """
-    B0 = B0_at_test_poses(problem) if B0 is None else B0
     t0 = time.perf_counter()
     plans = seeded_plans(problem, criterion, m, starts)
     extra, extra_origins = initial_starts(problem, m, initial_plans)
     plans, origins = plans + extra, [SEEDED] * len(plans) + extra_origins
     if executor is None:
-        ds = make_design_solver(problem, criterion, m, B0, verbose)
-        results = (solve_start(problem, ds, B0, Q0, F0) for Q0, F0 in plans)
+        ds = make_design_solver(problem, criterion, m, verbose)
+        results = (solve_start(problem, ds, Q0, F0) for Q0, F0 in plans)
     else:
-        results = executor.map_starts(problem, criterion, m, B0, plans, verbose)
+        results = executor.map_starts(problem, criterion, m, plans, verbose)
 
     def counted():
         for r in results:

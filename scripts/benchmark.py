@@ -51,7 +51,6 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
 
     from casadi_design.build import build_problem
     from casadi_design.criteria import CRITERIA
-    from casadi_design.nlp import B0_at_test_poses
     from casadi_design.problem import parse_problem
     from casadi_design.solve import make_design_solver, solve_start, start_rng
 
@@ -67,16 +66,15 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
         xs, ys, z = grid
         raw["test_poses"]["path"] = {"kind": "points", "points_m": [[x, y, z] for x in xs for y in ys]}
     problem = build_problem(parse_problem(raw, problem_file))
-    B0 = B0_at_test_poses(problem)
     rng = start_rng(problem.solver.seed, criterion, m)
     plans = [random_plan(problem, m, rng) for _ in range(starts)]
     t0 = time.perf_counter()
-    solver = make_design_solver(problem, criterion, m, B0)
+    solver = make_design_solver(problem, criterion, m)
     build_s = time.perf_counter() - t0
     records, times = [], []
     for Q0, F0 in plans:
         t0 = time.perf_counter()
-        rec, _, _, _ = solve_start(problem, solver, B0, Q0, F0)
+        rec, _, _, _ = solve_start(problem, solver, Q0, F0)
         times.append(time.perf_counter() - t0)
         records.append(rec)
     ok = [r for r in records if r.converged] or records

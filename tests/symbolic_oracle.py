@@ -18,7 +18,7 @@ import numpy as np
 
 from casadi_design import nlp as nlp_module
 from casadi_design.build import Problem
-from casadi_design.nlp import B0_at_test_poses, DesignNLP, information_scale
+from casadi_design.nlp import DesignNLP, information_scale
 from casadi_design.rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
 
 
@@ -198,5 +198,5 @@ OBJECTIVES = {"test-pose": test_pose_objective, "D": d_objective, "A": a_objecti
 
 def symbolic_nlp(problem, criterion: str, m: int, B0: np.ndarray | None = None) -> DesignNLP:
     """The symbolic NLP of a reduced-space criterion (same x, g, bounds and scale)."""
-    B0 = B0_at_test_poses(problem) if B0 is None else B0
+    B0 = problem.B0 if B0 is None else B0
     return lifted_nlp(problem, criterion, OBJECTIVES[criterion], m, B0)

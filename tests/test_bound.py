@@ -11,7 +11,6 @@ from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _sea
 from casadi_design.build import load_problem
 from casadi_design.criteria import CRITERIA
 from casadi_design.errors import DesignError
-from casadi_design.nlp import B0_at_test_poses
 from casadi_design.rules import load_variables, plan_violations, pose_constraints
 from casadi_design.solve import solve_design
 
@@ -59,7 +58,7 @@ def test_max_of_d_found_on_a_grid(paper, paper_tp):
     Q, th = rng.uniform(-np.pi, np.pi, (5, 2)), rng.uniform(-np.pi, np.pi, 5)
     F = 100.0 * np.stack([np.cos(th), np.sin(th)], -1)
     assert np.allclose(paper.model.B_stack(Q, F), planar_A(Q[:, 0], Q[:, 1], F), atol=1e-12)
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     H = np.einsum("j,jri,jrl->il", paper_tp.mu, B0, B0)
     Wi = np.linalg.inv(paper_tp.W)
     G = Wi @ H @ Wi
@@ -80,7 +79,7 @@ def test_certified_below_convex_solver(paper, paper_tp):
     B = planar_A(q1, q2, 100.0 * np.stack([np.cos(a), np.sin(a)], -1))
     A = np.einsum("kri,krj->kij", B, B)
     c = 2.0 / np.mean(np.trace(A, axis1=1, axis2=2))
-    B0 = np.sqrt(c) * B0_at_test_poses(paper)
+    B0 = np.sqrt(c) * paper.B0
     w, t, W = cp.Variable(len(A), nonneg=True), cp.Variable(), cp.Variable((2, 2), symmetric=True)
     rows = [cp.matrix_frac(B0j.T, W) <= t for B0j in B0]
     cp.Problem(cp.Minimize(t), [cp.sum(w) == 1, cp.vec(W, order="F") == (c * A).reshape(len(A), 4).T @ w]
@@ -96,7 +95,7 @@ def ur10_pool():
     Q, F = _sample(problem, 40, np.random.default_rng(1))
     A = _information(problem, Q, F)
     c = problem.model.L / np.mean(np.trace(A, axis1=1, axis2=2))
-    B0 = np.sqrt(c) * B0_at_test_poses(problem)
+    B0 = np.sqrt(c) * problem.B0
     return c * A, B0
 
 
@@ -253,7 +252,7 @@ def test_paper_gap_at_two_experiments_is_integrality(paper, paper_tp):
     3.5 % above the bound."""
     from scipy.optimize import minimize
 
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     H = np.einsum("jri,jrl->jil", B0, B0)
 
     def information(q2, angle):
@@ -288,7 +287,7 @@ def _criterion_of(problem, criterion, W):
     """The criterion of W (L, L) with numpy: max_j tr(H_j W^-1) (test-pose) or -log det W."""
     if criterion == "D":
         return -np.linalg.slogdet(W)[1]
-    B0 = B0_at_test_poses(problem)
+    B0 = problem.B0
     return np.einsum("jri,jrl,li->j", B0, B0, np.linalg.inv(W)).max()
 
 

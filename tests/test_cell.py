@@ -17,7 +17,7 @@ from casadi_design.collision import capsule_names
 from casadi_design.errors import ProblemError
 from casadi_design.export import plan_table, read_plan_csv
 from casadi_design.problem import parse_problem, read_problem
-from casadi_design.nlp import B0_at_test_poses, build_nlp
+from casadi_design.nlp import build_nlp
 from casadi_design.reduced import reduced_nlp
 from casadi_design.solve import make_design_solver, solve_start, start_rng
 from casadi_design.rules import joint_distance_sq, joint_limits, plan_violations, pose_constraints
@@ -318,15 +318,15 @@ def test_a_start_holding_the_rows_that_can_bind_ends_at_an_optimum_of_every_row(
     squares with nonnegative multipliers, outside IPOPT), to rounding; a plan moved by 0.1
     mrad is not."""
     m, criterion = 9, "test-pose"
-    B0 = B0_at_test_poses(ur10)
+    B0 = ur10.B0
     Q0, F0 = random_plan(ur10, m, start_rng(ur10.solver.seed, criterion, m))
-    rec, Q, F, _ = solve_start(ur10, make_design_solver(ur10, criterion, m, B0), B0, Q0, F0)
+    rec, Q, F, _ = solve_start(ur10, make_design_solver(ur10, criterion, m), Q0, F0)
     rows = m * len(pose_constraints(ur10).collision.inputs)
     assert rec.converged and rec.runs > 1 and 0 < rec.rows_held < rows / 4
     assert plan_violations(ur10, Q, F) == []
-    full = build_nlp(ur10, criterion, m, B0)
+    full = build_nlp(ur10, criterion, m)
     assert len(full.active) == rows
-    everything = reduced_nlp(ur10, criterion, m, B0, full.scale)
+    everything = reduced_nlp(ur10, criterion, m, full.scale)
 
     def stationarity(Q: np.ndarray, active_tol: float = 1e-6) -> float:  # IPOPT stops within ~1e-7
         x = np.array(full.start(Q, F), dtype=float)
@@ -359,7 +359,7 @@ def test_a_run_stops_as_stalled_only_after_its_iterates_stop_making_progress(ur1
     objective rises (a run on its way to a feasible plan), never does."""
     from casadi_design.solve import STALL_ITERATIONS, _Watch
 
-    nlp = build_nlp(ur10, "test-pose", 1, B0_at_test_poses(ur10))
+    nlp = build_nlp(ur10, "test-pose", 1)
     lb, ub = np.asarray(nlp.lbg, dtype=float), np.asarray(nlp.ubg, dtype=float)
     inside = np.select([np.isfinite(lb) & np.isfinite(ub), np.isfinite(lb), np.isfinite(ub)],
                        [(lb + ub) / 2, lb + 1.0, ub - 1.0], 0.0)  # a value that keeps every row

@@ -133,7 +133,6 @@ def test_a_start_in_the_cell_is_the_same_compiled_or_not(cache, monkeypatch):
     """One UR10 start in its cell (rows joining as they can bind): the same IPOPT iterations, plan
     and value with the compiled functions as in the virtual machine."""
     from casadi_design.build import _build
-    from casadi_design.nlp import B0_at_test_poses
     from casadi_design.problem import read_problem
     from casadi_design.solve import make_design_solver, solve_start, start_rng
 
@@ -142,8 +141,7 @@ def test_a_start_in_the_cell_is_the_same_compiled_or_not(cache, monkeypatch):
     def run():
         problem = _build(spec)  # built anew: its own CasADi functions
         Q0, F0 = random_plan(problem, 9, start_rng(problem.solver.seed, "test-pose", 9))
-        B0 = B0_at_test_poses(problem)
-        return solve_start(problem, make_design_solver(problem, "test-pose", 9, B0), B0, Q0, F0)
+        return solve_start(problem, make_design_solver(problem, "test-pose", 9), Q0, F0)
 
     monkeypatch.setenv("CASADI_DESIGN_COMPILE", "0")
     plain = run()

@@ -15,7 +15,6 @@ from casadi_design.bound import approximate_design, bound
 from casadi_design.cli import build_parser
 from casadi_design.criteria import BOUND_CRITERIA, CRITERIA
 from casadi_design.measures import score_plan
-from casadi_design.nlp import B0_at_test_poses
 from casadi_design.solve import solve_design
 from casadi_design.sweep import COLUMNS
 from casadi_design.tables import MEASURE_ROWS
@@ -35,7 +34,7 @@ def paper_I(paper):
 def _mean_rho_m2(paper, B):
     """``mean_j rho_j = sigma^2 tr(Hbar M^-1)`` (m^2) of one-experiment plans B (..., 2, 2) by
     plain numpy, M^-1 by its adjugate (inf where M is singular)."""
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     H = np.einsum("jri,jrl->il", B0, B0) / len(B0)
     M = np.einsum("...ri,...rl->...il", B, B)
     det = M[..., 0, 0] * M[..., 1, 1] - M[..., 0, 1] * M[..., 1, 0]
@@ -77,7 +76,7 @@ def test_I_bound_is_the_test_pose_certificate_with_equal_weights(paper, paper_I)
     """The I certificate is ``phi^2 / max_x d`` with ``H = sum_j mu_j B0_j^T B0_j`` at
     ``mu_j = 1/s``: recomputed here from the approximate design's W with max_x d over a grid of
     the hand-written B; and no plan of m experiments beats it."""
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     H = np.einsum("j,jri,jrl->il", np.full(len(B0), 1 / len(B0)), B0, B0)
     Wi = np.linalg.inv(paper_I.W)
     G, phi = Wi @ H @ Wi, np.trace(H @ Wi)
@@ -102,7 +101,7 @@ def test_I_relaxation_against_a_semidefinite_program(paper, paper_I):
     q1, q2, a = (v.ravel() for v in np.meshgrid(g, g, g, indexing="ij"))
     B = planar_A(q1, q2, 100.0 * np.stack([np.cos(a), np.sin(a)], -1))
     A = np.einsum("kri,krj->kij", B, B)
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     R = np.linalg.cholesky(np.einsum("jri,jrl->il", B0, B0) / len(B0)).T  # Hbar = R^T R
     w, W = cp.Variable(len(A), nonneg=True), cp.Variable((2, 2), symmetric=True)
     t = cp.matrix_frac(R.T, W)

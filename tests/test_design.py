@@ -2,8 +2,6 @@
 
 import numpy as np
 import pytest
-
-from casadi_design.nlp import B0_at_test_poses
 from casadi_design.solve import plan_scores, solve_design
 from tests.conftest import build, paper_raw
 
@@ -30,7 +28,6 @@ def test_test_pose_plan_beats_every_D_and_E_optimal_plan(paper, designs, m):
     tp = designs["test-pose", m]
     best = tp.scores.max_rms_error_m
     assert tp.winner is not None and tp.winner.converged, [s.status for s in tp.starts]
-    B0 = B0_at_test_poses(paper)
     for c in ("D", "E"):
         d = designs[c, m]
         converged = [s for s in d.starts if s.converged]
@@ -38,7 +35,7 @@ def test_test_pose_plan_beats_every_D_and_E_optimal_plan(paper, designs, m):
         assert len(converged) == len(d.starts) > 0, [s.status for s in d.starts]
         assert d.winner in converged  # the design's own plan is one of them ...
         # ... and its error, recomputed from its plan, is the one its start recorded
-        again = plan_scores(paper, d.Q, d.F, B0).max_rms_error_m
+        again = plan_scores(paper, d.Q, d.F).max_rms_error_m
         assert again == pytest.approx(d.winner.max_rms_error_m, rel=1e-12)
         assert best <= again * (1 + 1e-9)
         for s in converged:
@@ -74,7 +71,7 @@ def test_elbow_branch_gives_the_same_figures(paper, designs):
     assert np.all(down.test_poses.q[:, 1] > 0) and np.all(paper.test_poses.q[:, 1] < 0)
     for c in ("test-pose", "D", "E"):
         d = designs[c, 1]
-        again = plan_scores(down, d.Q, d.F, B0_at_test_poses(down))
+        again = plan_scores(down, d.Q, d.F)
         np.testing.assert_allclose(again.rms_error_m[::-1], d.scores.rms_error_m, rtol=1e-9)
     assert solve_design(down, "test-pose", 1).scores.max_rms_error_m == pytest.approx(
         designs["test-pose", 1].scores.max_rms_error_m, rel=1e-6)

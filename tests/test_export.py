@@ -10,7 +10,6 @@ from casadi_design.criteria import CRITERIA
 from casadi_design.errors import ProblemError
 from casadi_design.export import plan_table, read_plan_csv, write_plan_csv
 from casadi_design.rules import plan_violations
-from casadi_design.nlp import B0_at_test_poses
 from casadi_design.solve import plan_scores, solve_design
 from tests.conftest import PAPER, build, paper_raw
 
@@ -44,7 +43,7 @@ def test_evaluate_reproduces_the_library_numbers_for_a_hand_written_plan(paper, 
     printed = capsys.readouterr().out
     ev = json.loads((out / "evaluation.json").read_text())
     Q, F = np.radians(HAND_DEG), HAND_F
-    lib = plan_scores(paper, Q, F, B0_at_test_poses(paper))  # what solve computes for a plan
+    lib = plan_scores(paper, Q, F)  # what solve computes for a plan
     assert ev["m"] == 3 and ev["violations"] == []
     np.testing.assert_array_equal(ev["rms_error_m"], lib.rms_error_m)
     for key, value in lib.values.items():
@@ -103,7 +102,7 @@ def test_exported_plan_reads_back_exactly_and_scores_like_the_design(paper, tmp_
     Q, F = read_plan_csv(paper, path)
     np.testing.assert_array_equal(Q, d.Q)
     np.testing.assert_array_equal(F, d.F)
-    again = plan_scores(paper, Q, F, B0_at_test_poses(paper))
+    again = plan_scores(paper, Q, F)
     assert again.max_rms_error_m == d.scores.max_rms_error_m
     _, rows = plan_table(paper, d.Q, d.F)
     for (q1, q2), row in zip(d.Q, rows):  # the point the tracker looks at, mm

@@ -302,12 +302,11 @@ def test_base_frame_prediction_is_the_designs_measure(ur10, tmp_path):
     """With base-frame coordinates the fit's parameters are the problem's own X, and the
     predicted sqrt(rho) at the test poses is the design's measure of the measured plan."""
     from casadi_design.measures import score_plan
-    from casadi_design.nlp import B0_at_test_poses
 
     true = perturbed(ur10, np.random.default_rng(11))
     true = type(true)(true.model, true.frame_id, true.k, pin.SE3.Identity())  # base frame
     Q, F, _ = write_measurements(tmp_path / "meas.csv", ur10, true, 12, 12)
     cal = calibrate(ur10, read_measurements(ur10, str(tmp_path / "meas.csv")), frame="base", model="identifiable")
-    design = score_plan(ur10.model.B_stack(Q, F), B0_at_test_poses(ur10), ur10.sigma_m)
+    design = score_plan(ur10.model.B_stack(Q, F), ur10.B0, ur10.sigma_m)
     np.testing.assert_allclose(cal.predicted_rms_m, design.rms_error_m, rtol=1e-6)
     assert cal.names == ur10.model.parameter_names and cal.noise_consistent

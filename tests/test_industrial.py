@@ -339,17 +339,15 @@ def test_seeded_starts_of_many_experiments_end_on_plans_that_keep_every_row(monk
     that breaks capsule rows (the sweep to m = 20 failed). The first three seeded test-pose
     starts at m = 20 end on plans that keep every rule, the real meshes included, and at
     least one needed more than 12 rounds."""
-    from casadi_design.nlp import B0_at_test_poses
     from casadi_design.rules import plan_violations
     from casadi_design.solve import make_design_solver, seeded_plans, solve_start
 
     monkeypatch.setenv("CASADI_DESIGN_COMPILE", "1")
     p = load_problem(ROOT / "problems" / "ur10_drilling.toml")
-    B0 = B0_at_test_poses(p)
-    ds = make_design_solver(p, "test-pose", 20, B0)
+    ds = make_design_solver(p, "test-pose", 20)
     runs = []
     for Q0, F0 in seeded_plans(p, "test-pose", 20, 3):
-        rec, Q, F, _ = solve_start(p, ds, B0, Q0, F0)
+        rec, Q, F, _ = solve_start(p, ds, Q0, F0)
         assert rec.feasible and not plan_violations(p, Q, F), rec
         runs.append(rec.runs)
     assert max(runs) > 12, runs

@@ -15,7 +15,6 @@ import pytest
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
 from casadi_design.export import read_plan_csv
-from casadi_design.nlp import B0_at_test_poses
 from casadi_design.design import Design, StartRecord
 from casadi_design.errors import OutputError
 from casadi_design.files import prepare_out, read_results, write_atomic, write_json
@@ -177,12 +176,11 @@ def test_bad_plan_is_one_error_line_and_exit_2_through_the_command(tmp_path, cap
 def designs(paper):
     """Two designs (D and test-pose, m = 2) made without the solver: scores of fixed plans, each
     with a winning start and a failed one (infinite value and error)."""
-    B0 = B0_at_test_poses(paper)
     designs = []
     for criterion, deg, load in (("D", [[0, 90], [45, -120]], [[0, 100], [-60, 80]]),
                                  ("test-pose", [[90, -90], [45, -120]], [[100, 0], [-60, 80]])):
         Q, F = np.radians(deg), np.array(load, dtype=float)
-        scores = plan_scores(paper, Q, F, B0)
+        scores = plan_scores(paper, Q, F)
         won = StartRecord("Solve_Succeeded", 12, scores.value(criterion), scores.max_rms_error_m, True)
         failed = StartRecord("Restoration_Failed", 3, float("inf"), float("inf"), False)
         designs.append(Design(criterion, 2, Q, F, scores, won.status, (won, failed), 0.5, 2024))

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from casadi_design.criteria import CRITERIA
 from casadi_design.measures import information_matrix, score_plan, rho_at_test_poses
-from casadi_design.nlp import build_nlp, B0_at_test_poses
+from casadi_design.nlp import build_nlp
 from casadi_design.sampling import random_plan
 from casadi_design.solve import solve_design
 from tests.conftest import build, paper_raw
@@ -37,7 +37,7 @@ def test_same_optimum_is_relative():
 
 
 def test_M_symmetric_psd_and_rho_formula(paper):
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     _, _, B = _random_plan_B(paper, 3, 0)
     M = information_matrix(B)
     np.testing.assert_allclose(M, M.T)
@@ -48,9 +48,9 @@ def test_M_symmetric_psd_and_rho_formula(paper):
 
 @pytest.mark.parametrize("criterion", list(CRITERIA))
 def test_nlp_objective_equals_numpy_twin(paper, criterion):
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     r = 8.0
-    nlp = build_nlp(paper, criterion, 3, B0, power=r)
+    nlp = build_nlp(paper, criterion, 3, power=r)
     Q, F, B = _random_plan_B(paper, 3, 1)
     x0 = nlp.start(Q, F)
     f, g = (np.asarray(v, dtype=float).ravel() for v in nlp.oracle(x0, []))
@@ -81,14 +81,14 @@ def test_epigraph_reaches_its_value_at_the_optimum(paper):
     sol = make_solver(paper, nlp)(x0=nlp.start(d.Q, d.F), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     Q, F = (np.asarray(v) for v in nlp.plan(sol["x"]))
     sc = score_plan(np.array([paper.model.B_numeric(q, g) for q, g in zip(Q, F)]),
-                    B0_at_test_poses(paper), paper.sigma_m)
+                    paper.B0, paper.sigma_m)
     assert float(sol["f"]) == pytest.approx((sc.max_rms_error_m / paper.sigma_m) ** 2, rel=1e-6)
 
 
 def test_observability_indices_from_svd(paper):
     _, _, B = _random_plan_B(paper, 4, 2)
     s = np.linalg.svd(B.reshape(-1, B.shape[-1]), compute_uv=False)
-    o = score_plan(B, B0_at_test_poses(paper), paper.sigma_m).observability
+    o = score_plan(B, paper.B0, paper.sigma_m).observability
     L, m = len(s), 4
     assert o["O1"] == pytest.approx(np.prod(s) ** (1 / L) / np.sqrt(m), rel=REL)
     assert o["O2"] == pytest.approx(s[-1] / s[0], rel=REL)
@@ -99,7 +99,7 @@ def test_observability_indices_from_svd(paper):
 
 def test_log_det_scales_with_L_log_c(paper):
     _, _, B = _random_plan_B(paper, 2, 3)
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     c = 7.3
     a, b = score_plan(B, B0, 1.0), score_plan(np.sqrt(c) * B, B0, 1.0)
     assert b.value("D") - a.value("D") == pytest.approx(2 * np.log(c), rel=REL)
@@ -112,7 +112,7 @@ def test_test_pose_measure_invariant_under_reparametrisation(paper, t, seed):
     T = np.array(t).reshape(2, 2) + 4 * np.eye(2)
     assume(np.linalg.cond(T) < 100)  # a nearly singular T loses the digits the tolerances ask for
     _, _, B = _random_plan_B(paper, 2, seed)
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     Ti = np.linalg.inv(T)
     a, b = score_plan(B, B0, 1e-4), score_plan(B @ Ti, B0 @ Ti, 1e-4)
     np.testing.assert_allclose(b.rms_error_m, a.rms_error_m, rtol=1e-7)
@@ -121,7 +121,7 @@ def test_test_pose_measure_invariant_under_reparametrisation(paper, t, seed):
 
 def test_E_is_not_invariant_under_reparametrisation(paper):
     """Under X -> T X the ranking of plans by E changes (k2 in other units), not by test-pose."""
-    B0 = B0_at_test_poses(paper)
+    B0 = paper.B0
     Ti = np.linalg.inv(np.diag([1.0, 10.0]))
     plans = [_random_plan_B(paper, 2, seed)[2] for seed in range(20)]
     E = np.array([score_plan(B, B0, 1.0).value("E") for B in plans])

@@ -130,7 +130,6 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
 
 def test_worker_builds_the_problem_from_its_plain_data(paper, serial):
     """What a worker runs, called here with a copy of the problem's data only."""
-    from casadi_design.nlp import B0_at_test_poses
     from casadi_design.parallel import ProblemRef
     from casadi_design.sampling import random_plan
     from casadi_design.solve import start_rng
@@ -139,8 +138,7 @@ def test_worker_builds_the_problem_from_its_plain_data(paper, serial):
     Q0, F0 = random_plan(paper, 1, start_rng(paper.solver.seed, "test-pose", 1))
     ref = ProblemRef.of(paper)
     copied = pickle.loads(pickle.dumps(ref.spec))
-    rec, _, _, _ = run_start(ProblemRef(copied, ref.key), "test-pose", 1,
-                                  B0_at_test_poses(paper), Q0, F0)
+    rec, _, _, _ = run_start(ProblemRef(copied, ref.key), "test-pose", 1, Q0, F0)
     assert rec == d.starts[0]
 
 

@@ -1,7 +1,6 @@
 """6-D pose measurements (a camera's position and orientation of the measured frame) read as the
 problem's markers placed by each pose, checked against the markers computed with Pinocchio."""
 
-import math
 
 import numpy as np
 import pinocchio as pin

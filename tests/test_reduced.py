@@ -14,7 +14,7 @@ import pytest
 from casadi_design.build import build_problem, load_problem
 from casadi_design.criteria import CRITERIA as REGISTRY
 from casadi_design.measures import score_plan
-from casadi_design.nlp import B0_at_test_poses, build_nlp
+from casadi_design.nlp import build_nlp
 from casadi_design.problem import read_problem
 from casadi_design.objectives import log_power_mean
 from casadi_design.design import CONVERGED
@@ -296,8 +296,8 @@ def test_surrogates_reach_the_exact_optimum(criterion, case, m):
     power r guarantees: a surrogate optimum has ``lambda_min >= L^(-1/r)`` times the optimal
     one (``s_L`` within ``L^(-1/2r)``), and ``s_1/s_L`` within ``L^(1/r)``."""
     problem = _problem(case)
-    B0 = B0_at_test_poses(problem)
-    design = solve_design(problem, criterion, m, B0, starts=6)
+    B0 = problem.B0
+    design = solve_design(problem, criterion, m, starts=6)
     sym = symbolic_nlp(problem, criterion, m, B0)
     solver = sym.solver("exact", {**QUIET, "ipopt.tol": 1e-10, "ipopt.max_iter": 3000})
     best = None

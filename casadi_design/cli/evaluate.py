@@ -40,7 +40,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..cell import clearances
     from ..export import read_plan_csv
-    from ..nlp import B0_at_test_poses
     from ..results import design_from_record, experiment_records
     from ..rules import plan_violations
     from ..solve import plan_scores
@@ -59,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         if not others:
             raise OutputError(f"{record['_path']}: no design with m = {m} experiments (the plan's "
                               f"rows); solve or sweep that m first")
-    scores = plan_scores(problem, Q, F, B0_at_test_poses(problem))
+    scores = plan_scores(problem, Q, F)
     violations = plan_violations(problem, Q, F)
     print(common.case_line(problem))
     print(f"plan {args.plan}: {m} experiment{'s' if m > 1 else ''}"

@@ -16,7 +16,6 @@ import numpy as np
 from ..build import Problem
 from ..errors import DesignError, ProblemError
 from ..measures import information_matrix, score_plan
-from ..nlp import B0_at_test_poses
 from .compensate import compensate as _compensate  # the name `compensate` stays the module
 from .identify import Identification, identify_nonlinear
 from .simulate import (
@@ -110,11 +109,10 @@ def _check_plan(problem: Problem, plan: Plan) -> None:
 
 
 def simulate_plan(problem: Problem, plan: Plan, spreads: ErrorSpreads, trials: int,
-                  rng: np.random.Generator, B0: np.ndarray | None = None) -> PlanValidation:
+                  rng: np.random.Generator) -> PlanValidation:
     """Simulate ``trials`` calibrations of ``plan`` and compare with ``sqrt(rho)`` (module doc).
 
-    ``B0``: :func:`~casadi_design.nlp.B0_at_test_poses`, shape (s, r, L), computed when not
-    given. The empirical mean square at test pose j is ``mean_t |e_tj|^2`` (m^2) over the
+    The empirical mean square at test pose j is ``mean_t |e_tj|^2`` (m^2) over the
     trials whose compensation converged there; its interval uses ``nu_j`` of
     ``C_j = sigma^2 B0_j M^-1 B0_j^T``.
     """
@@ -123,7 +121,7 @@ def simulate_plan(problem: Problem, plan: Plan, spreads: ErrorSpreads, trials: i
     model, tp, sigma = problem.model, problem.test_poses, problem.sigma_m
     s = tp.s
     B = model.B_stack(plan.Q, plan.F)
-    B0 = B0_at_test_poses(problem) if B0 is None else B0
+    B0 = problem.B0
     scores = score_plan(B, B0, sigma)
     if not scores.identifiable:
         raise DesignError(
@@ -176,8 +174,7 @@ def validate(problem: Problem, plans: list[Plan], trials: int = 2000, seed: int 
     """
     check_trials(trials)
     t0 = time.perf_counter()
-    B0 = B0_at_test_poses(problem)
-    results = tuple(simulate_plan(problem, p, spreads, trials, plan_rng(seed, p.m), B0) for p in plans)
+    results = tuple(simulate_plan(problem, p, spreads, trials, plan_rng(seed, p.m)) for p in plans)
     return Validation(problem, source, trials, seed, spreads, results, time.perf_counter() - t0)
 
 
