@@ -227,20 +227,19 @@ def test_absurd_ranges_are_one_line(tmp_path, capsys, edit, option, match):
 def test_ctrl_c_turned_into_a_casadi_error_still_keeps_the_designs(tmp_path):
     """Building a solver runs Python callbacks; CasADi turns the KeyboardInterrupt raised in one
     into a RuntimeError. With Ctrl-C recorded, it ends as Ctrl-C: what is kept, and exit 130."""
-    from casadi_design import interrupt
-    from casadi_design.cli import common
+    from casadi_design import interrupt, study
 
     partial = tmp_path / "sweep.partial.json"
     handler = signal.getsignal(signal.SIGINT)
     interrupt.install()
     try:
         interrupt._HIT.set()
-        with pytest.raises(common.Interrupted, match=f"interrupted: 3 of 8 designs kept in {partial}"):
-            with common.keeping(partial, lambda: 3, 8):
+        with pytest.raises(study.Interrupted, match=f"interrupted: 3 of 8 designs kept in {partial}"):
+            with study._keeping(partial, lambda: 3, 8):
                 raise RuntimeError("Error in Function::factory for 'nlp' [CallbackInternal]: KeyboardInterrupt")
         interrupt._HIT.clear()
         with pytest.raises(RuntimeError, match="factory"):  # without Ctrl-C: a bug, reported as such
-            with common.keeping(partial, lambda: 3, 8):
+            with study._keeping(partial, lambda: 3, 8):
                 raise RuntimeError("Error in Function::factory")
     finally:
         interrupt._HIT.clear()

@@ -30,7 +30,8 @@ from .. import files, interrupt
 from ..interrupt import EXIT_INTERRUPTED
 from ..errors import DesignError, OutputError, ProblemError
 from ..parallel import MissingExtraError
-from . import bound, common, evaluate, identify, plot, program, solve, sweep, validate
+from ..study import Interrupted
+from . import bound, evaluate, identify, plot, program, solve, sweep, validate
 
 EXIT_ERROR = 2
 #: The commands, in the order of ``--help``.
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {where}{exc.strerror or exc}; check the path, the free space and the "
               "permissions, then run the command again", file=sys.stderr)
         return EXIT_ERROR
-    except common.Interrupted as exc:
+    except Interrupted as exc:
         print(exc, file=sys.stderr)
         return EXIT_INTERRUPTED
     except KeyboardInterrupt:

@@ -1,37 +1,26 @@
-"""What every command shares: option types, the output folder, the problem and its campaign,
-the designs kept for ``--resume``, the panels of Fig. 1.
+"""What every command shares: option types, the output folder, the problem, the study the
+arguments ask for, the panels of Fig. 1.
 
-A command handler reads its arguments, calls the package once (:func:`campaign` for the
-commands that design plans), prints and writes. Nothing here computes.
+A command handler reads its arguments, calls the package once (:func:`design` turns them into
+a :class:`~casadi_design.study.Study` and runs it), prints and writes. Nothing here computes.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import contextlib
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 from ..build import Problem
-from ..campaign import (
-    Campaign,
-    Settings,
-    campaign_key,
-    check_criteria,
-    check_m_values,
-    run_campaign,
-    total_starts,
-)
-from ..design import Design
+from ..campaign import Campaign, Settings
 from ..criteria import BOUND_CRITERIA, CRITERIA
 from .. import interrupt
-from ..errors import DesignError, OutputError
-from ..files import load_partial, partial_record, prepare_out
-from ..parallel import WorkerLost
-from ..threads import cpu_count
+from ..errors import OutputError
+from ..files import prepare_out
 from ..problem import MAX_EXPERIMENTS, ProblemSpec
+from ..study import Study, run_study
+from ..threads import cpu_count
+from ..sweep import Sweep
 
 #: Figure formats ``plot --format`` writes.
 FIGURE_FORMATS = ("png", "pdf", "svg")
@@ -235,13 +224,6 @@ def executor(args: argparse.Namespace):
     return make_executor(args.jobs, args.dask_scheduler)
 
 
-def where(args: argparse.Namespace) -> str:
-    if args.dask_scheduler:
-        return f"on the Dask cluster at {args.dask_scheduler}"
-    jobs = args.jobs or cpu_count()
-    return "in this process" if jobs == 1 else f"on {jobs} processes"
-
-
 def case_line(problem: Problem) -> str:
     line = (f"{problem.name}: {problem.model.case} calibration of "
             f"{', '.join(problem.model.parameter_names)}; {problem.test_poses.s} test poses; "
@@ -249,16 +231,18 @@ def case_line(problem: Problem) -> str:
     return line if problem.base_set is None else line + "\n" + problem.base_set.report()
 
 
-def plan_request(args: argparse.Namespace, problem: Problem, all_m: bool = False) -> tuple[list[str], list[int], Settings]:
-    """The criteria, m values and campaign settings of ``args`` (defaults: the problem file's;
-    ``all_m``: every m from the smallest identifiable to the largest of the file)."""
-    criteria = args.criteria or list(problem.criteria)
-    default_m = list(range(problem.m_min, max(problem.m_values) + 1)) if all_m else sorted(problem.m_values)
-    ms = args.m or default_m
-    check_criteria(problem, criteria)
-    check_m_values(problem, ms)
+def study(args: argparse.Namespace, problem: Problem, partial: Path | None = None,
+          sweep: bool = False) -> Study:
+    """The :class:`~casadi_design.study.Study` the arguments ask for: criteria, m values and
+    settings (defaults: the problem file's; a ``sweep``: every m from the smallest identifiable
+    to the largest of the file), where the starts run, where the designs are kept
+    (``partial``) and whether to resume."""
+    criteria = tuple(args.criteria or problem.criteria)
+    default_m = range(problem.m_min, max(problem.m_values) + 1) if sweep else sorted(problem.m_values)
     settings = Settings(args.starts or problem.solver.starts, args.bound_steps, args.bound_pool, args.verbose)
-    return criteria, ms, settings
+    return Study(problem, criteria, tuple(args.m or default_m), settings, sweep,
+                 not getattr(args, "no_warm_start", False), args.jobs, args.dask_scheduler, partial,
+                 getattr(args, "resume", False))
 
 
 def say_approximate(args: argparse.Namespace, approx: dict) -> None:
@@ -282,121 +266,31 @@ def output_folder(args: argparse.Namespace, command: str, resume_files: tuple[st
     return None if args.out is None else prepare_out(args.out, args.force, resume, resume_files)
 
 
-@dataclass(eq=False)
-class Finished:
-    """The designs a command has finished, ``{(criterion, m): Design}``, each saved at once in
-    ``partial`` (None: without ``--out``) for ``--resume``; ``key``: what they depend on
-    (:func:`casadi_design.campaign.campaign_key`)."""
-
-    problem: Problem
-    key: dict
-    partial: Path | None
-    designs: dict[tuple[str, int], Design]
-
-    @classmethod
-    def resumed(cls, args: argparse.Namespace, problem: Problem, key: dict, partial: Path | None,
-                sources: tuple[tuple[str, tuple[str, ...]], ...], total: int) -> Finished:
-        """The designs saved by the interrupted command (``--resume``: the first file of
-        ``sources`` in the folder of ``partial``), else none."""
-        designs = {}
-        if partial is not None and getattr(args, "resume", False):
-            designs = load_partial(partial.parent, key, sources)
-            say(args, f"resuming: {len(designs)} of {total} designs already in {partial.parent}")
-        return cls(problem, key, partial, designs)
-
-    def save(self, design: Design) -> None:
-        self.designs[design.criterion, design.m] = design
-        if self.partial is not None:
-            partial_record(self.partial, self.problem, self.key, list(self.designs.values()))
-
-
-def campaign(args: argparse.Namespace, label: str,
-             partial: Path | None = None) -> tuple[Problem, Campaign, list[int]]:
-    """Load the problem of ``args`` and run its campaign (:func:`run_campaign`) with the
-    command line's criteria, m, starts, bound settings and executor, with a progress bar.
-    With ``partial``, each finished design is saved there at once (the command removes it
-    once its files are written) and ``--resume`` continues from it.
-    Returns the problem, the campaign and the m of the Fig. 1 panels (``--fig-m``, checked
-    before anything is solved)."""
+def design(args: argparse.Namespace, label: str, partial: Path | None = None,
+           sweep: bool = False) -> tuple[Study, Campaign | Sweep, list[int]]:
+    """Load the problem of ``args`` and run its study (:func:`casadi_design.study.run_study`)
+    with a progress bar; worker processes start while the robot and cell build. With
+    ``partial``, each finished design is saved there at once and ``--resume`` continues from it.
+    Returns the study, its designs and the m of the Fig. 1 panels (``--fig-m``, checked before
+    anything is solved)."""
     from ..progress import progress_bar
 
     spec = read_spec(args)  # a malformed file fails before any worker starts
-    with executor(args) as ex:  # then worker processes start while the robot and cell build
+    with executor(args) as ex:
         problem = load(args, spec=spec)
-        criteria, ms, settings = plan_request(args, problem)
-        panels = fig_m(getattr(args, "fig_m", None), ms, problem.m_values)
-        total = len(ms) * len(criteria)
-        done = Finished.resumed(args, problem, campaign_key(problem, criteria, ms, settings), partial,
-                                () if partial is None else ((partial.name, ("key",)),), total)
-        saved = dict(done.designs)
-        bar = progress_bar(total_starts(criteria, ms, settings), label, args.quiet)
-        with keeping(partial, lambda: len(done.designs), total), bar:
-            result = run_campaign(problem, criteria, ms, settings, executor=ex,
-                                  done=saved, on_design=done.save, progress=checked(bar))
+        request = study(args, problem, partial, sweep)
+        panels = fig_m(getattr(args, "fig_m", None), list(request.m_values), problem.m_values)
+        if sweep:
+            say(args, f"sweep of {request.designs} designs ({len(request.criteria)} criteria x "
+                      f"{len(request.m_values)} values of m, {request.m_values[0]} to {request.m_values[-1]})")
+        with progress_bar(request.starts, label, args.quiet) as bar:
+            result = run_study(
+                request, progress=bar.update, executor=ex,
+                on_design=lambda d: bar.set_postfix_str(f"done: {d.criterion}, m = {d.m}"),
+                on_resume=lambda n: say(args, f"resuming: {n} of {request.designs} designs already in "
+                                              f"{partial.parent}"))
     say_approximate(args, result.approx)
-    return problem, result, panels
-
-
-def checked(bar) -> Callable[[int], object]:
-    """``bar.update`` for each start that comes back, after :func:`casadi_design.interrupt.check`
-    (a Ctrl-C that CasADi swallowed in this process stops the command there)."""
-    def update(n: int = 1) -> object:
-        interrupt.check()
-        return bar.update(n)
-
-    return update
-
-
-# --------------------------------------------------------------------------- stopped with designs kept
-
-class Interrupted(Exception):
-    """Ctrl-C stopped a command; the message says what was kept (exit code 130)."""
-
-
-@contextlib.contextmanager
-def keeping(partial: Path | None, finished: Callable[[], int], total: int) -> Iterator[None]:
-    """Run a campaign whose finished designs are saved in ``partial`` (None: without ``--out``):
-    Ctrl-C and a lost worker end the command with one line saying how many of ``total``
-    designs are kept there and how to continue."""
-    def kept() -> str:
-        where = (f"kept in {partial}; continue with the same command and --resume" if partial
-                 else "not kept (no --out)")
-        return f"{finished()} of {total} designs {where}"
-
-    try:
-        yield
-    except KeyboardInterrupt:
-        raise Interrupted(f"interrupted: {kept()}") from None
-    except WorkerLost as exc:
-        if interrupt.pressed():
-            raise Interrupted(f"interrupted: {kept()}") from None
-        raise DesignError(f"{exc}; {kept()}") from None
-    except DesignError:
-        if interrupt.pressed():
-            raise Interrupted(f"interrupted: {kept()}") from None
-        # a design no start could make: the same settings fail again, so --resume cannot help
-        # and the file of the designs before it is not left behind
-        if partial is not None:
-            partial.unlink(missing_ok=True)
-            with contextlib.suppress(OSError):
-                partial.parent.rmdir()  # only when empty: the folder this command created
-        raise
-    except Exception:
-        if not interrupt.pressed():
-            raise
-        # Ctrl-C while CasADi built a solver: its callbacks' KeyboardInterrupt became a RuntimeError
-        raise Interrupted(f"interrupted: {kept()}") from None
-
-
-@contextlib.contextmanager
-def kept_on_error(partial: Path) -> Iterator[None]:
-    """Write a command's files; when one cannot be written, the error also says that the
-    designs are kept in ``partial`` and how to continue."""
-    try:
-        yield
-    except OutputError as exc:
-        raise OutputError(f"{exc}; the designs are kept in {partial}: once fixed, run the same "
-                          "command with --resume to write the files without solving again") from None
+    return request, result, panels
 
 
 # --------------------------------------------------------------------------- figures

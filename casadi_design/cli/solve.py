@@ -9,6 +9,7 @@ from pathlib import Path
 from ..build import Problem
 from ..campaign import Campaign
 from ..files import write_atomic
+from ..study import writing
 from ..tables import format_solver_lines, format_table
 from . import common
 
@@ -45,21 +46,21 @@ def run(args: argparse.Namespace) -> int:
         check_format(common.load(args), args.program, "--program")  # before anything is solved
         if not out:
             raise OutputError("--program writes into the --out folder; add --out DIR")
-    problem, done, fig_m = common.campaign(args, "solve", out / PARTIAL_NAME if out else None)
+    study, done, fig_m = common.design(args, "solve", out / PARTIAL_NAME if out else None)
+    problem = study.problem
     designs = list(done.designs.values())
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
     print(format_table(designs))
     common.say(args, "", format_solver_lines(designs),
-               f"total {wall:.2f} s for {len(designs)} designs {common.where(args)} (after imports)")
+               f"total {wall:.2f} s for {len(designs)} designs {study.where} (after imports)")
     if out:
-        with common.kept_on_error(out / PARTIAL_NAME):
+        with writing(study):
             files = write_solve(out, problem, done, fig_m)
             if args.program:
                 from .program import write_programs
 
                 files += write_programs(out, problem, designs, args.program)
-        (out / PARTIAL_NAME).unlink(missing_ok=True)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {len(designs)} plans in {out / 'plans'}")
     return 0

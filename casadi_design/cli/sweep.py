@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 from ..build import Problem
-from ..campaign import campaign_key
 from ..files import write_atomic
-from ..sweep import PARTIAL_NAME, RESUME_FILES, RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
+from ..study import writing
+from ..sweep import PARTIAL_NAME, RESUME_FILES, Sweep
 from ..tables import format_sweep_table
 from . import common
 
@@ -37,42 +37,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..progress import progress_bar
-
     t0 = time.perf_counter()
     out = common.output_folder(args, "sweep", RESUME_FILES)
-    problem = common.load(args)
-    criteria, ms, settings = common.plan_request(args, problem, all_m=True)
-    warm = not args.no_warm_start
-    fig_m = common.fig_m(args.fig_m, ms, problem.m_values)
-    common.say(args, f"sweep of {len(ms) * len(criteria)} designs ({len(criteria)} criteria x "
-                     f"{len(ms)} values of m, {ms[0]} to {ms[-1]})")
-    key = campaign_key(problem, criteria, ms, settings, warm)
-    partial = out / PARTIAL_NAME if out else None
-    finished = common.Finished.resumed(args, problem, key, partial, RESUME_KEYS, len(ms) * len(criteria))
-    done = dict(finished.designs)
-
-    def save(design) -> None:
-        finished.save(design)
-        bar.set_postfix_str(f"done: {design.criterion}, m = {design.m}")
-
-    with common.keeping(partial, lambda: len(finished.designs), len(ms) * len(criteria)), \
-            common.executor(args) as executor:
-        bar = progress_bar(sweep_total_starts(problem, criteria, ms, settings, warm), "sweep", args.quiet)
-        with bar:
-            sweep = run_sweep(problem, criteria, ms, settings, warm_start=warm, done=done,
-                              executor=executor, progress=common.checked(bar), on_design=save)
-    common.say_approximate(args, sweep.approx)
+    study, sweep, fig_m = common.design(args, "sweep", out / PARTIAL_NAME if out else None, sweep=True)
+    problem = study.problem
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
     print(format_sweep_table(sweep))
-    common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({settings.starts} seeded starts each"
-                     f"{', plus one warm start for m after the first' if warm else ''}) {common.where(args)}")
+    common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({study.settings.starts} seeded starts "
+                     f"each{', plus one warm start for m after the first' if study.warm_start else ''}) {study.where}")
     if out:
-        with common.kept_on_error(partial):
-            files = write_sweep(out, problem, sweep, fig_m, args.log, key, sweep.approx)
-        if partial.exists():
-            partial.unlink()
+        with writing(study):
+            files = write_sweep(out, problem, sweep, fig_m, args.log, study.key, sweep.approx)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {sum(f.startswith('plans/') for f in files)} plans in {out / 'plans'}")
     return 0

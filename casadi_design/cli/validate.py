@@ -92,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
         problem = common.load(args, check_solver=False)
         plans, source = plans_from_results(problem, args.results), str(args.results)
     else:
-        problem, done, _ = common.campaign(args, "validate")
+        study, done, _ = common.design(args, "validate")
+        problem = study.problem
         plans, source = plans_from_designs(list(done.designs.values())), "solved as casadi-design solve does"
     t0 = time.perf_counter()
     validation = validate(problem, plans, args.trials, args.seed, spreads, source)
