@@ -269,6 +269,9 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     check_loss(loss)
     if model not in MODELS:
         raise ProblemError(f"--model {model}: allowed: {', '.join(MODELS)}")
+    if model == "prior" and problem.spec.calibration.prior is None:
+        raise ProblemError("--model prior: the problem file has no [calibration.prior]; add one "
+                           "(a standard deviation per group, e.g. length_m = 1e-3, angle_rad = 1e-3)")
     problem, own, T0, notes = register(problem, frame, meas)
     if has_weight(problem):  # a model that misses the sag would take the sagging rows for outliers
         own = fit_model(problem, frame, problem.model.parameter_names + tuple(
@@ -279,7 +282,8 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
         rows = rich.used
     except (ProblemError, DesignError):
         rows, outliers, refused = None, [], []
-    found = candidates(problem, frame, meas, T0, loss, np.ones(meas.m, dtype=bool) if rows is None else rows)
+    found = candidates(problem, frame, meas, T0, loss, np.ones(meas.m, dtype=bool) if rows is None else rows,
+                       model)
     chosen, warnings = choose(found, model)
     fm = chosen.fit_model
     try:  # the chosen model on the rows without the outliers

@@ -126,10 +126,11 @@ def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float,
 
 
 def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
-               loss: str, rows: np.ndarray) -> list[Candidate]:
-    """Every candidate (module docstring), fewest parameters first, fitted to the ``rows``
-    (bool mask: those the problem's own model does not find outliers) and cross-validated;
-    models equal to a smaller one (parameters absorbed) are left out."""
+               loss: str, rows: np.ndarray, model: str = "auto") -> list[Candidate]:
+    """The candidates (module docstring) that ``model`` needs, fewest parameters first: every
+    one for ``auto``, else registration only and ``model``; fitted to the ``rows`` (bool mask:
+    those the richest model does not find outliers) and cross-validated; models equal to a
+    smaller one (parameters absorbed) are left out."""
     every = rows
 
     def candidate(name: str, names: tuple[str, ...], prior: bool = False,
@@ -146,10 +147,14 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
                          cv, se, why, dof), f
 
     offsets = candidate_parameters(problem, "offsets")
-    found = [candidate("registration", candidate_parameters(problem, "registration"))[0],
-             candidate("offsets", offsets)[0]]
-    full, f = candidate("identifiable", candidate_parameters(problem, "identifiable"))
-    if f is not None:
+    found = [candidate("registration", candidate_parameters(problem, "registration"))[0]]
+    if model in ("auto", "offsets"):
+        found.append(candidate("offsets", offsets)[0])
+    if model in ("auto", "identifiable"):
+        full, f = candidate("identifiable", candidate_parameters(problem, "identifiable"))
+    else:
+        full, f = None, None
+    if model == "auto" and f is not None:
         names = full.fit_model.model.parameter_names
         std = problem.sigma_m * np.sqrt(np.diagonal(np.linalg.inv(f.information)))
         t = np.abs(f.X) / std
@@ -157,8 +162,9 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
                  if names[i] not in full.fit_model.frame_names and names[i] not in offsets]
         for k in range(1, len(order)):
             found.append(candidate(f"offsets + {k}", offsets + tuple(order[:k]))[0])
-    found.append(full)
-    if has_weight(problem):  # + every joint's compliance under the robot's own weight
+    if full is not None:
+        found.append(full)
+    if model == "auto" and has_weight(problem):  # + every joint's compliance under the robot's own weight
         compliances = tuple(f"k.{j}" for j in problem.robot.joints)
         nested = [c for c in found if not math.isnan(c.cv_rms_m)]
         best = min(nested, key=lambda c: c.cv_rms_m) if nested else found[1]
@@ -166,7 +172,7 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
             geometric = tuple(p for p in c.fit_model.model.parameter_names
                               if p not in c.fit_model.frame_names and not p.startswith("k."))
             found.append(candidate(f"{c.name} + gravity", geometric + compliances, gravity=True)[0])
-    if problem.spec.calibration.prior is not None:
+    if problem.spec.calibration.prior is not None and model in ("auto", "prior"):
         found.append(candidate("prior", candidate_parameters(problem, "identifiable"), prior=True)[0])
     kept: list[Candidate] = []
     for c in found:
@@ -200,9 +206,6 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
         chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.size)
     else:
         chosen = next((c for c in found if c.name == model), None)
-        if chosen is None and model == "prior":
-            raise ProblemError("--model prior: the problem file has no [calibration.prior]; add one "
-                               "(a standard deviation per group, e.g. length_m = 1e-3, angle_rad = 1e-3)")
         if chosen is None:  # the same parameters as a smaller candidate
             chosen = _own(found) if model == "identifiable" else found[0]
     base = found[0]
