@@ -7,9 +7,9 @@ from __future__ import annotations
 import os
 import sys
 
-from . import interrupt
-from .interrupt import EXIT_INTERRUPTED
-from .threads import fixed_blas
+from .runtime import interrupt
+from .runtime.interrupt import EXIT_INTERRUPTED
+from .runtime.threads import fixed_blas
 
 
 def _interrupted() -> None:

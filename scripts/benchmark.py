@@ -16,7 +16,7 @@ with a grid of 50 drilling points as test poses, m = 20, 16 starts.
 ``--compare-with DIR`` runs the same designs with the package found in DIR (another checkout,
 e.g. a worktree of an older commit) and adds the old/new ratios of time per start and memory;
 ``--compare-vm`` compares instead with this checkout in CasADi's virtual machine
-(``CASADI_DESIGN_COMPILE=0``: no compiled functions, :mod:`casadi_design.compiled`). The first
+(``CASADI_DESIGN_COMPILE=0``: no compiled functions, :mod:`casadi_design.model.compiled`). The first
 line says whether the functions are compiled and where their cache is; build times include
 compiling what the cache does not hold yet. Figures are for the machine at hand; compare
 ratios, not absolutes.
@@ -49,17 +49,17 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
     """In the child: build the design solver and run the seeded starts; plain figures."""
     import tomllib
 
-    from casadi_design.build import build_problem
-    from casadi_design.criteria import CRITERIA
-    from casadi_design.problem import parse_problem
-    from casadi_design.solve import make_design_solver, solve_start, start_rng
+    from casadi_design.model.build import build_problem
+    from casadi_design.measures.criteria import CRITERIA
+    from casadi_design.model.problem import parse_problem
+    from casadi_design.optimisation.solve import make_design_solver, solve_start, start_rng
 
     import casadi_design
 
     if (Path(casadi_design.__file__).parent / "sampling.py").exists():
-        from casadi_design.sampling import random_plan
-    else:  # a checkout from before casadi_design/sampling.py (--compare-with)
-        from casadi_design.solve import random_plan
+        from casadi_design.plan.sampling import random_plan
+    else:  # a checkout from before casadi_design/plan/sampling.py (--compare-with)
+        from casadi_design.optimisation.solve import random_plan
 
     raw = tomllib.loads(Path(problem_file).read_text())
     if grid is not None:
@@ -97,7 +97,7 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
 
 def _capsule_rows(problem) -> int:
     """Capsule rows of one experiment (0 without a cell)."""
-    from casadi_design.rules import pose_constraints
+    from casadi_design.plan.rules import pose_constraints
 
     collision = getattr(pose_constraints(problem), "collision", None)
     return 0 if collision is None else len(collision.inputs)
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare_with and args.compare_vm:
         parser.error("--compare-with and --compare-vm: choose one")
     sys.path.insert(0, str(ROOT))
-    from casadi_design import compiled
+    from casadi_design.model import compiled
 
     print(f"compiled CasADi functions: on, cache {compiled.cache_dir()}" if compiled.enabled() else
           "compiled CasADi functions: off (CASADI_DESIGN_COMPILE=0 or no C compiler): the virtual machine")

@@ -16,12 +16,12 @@ import pytest
 # scripts) that each compile the package again without it, about 0.2 s of CPU each.
 sys.dont_write_bytecode = False
 
-from casadi_design.threads import fixed_blas  # noqa: E402
+from casadi_design.runtime.threads import fixed_blas  # noqa: E402
 
 # The suite runs CasADi's virtual machine: compiling a robot's functions the first time costs
 # seconds per cell. tests/test_compiled.py checks the compiled code gives the same bits.
 os.environ.setdefault("CASADI_DESIGN_COMPILE", "0")
-# What the package keeps between runs (casadi_design.cache: the capsules fitted around the
+# What the package keeps between runs (casadi_design.runtime.cache: the capsules fitted around the
 # meshes) goes to a folder of the test runs, not the user's cache.
 os.environ.setdefault("CASADI_DESIGN_CACHE", os.path.join(tempfile.gettempdir(), f"casadi-design-tests-{os.getuid()}"))
 # The approximate designs are computed in each test, not read back from an earlier run's
@@ -29,8 +29,8 @@ os.environ.setdefault("CASADI_DESIGN_CACHE", os.path.join(tempfile.gettempdir(),
 os.environ.setdefault("CASADI_DESIGN_KEEP_DESIGNS", "0")
 fixed_blas()  # as the command does, before numpy and CasADi load (casadi_design.launch)
 
-from casadi_design.build import build_problem, load_problem  # noqa: E402
-from casadi_design.problem import parse_problem  # noqa: E402
+from casadi_design.model.build import build_problem, load_problem  # noqa: E402
+from casadi_design.model.problem import parse_problem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "problems" / "paper_planar_2r.toml"
@@ -62,7 +62,7 @@ def paper():
 def paper_solved(paper):
     """The paper's six designs (Table 4: test-pose, D, E at m = 1, 5), solved once for the suite
     with the problem's own settings: ``{(criterion, m): Design}``."""
-    from casadi_design.solve import solve_design
+    from casadi_design.optimisation.solve import solve_design
 
     return {(c, m): solve_design(paper, c, m) for m in paper.m_values for c in paper.criteria}
 

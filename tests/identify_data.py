@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from casadi_design.export import csv_text, plan_table
+from casadi_design.records.export import csv_text, plan_table
 from casadi_design.identification.measurements import measured_axes, measurement_columns
 
 LENGTH_M, ANGLE_RAD = 0.5e-3, 1e-3

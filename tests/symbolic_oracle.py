@@ -1,6 +1,6 @@
 """Test oracle: the symbolic formulation of every criterion (one CasADi graph of M).
 
-The product solves the criteria in the reduced space (:mod:`casadi_design.reduced`); here they
+The product solves the criteria in the reduced space (:mod:`casadi_design.optimisation.reduced`); here they
 are posed as one symbolic CasADi graph with CasADi's own exact derivatives, to check the
 reduced space's values and derivatives, and E and condition exactly (without surrogate) with
 semidefinite constraints written as Cholesky-factor equalities: ``M - lam I = C C^T`` (C lower
@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from casadi_design import nlp as nlp_module
-from casadi_design.build import Problem
-from casadi_design.nlp import DesignNLP, information_scale
-from casadi_design.rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
+from casadi_design.optimisation import nlp as nlp_module
+from casadi_design.model.build import Problem
+from casadi_design.optimisation.nlp import DesignNLP, information_scale
+from casadi_design.plan.rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
 
 
 @dataclass(frozen=True, eq=False)

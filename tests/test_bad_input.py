@@ -5,11 +5,11 @@ import socket
 
 import pytest
 
-from casadi_design import parallel
-from casadi_design.build import load_problem
+from casadi_design.execution import parallel
+from casadi_design.model.build import load_problem
 from casadi_design.cli import main
 from casadi_design.errors import DesignError, ProblemError
-from casadi_design.problem import read_problem
+from casadi_design.model.problem import read_problem
 from tests.conftest import PAPER, ROOT, build, paper_raw, read_raw
 
 GEOMETRIC = ROOT / "problems" / "planar_2r_geometric.toml"
@@ -166,7 +166,7 @@ def test_plan_check_covers_the_flange_and_tool_frames():
     import numpy as np
     import pinocchio as pin
 
-    from casadi_design.rules import pose_constraints
+    from casadi_design.plan.rules import pose_constraints
 
     problem = load_problem(ROOT / "problems" / "ur10_drilling.toml")
     robot, rules = problem.robot, pose_constraints(problem)

@@ -1,4 +1,4 @@
-"""The certified bounds of casadi_design.bound: published figures, an independent convex solver,
+"""The certified bounds of casadi_design.optimisation.bound: published figures, an independent convex solver,
 a closed form with gap 0, and bounds that hold against solved plans."""
 
 from __future__ import annotations
@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from casadi_design.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _search_one, _information, _pool_optimum, _sample, apportion,
+from casadi_design.optimisation.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _search_one, _information, _pool_optimum, _sample, apportion,
                                  approximate_design, bound, rounded_plans)
-from casadi_design.build import load_problem
-from casadi_design.criteria import CRITERIA
+from casadi_design.model.build import load_problem
+from casadi_design.measures.criteria import CRITERIA
 from casadi_design.errors import DesignError
-from casadi_design.rules import load_variables, plan_violations, pose_constraints
-from casadi_design.solve import solve_design
+from casadi_design.plan.rules import load_variables, plan_violations, pose_constraints
+from casadi_design.optimisation.solve import solve_design
 
 from conftest import PROBLEM_FILES, ROOT, build, paper_raw
 

@@ -1,4 +1,4 @@
-"""What is kept on disk between runs (casadi_design.cache): computed once, read again to the
+"""What is kept on disk between runs (casadi_design.runtime.cache): computed once, read again to the
 bit, computed anew when the file is damaged or the cache cannot be written; the capsules fitted
 around a URDF's meshes read back as the fit gives them."""
 
@@ -11,10 +11,12 @@ import time
 import numpy as np
 import pytest
 
-from casadi_design import cache, collision
-from casadi_design.cell import _package_dirs
-from casadi_design.collision import capsules_from_geometry, load_collision_geometry
-from casadi_design.robots import load_urdf, urdf_file
+from casadi_design.runtime import cache
+
+from casadi_design.model import collision
+from casadi_design.model.cell import _package_dirs
+from casadi_design.model.collision import capsules_from_geometry, load_collision_geometry
+from casadi_design.model.robots import load_urdf, urdf_file
 from tests.conftest import ROOT
 
 UR10 = "example-robot-data:ur_description/urdf/ur10_robot.urdf"
@@ -103,8 +105,8 @@ def test_the_ur10_capsules_read_back_as_fitted(directory, monkeypatch):
 def test_the_cells_pairs_read_back_as_selected(directory, monkeypatch):
     """The pairs of the ABB's cell are selected once (sampled configurations), then read back:
     the same pairs as a selection computed here; another clearance selects anew."""
-    from casadi_design import cell as cell_module
-    from casadi_design.build import load_problem
+    from casadi_design.model import cell as cell_module
+    from casadi_design.model.build import load_problem
 
     problem = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
     c = problem.cell
@@ -130,7 +132,7 @@ def test_the_cells_pairs_read_back_as_selected(directory, monkeypatch):
 @pytest.fixture
 def kept_designs(directory, monkeypatch):
     """Approximate designs kept on disk (the suite turns it off), none in this process yet."""
-    from casadi_design import bound
+    from casadi_design.optimisation import bound
 
     monkeypatch.setenv(cache.KEEP_DESIGNS, "1")
     monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
@@ -167,10 +169,10 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
 
 
 def test_a_design_read_back_start_by_start_is_the_design_computed(directory, monkeypatch, paper):
-    """A design's starts are kept on disk (:func:`casadi_design.solve.solve_start`): the same
+    """A design's starts are kept on disk (:func:`casadi_design.optimisation.solve.solve_start`): the same
     design again reads every start back without IPOPT and is the same to the bit; another m,
     ``verbose`` (IPOPT's output asked for) or ``CASADI_DESIGN_KEEP_DESIGNS=0`` computes."""
-    from casadi_design import solve
+    from casadi_design.optimisation import solve
 
     monkeypatch.setenv(cache.KEEP_DESIGNS, "1")
     first = solve.solve_design(paper, "test-pose", 2, starts=4)
@@ -200,8 +202,8 @@ def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
     but not its fingerprint: what was kept for it is not read back."""
     import tomli_w
 
-    from casadi_design import build
-    from casadi_design.robots import urdf_file
+    from casadi_design.model import build
+    from casadi_design.model.robots import urdf_file
     from tests.conftest import ROOT, read_raw
 
     urdf = tmp_path / "ur10.urdf"
@@ -226,12 +228,12 @@ def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
 
 def test_the_fingerprint_names_the_blas_thread_count(monkeypatch):
     """A library caller whose BLAS runs on several threads rounds differently (the commands and
-    this suite fix one thread first, casadi_design.threads): what it keeps is not read back by a
+    this suite fix one thread first, casadi_design.runtime.threads): what it keeps is not read back by a
     command, nor the other way round."""
     from threadpoolctl import threadpool_limits
 
-    from casadi_design import build
-    from casadi_design.threads import blas_threads
+    from casadi_design.model import build
+    from casadi_design.runtime.threads import blas_threads
     from tests.conftest import PAPER
 
     def built():

@@ -11,17 +11,17 @@ import pinocchio as pin
 import pytest
 import scipy.optimize
 
-from casadi_design.build import build_problem, load_problem
-from casadi_design.cell import clearances, touching
-from casadi_design.collision import capsule_names
+from casadi_design.model.build import build_problem, load_problem
+from casadi_design.model.cell import clearances, touching
+from casadi_design.model.collision import capsule_names
 from casadi_design.errors import ProblemError
-from casadi_design.export import plan_table, read_plan_csv
-from casadi_design.problem import parse_problem, read_problem
-from casadi_design.nlp import build_nlp
-from casadi_design.reduced import reduced_nlp
-from casadi_design.solve import make_design_solver, solve_start, start_rng
-from casadi_design.rules import joint_distance_sq, joint_limits, plan_violations, pose_constraints
-from casadi_design.sampling import random_plan
+from casadi_design.records.export import plan_table, read_plan_csv
+from casadi_design.model.problem import parse_problem, read_problem
+from casadi_design.optimisation.nlp import build_nlp
+from casadi_design.optimisation.reduced import reduced_nlp
+from casadi_design.optimisation.solve import make_design_solver, solve_start, start_rng
+from casadi_design.plan.rules import joint_distance_sq, joint_limits, plan_violations, pose_constraints
+from casadi_design.plan.sampling import random_plan
 from tests.conftest import ROOT
 
 UR10 = ROOT / "problems" / "ur10_drilling.toml"
@@ -92,7 +92,7 @@ def test_random_plans_follow_the_one_then_growing_batches_rule(case):
     what the rule gives drawn batch by batch (one configuration, then 16, 32, ... up to 1024;
     the first feasible one of the first batch that has one), and the generator is left there
     (the loads, drawn after, come from the same stream)."""
-    from casadi_design import sampling
+    from casadi_design.plan import sampling
 
     problem = load_problem(ROOT / "problems" / f"{case}.toml")
     rules, limits = pose_constraints(problem), joint_limits(problem)
@@ -249,7 +249,7 @@ def test_problem_without_cell_is_unchanged():
 def test_one_incidence_and_sight_row_stand_for_every_reflector():
     """The ABB's three reflectors: the centroid rows are conservative for each reflector (its
     exact beam angle, its own line of sight)."""
-    from casadi_design.collision import LineOfSight, capsule_clearances
+    from casadi_design.model.collision import LineOfSight, capsule_clearances
 
     abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
     rules, robot, cell = pose_constraints(abb), abb.robot, abb.cell
@@ -280,7 +280,7 @@ def test_one_incidence_and_sight_row_stand_for_every_reflector():
 def test_dh_robot_is_checked_on_its_capsules_with_coal():
     """The ABB (a DH table, no meshes) is checked on its capsules as coal shapes; coal's exact
     capsule distances bound the smooth self-collision rows from above, within their smoothing."""
-    from casadi_design.cell import world_capsules
+    from casadi_design.model.cell import world_capsules
 
     abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
     cell, robot, rules = abb.cell, abb.robot, pose_constraints(abb)
@@ -353,11 +353,11 @@ def test_a_plan_table_without_clearances_has_no_clearance_columns(ur10):
 
 
 def test_a_run_stops_as_stalled_only_after_its_iterates_stop_making_progress(ur10):
-    """The stall rule of a run in a cell (:data:`casadi_design.solve.STALL_ITERATIONS`): a
+    """The stall rule of a run in a cell (:data:`casadi_design.optimisation.solve.STALL_ITERATIONS`): a
     cycle of plans that keep every row stops the run that many iterations after its last new
     best objective; a slowly falling objective, or a violation that keeps shrinking while the
     objective rises (a run on its way to a feasible plan), never does."""
-    from casadi_design.solve import STALL_ITERATIONS, _Watch
+    from casadi_design.optimisation.solve import STALL_ITERATIONS, _Watch
 
     nlp = build_nlp(ur10, "test-pose", 1)
     lb, ub = np.asarray(nlp.lbg, dtype=float), np.asarray(nlp.ubg, dtype=float)

@@ -12,11 +12,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from casadi_design import collision as C
+from casadi_design.model import collision as C
 from casadi_design.errors import ProblemError
-from casadi_design.obstacles import Box, HalfSpace
-from casadi_design.cell import _fitted
-from casadi_design.robots import example_robot_data_dir, make_robot
+from casadi_design.model.obstacles import Box, HalfSpace
+from casadi_design.model.cell import _fitted
+from casadi_design.model.robots import example_robot_data_dir, make_robot
 
 #: grid of the brute-force segment distance (points per side)
 GRID = 401
@@ -86,7 +86,7 @@ def mesh_min_distance(model: pin.Model, geom_model: pin.GeometryModel, q: np.nda
     configuration ``q`` (``model.nq``), by ``pinocchio.computeDistances`` (coal).
 
     ``pairs`` defaults to every pair of links carried by non-adjacent joints. The tests'
-    oracle of the mesh distances, independent of :func:`casadi_design.cell.clearances`. Between triangle meshes, coal reports 0 for meshes that
+    oracle of the mesh distances, independent of :func:`casadi_design.model.cell.clearances`. Between triangle meshes, coal reports 0 for meshes that
     cross; a mesh entirely inside another without crossing triangles is not detected.
     """
     names = [model.frames[go.parentFrame].name for go in geom_model.geometryObjects]

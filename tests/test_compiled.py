@@ -1,4 +1,4 @@
-"""Compiled CasADi functions (casadi_design.compiled): the same results to the bit as CasADi's
+"""Compiled CasADi functions (casadi_design.model.compiled): the same results to the bit as CasADi's
 virtual machine, built once and found again on disk, and the virtual machine when no compiler
 works. The rest of the suite runs with compiling off (conftest): these tests compile into a
 temporary cache of their own."""
@@ -9,11 +9,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casadi_design import compiled as cc
-from casadi_design.mapped import OneByOne, evaluate
-from casadi_design.reduced import experiment_functions
-from casadi_design.rules import pose_constraints
-from casadi_design.sampling import random_plan
+from casadi_design.model import compiled as cc
+from casadi_design.model.mapped import OneByOne, evaluate
+from casadi_design.optimisation.reduced import experiment_functions
+from casadi_design.plan.rules import pose_constraints
+from casadi_design.plan.sampling import random_plan
 from tests.conftest import ROOT
 
 
@@ -32,8 +32,8 @@ def cache(tmp_path, monkeypatch):
 def ur10():
     """The UR10 in its cell, built anew (not the process's cached problem, whose functions
     other tests built with compiling off)."""
-    from casadi_design.build import _build
-    from casadi_design.problem import read_problem
+    from casadi_design.model.build import _build
+    from casadi_design.model.problem import read_problem
 
     return _build(read_problem(ROOT / "problems" / "ur10_drilling.toml"))
 
@@ -132,9 +132,9 @@ def test_the_capsule_rows_give_the_same_bits(cache, ur10):
 def test_a_start_in_the_cell_is_the_same_compiled_or_not(cache, monkeypatch):
     """One UR10 start in its cell (rows joining as they can bind): the same IPOPT iterations, plan
     and value with the compiled functions as in the virtual machine."""
-    from casadi_design.build import _build
-    from casadi_design.problem import read_problem
-    from casadi_design.solve import make_design_solver, solve_start, start_rng
+    from casadi_design.model.build import _build
+    from casadi_design.model.problem import read_problem
+    from casadi_design.optimisation.solve import make_design_solver, solve_start, start_rng
 
     spec = read_problem(ROOT / "problems" / "ur10_drilling.toml")
 

@@ -11,13 +11,13 @@ and that every table, column and option is generated from the registry.
 import numpy as np
 import pytest
 
-from casadi_design.bound import approximate_design, bound
+from casadi_design.optimisation.bound import approximate_design, bound
 from casadi_design.cli import build_parser
-from casadi_design.criteria import BOUND_CRITERIA, CRITERIA
-from casadi_design.measures import score_plan
-from casadi_design.solve import solve_design
-from casadi_design.sweep import COLUMNS
-from casadi_design.tables import MEASURE_ROWS
+from casadi_design.measures.criteria import BOUND_CRITERIA, CRITERIA
+from casadi_design.measures.measures import score_plan
+from casadi_design.optimisation.solve import solve_design
+from casadi_design.execution.sweep import COLUMNS
+from casadi_design.reports.tables import MEASURE_ROWS
 from tests.test_bound import SMALL_POOL, planar_A
 
 #: Relative slack of "a plan optimal for I is at least as good for I as any other plan".
@@ -126,7 +126,7 @@ def test_table4_rows_with_I(paper, capsys):
             assert sc.value("I") <= sc.max_rms_error_m
         # the I plan trades the worst pose for the average: strictly, on this path
         assert designs["I", m].scores.max_rms_error_m > tp_best * (1 + 1e-3)
-    from casadi_design.tables import format_table
+    from casadi_design.reports.tables import format_table
 
     text = format_table(list(designs.values()))
     assert [ln.split()[0] for ln in text.splitlines()[3:]] == ["test-pose", "D", "I"]

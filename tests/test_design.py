@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from casadi_design.solve import plan_scores, solve_design
+from casadi_design.optimisation.solve import plan_scores, solve_design
 from tests.conftest import build, paper_raw
 
 #: Table 4 of the paper, max sqrt(rho) along the line, mm.

@@ -15,13 +15,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from casadi_design.build import build_robot, load_problem
+from casadi_design.model.build import build_robot, load_problem
 from casadi_design.cli import main
 from casadi_design.identification.dh_table import calibrated_dh, is_hayati
 from casadi_design.identification.urdf import MEASURED_POINT, CalibratedChain, calibrated_model
-from casadi_design.problem import DHRow, RobotSpec, parse_problem, read_problem
-from casadi_design.robots import frame_placement, make_robot
-from casadi_design.sampling import random_plan
+from casadi_design.model.problem import DHRow, RobotSpec, parse_problem, read_problem
+from casadi_design.model.robots import frame_placement, make_robot
+from casadi_design.plan.sampling import random_plan
 from tests.conftest import ROOT
 from tests.identify_data import measured, measurement_csv, perturbed
 

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from casadi_design import parallel
+from casadi_design.execution import parallel
 from casadi_design.cli import main
 from casadi_design.errors import DesignError
-from casadi_design.parallel import DaskExecutor, ProcessExecutor, WorkerLost, run_start
-from casadi_design.solve import solve_design
+from casadi_design.execution.parallel import DaskExecutor, ProcessExecutor, WorkerLost, run_start
+from casadi_design.optimisation.solve import solve_design
 from tests.conftest import PAPER, ROOT
 
 #: A file whose absence makes the next start kill its worker (then the file exists).
@@ -227,7 +227,8 @@ def test_absurd_ranges_are_one_line(tmp_path, capsys, edit, option, match):
 def test_ctrl_c_turned_into_a_casadi_error_still_keeps_the_designs(tmp_path):
     """Building a solver runs Python callbacks; CasADi turns the KeyboardInterrupt raised in one
     into a RuntimeError. With Ctrl-C recorded, it ends as Ctrl-C: what is kept, and exit 130."""
-    from casadi_design import interrupt, study
+    from casadi_design.runtime import interrupt
+    from casadi_design.execution import study
 
     partial = tmp_path / "sweep.partial.json"
     handler = signal.getsignal(signal.SIGINT)
@@ -249,7 +250,7 @@ def test_ctrl_c_turned_into_a_casadi_error_still_keeps_the_designs(tmp_path):
 #: A parent whose two workers are in the middle of a long call: it prints their pids and waits.
 _BUSY_PARENT = """
 import sys, time
-from casadi_design.parallel import ProcessExecutor
+from casadi_design.execution.parallel import ProcessExecutor
 ex = ProcessExecutor(2)
 futures = [ex._pool.submit(time.sleep, 120) for _ in range(2)]
 time.sleep(1.0)

@@ -4,7 +4,7 @@ Mutations of valid files (types, NaN/inf, shapes, names, encodings, truncation) 
 whether they leave a valid case (:attr:`Mutation.valid`): a valid one must run (exit 0, its
 files written), an invalid one must give exit 2, exactly one stderr line
 ``error: <file>: ...; <hint>``, and no output files. Validity comes from the documented format
-(docs/problem-format.md, :func:`casadi_design.export.read_plan_csv`), not from the reader under
+(docs/problem-format.md, :func:`casadi_design.records.export.read_plan_csv`), not from the reader under
 test; where it depends on the drawn value (a number in range, a cut that keeps whole rows) it is
 computed from that value.
 """
@@ -22,10 +22,10 @@ import tomli_w
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from casadi_design.build import load_problem
+from casadi_design.model.build import load_problem
 from casadi_design.cli import main
-from casadi_design.export import csv_text, plan_table
-from casadi_design.sampling import random_plan
+from casadi_design.records.export import csv_text, plan_table
+from casadi_design.plan.sampling import random_plan
 from tests.conftest import PAPER, ROOT, read_raw
 
 #: Examples per property: bounded so that the default suite stays fast.

@@ -12,7 +12,7 @@ from casadi_design.cli.identify import load_without_cell
 from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.fit import fit, fit_model, register
 from casadi_design.identification.measurements import read_measurements
-from casadi_design.sampling import random_plan
+from casadi_design.plan.sampling import random_plan
 from tests.conftest import ROOT
 from tests.identify_data import measured, measurement_csv, perturbed
 

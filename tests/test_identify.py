@@ -17,8 +17,8 @@ from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.fit import model_points
 from casadi_design.identification.measurements import read_measurements
 from casadi_design.identification.report import tracker_std
-from casadi_design.robots import frame_placement, make_robot
-from casadi_design.sampling import random_plan
+from casadi_design.model.robots import frame_placement, make_robot
+from casadi_design.plan.sampling import random_plan
 from casadi_design.virtual import identify as virtual_identify
 from tests.conftest import ROOT
 from tests.identify_data import angle_between, measured, measurement_csv, perturbed, true_points
@@ -256,8 +256,8 @@ def test_ur10_campaigns_meet_the_predicted_accuracy(tmp_path):
     """UR10 in its cell, the test-pose plan at m = 12 (4 seeded starts), sigma = 25 um, 20
     campaigns on independently perturbed robots: the error of the compensated robot at the
     test poses (in the tracker frame, where the holes are registered) against sqrt(rho)."""
-    from casadi_design.build import load_problem
-    from casadi_design.solve import solve_design
+    from casadi_design.model.build import load_problem
+    from casadi_design.optimisation.solve import solve_design
 
     problem = load_without_cell(str(UR10))
     design = solve_design(load_problem(UR10), "test-pose", 12, starts=4)
@@ -301,7 +301,7 @@ def test_a_fit_that_does_not_converge_gives_one_line(ur10_files, tmp_path, capsy
 def test_base_frame_prediction_is_the_designs_measure(ur10, tmp_path):
     """With base-frame coordinates the fit's parameters are the problem's own X, and the
     predicted sqrt(rho) at the test poses is the design's measure of the measured plan."""
-    from casadi_design.measures import score_plan
+    from casadi_design.measures.measures import score_plan
 
     true = perturbed(ur10, np.random.default_rng(11))
     true = type(true)(true.model, true.frame_id, true.k, pin.SE3.Identity())  # base frame

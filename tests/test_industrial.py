@@ -9,13 +9,13 @@ import pinocchio as pin
 import pytest
 
 from casadi_design.errors import DesignError, ProblemError
-from casadi_design.identifiability import base_set, pivoted_columns
-from casadi_design.ik import sample_path
-from casadi_design.measures import information_matrix
-from casadi_design.models import calibration_model
-from casadi_design.build import load_problem
+from casadi_design.model.identifiability import base_set, pivoted_columns
+from casadi_design.model.ik import sample_path
+from casadi_design.measures.measures import information_matrix
+from casadi_design.model.models import calibration_model
+from casadi_design.model.build import load_problem
 from tests.conftest import build
-from casadi_design.robots import (
+from casadi_design.model.robots import (
     add_tool_frame,
     frame_jacobian,
     frame_placement,
@@ -23,8 +23,8 @@ from casadi_design.robots import (
     make_robot,
     placement_from_xyz_rpy,
 )
-from casadi_design.solve import solve_design
-from casadi_design.symbolic import symbolic_kinematics
+from casadi_design.optimisation.solve import solve_design
+from casadi_design.model.symbolic import symbolic_kinematics
 from tests.conftest import ROOT
 
 ABB_URDF = str(ROOT / "problems/robots/abb_irb6640_180_255.urdf")
@@ -312,12 +312,12 @@ def test_pivoting_matches_lapack_and_breaks_ties_by_order():
 @pytest.mark.slow  # 3.5 min: two designs of 16 seeded starts, each solved twice, compiled
 @pytest.mark.parametrize("case, m", [("ur10_drilling.toml", 9), ("abb_irb6640_machining.toml", 6)])
 def test_stopping_stalled_runs_keeps_the_winner_of_the_case_studies(case, m, monkeypatch):
-    """The stall rule (:data:`casadi_design.solve.STALL_ITERATIONS`) ends starts that make no
+    """The stall rule (:data:`casadi_design.optimisation.solve.STALL_ITERATIONS`) ends starts that make no
     progress, and only those: the test-pose design of each shipped cell case at its smallest
     m, solved from its seeded starts with the rule and without it, has the same winner and
     plan to the bit; some starts stall, in fewer iterations than they took without the rule,
     and every other start is the same."""
-    from casadi_design import solve
+    from casadi_design.optimisation import solve
 
     monkeypatch.setenv("CASADI_DESIGN_COMPILE", "1")
     p = load_problem(ROOT / "problems" / case)
@@ -334,13 +334,13 @@ def test_stopping_stalled_runs_keeps_the_winner_of_the_case_studies(case, m, mon
 @pytest.mark.slow  # 30 s: three UR10 starts of 20 experiments in the cell, compiled
 def test_seeded_starts_of_many_experiments_end_on_plans_that_keep_every_row(monkeypatch):
     """A start holds the capsule rows that can bind and adds rows round after round
-    (:data:`casadi_design.solve.MAX_ROUNDS`): with 20 UR10 experiments in the cell the plans
+    (:data:`casadi_design.optimisation.solve.MAX_ROUNDS`): with 20 UR10 experiments in the cell the plans
     meet new rows for more than 12 rounds, and with 12 every seeded start ended on a plan
     that breaks capsule rows (the sweep to m = 20 failed). The first three seeded test-pose
     starts at m = 20 end on plans that keep every rule, the real meshes included, and at
     least one needed more than 12 rounds."""
-    from casadi_design.rules import plan_violations
-    from casadi_design.solve import make_design_solver, seeded_plans, solve_start
+    from casadi_design.plan.rules import plan_violations
+    from casadi_design.optimisation.solve import make_design_solver, seeded_plans, solve_start
 
     monkeypatch.setenv("CASADI_DESIGN_COMPILE", "1")
     p = load_problem(ROOT / "problems" / "ur10_drilling.toml")

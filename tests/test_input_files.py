@@ -14,14 +14,14 @@ import pytest
 
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
-from casadi_design.export import read_plan_csv
-from casadi_design.design import Design, StartRecord
+from casadi_design.records.export import read_plan_csv
+from casadi_design.plan.design import Design, StartRecord
 from casadi_design.errors import OutputError
-from casadi_design.files import prepare_out, read_results, write_atomic, write_json
-from casadi_design.results import design_from_record, results_dict
-from casadi_design.solve import plan_scores
-from casadi_design.campaign import Settings, campaign_key
-from casadi_design.sweep import RESUME_FILES, Sweep, sweep_from_record, sweep_record
+from casadi_design.records.files import prepare_out, read_results, write_atomic, write_json
+from casadi_design.records.results import design_from_record, results_dict
+from casadi_design.optimisation.solve import plan_scores
+from casadi_design.execution.campaign import Settings, campaign_key
+from casadi_design.execution.sweep import RESUME_FILES, Sweep, sweep_from_record, sweep_record
 from tests.conftest import PAPER
 
 HEADER = "q1_deg,q2_deg,fx_N,fy_N"

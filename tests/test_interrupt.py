@@ -90,7 +90,7 @@ def test_a_ctrl_c_where_python_cannot_raise_it_prints_no_traceback(capsys):
     import gc
     import weakref
 
-    from casadi_design import interrupt
+    from casadi_design.runtime import interrupt
 
     class Body:
         pass
@@ -121,7 +121,7 @@ def test_a_ctrl_c_where_python_cannot_raise_it_prints_no_traceback(capsys):
 _LIBRARY_CTRL_C = '''
 import os, signal
 import casadi as ca
-from casadi_design.ipopt import ipopt_call
+from casadi_design.optimisation.ipopt import ipopt_call
 
 class Sigint(ca.Callback):
     def __init__(self):

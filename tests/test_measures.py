@@ -5,11 +5,11 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from casadi_design.criteria import CRITERIA
-from casadi_design.measures import information_matrix, score_plan, rho_at_test_poses
-from casadi_design.nlp import build_nlp
-from casadi_design.sampling import random_plan
-from casadi_design.solve import solve_design
+from casadi_design.measures.criteria import CRITERIA
+from casadi_design.measures.measures import information_matrix, score_plan, rho_at_test_poses
+from casadi_design.optimisation.nlp import build_nlp
+from casadi_design.plan.sampling import random_plan
+from casadi_design.optimisation.solve import solve_design
 from tests.conftest import build, paper_raw
 
 REL = 1e-9
@@ -76,7 +76,7 @@ def test_epigraph_reaches_its_value_at_the_optimum(paper):
     assert d.scores.value("E") ** 2 == pytest.approx(lam[0], rel=REL)
     assert d.scores.value("condition") == pytest.approx(np.sqrt(lam[-1] / lam[0]), rel=REL)
     # re-solve from the optimum: the epigraph variable takes the criterion's value
-    from casadi_design.solve import make_solver
+    from casadi_design.optimisation.solve import make_solver
 
     sol = make_solver(paper, nlp)(x0=nlp.start(d.Q, d.F), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     Q, F = (np.asarray(v) for v in nlp.plan(sol["x"]))

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from casadi_design.build import load_problem
+from casadi_design.model.build import load_problem
 from casadi_design.errors import ProblemError
-from casadi_design.models import calibration_model
-from casadi_design.robots import frame_jacobian, frame_placement, load_urdf, make_robot, planar_arm
-from casadi_design.symbolic import symbolic_kinematics
+from casadi_design.model.models import calibration_model
+from casadi_design.model.robots import frame_jacobian, frame_placement, load_urdf, make_robot, planar_arm
+from casadi_design.model.symbolic import symbolic_kinematics
 from tests.conftest import PROBLEM_FILES
 
 FD_STEP = 1e-6

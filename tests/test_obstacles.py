@@ -16,10 +16,10 @@ import pinocchio as pin
 import pytest
 from matplotlib.figure import Figure
 
-from casadi_design.build import build_problem
-from casadi_design.collision import capsule_clearances
-from casadi_design.obstacles import OBSTACLE_COLOUR, OBSTACLE_KINDS, HalfSpace, Obstacle
-from casadi_design.problem import SECTIONS, parse_problem
+from casadi_design.model.build import build_problem
+from casadi_design.model.collision import capsule_clearances
+from casadi_design.model.obstacles import OBSTACLE_COLOUR, OBSTACLE_KINDS, HalfSpace, Obstacle
+from casadi_design.model.problem import SECTIONS, parse_problem
 from tests.conftest import ROOT
 
 ABB = ROOT / "problems" / "abb_irb6640_machining.toml"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from casadi_design.cli import main
-from casadi_design.parallel import (
+from casadi_design.execution.parallel import (
     DaskExecutor,
     MissingExtraError,
     ProcessExecutor,
@@ -17,10 +17,10 @@ from casadi_design.parallel import (
     run_start,
 )
 from casadi_design.errors import DesignError
-from casadi_design.solve import solve_design
-from casadi_design.bound import ROUNDED
-from casadi_design.campaign import Settings
-from casadi_design.sweep import run_sweep
+from casadi_design.optimisation.solve import solve_design
+from casadi_design.optimisation.bound import ROUNDED
+from casadi_design.execution.campaign import Settings
+from casadi_design.execution.sweep import run_sweep
 from tests.conftest import PAPER
 
 #: Designs compared: a smooth criterion and the PSD-constrained E, at 1 and 3 experiments.
@@ -78,7 +78,8 @@ def test_a_one_start_solve_spreads_the_searches_over_the_workers_to_the_same_des
     workers; the same design as computed here. Two to compute on two workers: one per worker,
     beside the starts (None). The whole pipeline with bounds: the slow test below and
     test_the_commands_give_the_same_numbers_for_any_jobs."""
-    from casadi_design import bound, campaign
+    from casadi_design.optimisation import bound
+    from casadi_design.execution import campaign
 
     settings = Settings(1, bound_steps=1, bound_pool=SMALL_POOL)
     monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
@@ -99,9 +100,9 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
     """On workers the campaign is a pipeline (the approximate designs, the seeded starts of
     later designs, the rounded and warm starts once their inputs returned): the same designs,
     starts and bounds as one design after the other."""
-    from casadi_design import bound
+    from casadi_design.optimisation import bound
 
-    from casadi_design import campaign
+    from casadi_design.execution import campaign
 
     args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2, bound_pool=SMALL_POOL))
     monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
@@ -130,9 +131,9 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
 
 def test_worker_builds_the_problem_from_its_plain_data(paper, serial):
     """What a worker runs, called here with a copy of the problem's data only."""
-    from casadi_design.parallel import ProblemRef
-    from casadi_design.sampling import random_plan
-    from casadi_design.solve import start_rng
+    from casadi_design.execution.parallel import ProblemRef
+    from casadi_design.plan.sampling import random_plan
+    from casadi_design.optimisation.solve import start_rng
 
     d = serial["test-pose", 1]
     Q0, F0 = random_plan(paper, 1, start_rng(paper.solver.seed, "test-pose", 1))
@@ -176,7 +177,7 @@ def test_dask_workers_with_other_blas_threads_or_kernels_are_refused():
     that says how to start the workers."""
     from types import SimpleNamespace
 
-    from casadi_design.threads import KERNEL, blas_setup
+    from casadi_design.runtime.threads import KERNEL, blas_setup
 
     here = blas_setup()
     assert here == (KERNEL, 1)  # this process, as the command (tests/conftest.py)
@@ -221,12 +222,12 @@ def test_dask_scheduler_option_of_the_command_equals_a_serial_run(tmp_path):
 def test_the_commands_give_the_same_numbers_for_any_jobs(tmp_path, monkeypatch, capsys):
     """``--jobs 1`` (everything in this process) and ``--jobs 2`` (starts and approximate
     designs on workers) write the same results.json, bounds included: one thread for BLAS and
-    OpenMP in every process (casadi_design.threads). ``bound --jobs 2`` computes its approximate
+    OpenMP in every process (casadi_design.runtime.threads). ``bound --jobs 2`` computes its approximate
     designs of test-pose and D at the same time, one per worker (before the solve, which then
     computes them again in its pipeline): the same table as ``bound --jobs 1``."""
     import json
 
-    from casadi_design import bound
+    from casadi_design.optimisation import bound
 
     bounds = ["--bound-steps", "2", "--bound-pool", str(SMALL_POOL), "--quiet"]
     records, tables = [], []

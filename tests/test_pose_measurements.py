@@ -7,10 +7,10 @@ import pinocchio as pin
 import pytest
 
 from casadi_design.errors import ProblemError
-from casadi_design.export import csv_text, plan_table
+from casadi_design.records.export import csv_text, plan_table
 from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.measurements import read_measurements
-from casadi_design.sampling import random_plan
+from casadi_design.plan.sampling import random_plan
 from tests.conftest import ROOT, build, read_raw
 from tests.identify_data import perturbed
 

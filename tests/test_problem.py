@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from casadi_design.errors import DesignError, ProblemError
-from casadi_design.build import load_problem
-from casadi_design.solve import solve_design
+from casadi_design.model.build import load_problem
+from casadi_design.optimisation.solve import solve_design
 from tests.conftest import ROOT, build, paper_raw
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "problems").glob("*.toml")), ids=lambda p: p.name)
 def test_every_problem_file_loads_and_builds(path):
-    from casadi_design.nlp import build_nlp
+    from casadi_design.optimisation.nlp import build_nlp
 
     problem = load_problem(path)
     assert problem.test_poses.s >= 1
@@ -82,7 +82,7 @@ def test_bad_input_messages(path, value, match):
 
 
 def test_bad_ipopt_option_is_refused_before_solving():
-    from casadi_design.solve import check_ipopt_options
+    from casadi_design.optimisation.solve import check_ipopt_options
 
     problem = build(_edit("solver.ipopt", {"no_such_option": 3}))
     with pytest.raises(ProblemError, match=r"test.toml: \[solver\].ipopt: IPOPT rejected the options"):
@@ -159,7 +159,7 @@ def test_solver_failure_is_a_status_then_a_clear_error():
 
 def test_problem_files_have_documented_keys():
     doc = (ROOT / "docs" / "problem-format.md").read_text()
-    from casadi_design.problem import SECTIONS
+    from casadi_design.model.problem import SECTIONS
 
     for section, keys in SECTIONS.items():
         for key in set(keys or ()) - {k.split(".")[-1] for k in SECTIONS}:

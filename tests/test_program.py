@@ -14,7 +14,7 @@ import pytest
 import tomli_w
 import yaml
 
-from casadi_design.build import load_problem
+from casadi_design.model.build import load_problem
 from casadi_design.cli import main
 from casadi_design.program import moves
 from casadi_design.program.formats import FILES, controller, program_text
@@ -30,8 +30,8 @@ from casadi_design.program.order import (
     tour_cost,
 )
 from casadi_design.program.sequence import make_program
-from casadi_design.rules import joint_limits
-from casadi_design.sampling import random_plan
+from casadi_design.plan.rules import joint_limits
+from casadi_design.plan.sampling import random_plan
 from tests.conftest import PAPER, ROOT, build, paper_raw
 
 ABB = ROOT / "problems" / "abb_irb6640_machining.toml"
@@ -240,8 +240,8 @@ def test_controller_mapping_reads_back_through_signs_and_offsets():
 # --------------------------------------------------------------------------- bad input
 
 def _plan_csv(path, problem, Q, F=None):
-    from casadi_design.cell import clearances
-    from casadi_design.export import csv_text, plan_table
+    from casadi_design.model.cell import clearances
+    from casadi_design.records.export import csv_text, plan_table
 
     near = tuple(clearances(problem.cell, Q)) if problem.cell else None
     F = np.zeros((len(Q), problem.model.nF)) if F is None else F
@@ -314,7 +314,7 @@ def test_solve_writes_a_program_per_plan(tmp_path):
     assert main(["solve", str(PAPER), "--m", "2", "--criteria", "D", "--starts", "1", "--jobs", "1",
                  "--bound-steps", "0", "--quiet", "--program", "krl", "--out", str(out)]) == 0
     problem = load_problem(PAPER)
-    from casadi_design.export import read_plan_csv
+    from casadi_design.records.export import read_plan_csv
 
     Q, _ = read_plan_csv(problem, out / "plans" / "D_m2.csv")
     read, _ = _read_krl((out / "programs" / "D_m2.src").read_text())
@@ -351,7 +351,7 @@ def test_programs_of_the_case_studies_test_pose_plans_are_safe_on_the_meshes(pat
     assert main(["solve", str(path), "--m", str(m), "--criteria", "test-pose", "--starts", "2", "--jobs", "1",
                  "--bound-steps", "0", "--quiet", "--program", "json", "--out", str(out)]) == 0
     problem = load_problem(path)
-    from casadi_design.export import read_plan_csv
+    from casadi_design.records.export import read_plan_csv
 
     Q, _ = read_plan_csv(problem, out / "plans" / f"test-pose_m{m}.csv")
     record = json.loads((out / "programs" / f"test-pose_m{m}.json").read_text())

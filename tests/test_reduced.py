@@ -11,16 +11,16 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casadi_design.build import build_problem, load_problem
-from casadi_design.criteria import CRITERIA as REGISTRY
-from casadi_design.measures import score_plan
-from casadi_design.nlp import build_nlp
-from casadi_design.problem import read_problem
-from casadi_design.objectives import log_power_mean
-from casadi_design.design import CONVERGED
-from casadi_design.ipopt import QUIET, ipopt_call
-from casadi_design.sampling import random_plan
-from casadi_design.solve import make_solver, solve_design
+from casadi_design.model.build import build_problem, load_problem
+from casadi_design.measures.criteria import CRITERIA as REGISTRY
+from casadi_design.measures.measures import score_plan
+from casadi_design.optimisation.nlp import build_nlp
+from casadi_design.model.problem import read_problem
+from casadi_design.measures.objectives import log_power_mean
+from casadi_design.plan.design import CONVERGED
+from casadi_design.optimisation.ipopt import QUIET, ipopt_call
+from casadi_design.plan.sampling import random_plan
+from casadi_design.optimisation.solve import make_solver, solve_design
 from tests.conftest import ROOT, build, paper_raw
 from tests.symbolic_oracle import symbolic_nlp
 

@@ -4,9 +4,9 @@ in its partial file and read back by a resumed study without solving again."""
 import numpy as np
 import pytest
 
-from casadi_design.campaign import Settings
+from casadi_design.execution.campaign import Settings
 from casadi_design.errors import ProblemError
-from casadi_design.study import Study, run_study, writing
+from casadi_design.execution.study import Study, run_study, writing
 
 
 def test_a_study_keeps_its_designs_and_a_resumed_one_solves_nothing(paper, tmp_path, monkeypatch):
@@ -17,7 +17,7 @@ def test_a_study_keeps_its_designs_and_a_resumed_one_solves_nothing(paper, tmp_p
     assert [(d.criterion, d.m) for d in finished] == [("test-pose", 1), ("D", 1), ("test-pose", 2), ("D", 2)]
     assert sum(starts) == study.starts == 8 and partial.is_file()
 
-    from casadi_design import solve
+    from casadi_design.optimisation import solve
 
     monkeypatch.setattr(solve, "_solved_start", lambda *a: pytest.fail("a resumed study solved a start"))
     resumed = []

@@ -8,15 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from casadi_design.criteria import BOUND_CRITERIA, CRITERIA
+from casadi_design.measures.criteria import BOUND_CRITERIA, CRITERIA
 
-import casadi_design.campaign as campaign_module
-import casadi_design.sweep as sweep_module
+import casadi_design.execution.campaign as campaign_module
+import casadi_design.execution.sweep as sweep_module
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
-from casadi_design.build import load_problem
+from casadi_design.model.build import load_problem
 from casadi_design.cli.common import parse_m_values
-from casadi_design.sweep import sweep_from_record, sweep_rows
+from casadi_design.execution.sweep import sweep_from_record, sweep_rows
 from tests.conftest import CLI_STARTS, PAPER, ROOT
 
 #: Seeded starts per design in these tests: few (fast), yet with the warm start the sweep

@@ -4,15 +4,15 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from casadi_design.robots import (
+from casadi_design.model.robots import (
     frame_jacobian,
     frame_placement,
     load_urdf,
     make_robot,
     planar_arm,
 )
-from casadi_design.build import load_problem
-from casadi_design.symbolic import PLACEMENT_ERRORS, parameter_names, symbolic_kinematics
+from casadi_design.model.build import load_problem
+from casadi_design.model.symbolic import PLACEMENT_ERRORS, parameter_names, symbolic_kinematics
 from tests.conftest import ROOT
 
 TOL = 1e-10

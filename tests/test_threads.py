@@ -7,9 +7,9 @@ import sys
 import pytest
 
 from casadi_design.errors import DesignError
-from casadi_design.parallel import DaskExecutor
-from casadi_design.results import results_dict
-from casadi_design.threads import KERNEL, KERNEL_VARIABLE, _cpu_runs_kernel, blas_kernels
+from casadi_design.execution.parallel import DaskExecutor
+from casadi_design.records.results import results_dict
+from casadi_design.runtime.threads import KERNEL, KERNEL_VARIABLE, _cpu_runs_kernel, blas_kernels
 
 
 def _python(code: str) -> str:
@@ -23,7 +23,7 @@ def _python(code: str) -> str:
 @pytest.mark.skipif(not _cpu_runs_kernel(), reason=f"this CPU does not run the {KERNEL} kernels")
 def test_the_kernels_are_fixed_before_numpy_loads():
     # OpenBLAS picks its kernels by CPU, and they round differently: fixed where the CPU runs them
-    out = _python("from casadi_design.threads import fixed_blas, blas_kernels; fixed_blas(); "
+    out = _python("from casadi_design.runtime.threads import fixed_blas, blas_kernels; fixed_blas(); "
                   "import numpy, scipy.linalg; print(blas_kernels())")
     assert out == KERNEL
     assert blas_kernels() == KERNEL  # this test process too (tests/conftest.py, as the command)
@@ -31,7 +31,7 @@ def test_the_kernels_are_fixed_before_numpy_loads():
 
 def test_a_library_caller_s_workers_get_the_kernels_it_loaded():
     # numpy loaded before the package: too late to choose, so the workers get the same kernels
-    out = _python("import os, numpy; from casadi_design.threads import fixed_blas, blas_kernels; "
+    out = _python("import os, numpy; from casadi_design.runtime.threads import fixed_blas, blas_kernels; "
                   f"fixed_blas(); print(os.environ.get('{KERNEL_VARIABLE}') == blas_kernels() != 'none')")
     assert out == "True"
 

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 import casadi_design.cli
-from casadi_design.build import load_problem
+from casadi_design.model.build import load_problem
 from casadi_design.errors import DesignError, ProblemError
-from casadi_design.measures import score_plan
+from casadi_design.measures.measures import score_plan
 from casadi_design.errors import OutputError
-from casadi_design.files import write_results
-from casadi_design.robots import frame_jacobian, frame_placement
-from casadi_design.sampling import random_plan
-from casadi_design.solve import solve_design
+from casadi_design.records.files import write_results
+from casadi_design.model.robots import frame_jacobian, frame_placement
+from casadi_design.plan.sampling import random_plan
+from casadi_design.optimisation.solve import solve_design
 from casadi_design.virtual import (
     ErrorSpreads,
     Plan,

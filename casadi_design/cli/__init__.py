@@ -26,11 +26,12 @@ import argparse
 import sys
 import threading
 
-from .. import files, interrupt
-from ..interrupt import EXIT_INTERRUPTED
+from ..records import files
+from ..runtime import interrupt
+from ..runtime.interrupt import EXIT_INTERRUPTED
 from ..errors import DesignError, OutputError, ProblemError
-from ..parallel import MissingExtraError
-from ..study import Interrupted
+from ..execution.parallel import MissingExtraError
+from ..execution.study import Interrupted
 from . import bound, evaluate, identify, plot, program, solve, sweep, validate
 
 EXIT_ERROR = 2

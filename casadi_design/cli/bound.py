@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from ..bound import bound
-from ..campaign import Settings, approximate, check_m_values
-from ..tables import format_bounds
+from ..optimisation.bound import bound
+from ..execution.campaign import Settings, approximate, check_m_values
+from ..reports.tables import format_bounds
 from . import common
 
 HELP = "certified lower bound of the test-pose error (and upper bound of log det M)"

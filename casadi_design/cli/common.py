@@ -2,7 +2,7 @@
 arguments ask for, the panels of Fig. 1.
 
 A command handler reads its arguments, calls the package once (:func:`design` turns them into
-a :class:`~casadi_design.study.Study` and runs it), prints and writes. Nothing here computes.
+a :class:`~casadi_design.execution.study.Study` and runs it), prints and writes. Nothing here computes.
 """
 
 from __future__ import annotations
@@ -11,16 +11,16 @@ import argparse
 import math
 from pathlib import Path
 
-from ..build import Problem
-from ..campaign import Campaign, Settings
-from ..criteria import BOUND_CRITERIA, CRITERIA
-from .. import interrupt
+from ..model.build import Problem
+from ..execution.campaign import Campaign, Settings
+from ..measures.criteria import BOUND_CRITERIA, CRITERIA
+from ..runtime import interrupt
 from ..errors import OutputError
-from ..files import prepare_out
-from ..problem import MAX_EXPERIMENTS, ProblemSpec
-from ..study import Study, run_study
-from ..threads import cpu_count
-from ..sweep import Sweep
+from ..records.files import prepare_out
+from ..model.problem import MAX_EXPERIMENTS, ProblemSpec
+from ..execution.study import Study, run_study
+from ..runtime.threads import cpu_count
+from ..execution.sweep import Sweep
 
 #: Figure formats ``plot --format`` writes.
 FIGURE_FORMATS = ("png", "pdf", "svg")
@@ -129,7 +129,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
 
 def add_bound_steps(p: argparse.ArgumentParser, minimum: int = 0) -> None:
     """``--bound-steps`` (at least ``minimum``; 0 turns the bound off) and ``--bound-pool``."""
-    from ..bound import BOUND_STEPS, POOL_SIZE, SAMPLE_SIZE
+    from ..optimisation.bound import BOUND_STEPS, POOL_SIZE, SAMPLE_SIZE
 
     p.add_argument("--bound-steps", type=integer("--bound-steps", minimum), default=BOUND_STEPS,
                    metavar="K",
@@ -190,12 +190,12 @@ def say(args: argparse.Namespace, *lines: str) -> None:
 
 
 def read_spec(args: argparse.Namespace) -> ProblemSpec:
-    """Read and check the problem file of ``args`` (:func:`casadi_design.problem.read_problem`,
+    """Read and check the problem file of ``args`` (:func:`casadi_design.model.problem.read_problem`,
     no robot built yet), with the ``--ipopt`` options over its [solver.ipopt]. A command that
     starts worker processes reads it first, so a malformed file fails before any worker starts."""
     from dataclasses import replace
 
-    from ..problem import read_problem
+    from ..model.problem import read_problem
 
     spec = read_problem(args.problem)
     if getattr(args, "ipopt", None):
@@ -207,8 +207,8 @@ def read_spec(args: argparse.Namespace) -> ProblemSpec:
 def load(args: argparse.Namespace, check_solver: bool = True, spec: ProblemSpec | None = None) -> Problem:
     """Build the problem of ``args`` (``spec``: as :func:`read_spec` read it; None: read it
     now); with ``check_solver``, also try the IPOPT options."""
-    from ..build import build_problem
-    from ..solve import check_ipopt_options
+    from ..model.build import build_problem
+    from ..optimisation.solve import check_ipopt_options
 
     problem = build_problem(read_spec(args) if spec is None else spec)
     interrupt.check()  # a Ctrl-C that CasADi's argument conversion swallowed while building
@@ -219,7 +219,7 @@ def load(args: argparse.Namespace, check_solver: bool = True, spec: ProblemSpec 
 
 def executor(args: argparse.Namespace):
     """The executor of ``--jobs`` / ``--dask-scheduler`` (a context manager)."""
-    from ..parallel import make_executor
+    from ..execution.parallel import make_executor
 
     return make_executor(args.jobs, args.dask_scheduler)
 
@@ -233,7 +233,7 @@ def case_line(problem: Problem) -> str:
 
 def study(args: argparse.Namespace, problem: Problem, partial: Path | None = None,
           sweep: bool = False) -> Study:
-    """The :class:`~casadi_design.study.Study` the arguments ask for: criteria, m values and
+    """The :class:`~casadi_design.execution.study.Study` the arguments ask for: criteria, m values and
     settings (defaults: the problem file's; a ``sweep``: every m from the smallest identifiable
     to the largest of the file), where the starts run, where the designs are kept
     (``partial``) and whether to resume."""
@@ -247,7 +247,7 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
 
 def say_approximate(args: argparse.Namespace, approx: dict) -> None:
     """A line saying how long each approximate design took (on a worker, beside the starts),
-    and which were read back from the disk instead (:func:`casadi_design.bound.computed`)."""
+    and which were read back from the disk instead (:func:`casadi_design.optimisation.bound.computed`)."""
     if approx:
         kept = [c for c, a in approx.items() if a.kept]
         say(args, f"approximate designs of {', '.join(approx)}: "
@@ -258,7 +258,7 @@ def say_approximate(args: argparse.Namespace, approx: dict) -> None:
 
 
 def output_folder(args: argparse.Namespace, command: str, resume_files: tuple[str, ...] = ()) -> Path | None:
-    """``--out`` checked before any work (:func:`casadi_design.files.prepare_out`; None
+    """``--out`` checked before any work (:func:`casadi_design.records.files.prepare_out`; None
     without it); ``--resume`` needs it and one of ``resume_files`` in it."""
     resume = getattr(args, "resume", False)
     if resume and args.out is None:
@@ -268,12 +268,12 @@ def output_folder(args: argparse.Namespace, command: str, resume_files: tuple[st
 
 def design(args: argparse.Namespace, label: str, partial: Path | None = None,
            sweep: bool = False) -> tuple[Study, Campaign | Sweep, list[int]]:
-    """Load the problem of ``args`` and run its study (:func:`casadi_design.study.run_study`)
+    """Load the problem of ``args`` and run its study (:func:`casadi_design.execution.study.run_study`)
     with a progress bar; worker processes start while the robot and cell build. With
     ``partial``, each finished design is saved there at once and ``--resume`` continues from it.
     Returns the study, its designs and the m of the Fig. 1 panels (``--fig-m``, checked before
     anything is solved)."""
-    from ..progress import progress_bar
+    from ..runtime.progress import progress_bar
 
     spec = read_spec(args)  # a malformed file fails before any worker starts
     with executor(args) as ex:

@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from ..errors import OutputError, ProblemError
-from ..files import read_results, write_json
-from ..tables import format_measures
+from ..records.files import read_results, write_json
+from ..reports.tables import format_measures
 from . import common
 
 HELP = "score your own plan with every measure"
@@ -38,11 +38,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cell import clearances
-    from ..export import read_plan_csv
-    from ..results import design_from_record, experiment_records
-    from ..rules import plan_violations
-    from ..solve import plan_scores
+    from ..model.cell import clearances
+    from ..records.export import read_plan_csv
+    from ..records.results import design_from_record, experiment_records
+    from ..plan.rules import plan_violations
+    from ..optimisation.solve import plan_scores
 
     out = common.output_folder(args, "evaluate")
     problem = common.load(args, check_solver=False)
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
               + f"; smallest {min(c.distance_m for c in near) * 1e3:.1f} mm between "
               + " and ".join(min(near, key=lambda c: c.distance_m).between))
     if out:
-        from ..plotting import USER_STYLE, Band, bands_figure, write_figures
+        from ..reports.plotting import USER_STYLE, Band, bands_figure, write_figures
 
         write_json(out / "evaluation.json", {
             "problem": problem.name, "problem_file": problem.path, "plan_file": str(args.plan),

@@ -7,7 +7,7 @@ import argparse
 import time
 
 from ..errors import ProblemError
-from ..files import prepare_out, write_atomic, write_json
+from ..records.files import prepare_out, write_atomic, write_json
 from .common import number
 
 HELP = "identify the robot from tracker measurements, export the calibrated model (casadi-design identify --help)"
@@ -33,8 +33,8 @@ def load_without_cell(path: str):
     plans, and fitting the cell's capsules takes seconds (``calibrated.toml`` keeps the cell)."""
     from dataclasses import replace
 
-    from ..build import build_problem
-    from ..problem import read_problem
+    from ..model.build import build_problem
+    from ..model.problem import read_problem
 
     return build_problem(replace(read_problem(path), cell=None))
 
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(summary_lines(cal)))
     print(f"identification time {time.perf_counter() - t0:.2f} s")
 
-    from ..plotting import identification_figure, write_figures
+    from ..reports.plotting import identification_figure, write_figures
 
     f = cal.fit
     chain = calibrated_chain(problem, f.fit.model.parameter_names, f.robot_X)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import OutputError
-from ..files import read_results
+from ..records.files import read_results
 from . import common
 
 HELP = "redraw the figures from results.json or sweep.json"
@@ -31,9 +31,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..plotting import fig1, save_figures, sweep_figure
-    from ..results import design_from_record
-    from ..sweep import sweep_from_record
+    from ..reports.plotting import fig1, save_figures, sweep_figure
+    from ..records.results import design_from_record
+    from ..execution.sweep import sweep_from_record
 
     if args.out is not None and not args.out.strip():
         raise OutputError("--out is empty; give a folder name (or leave --out out to write beside the results)")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import write_atomic
+from ..records.files import write_atomic
 from . import common
 
 HELP = "order a plan, check its moves against the cell and write a robot program"
@@ -45,8 +45,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def home_pose(problem, text: str | None) -> np.ndarray:
     """The home pose (n,), rad: ``--home`` (deg, mm) or the default of ``--help``."""
     from ..errors import ProblemError
-    from ..export import joint_scales
-    from ..rules import joint_limits
+    from ..records.export import joint_scales
+    from ..plan.rules import joint_limits
 
     n = problem.robot.n
     if text is None:
@@ -64,7 +64,7 @@ def home_pose(problem, text: str | None) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..export import check_joint_limits, read_plan_table
+    from ..records.export import check_joint_limits, read_plan_table
     from ..program.formats import FILES, check_format, program_text
     from ..program.sequence import make_program
 

@@ -6,11 +6,11 @@ import argparse
 import time
 from pathlib import Path
 
-from ..build import Problem
-from ..campaign import Campaign
-from ..files import write_atomic
-from ..study import writing
-from ..tables import format_solver_lines, format_table
+from ..model.build import Problem
+from ..execution.campaign import Campaign
+from ..records.files import write_atomic
+from ..execution.study import writing
+from ..reports.tables import format_solver_lines, format_table
 from . import common
 
 HELP = "optimal plans for each criterion and m, and how accurate each is"
@@ -68,9 +68,9 @@ def run(args: argparse.Namespace) -> int:
 
 def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -> list[str]:
     """results.json, fig1, the poses figure (with a [cell]), the plans and report.md."""
-    from ..export import report_markdown, write_plans
-    from ..files import write_results
-    from ..plotting import fig1, poses_figure, write_figures
+    from ..records.export import report_markdown, write_plans
+    from ..records.files import write_results
+    from ..reports.plotting import fig1, poses_figure, write_figures
 
     designs, first = list(done.designs.values()), done.criteria[0]
     write_results(out / "results.json", problem, designs, done.approx)

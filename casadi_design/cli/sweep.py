@@ -7,11 +7,11 @@ import math
 import time
 from pathlib import Path
 
-from ..build import Problem
-from ..files import write_atomic
-from ..study import writing
-from ..sweep import PARTIAL_NAME, RESUME_FILES, Sweep
-from ..tables import format_sweep_table
+from ..model.build import Problem
+from ..records.files import write_atomic
+from ..execution.study import writing
+from ..execution.sweep import PARTIAL_NAME, RESUME_FILES, Sweep
+from ..reports.tables import format_sweep_table
 from . import common
 
 HELP = "accuracy vs number of experiments m for each criterion"
@@ -57,10 +57,10 @@ def run(args: argparse.Namespace) -> int:
 def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log: bool, key: dict,
                 approx: dict) -> list[str]:
     """sweep.json, sweep.csv, the figures, the plans and report.md."""
-    from ..export import report_markdown, write_plans, write_table_csv
-    from ..files import write_json
-    from ..plotting import fig1, sweep_figure, write_figures
-    from ..sweep import COLUMNS, sweep_record, sweep_rows
+    from ..records.export import report_markdown, write_plans, write_table_csv
+    from ..records.files import write_json
+    from ..reports.plotting import fig1, sweep_figure, write_figures
+    from ..execution.sweep import COLUMNS, sweep_record, sweep_rows
 
     designs = list(sweep.designs.values())
     write_json(out / "sweep.json", sweep_record(problem, sweep, key, approx))

@@ -7,7 +7,7 @@ import argparse
 import math
 import time
 
-from ..files import prepare_out
+from ..records.files import prepare_out
 from ..virtual import (
     ErrorSpreads,
     format_report,
@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(validation, study))
     print(f"total simulation time {time.perf_counter() - t0:.2f} s")
     if out is not None:
-        from ..plotting import save_figures, validation_figure
+        from ..reports.plotting import save_figures, validation_figure
 
         write_validation(out / "validation.json", validation, study)
         save_figures(validation_figure(validation), [out / f"validation.{suffix}" for suffix in ("png", "pdf")])

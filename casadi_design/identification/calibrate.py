@@ -40,9 +40,9 @@ import math
 
 import numpy as np
 
-from ..build import Problem
+from ..model.build import Problem
 from ..errors import DesignError, ProblemError
-from ..measures import information_matrix, rho_at_test_poses
+from ..measures.measures import information_matrix, rho_at_test_poses
 from .choice import MODELS, Candidate, candidates, choose, has_weight
 from .compensate import compensate
 from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, in_tracker, model_points, point_errors, pose_rms,

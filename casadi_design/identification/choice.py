@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..build import Problem
+from ..model.build import Problem
 from ..errors import DesignError, ProblemError
 from .fit import Fit, FitModel, fit, fit_model, row_errors, whitening
 from .measurements import Measurements, measured_axes

@@ -17,8 +17,8 @@ import functools
 import casadi as ca
 import numpy as np
 
-from ..mapped import evaluate
-from ..models import CalibrationModel
+from ..model.mapped import evaluate
+from ..model.models import CalibrationModel
 
 #: Compensation: converged when the identified model misses the target by at most
 #: this fraction of sigma, or when the joint step falls below COMPENSATION_STEP_TOL (rad, m).

@@ -1,12 +1,12 @@
 """Identify a robot from measured points: the tracker frame, then the iterated weighted fit.
 
-The measurement model is the problem's one ``y(q, F, X)`` (:mod:`casadi_design.models`). With
+The measurement model is the problem's one ``y(q, F, X)`` (:mod:`casadi_design.model.models`). With
 ``frame = "tracker"`` the measured coordinates ``P`` are in the tracker's frame, an unknown
 rigid motion ``T`` of the base frame: ``P = T p``. ``T = T0 E(delta)``:
 
 1. ``T0`` in closed form (:func:`~.registration.rigid_fit`) from the nominal model's points;
 2. ``delta`` (tx, ty, tz m, rx, ry, rz rad) is the model's base error ``base.*``
-   (``E(delta) = (Rx Ry Rz, t)`` left-multiplies the chain, :mod:`casadi_design.symbolic`), so
+   (``E(delta) = (Rx Ry Rz, t)`` left-multiplies the chain, :mod:`casadi_design.model.symbolic`), so
    the fit's parameters are ``(delta, X)`` of one measurement model; the robot parameters the
    frame absorbs (a combination of ``delta`` and the parameters before them, tested on the
    column-normalised Jacobian stacked over random poses) are dropped and reported;
@@ -27,13 +27,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..build import Problem, model_arguments
+from ..model.build import Problem, model_arguments
 from ..errors import DesignError, ProblemError
-from ..identifiability import RANK_RTOL, stacked_jacobian
-from ..mapped import evaluate
-from ..measures import SINGULAR_RTOL, information_matrix
-from ..models import CalibrationModel, calibration_model
-from ..symbolic import PLACEMENT_ERRORS
+from ..model.identifiability import RANK_RTOL, stacked_jacobian
+from ..model.mapped import evaluate
+from ..measures.measures import SINGULAR_RTOL, information_matrix
+from ..model.models import CalibrationModel, calibration_model
+from ..model.symbolic import PLACEMENT_ERRORS
 from .lsq import Identification, identify_nonlinear, measurement_jacobian, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
@@ -76,8 +76,8 @@ class FitModel:
 
 def prior_std(problem: Problem, names: tuple[str, ...]) -> np.ndarray:
     """The standard deviation (physical units; inf: none) of each parameter ``names`` under the
-    problem's ``[calibration.prior]`` (:class:`~casadi_design.problem.PriorSpec`)."""
-    from ..export import is_prismatic
+    problem's ``[calibration.prior]`` (:class:`~casadi_design.model.problem.PriorSpec`)."""
+    from ..records.export import is_prismatic
 
     prior = problem.spec.calibration.prior
     joints = problem.robot.joints
@@ -154,7 +154,7 @@ def frame_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def error_placement(delta: np.ndarray) -> np.ndarray:
     """``E(delta)`` (4 x 4) of a placement error (tx, ty, tz m, rx, ry, rz rad): the rotation
-    ``Rx(rx) Ry(ry) Rz(rz)`` and the translation (as in :mod:`casadi_design.symbolic`)."""
+    ``Rx(rx) Ry(ry) Rz(rz)`` and the translation (as in :mod:`casadi_design.model.symbolic`)."""
     tx, ty, tz, rx, ry, rz = delta
     cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
     Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
@@ -281,8 +281,8 @@ def with_points(problem: Problem, d: np.ndarray, build: bool = True):
     only when not ``build``."""
     from dataclasses import replace
 
-    from ..build import build_problem
-    from ..robots import placement_from_xyz_rpy
+    from ..model.build import build_problem
+    from ..model.robots import placement_from_xyz_rpy
 
     spec = problem.spec
     if spec.measurement.markers_m is not None:

@@ -35,8 +35,8 @@ import casadi as ca
 import numpy as np
 
 from ..errors import ProblemError
-from ..mapped import evaluate
-from ..models import CalibrationModel
+from ..model.mapped import evaluate
+from ..model.models import CalibrationModel
 
 #: Losses of ``--loss``: scipy.optimize.least_squares's names.
 LOSSES = ("linear", "soft_l1", "huber", "cauchy")

@@ -2,7 +2,7 @@
 files real data comes in.
 
 The joint columns (``<joint>_deg`` / ``_rad``, or ``q1_deg``...) and load columns are those of a
-plan (:func:`casadi_design.export.read_plan_table`); the measured coordinates follow:
+plan (:func:`casadi_design.records.export.read_plan_table`); the measured coordinates follow:
 ``meas_x_mm, meas_y_mm, meas_z_mm`` for one measured point, ``meas1_x_mm, ..., measK_z_mm`` for
 the K markers of ``markers_m`` in their order, one column per measured position component
 (``[measurement].components``); ``_m`` instead of ``_mm`` for metres. An empty cell is a marker
@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..build import Problem
+from ..model.build import Problem
 from ..errors import ProblemError
-from ..export import check_joint_limits, is_prismatic, joint_units, plan_header, read_plan_table
+from ..records.export import check_joint_limits, is_prismatic, joint_units, plan_header, read_plan_table
 
 #: The position components a tracker measures, in the order of the columns.
 AXES = ("x", "y", "z")
@@ -321,7 +321,7 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
 
 def _plan_columns(problem: Problem) -> set[str]:
     """The names of a plan's own columns (joints in every unit, loads, bookkeeping)."""
-    from ..export import CLEARANCE_COLUMNS, POSITION_COLUMNS, force_columns
+    from ..records.export import CLEARANCE_COLUMNS, POSITION_COLUMNS, force_columns
 
     names = {"experiment", *POSITION_COLUMNS, *CLEARANCE_COLUMNS, *force_columns(problem)}
     for k, j in enumerate(problem.robot.joints):

@@ -21,8 +21,8 @@ import re
 import tomllib
 from pathlib import Path
 
-from ..build import Problem
-from ..problem import RobotSpec
+from ..model.build import Problem
+from ..model.problem import RobotSpec
 from .urdf import MEASURED_POINT
 
 #: The [test_poses] fields that describe the poses or their wrenches, replaced by joints_rad

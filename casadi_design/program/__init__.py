@@ -6,8 +6,8 @@ and the code a controller runs.
   the order of the experiments that minimises the load changes first and then the time from
   and back to home (Held-Karp up to ``order.EXACT_UP_TO`` experiments, 2-opt / or-opt beyond).
 * :mod:`.moves`: each move checked along its whole path with the cell's capsule rows
-  (:func:`casadi_design.rules.pose_constraints`) and the real meshes
-  (:func:`casadi_design.cell.clearances`); a blocked move gets via points found by a search
+  (:func:`casadi_design.plan.rules.pose_constraints`) and the real meshes
+  (:func:`casadi_design.model.cell.clearances`); a blocked move gets via points found by a search
   over collision-free configurations; the program as a sequence of points.
 * :mod:`.formats`: the controller mapping of ``[robot.controller]`` and the writers of
   URScript, ABB RAPID, KUKA KRL, the ROS robot_calibration poses YAML and a JSON joint

@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..build import Problem
+from ..model.build import Problem
 from ..errors import ProblemError
-from ..export import joint_scales
-from ..files import json_ready
+from ..records.export import joint_scales
+from ..records.files import json_ready
 from .sequence import Point, Program
 
 #: Digits written: 1e-9 deg and 1e-12 rad, far below any controller's resolution.

@@ -4,7 +4,7 @@ For a plan ``{(q_i, F_i)}, i = 1..m`` the design step predicts the RMS error aft
 compensation at each test pose, ``sqrt(rho_j)`` with ``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)``
 (m^2, ../shared/paper/MATH.md sections 1-3). That prediction rests on the linearised model
 ``y = B X``. Here every step of a real calibration is simulated ``N`` times on the problem's
-own nonlinear measurement model (:class:`casadi_design.models.CalibrationModel`: markers,
+own nonlinear measurement model (:class:`casadi_design.model.models.CalibrationModel`: markers,
 load-point moment, joint deflection fixed point and noise model included):
 
 1. a true robot (:mod:`.simulate`): random errors of the identified geometric parameters
@@ -20,7 +20,7 @@ load-point moment, joint deflection fixed point and noise model included):
    machining wrench included; Newton-chord iterations); the residual error is
    ``model.accuracy`` of the true robot at ``q_c``;
 5. the empirical RMS of the residual error over the trials, next to ``sqrt(rho_j)`` (from
-   ``model.B_stack`` and :func:`casadi_design.measures.score_plan`), with a chi-square
+   ``model.B_stack`` and :func:`casadi_design.measures.measures.score_plan`), with a chi-square
    confidence interval (:mod:`.statistics`).
 
 The simulation and the compensation of every trial of a plan run at once (CasADi functions

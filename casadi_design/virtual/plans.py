@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..build import Problem
-from ..design import Design
+from ..model.build import Problem
+from ..plan.design import Design
 from ..errors import OutputError, ProblemError
-from ..files import read_results
+from ..records.files import read_results
 from .simulate import Plan
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import write_atomic
+from ..records.files import write_atomic
 from .statistics import CONFIDENCE, rankings
 from .validation import PlanValidation, Validation
 

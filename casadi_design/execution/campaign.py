@@ -1,0 +1,337 @@
+"""The campaign: every (criterion, m) of a study solved the one way.
+
+For each m (ascending) and each criterion (in the order given), a design is the multi-start
+solve (:func:`casadi_design.optimisation.solve.solve_design`) from
+
+1. the seeded random starts (``settings.starts``, drawn from ``(seed, m, criterion)``),
+2. the caller's extra starts (a sweep's warm start from the previous m),
+3. the starts rounded from the criterion's approximate design, when it has one
+   (:func:`casadi_design.optimisation.bound.rounded_plans`),
+
+and it carries the certified bound of its criterion for m experiments
+(:func:`casadi_design.optimisation.bound.bound`). Every command that designs plans (``solve``, ``sweep``,
+``validate`` without ``--results``, and what comes) calls :func:`run_campaign`, so the same
+problem and settings give the same plans whichever command solved them.
+
+On workers (:mod:`casadi_design.execution.parallel`) the campaign is a pipeline (:class:`_Pipeline`):
+the approximate designs and the starts of every design are tasks, handed out as workers free
+up, so the seeded starts of later designs fill the time in which a design waits for its
+approximate design, its last start or the design before it. Serially, the designs are solved
+one after the other. Both give the same designs: each start and each approximate design is a
+pure function of its arguments, and a design is judged on its starts in their order.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+
+
+from ..optimisation.bound import (
+    BOUND_STEPS,
+    POOL_SIZE,
+    ROUNDED,
+    ApproximateDesign,
+    approximate_designs,
+    bound,
+    computed,
+    keep,
+    rounded_plans,
+)
+from ..model.build import Problem
+from ..measures.criteria import BOUND_CRITERIA, CRITERIA
+from ..plan.design import SEEDED, Design
+from ..errors import DesignError, ProblemError
+from . import parallel
+from ..optimisation.solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
+
+#: Extra starts of a design: ``(criterion, m, designs so far) -> [(Q0, F0, origin), ...]``.
+ExtraStarts = Callable[[str, int, dict[tuple[str, int], Design]], list[tuple]]
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How a campaign solves, beside the problem file.
+
+    Attributes
+    ----------
+    starts : seeded IPOPT starts per design.
+    bound_steps : exchange steps of the approximate designs behind the bounds and the rounded
+        starts (0: no bound, no rounded starts).
+    bound_pool : random feasible experiments in the approximate design's first pool.
+    verbose : IPOPT prints its iterations.
+    """
+
+    starts: int
+    bound_steps: int = BOUND_STEPS
+    bound_pool: int = POOL_SIZE
+    verbose: bool = False
+
+    def __post_init__(self) -> None:
+        if self.starts < 1 or self.bound_steps < 0 or self.bound_pool < 1:
+            raise ValueError(f"campaign settings: starts >= 1, bound_steps >= 0 and bound_pool >= 1, "
+                             f"got {self.starts}, {self.bound_steps}, {self.bound_pool}")
+
+
+@dataclass(frozen=True, eq=False)
+class Campaign:
+    """The designs of a campaign, ``{(criterion, m): Design}`` in solve order, and the
+    approximate designs their bounds and rounded starts came from."""
+
+    criteria: tuple[str, ...]
+    m_values: tuple[int, ...]
+    settings: Settings
+    designs: dict[tuple[str, int], Design]
+    approx: dict[str, ApproximateDesign]
+
+
+def campaign_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],
+                 settings: Settings, warm_start: bool = False) -> dict:
+    """What a campaign's designs depend on (a resumed command must match it): the problem's
+    checked data, seed, starts, the sweep's warm start, m, criteria and the bound's steps and
+    pool."""
+    return {"problem_sha256": problem.digest, "seed": problem.solver.seed,
+            "starts": settings.starts, "warm_start": warm_start, "m": sorted(set(m_values)),
+            "criteria": list(criteria), "bound_steps_pool": [settings.bound_steps, settings.bound_pool]}
+
+
+def check_criteria(problem: Problem, criteria: Iterable[str]) -> None:
+    for c in criteria:
+        if c not in CRITERIA:
+            raise ProblemError(f"{problem.path}: --criteria has '{c}'; allowed: {', '.join(CRITERIA)}")
+
+
+def check_m_values(problem: Problem, m_values: Iterable[int]) -> None:
+    small = [m for m in m_values if m < problem.m_min]
+    if small:
+        raise ProblemError(
+            f"{problem.path}: --m {small[0]} is too small: {problem.model.L} parameters need "
+            f"m >= {problem.m_min} experiments; start the range at {problem.m_min}")
+
+
+def approximate(problem: Problem, criteria: Iterable[str], settings: Settings,
+                executor: StartExecutor | None = None) -> dict[str, ApproximateDesign]:
+    """The approximate designs of the criteria that have a bound (none when
+    ``settings.bound_steps`` is 0), one per worker of ``executor`` at the same time."""
+    return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool, executor)
+
+
+def has_bound(criterion: str, settings: Settings) -> bool:
+    """Whether the designs of ``criterion`` carry a bound and rounded starts."""
+    return criterion in BOUND_CRITERIA and settings.bound_steps > 0
+
+
+def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings) -> int:
+    """IPOPT starts of a campaign (for progress bars), the caller's extra starts left out."""
+    per_m = sum(settings.starts + (CRITERIA[c].bound.rounded if has_bound(c, settings) else 0) for c in criteria)
+    return len(m_values) * per_m
+
+
+def run_campaign(
+    problem: Problem,
+    criteria: Sequence[str],
+    m_values: Iterable[int],
+    settings: Settings,
+    *,
+    approx: dict[str, ApproximateDesign] | None = None,
+    executor: StartExecutor | None = None,
+    done: dict[tuple[str, int], Design] | None = None,
+    extra_starts: ExtraStarts | None = None,
+    on_design: Callable[[Design], object] | None = None,
+    progress: Callable[[int], object] | None = None,
+) -> Campaign:
+    """Solve every (criterion, m), m ascending (module docstring).
+
+    Parameters
+    ----------
+    approx : the approximate designs (:func:`approximate`); computed when None.
+    executor : where the starts run (:mod:`casadi_design.execution.parallel`); None: here, one by one.
+    done : designs already solved (a resumed sweep): kept, not solved again.
+    extra_starts : the caller's extra starts of each design (they run after the seeded ones
+        and win only when strictly better).
+    on_design : called with each design as soon as it is solved (to save it).
+    progress : called with the number of starts after each start (``tqdm.update``).
+    """
+    criteria, ms = tuple(criteria), tuple(sorted(set(m_values)))
+    check_criteria(problem, criteria)
+    check_m_values(problem, ms)
+    designs: dict[tuple[str, int], Design] = dict(done or {})
+    if executor is not None and hasattr(executor, "run"):
+        approx = _spread(problem, criteria, ms, settings, designs, executor) if approx is None else approx
+        pipeline = _Pipeline(problem, criteria, ms, settings, designs, approx, extra_starts,
+                             on_design, progress)
+        for task, result in executor.run(pipeline):
+            pipeline.returned(task, result)
+        return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria},
+                        {c: pipeline.approx[c] for c in criteria if c in pipeline.approx})
+    approx = approximate(problem, criteria, settings, executor) if approx is None else approx
+    for m in ms:
+        for c in criteria:
+            if (c, m) in designs:
+                if progress is not None:
+                    progress(len(designs[c, m].starts))
+                continue
+            d = solve_design(problem, c, m, starts=settings.starts, verbose=settings.verbose,
+                             initial_plans=_later_starts(problem, c, m, designs, approx, extra_starts),
+                             executor=executor, progress=progress)
+            designs[c, m] = d = _bounded(problem, d, approx)
+            if on_design is not None:
+                on_design(d)
+    return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
+
+
+def _later_starts(problem: Problem, c: str, m: int, designs: dict, approx: dict,
+                  extra_starts: ExtraStarts | None) -> list[tuple]:
+    """The starts of design (c, m) after its seeded ones, ``(Q0, F0, origin)``: the caller's
+    extra starts (from the designs so far), then those rounded from its approximate design."""
+    extra = extra_starts(c, m, designs) if extra_starts is not None else []
+    return extra + ([(Q, F, ROUNDED) for Q, F in rounded_plans(problem, approx[c], m)] if c in approx else [])
+
+
+def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
+    """``design`` with the bound of its criterion for its m, when it has an approximate design."""
+    if design.criterion not in approx:
+        return design
+    return replace(design, bound=bound(problem, design.m, approx[design.criterion]))
+
+
+def _spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
+            designs: dict, executor) -> dict[str, ApproximateDesign] | None:
+    """The approximate designs computed here, one after the other, each exchange step's IPOPT
+    searches split over the workers (:meth:`casadi_design.execution.parallel._Workers.maximise`), when
+    the campaign has too little else to keep the workers busy meanwhile: fewer approximate
+    designs to compute than workers, and no more seeded starts than workers (a one-start solve).
+    Otherwise None: the pipeline runs each on one worker beside the starts. The same designs
+    either way (each search is a pure function of its inputs)."""
+    missing = computed(problem, criteria, settings.bound_steps, settings.bound_pool)[1]
+    seeded = settings.starts * sum((c, m) not in designs for m in ms for c in criteria)
+    if not missing or len(missing) >= executor.slots or seeded > executor.slots:
+        return None
+    return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool,
+                               maximise=executor.maximise)
+
+
+@dataclass(eq=False)
+class _Starts:
+    """The starts of one design of a pipelined campaign: its plans and their origins (the
+    seeded ones first; the extra and rounded ones once ``complete``), how many were handed
+    out, their results by index, when the first was handed out, whether it is judged
+    (``done``) and, when no start converged, the error to raise."""
+
+    criterion: str
+    m: int
+    plans: list[StartPlan]
+    origins: list[str]
+    complete: bool = False
+    given: int = 0
+    done: bool = False
+    error: DesignError | None = None
+    results: dict[int, StartResult] = field(default_factory=dict)
+    t0: float | None = None
+
+
+class _Pipeline:
+    """The campaign's work as tasks for the workers (:meth:`casadi_design.execution.parallel._Workers.run`),
+    so that no worker waits while another finishes a design: the approximate designs first
+    (they take longest and the rounded starts wait for them), then the starts of the designs.
+    Without extra starts the designs are independent and the largest m go first (their starts
+    cost most: a long start handed out last would keep one worker busy alone); with them (a
+    sweep's warm start from the design of the previous m) in campaign order, and a design's
+    extra starts are asked for once every design before it is finished. The seeded starts of
+    other designs run while a design waits for its rounded starts (its approximate design) or
+    for its extra starts. A design is judged (:func:`casadi_design.optimisation.solve.best_design`), bounded
+    and passed to ``on_design`` as soon as its every start has returned: the same designs as
+    one after the other, since each start and approximate design is a pure function of its
+    arguments. A design none of whose starts converged raises its error once every design
+    before it is judged: the same error, and the same designs kept, as serially."""
+
+    def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
+                 settings: Settings, designs: dict, approx: dict | None,
+                 extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None):
+        self.problem, self.settings, self.designs = problem, settings, designs
+        self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
+        self.ref = parallel.ProblemRef.of(problem)
+        steps, pool = settings.bound_steps, settings.bound_pool
+        if approx is None:
+            self.approx, missing = computed(problem, criteria, steps, pool)
+        else:
+            self.approx, missing = dict(approx), []
+        self.todo = [_Starts(c, m, plans, [SEEDED] * len(plans))
+                     for m in ms for c in criteria if (c, m) not in designs
+                     for plans in [seeded_plans(problem, c, m, settings.starts)]]
+        for m in ms:
+            for c in criteria:
+                if (c, m) in designs and progress is not None:
+                    progress(len(designs[c, m].starts))
+        self.pending = [parallel.Task(parallel.run_approximate, (self.ref, c, steps, pool),
+                                      f"the approximate design of {c}")
+                        for c in missing]
+        self.waiting = dict(zip(self.pending, missing))
+        self.starts: dict = {}  # task -> (its design, the index of its plan)
+        self.order = (list(range(len(self.todo))) if extra_starts is not None else
+                      sorted(range(len(self.todo)), key=lambda i: (-self.todo[i].m, i)))
+
+    def _completed(self, k: int, d: _Starts) -> bool:
+        """Append the extra and rounded starts of design ``k`` once their inputs are there."""
+        if d.complete:
+            return True
+        c, m = d.criterion, d.m
+        if has_bound(c, self.settings) and c not in self.approx:
+            return False
+        if self.extra_starts is not None and not all(e.done and e.error is None for e in self.todo[:k]):
+            return False
+        plans, origins = initial_starts(self.problem, m, _later_starts(self.problem, c, m, self.designs,
+                                                                      self.approx, self.extra_starts))
+        d.plans += plans
+        d.origins += origins
+        d.complete = True
+        return True
+
+    def take(self, k: int) -> list:
+        out, self.pending = self.pending[:k], self.pending[k:]
+        for i in self.order:
+            d = self.todo[i]
+            if len(out) >= k:
+                break
+            if d.done:
+                continue
+            self._completed(i, d)  # its extra and rounded starts, once their inputs are there
+            while d.given < len(d.plans) and len(out) < k:
+                Q0, F0 = d.plans[d.given]
+                task = parallel.Task(parallel.run_start, (self.ref, d.criterion, d.m, Q0, F0,
+                                                    self.settings.verbose),
+                                  f"criterion {d.criterion}, m = {d.m}")
+                self.starts[task] = (d, d.given)
+                d.t0 = time.perf_counter() if d.t0 is None else d.t0
+                d.given += 1
+                out.append(task)
+        return out
+
+    def returned(self, task, result) -> None:
+        """Take the result of ``task``; finish the designs whose every start returned."""
+        if task in self.waiting:
+            c = self.waiting.pop(task)
+            keep(self.problem, self.settings.bound_steps, self.settings.bound_pool, result)
+            self.approx[c] = result
+        else:
+            d, i = self.starts.pop(task)
+            d.results[i] = result
+            if self.progress is not None:
+                self.progress(1)
+        for k, d in enumerate(self.todo):  # in campaign order: a finished one may complete the next
+            if d.done or not (self._completed(k, d) and len(d.results) == len(d.plans)):
+                continue
+            d.done = True
+            try:
+                design = best_design(self.problem, d.criterion, d.m,
+                                     (d.results[i] for i in range(len(d.plans))), d.origins, d.t0)
+            except DesignError as exc:  # raised once every design before it is judged, as serially
+                d.error = exc
+                continue
+            self.designs[d.criterion, d.m] = design = _bounded(self.problem, design, self.approx)
+            if self.on_design is not None:
+                self.on_design(design)
+        failed = next((k for k, d in enumerate(self.todo) if d.error is not None), None)
+        if failed is not None and all(d.done for d in self.todo[:failed]):
+            raise self.todo[failed].error

@@ -1,0 +1,197 @@
+"""A study: what a user asks of the package, built once, and the one call that runs it.
+
+A :class:`Study` holds the problem, the criteria, the numbers of experiments, the campaign's
+settings, whether it is a sweep (with warm starts from the previous m), where the starts run
+(``jobs`` processes or a Dask scheduler) and where each finished design is kept (``partial``,
+a JSON file that ``resume`` continues from). :func:`run_study` runs it with callbacks for the
+progress (one call per start) and for each finished design, and owns what a long run needs:
+the designs kept as they finish, a resumed run, Ctrl-C (:class:`Interrupted`, whose message
+says what was kept) and a lost worker. The command line turns its arguments into a Study
+(:mod:`casadi_design.cli.common`); a script builds one directly::
+
+    study = Study(load_problem("problems/ur10_drilling.toml"), ("test-pose",), (9, 12), Settings(4))
+    campaign = run_study(study, on_design=lambda d: print(d.criterion, d.m))
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..runtime import interrupt
+from ..model.build import Problem
+from .campaign import Campaign, Settings, campaign_key, check_criteria, check_m_values, run_campaign, total_starts
+from ..plan.design import Design
+from ..errors import DesignError, OutputError
+from ..records.files import load_partial, partial_record
+from .parallel import WorkerLost, make_executor
+from .sweep import RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
+
+
+class Interrupted(Exception):
+    """Ctrl-C stopped a study; the message says what was kept (a command exits with 130)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Study:
+    """What to design (module docstring).
+
+    problem : the built problem.
+    criteria : criteria names (:data:`casadi_design.measures.criteria.CRITERIA`), in solve order.
+    m_values : numbers of experiments, each at least ``problem.m_min``.
+    settings : seeded starts, exchange steps and pool of the bound, IPOPT's output.
+    sweep : a sweep (:func:`casadi_design.execution.sweep.run_sweep`: the reference line, and with
+        ``warm_start`` one more start from the previous m's plan) rather than a campaign.
+    jobs : worker processes (None: one per core; 1: in this process).
+    dask_scheduler : address of a Dask scheduler to run the starts on instead.
+    partial : the file each finished design is saved to at once (None: not kept).
+    resume : continue from the designs saved in ``partial``'s folder by an interrupted run.
+    """
+
+    problem: Problem
+    criteria: tuple[str, ...]
+    m_values: tuple[int, ...]
+    settings: Settings
+    sweep: bool = False
+    warm_start: bool = True
+    jobs: int | None = None
+    dask_scheduler: str | None = None
+    partial: Path | None = None
+    resume: bool = False
+
+    def __post_init__(self) -> None:
+        check_criteria(self.problem, self.criteria)
+        check_m_values(self.problem, self.m_values)
+
+    @property
+    def key(self) -> dict:
+        """What its designs depend on (:func:`casadi_design.execution.campaign.campaign_key`): a resumed
+        study must match it."""
+        return campaign_key(self.problem, self.criteria, self.m_values, self.settings,
+                            self.sweep and self.warm_start)
+
+    @property
+    def designs(self) -> int:
+        return len(self.criteria) * len(self.m_values)
+
+    @property
+    def starts(self) -> int:
+        """IPOPT starts in all (for a progress bar)."""
+        if self.sweep:
+            return sweep_total_starts(self.problem, self.criteria, self.m_values, self.settings, self.warm_start)
+        return total_starts(self.criteria, self.m_values, self.settings)
+
+    @property
+    def where(self) -> str:
+        """Where the starts run, for people."""
+        from ..runtime.threads import cpu_count
+
+        if self.dask_scheduler:
+            return f"on the Dask cluster at {self.dask_scheduler}"
+        jobs = self.jobs or cpu_count()
+        return "in this process" if jobs == 1 else f"on {jobs} processes"
+
+    def resumed(self) -> dict[tuple[str, int], Design]:
+        """The designs an interrupted run saved (``resume``), else none."""
+        if self.partial is None or not self.resume:
+            return {}
+        sources = RESUME_KEYS if self.sweep else ((self.partial.name, ("key",)),)
+        return load_partial(self.partial.parent, self.key, sources)
+
+
+def executor_of(study: Study):
+    """The executor of ``study.jobs`` / ``study.dask_scheduler`` (a context manager), for a
+    caller that starts the workers before the problem is built."""
+    return make_executor(study.jobs, study.dask_scheduler)
+
+
+def run_study(study: Study, *, progress: Callable[[int], object] | None = None,
+              on_design: Callable[[Design], object] | None = None,
+              on_resume: Callable[[int], object] | None = None, executor=None) -> Campaign | Sweep:
+    """Run ``study``: its designs (a :class:`~casadi_design.execution.campaign.Campaign`, or a
+    :class:`~casadi_design.execution.sweep.Sweep`), each saved in ``study.partial`` as it finishes and
+    passed to ``on_design``; ``progress(n)`` after each start; ``on_resume(n)`` with the number
+    of designs a resumed study read back; ``executor``: one already started
+    (:func:`executor_of`), else one is started here.
+
+    Raises
+    ------
+    Interrupted
+        Ctrl-C, with how many designs are kept and how to continue.
+    DesignError
+        A lost worker (with what is kept), or a design no start can make (the partial file
+        is removed: the same settings fail again).
+    """
+    done = study.resumed()
+    if study.resume and on_resume is not None:
+        on_resume(len(done))
+    designs = dict(done)
+
+    def save(design: Design) -> None:
+        designs[design.criterion, design.m] = design
+        if study.partial is not None:
+            partial_record(study.partial, study.problem, study.key, list(designs.values()))
+        if on_design is not None:
+            on_design(design)
+
+    def checked(n: int = 1) -> None:
+        interrupt.check()  # a Ctrl-C that CasADi swallowed in this process stops the study here
+        if progress is not None:
+            progress(n)
+
+    with _keeping(study.partial, lambda: len(designs), study.designs), \
+            (contextlib.nullcontext(executor) if executor is not None else executor_of(study)) as ex:
+        if study.sweep:
+            return run_sweep(study.problem, study.criteria, study.m_values, study.settings,
+                             warm_start=study.warm_start, done=done, executor=ex, progress=checked,
+                             on_design=save)
+        return run_campaign(study.problem, study.criteria, study.m_values, study.settings, executor=ex,
+                            done=done, on_design=save, progress=checked)
+
+
+@contextlib.contextmanager
+def _keeping(partial: Path | None, finished: Callable[[], int], total: int) -> Iterator[None]:
+    """Run a study whose finished designs are saved in ``partial``: Ctrl-C and a lost worker
+    end it with one line saying how many of ``total`` designs are kept there and how to
+    continue; a design no start can make removes ``partial`` (and its folder when empty)."""
+    def kept() -> str:
+        where = (f"kept in {partial}; continue with the same command and --resume" if partial
+                 else "not kept (no --out)")
+        return f"{finished()} of {total} designs {where}"
+
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise Interrupted(f"interrupted: {kept()}") from None
+    except WorkerLost as exc:
+        if interrupt.pressed():
+            raise Interrupted(f"interrupted: {kept()}") from None
+        raise DesignError(f"{exc}; {kept()}") from None
+    except DesignError:
+        if interrupt.pressed():
+            raise Interrupted(f"interrupted: {kept()}") from None
+        if partial is not None:
+            partial.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                partial.parent.rmdir()  # only when empty: the folder this run created
+        raise
+    except Exception:
+        if not interrupt.pressed():
+            raise
+        # Ctrl-C while CasADi built a solver: its callbacks' KeyboardInterrupt became a RuntimeError
+        raise Interrupted(f"interrupted: {kept()}") from None
+
+
+@contextlib.contextmanager
+def writing(study: Study) -> Iterator[None]:
+    """Write a study's files: then its partial file is removed; when a file cannot be
+    written, the error also says that the designs are kept and how to continue."""
+    try:
+        yield
+    except OutputError as exc:
+        raise OutputError(f"{exc}; the designs are kept in {study.partial}: once fixed, run the same "
+                          "command with --resume to write the files without solving again") from None
+    if study.partial is not None:
+        study.partial.unlink(missing_ok=True)

@@ -1,0 +1,116 @@
+"""Numeric measures of a calibration plan: the test-pose measure and the classical criteria.
+
+For a plan of m experiments with transformation matrices ``B_i`` (stacked: ``S``), the
+information matrix is ``M = sum_i B_i^T B_i = S^T S`` and ``cov(X) = sigma^2 M^-1``.
+
+* test-pose measure (paper eq. 12 and 15): ``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)``, the
+  expected mean square error (m^2) at test pose j after compensation; reported as the RMS error
+  ``sqrt(rho_j)`` (m) and its maximum over the test poses.
+* the score of every criterion of :data:`casadi_design.measures.criteria.CRITERIA` (D: ``log det M``,
+  A: ``trace M^-1``, E: ``s_L``, T: ``trace M``, condition: ``s_1 / s_L``, I: ``sqrt(mean_j
+  rho_j)``), each computed by its registry entry from the plan's spectrum and rho.
+* observability indices: O1 = (s_1...s_L)^(1/L) / sqrt(m), O2 = s_L / s_1, O3 = s_L,
+  O4 = s_L^2 / s_1, O5 = 1 / sum(1 / s_l).
+
+These numpy functions are the twins of the NLP objectives of :mod:`casadi_design.measures.objectives`;
+tests check that both agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .criteria import CRITERIA, PlanSpectrum
+
+#: Relative eigenvalue threshold below which M counts as singular.
+SINGULAR_RTOL = 1e-12
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Every measure of one plan, in SI units of B (lengths in m).
+
+    ``rms_error_m`` (s,): ``sqrt(rho_j)`` at each test pose; ``values``: the score of every
+    criterion, by its :attr:`~casadi_design.measures.criteria.Criterion.score` key (the registry's
+    order); ``observability``: O1..O5.
+    """
+
+    rms_error_m: np.ndarray
+    values: dict[str, float]
+    observability: dict[str, float]
+    identifiable: bool
+
+    def value(self, criterion: str) -> float:
+        """The score of ``criterion``."""
+        return float(self.values[CRITERIA[criterion].score])
+
+    @property
+    def max_rms_error_m(self) -> float:
+        """``max_j sqrt(rho_j)`` (m), the test-pose score."""
+        return self.value("test-pose")
+
+    def as_dict(self) -> dict:
+        return {"rms_error_m": [float(v) for v in self.rms_error_m], **self.values,
+                "observability": self.observability, "identifiable": self.identifiable}
+
+
+def information_matrix(B: np.ndarray) -> np.ndarray:
+    """``M = sum_i B_i^T B_i`` for ``B`` of shape (m, d, L) (or the stacked S, shape (m d, L))."""
+    S = np.asarray(B, dtype=float).reshape(-1, np.shape(B)[-1])
+    return S.T @ S
+
+
+def rho_at_test_poses(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
+    """``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)`` (m^2) for ``B0`` of shape (s, r, L).
+
+    Infinite where ``M`` is singular.
+    """
+    B0 = np.asarray(B0, dtype=float)
+    try:
+        C = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        return np.full(B0.shape[0], np.inf)
+    Y = np.linalg.solve(C, B0.transpose(0, 2, 1))
+    return sigma**2 * np.einsum("sij,sij->s", Y, Y)
+
+
+def observability_indices(sv: np.ndarray, m: int) -> dict[str, float]:
+    """O1..O5 from the singular values ``sv`` (descending) of the stacked S of m experiments."""
+    L = len(sv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return {
+            "O1": float(np.exp(np.mean(np.log(sv))) / np.sqrt(m)),
+            "O2": float(sv[-1] / sv[0]),
+            "O3": float(sv[-1]),
+            "O4": float(sv[-1] ** 2 / sv[0]),
+            "O5": float(1.0 / np.sum(1.0 / sv)) if sv[-1] > 0 else 0.0,
+        } if L else {}
+
+
+def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
+    """All measures of a plan.
+
+    Parameters
+    ----------
+    B : ndarray, shape (m, d, L)
+        Transformation matrices of the m experiments (measured rows).
+    B0 : ndarray, shape (s, r, L)
+        Transformation matrices at the s test poses (required rows).
+    sigma : float, m
+        Standard deviation of the measurement noise.
+    """
+    B = np.asarray(B, dtype=float)
+    M = information_matrix(B)
+    lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
+    sv = np.sqrt(lam)
+    identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
+    rho = rho_at_test_poses(M, B0, sigma) if identifiable else np.full(np.shape(B0)[0], np.inf)
+    spectrum = PlanSpectrum(lam, sv, rho, float(np.trace(M)), identifiable)
+    return Scores(
+        rms_error_m=np.sqrt(rho),
+        values={c.score: c.score_of(spectrum) for c in CRITERIA.values()},
+        observability=observability_indices(sv, B.shape[0]),
+        identifiable=identifiable,
+    )

@@ -1,0 +1,387 @@
+"""Build a read problem: robot, kinematics, calibration model, test poses, base set, smallest m.
+
+:func:`build_problem` turns the plain data of :class:`casadi_design.model.problem.ProblemSpec` into
+a :class:`Problem`: the Pinocchio robot, its CasADi kinematics, the calibration model
+``y(q, F, X)`` with ``B = dy/dX``, the test poses (closed-form or damped-least-squares IK), the
+identifiable base set when asked, the parameter scaling, and the identifiability check that
+gives the smallest number of experiments. Errors name the problem file and field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import pickle
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TypeVar
+
+import numpy as np
+import pinocchio as pin
+
+from ..runtime.cache import Memo, code_digest, digest
+from .cell import Cell, build_cell
+from ..errors import ProblemError
+from .identifiability import BaseSet, base_set
+from .ik import path_ik, sample_path
+from .models import CalibrationModel, calibration_model
+from .problem import (
+    BYTES_PER_EXPERIMENT_L2,
+    BYTES_PER_TEST_POSE_L2,
+    MAX_EXPERIMENTS,
+    MAX_TEST_POSES,
+    ForceSpec,
+    ProblemSpec,
+    RobotSpec,
+    SolverSettings,
+    TestPoseSpec,
+    Workspace,
+    check_size,
+    read_problem,
+    spec_digest_blob,
+)
+from .robots import (
+    DHJoint,
+    Robot,
+    add_tool_frame,
+    dh_arm,
+    load_urdf,
+    make_robot,
+    placement_from_xyz_rpy,
+    planar_2r_ik,
+    planar_arm,
+)
+from .symbolic import symbolic_kinematics
+from ..runtime.threads import blas_setup
+
+T = TypeVar("T")
+
+#: Rank test of identifiability: relative singular-value threshold of the column-scaled S.
+IDENTIFIABILITY_RTOL = 1e-9
+#: Random configurations stacked for the identifiability test.
+IDENTIFIABILITY_SAMPLES = 60
+
+
+@dataclass(frozen=True, eq=False)
+class TestPoses:
+    """The s test poses: where accuracy is required (a machining trajectory's nodes).
+
+    Attributes
+    ----------
+    q : ndarray, shape (s, n), rad
+    F : ndarray, shape (s, nF), N (and N m): machining wrench at each node.
+    position_m : ndarray, shape (s, 3), m: nominal position of the measured frame.
+    """
+
+    q: np.ndarray
+    F: np.ndarray
+    position_m: np.ndarray
+
+    @property
+    def s(self) -> int:
+        return self.q.shape[0]
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """A built design case: its plain data ``spec`` and what was built from it.
+
+    ``base_set`` is set when the parameters were selected automatically
+    (``parameters = "identifiable"``); ``m_min`` is the fewest experiments that can identify X,
+    ``ceil(L / d)`` with d the independent values per experiment. ``cell``: the robot's
+    capsules, obstacles and tracker of ``[cell]`` (None without one).
+    """
+
+    spec: ProblemSpec
+    robot: Robot
+    model: CalibrationModel
+    test_poses: TestPoses
+    base_set: BaseSet | None
+    m_min: int
+    cell: Cell | None = None
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def path(self) -> str:
+        return self.spec.path
+
+    @property
+    def sigma_m(self) -> float:
+        return self.spec.measurement.sigma_m
+
+    @property
+    def m_values(self) -> tuple[int, ...]:
+        return self.spec.m_values
+
+    @property
+    def force(self) -> ForceSpec | None:
+        return self.spec.force
+
+    @property
+    def workspace(self) -> Workspace:
+        return self.spec.workspace
+
+    @property
+    def criteria(self) -> tuple[str, ...]:
+        return self.spec.criteria
+
+    @property
+    def solver(self) -> SolverSettings:
+        return self.spec.solver
+
+    @functools.cached_property
+    def B0(self) -> np.ndarray:
+        """``B0_j = de_j/dX`` at every test pose j, shape (s, r, L): how the required
+        components ``e`` (``[test_poses].components``, under the test pose's wrench) move with
+        the parameters X; ``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)``."""
+        tp = self.test_poses
+        B0 = self.model.B_stack(tp.q, tp.F, accuracy=True)
+        B0.setflags(write=False)  # shared by every design of the problem
+        return B0
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """SHA-256 (hex) of the problem's checked data: what a resumed sweep and a worker's
+        cache recognise a problem by."""
+        return hashlib.sha256(spec_digest_blob(self.spec)).hexdigest()
+
+    @functools.cached_property
+    def fingerprint(self) -> str:
+        """A name for all a result of the problem is computed from, for what is kept on disk
+        between runs (:mod:`casadi_design.runtime.cache`): its checked data, the robot's Pinocchio
+        model, the cell's capsules and real geometry (the meshes' vertices: an edited URDF or
+        mesh file is another problem, though its path is the same), the package's code, the
+        libraries' versions, the BLAS kernels and thread count."""
+        cell = self.cell
+        robot = pickle.dumps(self.robot.model)
+        geometry = b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry))
+        capsules = b"" if cell is None else repr(cell.capsules).encode()
+        return digest(spec_digest_blob(self.spec), robot, geometry, capsules, code_digest().encode(),
+                      *(str(v).encode() for v in blas_setup()))
+
+
+def load_problem(path: str | Path) -> Problem:
+    """Read a problem file and build it."""
+    return build_problem(read_problem(path))
+
+
+#: Problems built in this process, by their checked data (a problem is a pure function of it):
+#: commands run one after the other in one process (and worker processes) reuse the robot,
+#: model and the CasADi functions cached on it.
+KEEP_BUILT = 8
+_BUILT: Memo[Problem] = Memo(KEEP_BUILT)
+
+
+def build_problem(spec: ProblemSpec) -> Problem:
+    """Build the robot, model and test poses of ``spec`` and check identifiability.
+
+    A spec that differs from a built one only in its solver settings (``--ipopt``) shares its
+    robot, model, test poses and cell, and so the functions cached on them (:func:`per_model`).
+    """
+    problem = _BUILT.get(spec_digest_blob(dataclasses.replace(spec, solver=SolverSettings())),
+                         lambda: _build_named(spec))
+    return problem if problem.spec == spec else dataclasses.replace(problem, spec=spec)
+
+
+def _build_named(spec: ProblemSpec) -> Problem:
+    """:func:`_build`, its errors naming the file."""
+    try:
+        return _build(spec)
+    except ProblemError as exc:
+        if str(exc).startswith(f"{spec.path}: "):
+            raise
+        raise ProblemError(f"{spec.path}: {exc}") from None
+
+
+def per_model(f: Callable[[Problem], T]) -> Callable[[Problem], T]:
+    """Cache ``f(problem)`` by the built parts it depends on (model, cell, workspace, load):
+    problems that differ only in their solver settings share them."""
+    memo: Memo[T] = Memo(KEEP_BUILT)
+
+    @functools.wraps(f)
+    def cached(problem: Problem) -> T:
+        return memo.get((problem.model, problem.cell, problem.workspace, problem.force), lambda: f(problem))
+
+    return cached
+
+
+def _build(spec: ProblemSpec) -> Problem:
+    robot = build_robot(spec.robot)
+    margin = spec.workspace.joint_limit_margin_rad
+    narrow = np.flatnonzero(robot.q_max - robot.q_min < 2 * margin)
+    if narrow.size:
+        k = int(narrow[0])
+        raise ProblemError(f"[experiments.workspace].joint_limit_margin_rad: {margin:g} leaves no room in the "
+                           f"range [{robot.q_min[k]:.6g}, {robot.q_max[k]:.6g}] of {robot.joints[k]}; use a "
+                           "smaller margin")
+    kin = symbolic_kinematics(robot)
+    cal, meas = spec.calibration, spec.measurement
+    markers = None if meas.markers_m is None else np.array(meas.markers_m)
+    chosen = None
+    parameters = cal.parameters
+    if parameters == "identifiable":
+        full = calibration_model(kin, "geometric", meas.components, geometric=kin.parameter_names,
+                                 markers_m=markers)
+        chosen = base_set(full)
+        parameters = chosen.kept
+    model_args = model_arguments(spec, tuple(parameters))
+    model = calibration_model(kin, cal.case, **model_args)
+    check_size(spec.path, "[experiments].m", max(spec.m_values), MAX_EXPERIMENTS, BYTES_PER_EXPERIMENT_L2,
+               "experiments", "use fewer experiments", model.L)
+    test_poses = _test_poses(spec.path, spec.test_poses, robot, model)
+    check_size(spec.path, "[test_poses]", test_poses.s, MAX_TEST_POSES, BYTES_PER_TEST_POSE_L2,
+               "test poses", "give fewer test poses", model.L)
+    S, m_min = check_identifiable(spec, model)
+    if spec.parameter_scaling == "column":
+        # parameters in units that give every column of B unit RMS over random poses (Khalil)
+        c = np.sqrt(np.mean(S.reshape(-1, model.d, model.L) ** 2, axis=0).sum(axis=0))
+        model = calibration_model(kin, cal.case, column_scale=c, **model_args)
+    return Problem(spec, robot, model, test_poses, chosen, m_min, _cell(spec, robot, markers))
+
+
+def model_arguments(spec: ProblemSpec, geometric: tuple[str, ...]) -> dict:
+    """The keyword arguments of :func:`~casadi_design.model.models.calibration_model` for the
+    problem ``spec`` with the geometric errors ``geometric`` (what is measured, required,
+    loaded and how the noise is whitened)."""
+    cal, meas = spec.calibration, spec.measurement
+    return dict(
+        measured=meas.components,
+        accuracy=spec.test_poses.components,
+        geometric=geometric,
+        compliant=cal.compliant_joints,
+        force=cal.wrench_components,
+        markers_m=None if meas.markers_m is None else np.array(meas.markers_m),
+        load_point_m=None if spec.force is None else np.array(spec.force.load_point_m),
+        whitening=None if meas.whitening is None else np.array(meas.whitening),
+    )
+
+
+#: Cells built in this process, by the data they depend on (a cell samples configurations to
+#: select its pairs, which takes seconds; problem variants that keep the cell reuse it).
+_CELLS: Memo[Cell] = Memo(KEEP_BUILT)
+
+
+def _cell(spec: ProblemSpec, robot: Robot, markers: np.ndarray | None) -> Cell | None:
+    if spec.cell is None:
+        return None
+    key = repr((spec.cell, spec.robot, spec.workspace.floor_z_m, None if markers is None else markers.tolist()))
+    return _CELLS.get(key, lambda: build_cell(spec.cell, robot, spec.workspace, spec.robot.urdf,
+                                              np.zeros((1, 3)) if markers is None else markers))
+
+
+def build_robot(r: RobotSpec) -> Robot:
+    """The Pinocchio robot of a robot description (planar arm, URDF or DH table)."""
+    if r.source == "planar":
+        model = planar_arm(r.planar_links_m)
+    elif r.source == "urdf":
+        model = load_urdf(r.urdf)
+    else:
+        rows = [DHJoint(j.name, j.kind, j.theta_offset_rad, j.d_m, j.a_m, j.alpha_rad, j.lower, j.upper, j.beta_rad)
+                for j in r.dh_rows]
+        model = dh_arm(rows, r.dh_convention, placement_from_xyz_rpy(r.flange_xyz_m, r.flange_rpy_rad),
+                       base=placement_from_xyz_rpy(r.base_xyz_m, r.base_rpy_rad))
+    frame = r.frame
+    if r.tool_xyz_m is not None:
+        frame = add_tool_frame(model, frame, placement_from_xyz_rpy(r.tool_xyz_m, r.tool_rpy_rad))
+    return make_robot(model, frame, {j: (lo, hi) for j, lo, hi in r.joint_limits_rad})
+
+
+def _test_poses(path: str, tp: TestPoseSpec, robot: Robot, model: CalibrationModel) -> TestPoses:
+    where = f"{path}: [test_poses]"
+    segment = None
+    if tp.kind == "path":
+        positions, segment = sample_path(tp.path_kind, np.array(tp.path_points_m), tp.path_nodes)
+        rotation = np.eye(3) if tp.tool_rpy_rad is None else pin.rpy.rpyToMatrix(*tp.tool_rpy_rad)
+        seed = (robot.q_min + robot.q_max) / 2 if tp.seed_q_rad is None else np.array(tp.seed_q_rad)
+        if seed.shape != (robot.n,):
+            raise ProblemError(f"{where}.seed_q_deg: has {seed.size} values, the chain has {robot.n} joints "
+                               f"({', '.join(robot.joints)}); give {robot.n} joint values in deg")
+        q = path_ik(robot, positions, rotation, seed, tp.tool_rpy_rad is None)
+    elif tp.kind == "joints":
+        q = np.array(tp.joints_rad)
+        if q.shape[1] != robot.n:
+            raise ProblemError(f"{where}.joints_rad: rows have {q.shape[1]} values, the chain has {robot.n} "
+                               f"joints ({', '.join(robot.joints)}); give one row of {robot.n} joint values (rad) per pose")
+    else:
+        q = np.array([planar_2r_ik(robot, p, tp.elbow) for p in tp.points_m])
+    outside = np.flatnonzero(np.any((q < robot.q_min - 1e-12) | (q > robot.q_max + 1e-12), axis=1))
+    if outside.size:
+        raise ProblemError(f"{where}: test pose {int(outside[0])} (q = {q[outside[0]].round(4).tolist()} rad) is "
+                           "outside the joint limits; move the pose or widen [robot.joint_limits_rad]")
+    s, nF = q.shape[0], model.nF
+    if tp.segment_forces_N is not None:
+        F = np.array(tp.segment_forces_N)[segment]
+    elif tp.forces_N is not None:
+        F = np.array(tp.forces_N)
+    elif tp.force_N is not None:
+        F = np.tile(np.array(tp.force_N), (s, 1))
+    else:
+        F = np.zeros((s, nF))
+    position = np.asarray(model.position.map(s)(q.T), dtype=float).T
+    return TestPoses(q=q, F=F.reshape(s, nF), position_m=position)
+
+
+def check_identifiable(spec: ProblemSpec, model: CalibrationModel) -> tuple[np.ndarray, int]:
+    """Fail early when X cannot be identified: a rank-deficient model, then too few experiments.
+
+    Stacks B over ``IDENTIFIABILITY_SAMPLES`` random configurations with the calibration
+    loads (random directions where free), scales its columns by their norms under random
+    loads and requires every singular value above ``IDENTIFIABILITY_RTOL`` times the largest
+    (and the largest above zero). Returns the stacked (unscaled) B and the smallest m.
+    """
+    L, robot, force = model.L, model.kinematics.robot, spec.force
+    rng = np.random.default_rng(12345)
+    Q, F, F_any = [], [], []
+    for _ in range(IDENTIFIABILITY_SAMPLES):
+        Q.append(rng.uniform(robot.q_min, robot.q_max))
+        f_any = rng.normal(size=model.nF)
+        if force is not None:  # loads of the rig's size, so that column scales reflect them
+            f_any *= force.magnitude_N / np.linalg.norm(f_any)
+        F_any.append(f_any)
+        F.append(np.array(force.vector_N) if force and force.mode == "fixed"
+                 else force.magnitude_N * np.array(force.direction) if force and force.mode == "direction"
+                 else f_any)
+    rows = model.B_stack(np.array(Q), np.array(F))
+    generic = model.B_stack(np.array(Q), np.array(F_any))
+    S = rows.reshape(-1, L)
+    # columns scaled by their norm under generic loads, so that a parameter the actual
+    # loads cannot excite stays a (near) zero column
+    Sn = S / np.maximum(np.linalg.norm(generic.reshape(-1, L), axis=0), np.finfo(float).tiny)
+    _, sv, Vt = np.linalg.svd(Sn, full_matrices=False)
+    null = ~(sv > IDENTIFIABILITY_RTOL * sv[0]) if sv[0] > 0 else np.ones(L, dtype=bool)
+    where = f"{spec.path}: [calibration]"
+    measured = ", ".join(spec.measurement.components)
+    if sv[0] == 0 or not np.all(np.isfinite(sv)):
+        field = "compliant_joints" if model.case == "elastostatic" else "parameters"
+        why = (" under the calibration load of [experiments.force]"
+               if force is not None and force.mode in ("fixed", "direction") else "")
+        raise ProblemError(f"{where}.{field}: no parameter has any effect on the {measured} measurements{why} "
+                           "(the identification matrix is zero); measure other components or change the load")
+    if np.any(null):
+        v = Vt[np.flatnonzero(null)[0]]
+        involved = [model.parameter_names[i] for i in np.flatnonzero(np.abs(v) > 1e-6)]
+        field = "compliant_joints" if all(p.startswith("k.") for p in involved) else "parameters"
+        what = (f"{involved[0]} has no effect on them" if len(involved) == 1
+                else f"{' and '.join(involved)} act as one combination")
+        if field == "compliant_joints" and force and force.mode in ("fixed", "direction"):
+            what += " under the calibration load of [experiments.force]"
+        raise ProblemError(
+            f"{where}.{field}: the parameters are not identifiable from {measured} measurements: {what} "
+            f"(rank {int(np.sum(~null))} of {L}); remove {'it' if len(involved) == 1 else 'one of them'}"
+        )
+    # an experiment gives at most d independent values (three markers on a rigid tool: 6, not 9)
+    d = max(np.linalg.matrix_rank(B, tol=1e-10 * np.abs(B).max()) if np.abs(B).max() > 0 else 0 for B in rows)
+    m_min = int(-(-L // d))
+    small = [m for m in spec.m_values if m < m_min]
+    if small:
+        raise ProblemError(
+            f"{spec.path}: [experiments].m: m = {small[0]} is too small: {L} parameters "
+            f"({', '.join(model.parameter_names)}) with {d} independent measured values per experiment "
+            f"need m >= {m_min}; use m >= {m_min}"
+        )
+    return S, m_min

@@ -1,0 +1,102 @@
+"""Inverse kinematics of test paths: damped least squares on Pinocchio's kinematics.
+
+A Cartesian path (line, polyline, circular arc or list of points, m) with a constant tool
+orientation is sampled into nodes; each node is solved from the previous node's solution, so
+the whole path stays on one branch. The step is
+
+    dq = J^T (J J^T + lambda^2 I)^-1 e,   e = (p* - p, log3(R* R^T)),   lambda^2 = LAMBDA0^2 + |e|^2
+
+(world-aligned Jacobian of the tool frame), clipped to the joint limits.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from ..errors import ProblemError
+from .robots import Robot, frame_jacobian
+
+#: Convergence threshold on |e| (m and rad).
+IK_TOL = 1e-10
+#: Largest residual (m, rad) accepted when iterations run out.
+IK_ACCEPT = 1e-7
+IK_MAX_ITER = 500
+LAMBDA0 = 1e-3
+
+
+def sample_path(kind: str, points: np.ndarray, nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes (nodes x 3, m) along a path and the index of the segment each lies on.
+
+    ``line``: from points[0] to points[1]; ``polyline``: through all points, equally spaced in
+    arc length; ``arc``: the circular arc from points[0] through points[1] to points[2];
+    ``points``: the points themselves (``nodes`` ignored).
+    """
+    P = np.asarray(points, dtype=float)
+    if kind == "points":
+        return P, np.arange(len(P))
+    if kind in ("line", "polyline"):
+        seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+        arc = np.linspace(0.0, seg.sum(), nodes)
+        edges = np.r_[0.0, np.cumsum(seg)]
+        k = np.clip(np.searchsorted(edges, arc, side="right") - 1, 0, len(seg) - 1)
+        t = (arc - edges[k]) / seg[k]
+        return P[k] + t[:, None] * (P[k + 1] - P[k]), k
+    a, b, c = P
+    u, v = b - a, c - a
+    w = np.cross(u, v)
+    if not np.linalg.norm(w) > 1e-9 * max(u @ u, v @ v):
+        raise ProblemError("[test_poses].path: the three arc points are collinear; give start, a point on "
+                           "the arc and end that span a circle")
+    center = a + (np.cross(w, u) * (v @ v) + np.cross(v, w) * (u @ u)) / (2 * (w @ w))
+    e1 = (a - center) / np.linalg.norm(a - center)
+    e2 = np.cross(w / np.linalg.norm(w), e1)
+    r = np.linalg.norm(a - center)
+
+    def angle(p):
+        return np.mod(np.arctan2((p - center) @ e2, (p - center) @ e1), 2 * np.pi)
+
+    phi = np.linspace(0.0, angle(c), nodes)
+    return center + r * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2), np.zeros(nodes, int)
+
+
+def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool = False) -> tuple[np.ndarray, float]:
+    """Configuration reaching ``target`` with the tool frame, from ``q0``; and the residual |e|."""
+    model, data = robot.model, robot.model.createData()
+    q = np.clip(np.asarray(q0, dtype=float), robot.q_min, robot.q_max)
+    rows = slice(0, 3) if position_only else slice(0, 6)
+    err = np.inf
+    for _ in range(IK_MAX_ITER):
+        pin.framesForwardKinematics(model, data, robot.full_q(q))
+        M = data.oMf[robot.frame_id]
+        e = np.r_[target.translation - M.translation, pin.log3(target.rotation @ M.rotation.T)][rows]
+        err = float(np.linalg.norm(e))
+        if err < IK_TOL:
+            break
+        J = frame_jacobian(robot, q)[rows]
+        lam2 = LAMBDA0**2 + err**2
+        q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + lam2 * np.eye(J.shape[0]), e), robot.q_min, robot.q_max)
+    return q, err
+
+
+def path_ik(robot: Robot, positions_m: np.ndarray, rotation: np.ndarray, q_seed: np.ndarray,
+            position_only: bool = False) -> np.ndarray:
+    """Joint values (s x n, rad) of the nodes, each seeded by the previous one.
+
+    Raises
+    ------
+    ProblemError
+        For the first node the IK cannot reach within ``IK_ACCEPT``.
+    """
+    q, out = np.asarray(q_seed, dtype=float), []
+    for j, p in enumerate(positions_m):
+        q, err = solve_ik(robot, pin.SE3(rotation, p), q, position_only)
+        if not err <= IK_ACCEPT:  # also catches NaN
+            raise ProblemError(
+                f"[test_poses].path: node {j} at ({', '.join(f'{v * 1e3:.1f}' for v in p)}) mm is "
+                f"unreachable with the given tool orientation (residual {err * 1e3:.3g} mm/mrad after "
+                f"{IK_MAX_ITER} iterations from the previous node); move the path, change tool_rpy_deg "
+                "or give seed_q_deg closer to it"
+            )
+        out.append(q)
+    return np.array(out)

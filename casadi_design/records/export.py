@@ -1,0 +1,446 @@
+"""Plans as CSV files for robot programs (and back), and the one-page Markdown report.
+
+A plan CSV has one row per experiment::
+
+    experiment, <joint>_deg..., <joint>_rad..., fx_N, fy_N, ..., x_mm, y_mm, z_mm
+
+joint values in deg and rad (prismatic joints: ``_mm`` and ``_m``), in the order of the chain
+(root first); the calibration load (N, moments ``mx_Nm``...) when the case has one; and the
+nominal position of the measured point (mm), where the tracker should look. The load-induced
+deflection is not included: it is what the experiment measures.
+
+:func:`read_plan_csv` reads such a file, or one written by hand: joints named ``q1``, ``q2``...
+(1-based) or by their joint names, each with a unit suffix ``_deg`` / ``_rad`` (``_mm`` /
+``_m`` for prismatic joints); force columns as above (optional for fixed loads); the columns
+``experiment``, ``x_mm``, ``y_mm``, ``z_mm`` are ignored. Lines starting with ``#`` are comments.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..model.build import Problem
+from ..model.cell import Clearance
+from ..plan.design import Design
+from ..errors import ProblemError
+from .files import write_atomic
+from ..model.problem import WRENCH_ROWS
+
+#: Largest disagreement (rad or m) between the two unit columns of one joint in a plan CSV.
+UNIT_AGREEMENT_TOL = 1e-6
+#: Joint values this far outside their limits (rad or m) are accepted silently (rounding in a CSV).
+LIMIT_TOL = 1e-6
+POSITION_COLUMNS = ("x_mm", "y_mm", "z_mm")
+#: Columns written for people with a [cell] and ignored when read: the experiment's clearance on
+#: the real geometry (mm) and the two closest bodies.
+CLEARANCE_COLUMNS = ("clearance_mm", "closest_bodies")
+
+
+def is_prismatic(problem: Problem, k: int) -> bool:
+    """Whether joint ``k`` of the chain is prismatic (its value in m, not rad)."""
+    robot = problem.robot
+    return robot.model.joints[robot.joint_ids[k]].shortname().startswith("JointModelP")
+
+
+def joint_units(problem: Problem, k: int) -> tuple[str, str, float]:
+    """(SI unit suffix, people's unit suffix, SI per people's unit) of joint ``k``."""
+    return ("m", "mm", 1e-3) if is_prismatic(problem, k) else ("rad", "deg", math.pi / 180)
+
+
+def joint_scales(problem: Problem) -> np.ndarray:
+    """SI per people's unit of every joint of the chain (:func:`joint_units`), shape (n,):
+    pi / 180 (rad per deg) or 1e-3 (m per mm)."""
+    return np.array([joint_units(problem, k)[2] for k in range(problem.robot.n)])
+
+
+def force_columns(problem: Problem) -> list[str]:
+    """Column names of the load components: ``fx_N``..., ``mx_Nm``..."""
+    return [f"{WRENCH_ROWS[r]}_{'N' if WRENCH_ROWS[r][0] == 'f' else 'Nm'}"
+            for r in problem.model.force_rows]
+
+
+def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray,
+               near: tuple[Clearance, ...] | None = None) -> tuple[list[str], list[list]]:
+    """Header and rows of a plan: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m).
+
+    With a ``[cell]`` and ``near`` (:attr:`casadi_design.plan.design.Design.clearances`), each row
+    also gives the experiment's clearance on the real geometry (mm) and the two bodies at that
+    distance.
+    """
+    joints = problem.robot.joints
+    units = [joint_units(problem, k) for k in range(len(joints))]
+    near = near if problem.cell and near else None
+    header = (["experiment"] + [f"{j}_{u[1]}" for j, u in zip(joints, units)]
+              + [f"{j}_{u[0]}" for j, u in zip(joints, units)] + force_columns(problem)
+              + list(POSITION_COLUMNS) + (list(CLEARANCE_COLUMNS) if near else []))
+    Q = np.asarray(Q, float)
+    near = near or [None] * len(Q)
+    rows = []
+    for i, (q, f, c) in enumerate(zip(Q, np.asarray(F, float).reshape(len(Q), -1), near)):
+        p = np.asarray(problem.model.position(q), dtype=float).ravel() * 1e3
+        rows.append([i + 1] + [qk / u[2] for qk, u in zip(q, units)] + list(q) + list(f) + list(p)
+                    + ([c.distance_m * 1e3, " / ".join(c.between)] if c else []))
+    return header, rows
+
+
+def csv_text(header: list[str], rows: list[list]) -> str:
+    """CSV with full-precision floats (``repr``: a value read back is the value written)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for row in rows:
+        w.writerow([repr(float(v)) if isinstance(v, (float, np.floating)) else v for v in row])
+    return buf.getvalue()
+
+
+def write_plan_csv(path: Path, problem: Problem, design: Design) -> None:
+    """The design's plan, one row per experiment, atomically."""
+    write_atomic(Path(path), csv_text(*plan_table(problem, design.Q, design.F, design.clearances)).encode())
+
+
+def write_plans(out: Path, problem: Problem, designs: list[Design]) -> list[str]:
+    """Each design's plan as ``out/plans/<criterion>_m<m>.csv``; returns the file names."""
+    names = [f"plans/{d.criterion}_m{d.m}.csv" for d in designs]
+    for name, d in zip(names, designs):
+        write_plan_csv(out / name, problem, d)
+    return names
+
+
+def write_table_csv(path: Path, columns: tuple[str, ...] | list[str], rows: list[dict]) -> None:
+    """Rows (dicts) as CSV with the given columns, atomically."""
+    write_atomic(Path(path), csv_text(list(columns), [[r[c] for c in columns] for r in rows]).encode())
+
+
+#: Largest plan file read, bytes, and most experiments (rows) in a plan.
+_MAX_PLAN_BYTES = 10 * 2**20
+_MAX_PLAN_ROWS = 100_000
+
+
+def _plan_text(path: str) -> str:
+    """The text of the plan file ``path``: UTF-8, a leading byte-order mark (Excel) dropped.
+
+    Folders, devices, pipes, binary or non-UTF-8 content and files over ``_MAX_PLAN_BYTES``
+    are refused (one-line :class:`ProblemError`) before they are read whole.
+    """
+    if not path:
+        raise ProblemError("the plan file name is empty; give the CSV file")
+    file = Path(path)
+    try:
+        st = file.stat()
+        if file.is_dir():
+            raise ProblemError(f"{path}: is a folder, not a plan file; give the CSV file")
+        if not file.is_file():
+            raise ProblemError(f"{path}: is not a regular file (a device or a pipe); give the "
+                               "CSV file")
+        data = b""
+        if st.st_size <= _MAX_PLAN_BYTES:
+            with open(file, "rb") as fh:
+                data = fh.read(_MAX_PLAN_BYTES + 1)  # + 1: the file may have grown since
+    except FileNotFoundError:
+        raise ProblemError(f"{path}: no such plan file; check the path") from None
+    except OSError as exc:
+        raise ProblemError(f"{path}: cannot be read ({exc.strerror}); check the path and its "
+                           "permissions") from None
+    size = max(st.st_size, len(data))
+    if size > _MAX_PLAN_BYTES:
+        raise ProblemError(f"{path}: is {size / 2**20:.1f} MB; a plan has at most {_MAX_PLAN_ROWS} "
+                           f"experiments ({_MAX_PLAN_BYTES // 2**20} MB); give a smaller plan")
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):  # UTF-16 byte-order marks
+        raise ProblemError(f"{path}: is UTF-16 text (Excel 'Unicode Text'), not UTF-8; save it as "
+                           "'CSV UTF-8 (comma delimited)'")
+    if b"\0" in data:
+        raise ProblemError(f"{path}: is a binary file (it holds NUL bytes), not UTF-8 CSV text; "
+                           "give the plan CSV file")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ProblemError(f"{path}: is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+                           f"{exc.start}); save it as 'CSV UTF-8 (comma delimited)'") from None
+
+
+def _csv_cells(line: str) -> list[str]:
+    """The cells of one CSV line, blanks around them stripped."""
+    return [c.strip() for c in next(csv.reader([line]))]
+
+
+def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.ndarray]:
+    """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m)
+    (:func:`read_plan_table` without extra columns)."""
+    Q, F, _, _ = read_plan_table(problem, path)
+    return Q, F
+
+
+def _plan_lines(path: str) -> list[tuple[int, str]]:
+    """The (line number, text) of a plan file's header and rows: empty lines and ``#``
+    comments dropped."""
+    lines = [(i, ln) for i, ln in enumerate(_plan_text(path).splitlines(), start=1)
+             if ln.strip(" \t,") and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise ProblemError(f"{path}: empty plan file; give a header row and one row per experiment")
+    return lines
+
+
+def plan_header(path: Path | str) -> list[str]:
+    """The column names of a plan file as it spells them (trailing empty names dropped)."""
+    header = _csv_cells(_plan_lines(str(path))[0][1])
+    while header and not header[-1]:
+        header.pop()
+    return header
+
+
+def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] = (),
+                    extra_hint: str = "", rename: dict[str, str] | None = None,
+                    ignore_unknown: bool = False,
+                    ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[int]]:
+    """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m);
+    the ``extra`` columns that are present (e.g. measured coordinates), as floats with NaN for
+    empty cells; and the line of the file of each row (1-based). ``extra_hint`` names the extra
+    columns in the message on an unknown column. ``rename`` maps a column as the file spells it
+    to the name read here (messages keep the file's spelling); with ``ignore_unknown`` other
+    columns are skipped instead of refused (:func:`plan_header` tells which).
+
+    UTF-8 text, with or without a byte-order mark. Trailing empty cells (as Excel writes
+    them) are dropped, and so are lines of empty cells and lines starting with ``#``. Row
+    numbers in messages are lines of the file (1-based).
+
+    Raises
+    ------
+    ProblemError
+        Not a UTF-8 text file, more than 100000 rows (10 MB), ';' separators, rows of another
+        length than the header, missing or unknown columns, non-numbers or non-finite numbers,
+        disagreeing unit columns (one line each).
+    """
+    path = str(path)
+    lines = _plan_lines(path)
+    (_, head), body = lines[0], lines[1:]
+    if ";" in head:
+        decimal = " and ',' as decimal point" if any("," in ln for _, ln in body) else ""
+        raise ProblemError(f"{path}: uses ';' to separate columns{decimal} (Excel in a "
+                           "comma-decimal locale); save it with ',' separators and '.' decimal "
+                           "points")
+    if len(body) > _MAX_PLAN_ROWS:
+        raise ProblemError(f"{path}: has {len(body)} rows; a plan has at most {_MAX_PLAN_ROWS} "
+                           "experiments; give a smaller plan")
+    spelled = _csv_cells(head)
+    while spelled and not spelled[-1]:
+        spelled.pop()
+    rename = rename or {}
+    header = [rename.get(h, h) for h in spelled]
+    rows = [(i, _csv_cells(ln)) for i, ln in body]
+    if not rows:
+        raise ProblemError(f"{path}: no experiments below the header; give one row per experiment")
+    robot = problem.robot
+    columns: dict[str, tuple[int, float]] = {}  # column -> (joint index, SI per unit)
+    for k, j in enumerate(robot.joints):
+        si, people, scale = joint_units(problem, k)
+        for name in (f"q{k + 1}", j):
+            columns[f"{name}_{si}"] = (k, 1.0)
+            columns[f"{name}_{people}"] = (k, scale)
+    forces = force_columns(problem)
+    allowed = set(columns) | set(forces) | {"experiment", *POSITION_COLUMNS, *CLEARANCE_COLUMNS, *extra}
+    if "" in header:
+        raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
+                           "name it or delete the column")
+    unknown = [h for h in header if h not in allowed]
+    if unknown and not ignore_unknown:
+        si, people, _ = joint_units(problem, 0)
+        joint, _, unit = unknown[0].rpartition("_")
+        if joint and unit in ("deg", "rad", "mm", "m") and not any(h in columns for h in header):
+            raise ProblemError(
+                f"{path}: column '{unknown[0]}' names joint '{joint}', which the robot of "
+                f"{problem.path} does not have ({', '.join(robot.joints)}): the plan is for another "
+                "problem; give the plan made for this one")
+        raise ProblemError(
+            f"{path}: unknown column '{unknown[0]}'; allowed: q1_{people} or q1_{si} ... "
+            f"q{robot.n}_<unit> (or joint names {', '.join(robot.joints)} with the unit suffix)"
+            + (f", {', '.join(forces)}" if forces else "") + ", experiment, x_mm, y_mm, z_mm"
+            + (f", {extra_hint}" if extra_hint else ""))
+    repeated = next((c for c, h in enumerate(header) if header.count(h) > 1 and h in allowed), None)
+    if repeated is not None:
+        twins = [spelled[c] for c, h in enumerate(header) if h == header[repeated]]
+        raise ProblemError(f"{path}: column '{spelled[repeated]}' is given {len(twins)} times"
+                           + (f" (as {', '.join(twins)})" if len(set(twins)) > 1 else "")
+                           + "; give each column once")
+    for i, cells in rows:
+        if len(cells) > len(header) and not any(cells[len(header):]):
+            del cells[len(header):]  # trailing empty cells
+        if len(cells) != len(header):
+            raise ProblemError(f"{path}: row {i} has {len(cells)} cells, the header has "
+                               f"{len(header)}; give one value per column in every row (a decimal "
+                               "comma splits a number in two: use '.')")
+
+    def number(r: int, c: int, empty_allowed: bool = False) -> float:
+        line, cell = rows[r][0], rows[r][1][c]
+        where = f"{path}: row {line}, column '{spelled[c]}'"
+        try:
+            v = float(cell) if cell else math.nan
+        except ValueError:
+            raise ProblemError(f"{where}: expected a number, got '{cell}'; give a number with a "
+                               "'.' decimal point in every cell") from None
+        if not math.isfinite(v) and not (empty_allowed and not cell):
+            got = f"'{cell}'" if cell else "an empty cell"
+            raise ProblemError(f"{where}: not a finite number, got {got}; give a finite number in "
+                               "every cell")
+        return v
+
+    m = len(rows)
+    Q = np.full((m, robot.n), np.nan)
+    for k, j in enumerate(robot.joints):
+        given = [(c, columns[h][1]) for c, h in enumerate(header) if h in columns and columns[h][0] == k]
+        if not given:
+            si, people, _ = joint_units(problem, k)
+            raise ProblemError(f"{path}: no column for joint {k + 1} ({j}); add q{k + 1}_{people} "
+                               f"or q{k + 1}_{si} (or {j}_{people} / {j}_{si})")
+        values = np.array([[number(r, c) * s for r in range(m)] for c, s in given])
+        spread = np.max(np.ptp(values, axis=0))
+        if spread > UNIT_AGREEMENT_TOL:
+            raise ProblemError(
+                f"{path}: the columns {', '.join(spelled[c] for c, _ in given)} of joint {j} "
+                f"disagree by {spread:.3g} (rad or m); give one of them or fix the values")
+        # the SI column when given (exact), else the people's unit converted
+        Q[:, k] = values[next((i for i, (_, scale) in enumerate(given) if scale == 1.0), 0)]
+    values = {h: np.array([number(r, header.index(h), True) for r in range(m)]) for h in extra if h in header}
+    lines_of_rows = [i for i, _ in rows]
+    nF = problem.model.nF
+    if nF == 0:
+        return Q, np.zeros((m, 0)), values, lines_of_rows
+    present = [h in header for h in forces]
+    if not any(present) and problem.force is not None and problem.force.mode == "fixed":
+        return Q, np.tile(np.array(problem.force.vector_N), (m, 1)), values, lines_of_rows
+    if not all(present):
+        missing = [h for h, p in zip(forces, present) if not p]
+        raise ProblemError(f"{path}: missing force column '{missing[0]}'; the plan needs the "
+                           f"calibration load of each experiment: {', '.join(forces)} (N, N m)")
+    F = np.array([[number(r, header.index(h)) for r in range(m)] for h in forces]).T  # checked column by column
+    return Q, F, values, lines_of_rows
+
+
+
+def check_joint_limits(problem: Problem, path: str, Q: np.ndarray, lines: list[int],
+                       tolerance: float = LIMIT_TOL, header: list[str] | None = None,
+                       rename: dict[str, str] | None = None) -> list[str]:
+    """Notes on the joint values of a plan file ``path`` past a limit by at most ``tolerance``
+    (rad or m; a real encoder reads past the URDF's limit), and one error beyond: the row as
+    ``lines`` numbers it and the column as the file spells it (``header``, ``rename`` as for
+    :func:`read_plan_table`; by default the file's own header).
+
+    Raises
+    ------
+    ProblemError
+        A joint value outside its limits by more than ``tolerance``.
+    """
+    robot = problem.robot
+    header = plan_header(path) if header is None else header
+    rename = rename or {}
+    past = np.maximum(robot.q_min - Q, Q - robot.q_max)
+    allowed = (f"by more than --limit-tolerance {tolerance:g} (rad or m)" if tolerance > LIMIT_TOL
+               else "(the robot cannot reach it)")
+    notes = []
+    for k, j in enumerate(robot.joints):
+        si, people, scale = joint_units(problem, k)
+        ours = {f"{base}_{u}" for base in (f"q{k + 1}", j) for u in (si, people)}
+        column = next((h for h in header if rename.get(h, h) in ours), f"{j}_{people}")
+        unit = next((u for u in (si, people) if rename.get(column, column).endswith(f"_{u}")), people)
+        per = 1.0 if unit == si else scale
+        i = int(np.argmax(past[:, k]))
+        if past[i, k] > tolerance:
+            raise ProblemError(
+                f"{path}: row {lines[i]}, column '{column}': {Q[i, k] / per:.6g} {unit} is outside the "
+                f"joint limits [{robot.q_min[k] / per:.6g}, {robot.q_max[k] / per:.6g}] {unit} of "
+                f"{problem.path} {allowed}; check the units, the order of the joint columns and "
+                "that the file belongs to this case")
+        over = np.flatnonzero(past[:, k] > LIMIT_TOL)
+        if over.size:
+            notes.append(f"column '{column}': {over.size} reading{'s' if over.size > 1 else ''} past the "
+                         f"joint limits by at most {past[i, k] / per:.3g} {unit} (row {lines[i]}), within "
+                         f"--limit-tolerance {tolerance:g}: accepted")
+    return notes
+
+
+def _md_table(header: list[str], rows: list[list[str]]) -> str:
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+    return "\n".join([line(header), "|" + "---|" * len(header)] + [line(r) for r in rows])
+
+
+def plan_markdown(problem: Problem, design: Design) -> str:
+    """A plan as a Markdown table: joints (deg or mm), load (N), measured point (mm), with a
+    ``[cell]`` the clearance (mm) and the closest bodies."""
+    header, rows = plan_table(problem, design.Q, design.F, design.clearances)
+    n = problem.robot.n
+    keep = [0, *range(1, 1 + n), *range(1 + 2 * n, len(header))]
+    return _md_table([header[c] for c in keep],
+                     [[str(r[0])] + [f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in keep[1:]]
+                      for r in rows])
+
+
+def bound_notes(designs: list[Design]) -> list[str]:
+    """One sentence per test-pose design with a bound: how much a better plan could still gain."""
+    out = []
+    for d in designs:
+        if d.criterion == "test-pose" and d.bound is not None:
+            e, b = d.scores.max_rms_error_m, d.bound.value
+            out.append(
+                f"m = {d.m}: no plan of {d.m} experiment{'s' if d.m > 1 else ''} can bring the "
+                f"worst test pose below {b * 1e3:.4f} mm (a certified lower bound from the "
+                f"approximate design); this plan reaches {e * 1e3:.4f} mm, {d.gap_percent:.1f} % "
+                f"above it: no other plan can reduce its error by more than {100 * (1 - b / e):.1f} %.")
+    return out
+
+
+def report_markdown(problem: Problem, designs: list[Design], *, table: str, figures: list[tuple[str, str]],
+                    plans_for: list[int], files: list[str], starts: int, title: str = "Calibration plan",
+                    notes: list[str] = ()) -> str:
+    """The one-page report: the case, the table, the figures, the plans for ``plans_for`` m.
+
+    ``table`` is a preformatted text table (mm); ``figures`` are (caption, relative file).
+    """
+    model, tp = problem.model, problem.test_poses
+    force = problem.force
+    load = ("none (geometric case)" if force is None else
+            f"{force.mode}, |F| = {force.magnitude_N:g} N" if force.mode != "fixed" else
+            f"fixed F = {list(force.vector_N)} N")
+    x = tp.position_m * 1e3
+    notes = [*notes, *bound_notes(designs)]
+    lines = [
+        f"# {title}: {problem.name}",
+        "",
+        problem.spec.description,
+        "",
+        _md_table(["", ""], [
+            ["problem file", f"`{problem.path}`"],
+            ["robot", (f"{problem.robot.name}, {problem.robot.n} joints "
+                       f"({', '.join(problem.robot.joints)}), measured frame `{problem.robot.frame}`")],
+            ["identified", f"{model.case}: {', '.join(model.parameter_names)}"],
+            ["measured", f"{', '.join(problem.spec.measurement.components)}, sigma = {problem.sigma_m * 1e3:g} mm"],
+            ["test poses", (f"{tp.s} poses, from ({', '.join(f'{v:.0f}' for v in x[0])}) to "
+                            f"({', '.join(f'{v:.0f}' for v in x[-1])}) mm")],
+            ["calibration load", load],
+            ["solver", f"IPOPT, {starts} seeded starts per design, seed {problem.solver.seed}"],
+        ]),
+        "",
+        "## Accuracy along the test poses",
+        "",
+        "```",
+        table,
+        "```",
+        "",
+        *[f"- {n}" for n in notes],
+        *([""] if notes else []),
+    ]
+    for caption, fname in figures:
+        lines += [f"![{caption}]({fname})", "", f"*{caption}*", ""]
+    lines += ["## Plans", "", ("Joints in deg (mm for prismatic joints), load in N, measured point "
+                               "in mm; full precision in the plans/*.csv files."), ""]
+    for m in plans_for:
+        for d in (d for d in designs if d.m == m):
+            title = f"### {d.criterion} plan, m = {m}: max error {d.scores.max_rms_error_m * 1e3:.4f} mm"
+            lines += [title, "", plan_markdown(problem, d), ""]
+    lines += ["## Files", "", *[f"- `{f}`" for f in files], ""]
+    return "\n".join(lines)

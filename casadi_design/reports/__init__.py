@@ -1,0 +1,1 @@
+"""For people: text tables in mm (``tables``) and figures (``plotting``)."""
