@@ -13,9 +13,9 @@ import pytest
 
 from casadi_design.runtime import cache
 
-from casadi_design.model import collision
+from casadi_design.model import capsules, collision, pairs
 from casadi_design.model.cell import _package_dirs
-from casadi_design.model.collision import capsules_from_geometry, load_collision_geometry
+from casadi_design.model.capsules import capsules_from_geometry, load_collision_geometry
 from casadi_design.model.robots import load_urdf, urdf_file
 from tests.conftest import ROOT
 
@@ -91,13 +91,13 @@ def test_the_ur10_capsules_read_back_as_fitted(directory, monkeypatch):
     def no_fit(*args, **kwargs):
         raise AssertionError("fitted again")
 
-    monkeypatch.setattr(collision, "fit_capsule", no_fit)
+    monkeypatch.setattr(capsules, "fit_capsule", no_fit)
     again = capsules_from_geometry(model, geometry, 2)
     assert pickle.dumps(again) == pickle.dumps(fitted)  # the same capsules to the bit
     with pytest.raises(AssertionError, match="fitted again"):  # other inputs: fitted anew
         capsules_from_geometry(model, geometry, 1)
     # other BLAS kernels round the fit differently: their capsules are not these
-    monkeypatch.setattr(collision, "blas_kernels", lambda: "SkylakeX")
+    monkeypatch.setattr(capsules, "blas_kernels", lambda: "SkylakeX")
     with pytest.raises(AssertionError, match="fitted again"):
         capsules_from_geometry(model, geometry, 2)
 
@@ -113,7 +113,7 @@ def test_the_cells_pairs_read_back_as_selected(directory, monkeypatch):
     args = (problem.robot, c.capsules, c.obstacles, c.spec.clearance_m, c.spec.disabled_pairs)
     first = cell_module._pairs(*args)
     assert len(list(directory.glob("cell-pairs-*.pickle"))) == 1
-    selected = collision.self_collision_pairs(*args[:2], args[3], args[4])
+    selected = pairs.self_collision_pairs(*args[:2], args[3], args[4])
     assert first[0] == selected and first[1] == collision.obstacle_pairs(*args[:3], args[3])
     assert selected.kept and first[1][0]  # pairs of both kinds are there to compare
 

@@ -13,7 +13,7 @@ import scipy.optimize
 
 from casadi_design.model.build import build_problem, load_problem
 from casadi_design.model.cell import clearances, touching
-from casadi_design.model.collision import capsule_names
+from casadi_design.model.capsules import capsule_names
 from casadi_design.errors import ProblemError
 from casadi_design.records.export import plan_table, read_plan_csv
 from casadi_design.model.problem import parse_problem, read_problem

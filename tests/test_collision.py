@@ -12,7 +12,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from casadi_design.model import collision as C
+from casadi_design.model import capsules as K, collision as C, pairs as P, segments as S
 from casadi_design.errors import ProblemError
 from casadi_design.model.obstacles import Box, HalfSpace
 from casadi_design.model.cell import _fitted
@@ -36,10 +36,10 @@ def ur10():
     root = example_robot_data_dir()
     urdf = root / "ur_description/urdf/ur10_robot.urdf"
     model = pin.buildModelFromUrdf(str(urdf))
-    geom = C.load_collision_geometry(model, urdf, [root.parent.parent])
+    geom = K.load_collision_geometry(model, urdf, [root.parent.parent])
     capsules = _fitted(UR10_URDF, 3)  # those of problems/ur10_drilling.toml (fitted once per process)
     robot = make_robot(model, "tool0")
-    return model, geom, capsules, robot, C.self_collision_pairs(robot, capsules)
+    return model, geom, capsules, robot, P.self_collision_pairs(robot, capsules)
 
 
 def _brute_distance(p0, p1, q0, q1):
@@ -65,7 +65,7 @@ def _segments(rng):
 
 def _geometry_balls(geometry) -> tuple[np.ndarray, np.ndarray]:
     """Balls (centres, radii; m) whose convex hull contains a coal geometry, in its frame."""
-    pieces = C._geometry_pieces(geometry)
+    pieces = K._geometry_pieces(geometry)
     return np.vstack([c for c, _ in pieces]), np.concatenate([r for _, r in pieces])
 
 
@@ -97,7 +97,7 @@ def mesh_min_distance(model: pin.Model, geom_model: pin.GeometryModel, q: np.nda
         for j in range(i + 1, geom_model.ngeoms):
             gj = geom_model.geometryObjects[j]
             if wanted is None:
-                if not C._adjacent(model, gi.parentJoint, gj.parentJoint):
+                if not K._adjacent(model, gi.parentJoint, gj.parentJoint):
                     checked.addCollisionPair(pin.CollisionPair(i, j))
             elif frozenset((names[i], names[j])) in wanted:
                 checked.addCollisionPair(pin.CollisionPair(i, j))
@@ -117,13 +117,13 @@ def mesh_min_distance(model: pin.Model, geom_model: pin.GeometryModel, q: np.nda
 def test_segment_distance_matches_brute_force_and_twin():
     rng = np.random.default_rng(0)
     x = ca.SX.sym("x", 12)
-    f = ca.Function("d", [x], [C.segment_distance(x[0:3], x[3:6], x[6:9], x[9:12])])
+    f = ca.Function("d", [x], [S.segment_distance(x[0:3], x[3:6], x[6:9], x[9:12])])
     for p0, p1, q0, q1 in _segments(rng):
-        d = C.segment_distance_np(p0, p1, q0, q1)
+        d = S.segment_distance_np(p0, p1, q0, q1)
         brute = _brute_distance(p0, p1, q0, q1)
         grid_error = (np.linalg.norm(p1 - p0) + np.linalg.norm(q1 - q0)) / (GRID - 1)
         assert d <= brute + 1e-12
-        assert brute - d <= grid_error + C.SMOOTHING_M
+        assert brute - d <= grid_error + S.SMOOTHING_M
         value = float(f(np.concatenate([p0, p1, q0, q1])))
         assert np.isfinite(value) and abs(value - d) < TWIN_TOL
         grad = np.asarray(ca.Function("g", [x], [ca.jacobian(f(x), x)])(np.concatenate([p0, p1, q0, q1])))
@@ -158,7 +158,7 @@ def test_folded_elbow_is_flagged(ur10):
     g, labels = C.capsule_clearances(robot, capsules, FOLDED, pairs=pairs.kept)
     flagged = {tuple(w.split("#")[0] for w in label.split()[1:4:2]) for v, label in zip(g, labels) if v < 0}
     assert mesh.closest in flagged
-    off = C.self_collision_pairs(robot, capsules, disabled=[mesh.closest])
+    off = P.self_collision_pairs(robot, capsules, disabled=[mesh.closest])
     assert mesh.closest not in off.links
     assert {r for k, r in off.skipped.items() if tuple(n.split("#")[0] for n in k) == mesh.closest} == {"disabled"}
 
@@ -174,10 +174,10 @@ def test_line_of_sight_blocked_by_a_link(ur10):
     assert len(g) == sum(c.frame not in ("wrist_3_link", "ee_link") for c in capsules)  # they carry tool0
     assert np.all(g > 0)
     k = next(k for k, c in enumerate(capsules) if c.frame == "upper_arm_link")
-    a, b = C._ends_numeric(robot, q)(capsules[k])
+    a, b = K.capsule_ends(robot, q)(capsules[k])
     behind = C.LineOfSight(tool.translation + 2.0 * ((a + b) / 2 - tool.translation), "tool0")
     g, labels = C.capsule_clearances(robot, capsules, q, sights=[behind], pairs=())
-    name = C.capsule_names(capsules)[k]
+    name = K.capsule_names(capsules)[k]
     assert g[labels.index(f"line of sight to tool0: within 0 mm of link {name}")] < 0
 
 
@@ -190,11 +190,11 @@ def test_box_row_is_below_the_exact_distance():
     robot = make_robot(model, "tip")
     for _ in range(50):
         a, b = rng.normal(size=(2, 3))
-        capsule = C.Capsule("j", a, b, rng.uniform(0.0, 0.3))
+        capsule = K.Capsule("j", a, b, rng.uniform(0.0, 0.3))
         box = Box(rng.normal(size=3) * 2, rng.uniform(0.1, 1.0, 3), rng.uniform(-np.pi, np.pi, 3))
         q = rng.uniform(-np.pi, np.pi, 1)
         (g,), _ = C.capsule_clearances(robot, [capsule], q, obstacles=[box], pairs=())
-        wa, wb = C._ends_numeric(robot, q)(capsule)
+        wa, wb = K.capsule_ends(robot, q)(capsule)
         axis = wb - wa
         R = pin.Quaternion.FromTwoVectors(np.array([0.0, 0, 1]), axis / np.linalg.norm(axis)).matrix()
         result = coal.DistanceResult()
@@ -208,7 +208,7 @@ def test_box_row_is_below_the_exact_distance():
 def test_rows_match_twin_and_finite_differences(ur10):
     _, _, capsules, robot, pairs = ur10
     obstacles = [HalfSpace((0, 0, 1), -0.2, "floor"), Box((0.8, 0.0, 0.3), (0.2, 0.3, 0.3)),
-                 C.Capsule("universe", (-0.8, -0.5, 0.0), (-0.8, 0.5, 1.0), 0.1)]
+                 K.Capsule("universe", (-0.8, -0.5, 0.0), (-0.8, 0.5, 1.0), 0.1)]
     sights = [C.LineOfSight((2.0, 1.0, 1.5), "tool0")]
     q = ca.SX.sym("q", robot.n)
     rows = C.capsule_rows(robot, capsules, q, 0.01, obstacles, sights, pairs.kept)
@@ -229,13 +229,13 @@ def test_rows_match_twin_and_finite_differences(ur10):
 
 def test_capsule_refuses_a_negative_radius():
     with pytest.raises(ProblemError, match="radius_m must be finite and >= 0"):
-        C.Capsule("joint_2", (0, 0, 0), (0, 0, 0), -1.0)
+        K.Capsule("joint_2", (0, 0, 0), (0, 0, 0), -1.0)
 
 
 @pytest.fixture(scope="module")
 def ur10_three(ur10):
     _, _, capsules, robot, _ = ur10
-    return capsules, C.self_collision_pairs(robot, capsules, disabled=[("base_link", "upper_arm_link")])
+    return capsules, P.self_collision_pairs(robot, capsules, disabled=[("base_link", "upper_arm_link")])
 
 
 def test_several_capsules_hold_every_triangle(ur10, ur10_three):
@@ -247,9 +247,9 @@ def test_several_capsules_hold_every_triangle(ur10, ur10_three):
         frame = model.frames[go.parentFrame]
         fMg = frame.placement.inverse() * go.placement
         mine = [c for c in capsules if c.frame == frame.name]
-        for tri, _ in C._geometry_pieces(go.geometry):
+        for tri, _ in K._geometry_pieces(go.geometry):
             x = tri @ fMg.rotation.T + fMg.translation
-            inside = [max(C.segment_distance_np(p, p, c.a_m, c.b_m, smoothing_m=0.0) for p in x) <= c.radius_m + 1e-12
+            inside = [max(S.segment_distance_np(p, p, c.a_m, c.b_m, smoothing_m=0.0) for p in x) <= c.radius_m + 1e-12
                       for c in mine]
             assert any(inside)
 
@@ -258,15 +258,15 @@ def test_several_capsules_hold_every_triangle(ur10, ur10_three):
 def test_several_capsules_are_conservative_and_pass_more_configurations(ur10, ur10_three):
     model, geom, _, robot, _ = ur10
     three, pairs3 = ur10_three
-    one = C.capsules_from_geometry(model, geom, 1)
-    pairs1 = C.self_collision_pairs(robot, one, disabled=[("base_link", "upper_arm_link")])
+    one = K.capsules_from_geometry(model, geom, 1)
+    pairs1 = P.self_collision_pairs(robot, one, disabled=[("base_link", "upper_arm_link")])
     rng = np.random.default_rng(9)
     passed = {1: 0, 3: 0}
     for q in rng.uniform(robot.q_min, robot.q_max, size=(60, robot.n)):
         mesh = mesh_min_distance(model, geom, q, pairs=pairs3.links)
-        ends = C._ends_numeric(robot, q)
+        ends = K.capsule_ends(robot, q)
         for (fa, fb), d_mesh in mesh.pairs.items():
-            d_caps = min(C.segment_distance_np(*ends(a), *ends(b)) - a.radius_m - b.radius_m
+            d_caps = min(S.segment_distance_np(*ends(a), *ends(b)) - a.radius_m - b.radius_m
                          for a in three if a.frame == fa for b in three if b.frame == fb)
             assert d_caps <= d_mesh + MESH_TOL, (fa, fb, q)
         for k, caps, pairs in ((1, one, pairs1), (3, three, pairs3)):

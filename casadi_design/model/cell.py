@@ -44,18 +44,9 @@ import numpy as np
 import pinocchio as pin
 
 from ..runtime.cache import code_digest, digest, stored
-from .collision import (
-    LineOfSight,
-    PairSelection,
-    PointRows,
-    capsule_names,
-    capsule_point_rows,
-    capsules_from_geometry,
-    carrier,
-    load_collision_geometry,
-    obstacle_pairs,
-    self_collision_pairs,
-)
+from .capsules import capsule_names, capsules_from_geometry, carrier, load_collision_geometry
+from .collision import LineOfSight, PointRows, capsule_point_rows, obstacle_pairs
+from .pairs import PairSelection, self_collision_pairs
 from ..errors import ProblemError
 from .obstacles import Capsule, HalfSpace, Obstacle
 from .problem import CellSpec, Workspace

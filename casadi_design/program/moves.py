@@ -45,7 +45,7 @@ import numpy as np
 
 from ..model.build import Problem, per_model
 from ..model.cell import clearances
-from ..model.collision import capsule_names, carrier
+from ..model.capsules import capsule_names, carrier
 from ..model.compiled import compiled
 from ..records.export import is_prismatic
 from ..model.mapped import OneByOne, evaluate

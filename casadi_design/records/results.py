@@ -17,7 +17,7 @@ import numpy as np
 from ..optimisation.bound import ApproximateDesign
 from ..model.build import Problem
 from ..model.cell import Clearance
-from ..model.collision import capsule_names
+from ..model.capsules import capsule_names
 from ..measures.criteria import CRITERIA
 from ..plan.design import Bound, Design, StartRecord
 from ..measures.measures import Scores
