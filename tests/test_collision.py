@@ -97,7 +97,7 @@ def mesh_min_distance(model: pin.Model, geom_model: pin.GeometryModel, q: np.nda
         for j in range(i + 1, geom_model.ngeoms):
             gj = geom_model.geometryObjects[j]
             if wanted is None:
-                if not K._adjacent(model, gi.parentJoint, gj.parentJoint):
+                if not K.adjacent_links(model, gi.parentJoint, gj.parentJoint):
                     checked.addCollisionPair(pin.CollisionPair(i, j))
             elif frozenset((names[i], names[j])) in wanted:
                 checked.addCollisionPair(pin.CollisionPair(i, j))

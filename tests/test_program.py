@@ -16,7 +16,7 @@ import yaml
 
 from casadi_design.model.build import load_problem
 from casadi_design.cli import main
-from casadi_design.program import moves
+from casadi_design.program import detours
 from casadi_design.program.formats import FILES, controller, program_text
 from casadi_design.program.moves import check_move, move_rules
 from casadi_design.program.order import (
@@ -287,8 +287,8 @@ def test_plan_of_another_robot_and_bad_controller_are_refused(abb, tmp_path, cap
 
 def test_move_that_cannot_be_made_safe_is_named(abb, tmp_path, capsys, monkeypatch):
     qa, qb = _mirrored(ABB_BESIDE_TABLE_DEG)
-    monkeypatch.setattr(moves, "MAX_CHECKS", 0)  # no detour may be tried
-    monkeypatch.setattr(moves, "RRT_ITERATIONS", 0)
+    monkeypatch.setattr(detours, "MAX_CHECKS", 0)  # no detour may be tried
+    monkeypatch.setattr(detours, "RRT_ITERATIONS", 0)
     plan = _plan_csv(tmp_path / "plan.csv", abb, np.vstack([qa, qb]))
     out = tmp_path / "out"
     assert main(["program", str(ABB), "--plan", plan, "--format", "krl", "--out", str(out), "--quiet"]) == 2

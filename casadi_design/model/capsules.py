@@ -251,7 +251,7 @@ def moved_by_chain(robot: Robot, jid: int) -> bool:
     return any(j in robot.joint_ids for j in robot.model.supports[jid])
 
 
-def _adjacent(model: pin.Model, i: int, j: int) -> bool:
+def adjacent_links(model: pin.Model, i: int, j: int) -> bool:
     return i == j or model.parents[i] == j or model.parents[j] == i
 
 

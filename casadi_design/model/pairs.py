@@ -13,7 +13,7 @@ import numpy as np
 from .obstacles import Capsule, Obstacle
 from .robots import Robot
 
-from .capsules import _adjacent, capsule_ends, capsule_names, carrier, moved_by_chain
+from .capsules import adjacent_links, capsule_ends, capsule_names, carrier, moved_by_chain
 from .segments import segment_distance_np
 
 
@@ -61,7 +61,7 @@ def self_collision_pairs(robot: Robot, capsules: Sequence[Capsule], clearance_m:
             if {ci.frame, cj.frame} in off:
                 skipped[key] = "disabled"
                 continue
-            if _adjacent(model, jids[i], jids[j]):
+            if adjacent_links(model, jids[i], jids[j]):
                 skipped[key] = "adjacent links"
                 continue
             if not path & set(robot.joint_ids):

@@ -7,8 +7,10 @@ and the code a controller runs.
   and back to home (Held-Karp up to ``order.EXACT_UP_TO`` experiments, 2-opt / or-opt beyond).
 * :mod:`.moves`: each move checked along its whole path with the cell's capsule rows
   (:func:`casadi_design.plan.rules.pose_constraints`) and the real meshes
-  (:func:`casadi_design.model.cell.clearances`); a blocked move gets via points found by a search
-  over collision-free configurations; the program as a sequence of points.
+  (:func:`casadi_design.model.cell.clearances`);
+* :mod:`.detours`: a blocked move's via points, found by a search over collision-free
+  configurations;
+* :mod:`.sequence`: the program as a sequence of checked moves.
 * :mod:`.formats`: the controller mapping of ``[robot.controller]`` and the writers of
   URScript, ABB RAPID, KUKA KRL, the ROS robot_calibration poses YAML and a JSON joint
   trajectory.

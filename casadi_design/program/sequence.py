@@ -19,7 +19,8 @@ import numpy as np
 from ..model.build import Problem
 from ..errors import DesignError, ProblemError
 from ..plan.rules import LOAD_RTOL, joint_limits
-from .moves import MoveSearch, NoSafePath, Path, home_problems, on_meshes
+from .detours import MoveSearch, NoSafePath, Route
+from .moves import home_problems, on_meshes
 from .order import TimeModel, best_order, load_changes, order_cost, time_model, tour_cost
 
 #: Standard gravity (m/s^2): the mass of a hung weight, for people.
@@ -55,7 +56,7 @@ class Program:
 
     joints: tuple[str, ...]
     points: tuple[Point, ...]
-    paths: tuple[Path, ...]
+    paths: tuple[Route, ...]
     order: tuple[int, ...]
     times: TimeModel
     measure_s: float
@@ -116,12 +117,12 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     T = straight.copy()
     tol = LOAD_RTOL * (problem.force.magnitude_N if problem.force is not None else 1.0)
     changes = load_changes(np.asarray(F, dtype=float).reshape(m, -1), tol)
-    paths: dict[tuple[int, int], Path] = {}
+    paths: dict[tuple[int, int], Route] = {}
 
     def name(i: int) -> str:
         return "home" if i == 0 else f"experiment {i}"
 
-    def safe(i: int, j: int) -> Path:
+    def safe(i: int, j: int) -> Route:
         if (i, j) not in paths:
             try:
                 path = search.path(nodes[i], nodes[j])
