@@ -19,13 +19,13 @@ sys.dont_write_bytecode = False
 from casadi_design.runtime.threads import fixed_blas  # noqa: E402
 
 # The suite runs CasADi's virtual machine: compiling a robot's functions the first time costs
-# seconds per cell. tests/test_compiled.py checks the compiled code gives the same bits.
+# seconds per cell. tests/model/test_compiled.py checks the compiled code gives the same bits.
 os.environ.setdefault("CASADI_DESIGN_COMPILE", "0")
 # What the package keeps between runs (casadi_design.runtime.cache: the capsules fitted around the
 # meshes) goes to a folder of the test runs, not the user's cache.
 os.environ.setdefault("CASADI_DESIGN_CACHE", os.path.join(tempfile.gettempdir(), f"casadi-design-tests-{os.getuid()}"))
 # The approximate designs are computed in each test, not read back from an earlier run's
-# (tests/test_cache.py checks reading them back).
+# (tests/runtime/test_cache.py checks reading them back).
 os.environ.setdefault("CASADI_DESIGN_KEEP_DESIGNS", "0")
 fixed_blas()  # as the command does, before numpy and CasADi load (casadi_design.launch)
 

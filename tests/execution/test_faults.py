@@ -90,7 +90,7 @@ def test_a_worker_killed_twice_names_the_design_the_signal_and_what_is_kept(tmp_
     assert f"1 of 2 designs kept in {out / 'sweep.partial.json'}; continue with the same command and --resume" in err[0]
     kept = json.loads((out / "sweep.partial.json").read_text())["designs"]
     assert [(d["criterion"], d["m"]) for d in kept] == [("D", 1)]
-    # resuming (m = 2 only, m = 1 kept) is tested with solve below and in tests/test_sweep.py
+    # resuming (m = 2 only, m = 1 kept) is tested with solve below and in tests/execution/test_sweep.py
 
 
 def test_a_solve_keeps_what_it_finished_and_resumes(tmp_path, kill_at_m, capsys):

@@ -13,7 +13,7 @@ from casadi_design.identification.choice import cross_validate
 from casadi_design.identification.fit import fit, fit_model, register, row_errors
 from casadi_design.identification.measurements import read_measurements
 from tests.conftest import build, read_raw
-from tests.test_real_data import PROBLEM, TRAINING
+from tests.identification.test_real_data import PROBLEM, TRAINING
 
 PRIOR = {"length_m": 1e-3, "angle_rad": 1e-2, "offset_rad": 0.05}
 

@@ -256,7 +256,7 @@ def test_workspace_constraints_hold_in_a_solved_plan():
     raw["calibration"]["parameters"] = ["shoulder_pan_joint.offset", "shoulder_lift_joint.offset",
                                         "elbow_joint.offset", "wrist_1_joint.offset"]
     raw["experiments"]["m"] = [3]
-    del raw["cell"]  # the workspace rows alone (the cell: tests/test_cell.py)
+    del raw["cell"]  # the workspace rows alone (the cell: tests/model/test_cell.py)
     raw["experiments"]["workspace"] = {"floor_z_m": 0.3, "sphere_center_m": [1.5, 0.0, 0.5],
                                        "sphere_radius_m": 1.6, "min_joint_distance_rad": 1.0}
     p = build(raw, "ws.toml")

@@ -164,7 +164,7 @@ def test_paper_elastostatic_compliances_within_3_sigma(tmp_path):
 
 
 @pytest.mark.slow  # 4 s: building the ABB's model and its Taylor Jacobian (41 parameters); the
-# default run identifies the ABB with a hidden marker in tests/test_every_command.py
+# default run identifies the ABB with a hidden marker in tests/cli/test_every_command.py
 def test_abb_markers_loads_and_a_hidden_marker(tmp_path):
     problem = load_without_cell(str(ABB))
     true = perturbed(problem, np.random.default_rng(9), k=np.r_[0.0, np.full(5, 1e-6)])

@@ -17,7 +17,7 @@ from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.lsq import LOSSES
 from casadi_design.identification.measurements import FileFormat, read_measurements
 
-DATA = Path(__file__).parent / "data" / "tiago_mocap"
+DATA = Path(__file__).parents[1] / "data" / "tiago_mocap"
 PROBLEM = DATA / "tiago_mocap.toml"
 TRAINING = DATA / "qualisys_2021-11-30_static_postures.csv"
 HELD_OUT = DATA / "qualisys_2021-11-26_static_postures.csv"

@@ -2,7 +2,7 @@
 
 I minimises the mean over the test poses of ``rho_j = sigma^2 tr(B0_j M^-1 B0_j^T)``; its
 score is ``sqrt(mean_j rho_j)`` (m). Its derivatives are checked with the other criteria's in
-tests/test_reduced.py (finite differences and an independent symbolic formulation); here: its
+tests/optimisation/test_reduced.py (finite differences and an independent symbolic formulation); here: its
 optimum against a brute-force grid of the paper's hand-written B, its bound against the
 test-pose certificate with equal weights and an SDP, Table-4-style rows on the paper's case,
 and that every table, column and option is generated from the registry.
@@ -18,7 +18,7 @@ from casadi_design.measures.measures import score_plan
 from casadi_design.optimisation.solve import solve_design
 from casadi_design.execution.sweep import COLUMNS
 from casadi_design.reports.tables import MEASURE_ROWS
-from tests.test_bound import SMALL_POOL, planar_A
+from tests.optimisation.test_bound import SMALL_POOL, planar_A
 
 #: Relative slack of "a plan optimal for I is at least as good for I as any other plan".
 OPTIMAL_RTOL = 1e-6

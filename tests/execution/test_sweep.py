@@ -44,7 +44,7 @@ def _png_is_a_real_image(path, min_h=300, min_w=400):
 @pytest.fixture(scope="module")
 def swept(tmp_path_factory, paper_solve_out):
     """The paper's example swept over m = 1, 2, 5 and solved at m = 1, 5 (serial; sweeps on
-    processes equal serial ones: tests/test_parallel.py)."""
+    processes equal serial ones: tests/execution/test_parallel.py)."""
     sweep_out = tmp_path_factory.mktemp("sweep")
     assert main(["sweep", str(PAPER), "--m", ",".join(map(str, M_VALUES)), "--starts", str(STARTS),
                  "--bound-pool", "300", "--out", str(sweep_out), "--jobs", "1", "--quiet"]) == 0

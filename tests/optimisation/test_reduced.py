@@ -55,7 +55,7 @@ def _cases():
         "paper-fixed": (lambda: _fixed_load_paper(), 3),
         "geometric": (lambda: load_problem(ROOT / "problems" / "planar_2r_geometric.toml"), 3),
         # without its cell: the collision rows are only C1 where their closest points change
-        # branch, so finite differences of their Hessian are checked in tests/test_cell.py
+        # branch, so finite differences of their Hessian are checked in tests/model/test_cell.py
         "ur10": (lambda: build_problem(dataclasses.replace(read_problem(ROOT / "problems" / "ur10_drilling.toml"),
                                                            cell=None)), 9),
     }

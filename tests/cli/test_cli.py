@@ -120,7 +120,7 @@ def test_solve_refuses_a_non_empty_output_folder(tmp_path, capsys):
 
 
 def test_validate_subcommand_runs_the_virtual_calibration(tmp_path, paper_solve_out, capsys):
-    """(validate without --results simulates solve's plans: tests/test_validate.py)"""
+    """(validate without --results simulates solve's plans: tests/virtual/test_validate.py)"""
     bad = tmp_path / "bad.toml"
     bad.write_text(PAPER.read_text().replace("sigma_m = 1.0e-4", "sigma_m = 0.0"))
     assert main(["validate", str(bad)]) == 2
