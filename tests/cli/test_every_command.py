@@ -71,6 +71,7 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     measured.write_text(measurement_csv(problem, Q, F, P + 1e-6 * np.random.default_rng(0).standard_normal(P.shape),
                                         hidden))
     assert main(["identify", str(path), "--measurements", str(measured), "--frame", "base",
+                 "--model", "identifiable",  # auto's candidates: tests/identification
                  "--out", str(tmp_path / "identify")]) == 0
     rows = [line for line in plan.read_text().splitlines() if not line.startswith("#")]
     first = tmp_path / "first.csv"  # the program of the plan's first PROGRAM_EXPERIMENTS experiments
