@@ -247,7 +247,7 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
 
 def say_approximate(args: argparse.Namespace, approx: dict) -> None:
     """A line saying how long each approximate design took (on a worker, beside the starts),
-    and which were read back from the disk instead (:func:`casadi_design.optimisation.bound.computed`)."""
+    and which were read back from the disk instead (:func:`casadi_design.execution.campaign.computed`)."""
     if approx:
         kept = [c for c, a in approx.items() if a.kept]
         say(args, f"approximate designs of {', '.join(approx)}: "

@@ -33,12 +33,12 @@ from ..optimisation.bound import (
     POOL_SIZE,
     ROUNDED,
     ApproximateDesign,
-    approximate_designs,
+    Maximise,
+    approximate_one,
     bound,
-    computed,
-    keep,
     rounded_plans,
 )
+from ..runtime.cache import Memo, digest
 from ..model.build import Problem
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA
 from ..plan.design import SEEDED, Design
@@ -84,6 +84,54 @@ class Campaign:
     settings: Settings
     designs: dict[tuple[str, int], Design]
     approx: dict[str, ApproximateDesign]
+
+
+#: Approximate designs, a pure function of (the problem, criterion, steps, pool): the ones
+#: used last in this process, and on disk (:mod:`casadi_design.runtime.cache`, named by the problem's
+#: :attr:`~casadi_design.model.build.Problem.fingerprint`, the criterion, steps and pool), so that a
+#: later run of any command on the same problem reads them back, to the bit, marked ``kept``;
+#: not when :data:`casadi_design.runtime.cache.KEEP_DESIGNS` is 0.
+APPROXIMATE: Memo[ApproximateDesign] = Memo(32, kind="approximate-design",
+                                            on_read=lambda a: replace(a, kept=True))
+
+
+def approximate_key(problem: Problem, criterion: str, steps: int, pool: int) -> str:
+    """The name of an approximate design in :data:`APPROXIMATE` (:func:`~casadi_design.runtime.cache.digest`)."""
+    return digest(*(str(v).encode() for v in (problem.fingerprint, criterion, steps, pool)))
+
+
+def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE
+             ) -> tuple[dict[str, ApproximateDesign], list[str]]:
+    """Of the approximate designs of ``criteria`` that have a bound (none when ``steps`` is 0):
+    those computed in this process already or kept on disk by an earlier run (these marked
+    ``kept``), and the criteria still to compute."""
+    wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
+    have = {c: a for c in wanted for a in [APPROXIMATE.lookup(approximate_key(problem, c, steps, pool))]
+            if isinstance(a, ApproximateDesign)}
+    return have, [c for c in wanted if c not in have]
+
+
+def keep(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> None:
+    """Keep ``approx`` (of ``problem`` with ``steps`` and ``pool``) for the commands that run
+    after this one in this process and on this machine (:func:`computed`)."""
+    APPROXIMATE.keep(approximate_key(problem, approx.criterion, steps, pool), approx)
+
+
+def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,
+                        executor=None, maximise: Maximise | None = None) -> dict[str, ApproximateDesign]:
+    """The approximate design (:func:`approximate_one`) of each of ``criteria`` that has a
+    bound; none when ``steps`` is 0. ``executor`` (:mod:`casadi_design.execution.parallel`) computes
+    those not computed yet in this process at the same time, one per worker; None: here, one
+    after the other, their searches run by ``maximise`` (:func:`approximate_design`'s). The
+    result is the same either way."""
+    have, missing = computed(problem, criteria, steps, pool)
+    if missing:
+        found = (executor.map_approximate(problem, missing, steps, pool) if executor is not None
+                 else (approximate_one(problem, c, steps, pool, maximise) for c in missing))
+        for a in found:
+            keep(problem, steps, pool, a)
+            have[a.criterion] = a
+    return {c: have[c] for c in criteria if c in have}
 
 
 def campaign_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],

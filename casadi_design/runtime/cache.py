@@ -2,7 +2,7 @@
 cells, functions per model, approximate designs); on disk between runs, per machine, the compiled CasADi functions
 (:mod:`casadi_design.model.compiled`), the capsules fitted around a robot's meshes
 (:func:`casadi_design.model.collision.capsules_from_geometry`), the cell's pairs, the approximate
-designs behind the bounds (:func:`casadi_design.optimisation.bound.approximate_designs`) and the designs'
+designs behind the bounds (:func:`casadi_design.execution.campaign.approximate_designs`) and the designs'
 starts (:func:`casadi_design.optimisation.solve.solve_start`).
 
 Everything kept is named by a hash of all it is computed from (the inputs' bytes and the code
@@ -32,7 +32,7 @@ from typing import Generic, TypeVar
 T = TypeVar("T")
 
 
-#: 0: the approximate designs (:func:`casadi_design.optimisation.bound.approximate_designs`) and the
+#: 0: the approximate designs (:func:`casadi_design.execution.campaign.approximate_designs`) and the
 #: designs' starts (:func:`casadi_design.optimisation.solve.solve_start`) are neither read from nor written to
 #: the disk (the test suite: each test computes its own).
 KEEP_DESIGNS = "CASADI_DESIGN_KEEP_DESIGNS"

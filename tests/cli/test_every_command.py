@@ -18,7 +18,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from casadi_design.optimisation.bound import approximate_designs, bound
+from casadi_design.execution.campaign import approximate_designs
+from casadi_design.optimisation.bound import bound
 from casadi_design.model.build import build_robot, load_problem
 from casadi_design.cli import main
 from casadi_design.records.export import read_plan_table

@@ -78,16 +78,15 @@ def test_a_one_start_solve_spreads_the_searches_over_the_workers_to_the_same_des
     workers; the same design as computed here. Two to compute on two workers: one per worker,
     beside the starts (None). The whole pipeline with bounds: the slow test below and
     test_the_commands_give_the_same_numbers_for_any_jobs."""
-    from casadi_design.optimisation import bound
     from casadi_design.execution import campaign
 
     settings = Settings(1, bound_steps=1, bound_pool=SMALL_POOL)
-    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
-    serial = bound.approximate_designs(paper, ["test-pose"], 1, SMALL_POOL)["test-pose"]
-    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
+    monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
+    serial = campaign.approximate_designs(paper, ["test-pose"], 1, SMALL_POOL)["test-pose"]
+    monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     with ProcessExecutor(2) as ex:
         spread = campaign._spread(paper, ("test-pose",), (1,), settings, {}, ex)["test-pose"]
-        monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
+        monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
         assert campaign._spread(paper, ("test-pose", "D"), (1,), settings, {}, ex) is None
     assert (spread.value, spread.certified, spread.d_max, spread.history, spread.checked) == \
         (serial.value, serial.certified, serial.d_max, serial.history, serial.checked)
@@ -100,22 +99,20 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
     """On workers the campaign is a pipeline (the approximate designs, the seeded starts of
     later designs, the rounded and warm starts once their inputs returned): the same designs,
     starts and bounds as one design after the other."""
-    from casadi_design.optimisation import bound
-
     from casadi_design.execution import campaign
 
     args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2, bound_pool=SMALL_POOL))
-    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
+    monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     plain = run_sweep(*args)
-    serial = bound.computed(paper, ["test-pose"], 2, args[3].bound_pool)[0]["test-pose"]
-    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())  # computed again, on the workers
+    serial = campaign.computed(paper, ["test-pose"], 2, args[3].bound_pool)[0]["test-pose"]
+    monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())  # computed again, on the workers
     with ProcessExecutor(2) as ex:
         pooled = run_sweep(*args, executor=ex)
         # a one-start solve's approximate design: here, each step's searches split over the
         # workers; two to compute on two workers: one per worker, beside the starts
-        monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
+        monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
         spread = campaign._spread(paper, ("test-pose",), (1,), args[3], {}, ex)["test-pose"]
-        monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
+        monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
         assert campaign._spread(paper, ("test-pose", "D"), (1,), args[3], {}, ex) is None
     assert (spread.value, spread.certified, spread.d_max, spread.history, spread.checked) == \
         (serial.value, serial.certified, serial.d_max, serial.history, serial.checked)
@@ -227,16 +224,16 @@ def test_the_commands_give_the_same_numbers_for_any_jobs(tmp_path, monkeypatch, 
     computes them again in its pipeline): the same table as ``bound --jobs 1``."""
     import json
 
-    from casadi_design.optimisation import bound
+    from casadi_design.execution import campaign
 
     bounds = ["--bound-steps", "2", "--bound-pool", str(SMALL_POOL), "--quiet"]
     records, tables = [], []
     for jobs in ("1", "2"):
-        monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())  # the approximate designs computed again
+        monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())  # the approximate designs computed again
         if jobs == "2":
             assert main(["bound", str(PAPER), "--m", "1:3", *bounds, "--jobs", jobs]) == 0
             tables.append(capsys.readouterr().out)
-            monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
+            monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
         assert main(["solve", str(PAPER), "--m", "1,3", "--criteria", "test-pose,D", "--starts", "3", *bounds,
                      "--jobs", jobs, "--out", str(tmp_path / f"jobs{jobs}")]) == 0
         capsys.readouterr()

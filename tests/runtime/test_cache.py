@@ -132,29 +132,29 @@ def test_the_cells_pairs_read_back_as_selected(directory, monkeypatch):
 @pytest.fixture
 def kept_designs(directory, monkeypatch):
     """Approximate designs kept on disk (the suite turns it off), none in this process yet."""
-    from casadi_design.optimisation import bound
+    from casadi_design.execution import campaign
 
     monkeypatch.setenv(cache.KEEP_DESIGNS, "1")
-    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
-    return bound
+    monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
+    return campaign
 
 
 def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_designs, monkeypatch, paper):
     """An approximate design computed once is read back from the disk by a later process (here:
     this one with its in-process designs cleared) without computing, to the bit and marked
     ``kept``; another pool, steps or criterion is computed."""
-    bound = kept_designs
-    first = bound.approximate_designs(paper, ["test-pose", "D"], 2, 50)
+    campaign = kept_designs
+    first = campaign.approximate_designs(paper, ["test-pose", "D"], 2, 50)
     assert not any(a.kept for a in first.values())
-    monkeypatch.setattr(bound, "APPROXIMATE", bound.APPROXIMATE.empty())
+    monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     computing = []
 
     def computes(*args, **kwargs):
         computing.append(args[1:4])
         raise LookupError("computing")
 
-    monkeypatch.setattr(bound, "approximate_one", computes)
-    again = bound.approximate_designs(paper, ["test-pose", "D"], 2, 50)
+    monkeypatch.setattr(campaign, "approximate_one", computes)
+    again = campaign.approximate_designs(paper, ["test-pose", "D"], 2, 50)
     assert computing == [] and all(a.kept for a in again.values())
     for c, a in first.items():
         b = again[c]
@@ -164,7 +164,7 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
             (a.value, a.certified, a.d_max, a.history, a.checked, a.pool_size, a.wall_s)
     for steps, pool in ((2, 60), (1, 50)):  # not on the disk: computed (here: stopped as it starts)
         with pytest.raises(LookupError, match="computing"):
-            bound.approximate_designs(paper, ["test-pose"], steps, pool)
+            campaign.approximate_designs(paper, ["test-pose"], steps, pool)
     assert computing == [("test-pose", 2, 60), ("test-pose", 1, 50)]
 
 
