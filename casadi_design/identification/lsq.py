@@ -35,7 +35,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import ProblemError
-from ..model.mapped import evaluate
+from ..model.mapped import EXACT, Stacked, evaluate
 from ..model.models import CalibrationModel
 
 #: Losses of ``--loss``: scipy.optimize.least_squares's names.
@@ -164,8 +164,12 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
         Ja, T = taylor_jacobian(model, Q, F, ref)
         J0, T = Ja * w[:, None] / s, T * w[:, None, None] / s
 
+        # the same m rows at every evaluation of every trial: one kept buffer (the same bits)
+        measure = Stacked(model.measurement, m) if m <= EXACT else \
+            (lambda *rows: evaluate(model.measurement, *rows, threads=1))
+
         def model_at(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            h = evaluate(model.measurement, Q, F, np.tile(X, (m, 1)), ref, threads=1)[0]
+            h = measure(Q, F, np.tile(X, (m, 1)), ref)[0]
             return h.reshape(-1) * w / s, J0 + T @ X
     norms = np.linalg.norm(J0, axis=0)
     x_scale = 1.0 / (s * np.where(norms > 0, norms, 1.0))  # parameter units per m of the values

@@ -51,6 +51,36 @@ class OneByOne:
         return self.y.copy()
 
 
+class Stacked:
+    """``fn`` evaluated on the same N stacked cases again and again with new values (the rows of
+    a fit at each iteration), through one mapped function and one buffer kept for every call:
+    :func:`evaluate` without its per-call set-up (the same function of the same size, so the
+    same bits). Dense inputs and outputs; not for two threads at once: the buffer is shared."""
+
+    def __init__(self, fn: ca.Function, N: int):
+        if not all(fn.sparsity_in(i).is_dense() for i in range(fn.n_in())) or \
+                not all(fn.sparsity_out(b).is_dense() for b in range(fn.n_out())):
+            raise ValueError(f"Stacked: {fn.name()} must have dense inputs and outputs")
+        K = N if 0 < N <= EXACT else min(CHUNK, 1 << max(N - 1, 0).bit_length())
+        if K != N:
+            raise ValueError(f"Stacked: {N} cases; give at most {EXACT}, or use evaluate")
+        self.shapes = [(fn.size1_out(b), fn.size2_out(b)) for b in range(fn.n_out())]
+        self.args = [np.zeros((N, fn.numel_in(i))) for i in range(fn.n_in())]
+        self.res = [np.zeros((N, fn.numel_out(b))) for b in range(fn.n_out())]
+        self.buffer, self.call_buffer = _mapped(fn, N, 1).buffer()
+        for i, a in enumerate(self.args):
+            self.buffer.set_arg(i, memoryview(a))
+        for b, r in enumerate(self.res):
+            self.buffer.set_res(b, memoryview(r))
+
+    def __call__(self, *rows: np.ndarray) -> list[np.ndarray]:
+        """As :func:`evaluate`: each output (N, rows, columns), fresh arrays."""
+        for a, r in zip(self.args, rows):
+            a[...] = np.reshape(r, a.shape)
+        self.call_buffer()
+        return [r.reshape(len(r), c, n).transpose(0, 2, 1).copy() for r, (n, c) in zip(self.res, self.shapes)]
+
+
 @functools.lru_cache(maxsize=128)
 def _mapped(fn: ca.Function, N: int, threads: int) -> ca.Function:
     return fn.map(N, "thread", threads) if threads > 1 else fn.map(N)
