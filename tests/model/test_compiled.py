@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from casadi_design.model import compiled as cc
-from casadi_design.model.mapped import OneByOne, evaluate
+from casadi_design.model.mapped import OneByOne, Stacked, evaluate
 from casadi_design.optimisation.reduced import experiment_functions
 from casadi_design.plan.rules import pose_constraints
 from casadi_design.plan.sampling import random_plan
@@ -92,6 +92,27 @@ def test_one_by_one_gives_each_input_its_own_output():
         assert np.array_equal(np.asarray(fn(xi)).ravel(), y)
     with pytest.raises(ValueError, match="one dense input"):
         OneByOne(ca.Function("two", [x, ca.SX.sym("y")], [x]))
+
+
+def test_stacked_gives_evaluate_s_bits_call_after_call(paper):
+    """:class:`Stacked` keeps one buffer for the same rows with new values: each call the bits of
+    :func:`evaluate` (and of the function case by case), earlier results untouched."""
+    model, rng = paper.model, np.random.default_rng(6)
+    m = 5
+    Q, F, ref = rng.uniform(-3, 3, (m, 2)), rng.uniform(-100, 100, (m, 2)), rng.standard_normal((m, 12))
+    stacked, kept = Stacked(model.measurement, m), []
+    for _ in range(3):
+        X = np.tile(rng.uniform(-1e-4, 1e-4, model.L), (m, 1))
+        got = stacked(Q, F, X, ref)
+        want = evaluate(model.measurement, Q, F, X, ref, threads=1)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+        one = np.asarray(model.measurement(Q[2], F[2], X[2], ref[2])[0]).ravel()
+        np.testing.assert_array_equal(got[0][2, :, 0], one)
+        kept.append((got[0].copy(), got[0]))
+    assert all(np.array_equal(a, b) for a, b in kept)  # a later call did not overwrite an earlier result
+    with pytest.raises(ValueError, match="at most 64"):
+        Stacked(model.measurement, 100)
 
 
 def test_some_capsule_rows_give_the_same_bits(cache, ur10, Q_ur10):
