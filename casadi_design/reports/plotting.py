@@ -223,7 +223,7 @@ def validation_figure(validation) -> Figure:
     ms = sorted({p.plan.m for p in validation.plans})
     fig = Figure(figsize=(5.5 * len(ms), 4.5), layout="constrained")
     axes = fig.subplots(1, len(ms), squeeze=False)[0]
-    every = max(1, len(x) // 20)
+    every = max(1, -(-len(x) // 15))  # at most 15 labels: they stay legible at 100 rows
     for ax, m in zip(axes, ms):
         for i, p in enumerate(p for p in validation.plans if p.plan.m == m):
             crit = CRITERIA[p.plan.criterion]
@@ -304,7 +304,7 @@ PREDICTED_STYLE = {"color": "tab:green"}
 AXIS_STYLES = ({"color": "tab:red"}, {"color": "tab:green"}, {"color": "tab:blue"})
 
 
-REGISTRATION_STYLE = {"color": "tab:orange"}
+REGISTRATION_STYLE = {"color": "tab:orange", "lw": 4.0, "alpha": 0.5}  # wide: shows beneath an equal nominal curve
 
 
 def identification_figure(calibration) -> Figure:
@@ -326,7 +326,7 @@ def identification_figure(calibration) -> Figure:
     if out.any():
         top = np.nanmax(np.sqrt(np.nanmean(c.residual_axes_m[out] ** 2, axis=1)), axis=1) * 1e3
         ax_r.plot(x[out], top, "kx", ms=8, label="outlier (not in the fit)")
-    every = max(1, len(x) // 20)
+    every = max(1, -(-len(x) // 15))  # at most 15 labels: they stay legible at 100 rows
     ax_r.set_xticks(x[::every], [str(line) for line in c.measurements.lines][::every], fontsize=8)
     ax_r.set_ylabel("residual, RMS over the points (mm)")
     ax_r.set_xlabel("experiment (row of the file)")
@@ -346,8 +346,8 @@ def identification_figure(calibration) -> Figure:
                                 ("calibrated", CALIBRATED_STYLE, v.calibrated_m),
                                 ("predicted", PREDICTED_STYLE, v.predicted_m)):
             order = np.argsort(e)
-            ax_v.plot(share, e[order] * 1e3, "-", lw=1.8, label=f"{label}: RMS {np.sqrt(np.mean(e**2)) * 1e3:.3f} mm",
-                      **style)
+            ax_v.plot(share, e[order] * 1e3, "-", label=f"{label}: RMS {np.sqrt(np.mean(e**2)) * 1e3:.3f} mm",
+                      **({"lw": 1.8} | style))
             if label == "calibrated" and v.out_of_range.any():
                 rank = np.flatnonzero(v.out_of_range[order])
                 ax_v.plot(share[rank], e[order][rank] * 1e3, "o", mfc="none", ms=6, color="k",
