@@ -47,19 +47,34 @@ CASES = {
 
 def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple | None) -> dict:
     """In the child: build the design solver and run the seeded starts; plain figures."""
+    import importlib
+    import inspect
     import tomllib
 
-    from casadi_design.model.build import build_problem
-    from casadi_design.measures.criteria import CRITERIA
-    from casadi_design.model.problem import parse_problem
-    from casadi_design.optimisation.solve import make_design_solver, solve_start, start_rng
+    def module(layered: str):
+        """``casadi_design.<layer>.<name>``, or ``casadi_design.<name>`` in a checkout of the
+        flat layout (--compare-with)."""
+        try:
+            return importlib.import_module(layered)
+        except ModuleNotFoundError:
+            return importlib.import_module("casadi_design." + layered.rsplit(".", 1)[1])
 
-    import casadi_design
+    build_problem = module("casadi_design.model.build").build_problem
+    CRITERIA = module("casadi_design.measures.criteria").CRITERIA
+    parse_problem = module("casadi_design.model.problem").parse_problem
+    solve = module("casadi_design.optimisation.solve")
+    random_plan = module("casadi_design.plan.sampling").random_plan
+    start_rng = solve.start_rng
+    if "B0" in inspect.signature(solve.make_design_solver).parameters:  # a checkout that passed B0
+        B0 = module("casadi_design.optimisation.nlp").B0_at_test_poses
 
-    if (Path(casadi_design.__file__).parent / "sampling.py").exists():
-        from casadi_design.plan.sampling import random_plan
-    else:  # a checkout from before casadi_design/plan/sampling.py (--compare-with)
-        from casadi_design.optimisation.solve import random_plan
+        def make_design_solver(problem, criterion, m):
+            return solve.make_design_solver(problem, criterion, m, B0(problem))
+
+        def solve_start(problem, solver, Q0, F0):
+            return solve.solve_start(problem, solver, solver.B0, Q0, F0)
+    else:
+        make_design_solver, solve_start = solve.make_design_solver, solve.solve_start
 
     raw = tomllib.loads(Path(problem_file).read_text())
     if grid is not None:
