@@ -51,13 +51,15 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
     import inspect
     import tomllib
 
+    import casadi_design
+
+    # a checkout of the flat layout (--compare-with) has casadi_design/<name>.py; an editable
+    # install would otherwise resolve the layered names in this checkout instead
+    flat = not (Path(casadi_design.__file__).parent / "model").is_dir()
+
     def module(layered: str):
-        """``casadi_design.<layer>.<name>``, or ``casadi_design.<name>`` in a checkout of the
-        flat layout (--compare-with)."""
-        try:
-            return importlib.import_module(layered)
-        except ModuleNotFoundError:
-            return importlib.import_module("casadi_design." + layered.rsplit(".", 1)[1])
+        """``casadi_design.<layer>.<name>``, or ``casadi_design.<name>`` in a flat checkout."""
+        return importlib.import_module("casadi_design." + layered.rsplit(".", 1)[1] if flat else layered)
 
     build_problem = module("casadi_design.model.build").build_problem
     CRITERIA = module("casadi_design.measures.criteria").CRITERIA
@@ -112,9 +114,13 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
 
 def _capsule_rows(problem) -> int:
     """Capsule rows of one experiment (0 without a cell)."""
-    from casadi_design.plan.rules import pose_constraints
+    import importlib
 
-    collision = getattr(pose_constraints(problem), "collision", None)
+    import casadi_design
+
+    layered = (Path(casadi_design.__file__).parent / "plan").is_dir()
+    rules = importlib.import_module("casadi_design.plan.rules" if layered else "casadi_design.rules")
+    collision = getattr(rules.pose_constraints(problem), "collision", None)
     return 0 if collision is None else len(collision.inputs)
 
 
