@@ -20,6 +20,19 @@ e.g. a worktree of an older commit) and adds the old/new ratios of time per star
 line says whether the functions are compiled and where their cache is; build times include
 compiling what the cache does not hold yet. Figures are for the machine at hand; compare
 ratios, not absolutes.
+
+Plan quality over the benchmark set (the rule of issue 47)::
+
+    python scripts/benchmark.py --run-set DIR                     # the set's runs, in DIR/<run>
+    python scripts/benchmark.py --quality BASELINE_DIR --candidate DIR
+
+The set (:data:`QUALITY_SET`): both studies as shipped, the UR10 sweep m = 9..20 of test-pose
+and D, and the paper's Table 4. For each design, ``r`` = new / old on its own criterion, so that
+``r > 1`` is worse: the max error for test-pose and I, tr M^-1 for A, 1 / s_min for E, the
+condition number, tr M for T (inverted), ``exp((log det M_old - log det M_new) / L)`` for D.
+Accepted when the geometric mean of r is at most 1 and no r exceeds ``R_MAX``, the fixed
+targets hold (:data:`TARGETS_MM`, Table 4 to its printed digits) and every approximate design's
+certificate was checked and is within ``CERTIFICATE_GAP`` of its relaxation.
 """
 
 from __future__ import annotations
@@ -32,6 +45,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 #: case -> (problem file, m values, starts, test poses: None for the file's own, or
@@ -158,6 +173,104 @@ def child(package_dir: Path, problem_file: str, criterion: str, m: int, starts: 
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+#: The benchmark set: run name -> the command's arguments (its output folder appended).
+QUALITY_SET = {
+    "paper": ["solve", "problems/paper_planar_2r.toml"],
+    "ur10": ["solve", "problems/ur10_drilling.toml"],
+    "abb": ["solve", "problems/abb_irb6640_machining.toml"],
+    "sweep": ["sweep", "problems/ur10_drilling.toml", "--m", "9:20", "--criteria", "test-pose,D"],
+}
+#: Largest r of one design, and the fixed targets: (run, criterion, m) -> largest max error (mm).
+R_MAX = 1.02
+TARGETS_MM = {("ur10", "test-pose", 9): 0.0238, ("ur10", "test-pose", 12): 0.0194,
+              ("abb", "test-pose", 6): 0.0397, ("abb", "test-pose", 8): 0.0205}
+#: The paper's Table 4 (mm): (criterion, m) -> value, held within ``TABLE_4_TOL_MM`` (its last
+#: printed digit, as tests/optimisation/test_design.py holds it).
+TABLE_4_MM = {("test-pose", 1): 0.137, ("test-pose", 5): 0.055, ("D", 1): 0.170, ("D", 5): 0.069,
+              ("E", 1): 0.240}
+TABLE_4_TOL_MM = 0.002
+#: Largest relative distance of a certificate from its relaxation.
+CERTIFICATE_GAP = 0.005
+
+
+def run_set(out: Path) -> None:
+    """Run the benchmark set as shipped, each run in ``out/<run>`` (its time printed)."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, command in QUALITY_SET.items():
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "casadi_design", *command, "--out", str(out / name),
+                               "--force", "--quiet"], cwd=ROOT)
+        print(f"{name}: {time.perf_counter() - t0:.1f} s" + (f", exit {proc.returncode}" if proc.returncode else ""))
+
+
+def _designs(folder: Path) -> tuple[dict, dict, int]:
+    """The designs of a run folder ``{(criterion, m): record}``, its approximate designs and L."""
+    path = folder / "results.json" if (folder / "results.json").exists() else folder / "sweep.json"
+    record = json.loads(path.read_text())
+    return ({(d["criterion"], d["m"]): d for d in record["designs"]},
+            {a["criterion"]: a for a in record.get("approximate_designs", [])},
+            len(record["calibration"]["parameters"]))
+
+
+def ratio(criterion: str, old: dict, new: dict, L: int) -> float:
+    """``r`` of one design (module docstring): new over old on its own criterion, > 1 worse."""
+    so, sn = old["scores"], new["scores"]
+    if criterion in ("test-pose", "I"):
+        return new["max_rms_error_m"] / old["max_rms_error_m"]
+    if criterion == "D":
+        return float(np.exp((so["log_det_M"] - sn["log_det_M"]) / L))
+    if criterion == "A":
+        return sn["trace_M_inv"] / so["trace_M_inv"]
+    if criterion == "E":
+        return so["s_min"] / sn["s_min"]
+    if criterion == "condition":
+        return sn["condition"] / so["condition"]
+    if criterion == "T":
+        return so["trace_M"] / sn["trace_M"]
+    raise ValueError(f"no quality ratio for criterion {criterion}")
+
+
+def quality(base: Path, candidate: Path) -> bool:
+    """Print the table of r over the benchmark set, the targets and the verdict."""
+    rows, problems = [], []
+    for name in QUALITY_SET:
+        if not ((base / name).is_dir() and (candidate / name).is_dir()):
+            problems.append(f"{name}: not run in both folders (--run-set runs the whole set)")
+            continue
+        old, _, _ = _designs(base / name)
+        new, approx, L = _designs(candidate / name)
+        for key in sorted(set(old) & set(new), key=lambda k: (k[1], k[0])):
+            rows.append((name, *key, ratio(key[0], old[key], new[key], L)))
+        missing = sorted(set(old) ^ set(new))
+        if missing:
+            problems.append(f"{name}: designs in only one of the two runs: {missing}")
+        for (run, c, m), limit in TARGETS_MM.items():
+            if run == name and (c, m) in new and new[c, m]["max_rms_error_m"] * 1e3 > limit:
+                problems.append(f"{name} {c} m = {m}: {new[c, m]['max_rms_error_m'] * 1e3:.4f} mm > {limit} mm")
+        if name == "paper":
+            for (c, m), printed in TABLE_4_MM.items():
+                got = new[c, m]["max_rms_error_m"] * 1e3
+                if abs(got - printed) > TABLE_4_TOL_MM:
+                    problems.append(f"paper {c} m = {m}: {got:.4f} mm is not Table 4's {printed} "
+                                    f"within {TABLE_4_TOL_MM} mm")
+        for c, a in approx.items():
+            gap = abs(a["certified"] - a["relaxation"]) / abs(a["relaxation"])
+            if not a.get("independent_checks") or gap > CERTIFICATE_GAP:
+                problems.append(f"{name} {c}: certificate {a['certified']:.6g} is {gap * 100:.2f} % from the "
+                                f"relaxation {a['relaxation']:.6g} ({a.get('independent_checks')} checks)")
+    print(f"{'run':<7}{'criterion':<11}{'m':>4}{'r':>10}")
+    for name, c, m, r in rows:
+        print(f"{name:<7}{c:<11}{m:>4}{r:>10.4f}" + ("  > R_MAX" if r > R_MAX else ""))
+    r = np.array([row[3] for row in rows])
+    gmean = float(np.exp(np.mean(np.log(r))))
+    print(f"{len(r)} designs: geometric mean of r {gmean:.4f}, largest {r.max():.4f} (accepted: <= 1 and <= {R_MAX})")
+    problems += [f"geometric mean of r {gmean:.4f} > 1"] if gmean > 1 + 1e-12 else []
+    problems += [f"largest r {r.max():.4f} > {R_MAX}"] if r.max() > R_MAX else []
+    print("\n".join(problems) if problems else "all fixed targets and certificates hold")
+    print("verdict:", "accepted" if not problems else "refused")
+    return not problems
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="paper,ur10,abb", help=f"among {', '.join(CASES)}")
@@ -168,9 +281,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compare-vm", action="store_true",
                         help="compare with this checkout in CasADi's virtual machine (nothing compiled)")
     parser.add_argument("--out", default="benchmark.json", help="JSON file of all figures")
+    parser.add_argument("--run-set", metavar="DIR", help="run the benchmark set as shipped into DIR and stop")
+    parser.add_argument("--quality", metavar="BASELINE_DIR",
+                        help="judge the runs of --candidate DIR against those of BASELINE_DIR (--run-set folders)")
+    parser.add_argument("--candidate", metavar="DIR", help="the runs judged by --quality")
     parser.add_argument("--studies", action="store_true",
                         help="also time each case's whole study, `casadi-design solve CASE --jobs 2`")
     args = parser.parse_args(argv)
+    if args.run_set:
+        run_set(Path(args.run_set))
+        return 0
+    if args.quality:
+        if not args.candidate:
+            parser.error("--quality needs --candidate DIR (a --run-set folder of the change)")
+        return 0 if quality(Path(args.quality), Path(args.candidate)) else 1
     if args.compare_with and args.compare_vm:
         parser.error("--compare-with and --compare-vm: choose one")
     sys.path.insert(0, str(ROOT))
