@@ -267,8 +267,6 @@ _CELLS: Memo[Cell] = Memo(KEEP_BUILT)
 
 
 def _cell(spec: ProblemSpec, robot: Robot, markers: np.ndarray | None) -> Cell | None:
-    if spec.cell is None:
-        return None
     key = repr((spec.cell, spec.robot, spec.workspace.floor_z_m, None if markers is None else markers.tolist()))
     return _CELLS.get(key, lambda: build_cell(spec.cell, robot, spec.workspace, spec.robot.urdf,
                                               np.zeros((1, 3)) if markers is None else markers))

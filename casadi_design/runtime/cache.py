@@ -124,6 +124,10 @@ def code_digest() -> str:
     return digest(*sources, *(v.encode() for v in versions))
 
 
+#: What :meth:`Memo._find` returns for a key it has no value of.
+_MISSING = object()
+
+
 class Memo(Generic[T]):
     """The values of a pure function used last: at most ``size`` in this process (the least
     recently used dropped), and with ``kind`` also on disk as ``<kind>-<key>.pickle``
@@ -138,6 +142,11 @@ class Memo(Generic[T]):
 
     def lookup(self, key: Hashable) -> T | None:
         """The value of ``key`` in this process or on disk, or None."""
+        value = self._find(key)
+        return None if value is _MISSING else value
+
+    def _find(self, key: Hashable) -> object:
+        """The value of ``key`` (None too, as a value), or ``_MISSING``."""
         if key in self._values:
             self._values.move_to_end(key)
             return self._values[key]
@@ -147,7 +156,7 @@ class Memo(Generic[T]):
                 value = value if self.on_read is None else self.on_read(value)
                 self._remember(key, value)
                 return value
-        return None
+        return _MISSING
 
     def keep(self, key: Hashable, value: T) -> None:
         """Keep ``value`` as the value of ``key`` (in this process, and on disk with ``kind``)."""
@@ -156,9 +165,9 @@ class Memo(Generic[T]):
             write(self.kind, str(key), value)
 
     def get(self, key: Hashable, make: Callable[[], T]) -> T:
-        """The value of ``key``: kept, or ``make()`` computed and kept."""
-        value = self.lookup(key)
-        if value is None:
+        """The value of ``key``: kept, or ``make()`` computed and kept (None is a value too)."""
+        value = self._find(key)
+        if value is _MISSING:
             value = make()
             self.keep(key, value)
         return value

@@ -275,3 +275,6 @@ def test_a_memo_keeps_the_values_used_last_and_reads_its_disk_layer(tmp_path, mo
     assert not (tmp_path / "test-k2.pickle").exists() and kept.lookup("k2") == "v2"
     assert cache.Memo(0, kind="test", disk=lambda: True).get("k3", lambda: "v3") == "v3"
     assert cache.Memo(0).get("k4", lambda: "v4") == "v4" and len(cache.Memo(0)) == 0
+    nothing = cache.Memo(2)  # None is a value (a problem without a cell): made once
+    assert [nothing.get("k", lambda: made.append("none")) for _ in range(3)] == [None] * 3
+    assert made.count("none") == 1
