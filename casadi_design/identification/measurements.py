@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 from ..model.build import Problem
 from ..errors import ProblemError
@@ -232,18 +233,11 @@ def _orientation(problem: Problem, header: list[str], fmt: FileFormat, path: str
 
 
 def pose_rotations(convention: str, values: np.ndarray) -> np.ndarray:
-    """Rotation matrices (m, 3, 3) of ``values`` (m, 4) quaternions ``w, x, y, z`` or (m, 3)
-    roll, pitch, yaw (rad): ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    """Rotation matrices (m, 3, 3) of ``values`` (m, 4) quaternions ``w, x, y, z`` (normalised)
+    or (m, 3) roll, pitch, yaw (rad): ``R = Rz(yaw) Ry(pitch) Rx(roll)``, Pinocchio's."""
     if convention == "quaternion":
-        w, x, y, z = (values / np.linalg.norm(values, axis=1, keepdims=True)).T
-        return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                         np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                         np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
-    r, p, y = values.T
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.stack([np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
-                     np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
-                     np.stack([-sp, cp * sr, cp * cr], -1)], 1)
+        return np.array([pin.Quaternion(*(float(v) for v in row)).normalized().matrix() for row in values])
+    return np.array([pin.rpy.rpyToMatrix(*(float(v) for v in row)) for row in values])
 
 
 def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat()) -> Measurements:
