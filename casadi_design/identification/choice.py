@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.build import Problem
+from ..model.symbolic import carried_weights
 from ..errors import DesignError, ProblemError
 from .fit import Fit, FitModel, fit, fit_model, row_errors, whitening
 from .measurements import Measurements, measured_axes
@@ -100,10 +101,10 @@ def candidate_parameters(problem: Problem, name: str) -> tuple[str, ...]:
 
 
 def has_weight(problem: Problem) -> bool:
-    """Whether the robot's own weight loads its joints (the URDF gives the links' masses)."""
-    q = (problem.robot.q_min + problem.robot.q_max) / 2
-    g = np.asarray(problem.model.kinematics.gravity_torque(np.clip(q, -math.pi, math.pi)))
-    return bool(np.any(np.abs(g) > 0))
+    """Whether the robot's own weight loads its joints: the chain carries a mass (the URDF's
+    inertias) and the model has gravity."""
+    robot = problem.robot
+    return bool(np.any(robot.model.gravity.linear)) and any(carried_weights(robot))
 
 
 def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float, float, str]:

@@ -123,7 +123,7 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
     Pi = ca.SX.sym("Pi", len(names))
     R, p = _error_placement(Pi[0:6])
     origins, carried, carried_names = [], [], []
-    weights = _carried_weights(robot)
+    weights = carried_weights(robot)
     V = ca.SX(0)
     for k, jid in enumerate(robot.joint_ids):
         base = 6 + 7 * k
@@ -164,7 +164,7 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
     )
 
 
-def _carried_weights(robot: Robot) -> list[list[tuple[float, np.ndarray]]]:
+def carried_weights(robot: Robot) -> list[list[tuple[float, np.ndarray]]]:
     """Per chain joint, the (mass kg, centre of mass m in the joint's frame) of each body whose
     nearest chain joint on its way to the root it is (its own body, and those of joints off
     the chain beyond it, at their neutral values; bodies before the chain do not move)."""
