@@ -210,8 +210,7 @@ def design_information(f: Fit, meas: Measurements) -> np.ndarray:
     prior ``diag((sigma / std)^2)``."""
     model = f.fit.model
     B = model.B_stack(meas.Q[f.used], meas.F[f.used]) * model.column_scale * f.mask[f.used][:, :, None]
-    M = information_matrix(B)
-    return M if f.prior_information is None else M + np.diag(f.prior_information)
+    return f.with_prior(information_matrix(B))
 
 
 def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,

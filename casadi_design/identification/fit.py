@@ -213,7 +213,11 @@ class Fit:
     def information(self) -> np.ndarray:
         """``M = J^T J`` of the rows used (whitened, m^2 per parameter unit^2), plus
         ``diag((sigma / std)^2)`` of a MAP fit's prior: ``sigma^2 M^-1`` is the covariance."""
-        M = information_matrix(self.J[self.used])
+        return self.with_prior(information_matrix(self.J[self.used]))
+
+    def with_prior(self, M: np.ndarray) -> np.ndarray:
+        """``M`` (L x L, whitened, m^2 per parameter unit^2) plus a MAP fit's prior information
+        ``diag((sigma / std)^2)``; ``M`` itself for least squares."""
         return M if self.prior_information is None else M + np.diag(self.prior_information)
 
 
