@@ -62,19 +62,8 @@ CASES = {
 
 def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple | None) -> dict:
     """In the child: build the design solver and run the seeded starts; plain figures."""
-    import importlib
     import inspect
     import tomllib
-
-    import casadi_design
-
-    # a checkout of the flat layout (--compare-with) has casadi_design/<name>.py; an editable
-    # install would otherwise resolve the layered names in this checkout instead
-    flat = not (Path(casadi_design.__file__).parent / "model").is_dir()
-
-    def module(layered: str):
-        """``casadi_design.<layer>.<name>``, or ``casadi_design.<name>`` in a flat checkout."""
-        return importlib.import_module("casadi_design." + layered.rsplit(".", 1)[1] if flat else layered)
 
     build_problem = module("casadi_design.model.build").build_problem
     CRITERIA = module("casadi_design.measures.criteria").CRITERIA
@@ -129,14 +118,20 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
 
 def _capsule_rows(problem) -> int:
     """Capsule rows of one experiment (0 without a cell)."""
+    collision = getattr(module("casadi_design.plan.rules").pose_constraints(problem), "collision", None)
+    return 0 if collision is None else len(collision.inputs)
+
+
+def module(layered: str):
+    """``casadi_design.<layer>.<name>`` of the checkout imported, or ``casadi_design.<name>`` in
+    a checkout of the flat layout (--compare-with): told by its folders, since an editable
+    install would otherwise resolve the layered names in this checkout."""
     import importlib
 
     import casadi_design
 
-    layered = (Path(casadi_design.__file__).parent / "plan").is_dir()
-    rules = importlib.import_module("casadi_design.plan.rules" if layered else "casadi_design.rules")
-    collision = getattr(rules.pose_constraints(problem), "collision", None)
-    return 0 if collision is None else len(collision.inputs)
+    flat = not (Path(casadi_design.__file__).parent / "model").is_dir()
+    return importlib.import_module("casadi_design." + layered.rsplit(".", 1)[1] if flat else layered)
 
 
 def study(problem_file: str, jobs: int) -> dict:
