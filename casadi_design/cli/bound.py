@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..optimisation.bound import bound
-from ..execution.campaign import Settings, approximate, check_m_values
+from ..execution.campaign import Settings, aim, approximate, check_m_values
 from ..reports.tables import format_bounds
 from . import common
 
@@ -35,10 +35,10 @@ def run(args: argparse.Namespace) -> int:
         ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
         check_m_values(problem, ms)
         settings = Settings(problem.solver.starts, args.bound_steps, args.bound_pool)
-        approx = approximate(problem, ("test-pose", "D"), settings, ex)
+        approx = approximate(problem, ("test-pose", "D"), ms, settings, ex)
     print(common.case_line(problem))
-    print(format_bounds([bound(problem, m, approx["test-pose"]) for m in ms],
-                        [bound(problem, m, approx["D"]) for m in ms]))
+    print(format_bounds([bound(problem, m, approx[aim(problem, "test-pose", m)]) for m in ms],
+                        [bound(problem, m, approx[aim(problem, "D", m)]) for m in ms]))
     for a in approx.values():
         common.say(args, f"{a.criterion}: {len(a.weights)} support points, pool {a.pool_size}, "
                          f"{len(a.history)} exchange steps, {len(a.checked)} independent checks, "

@@ -249,8 +249,9 @@ def say_approximate(args: argparse.Namespace, approx: dict) -> None:
     """A line saying how long each approximate design took (on a worker, beside the starts),
     and which were read back from the disk instead (:func:`casadi_design.execution.campaign.computed`)."""
     if approx:
-        kept = [c for c, a in approx.items() if a.kept]
-        say(args, f"approximate designs of {', '.join(approx)}: "
+        names = {w: c + (f" (m = {m})" if m else "") for w in approx for c, m in [w]}
+        kept = [names[w] for w, a in approx.items() if a.kept]
+        say(args, f"approximate designs of {', '.join(names.values())}: "
                   f"{', '.join(f'{a.wall_s:.1f}' for a in approx.values())} s "
                   f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})"
                   + (f"; {', '.join(kept)} read back from the cache (the times are of the run "

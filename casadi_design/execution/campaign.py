@@ -48,6 +48,24 @@ from ..optimisation.solve import StartExecutor, StartPlan, StartResult, best_des
 
 #: Extra starts of a design: ``(criterion, m, designs so far) -> [(Q0, F0, origin), ...]``.
 ExtraStarts = Callable[[str, int, dict[tuple[str, int], Design]], list[tuple]]
+#: The name of an approximate design in a campaign: ``(criterion, m)``, m = 0 when one design
+#: serves every m (nothing held; :class:`~casadi_design.optimisation.bound.ApproximateDesign`).
+Aim = tuple[str, int]
+
+
+def aim(problem: Problem, criterion: str, m: int) -> Aim:
+    """The approximate design that bounds and starts the design (criterion, m)."""
+    return (criterion, m if problem.M_held is not None else 0)
+
+
+def aims(problem: Problem, criteria: Iterable[str], m_values: Iterable[int]) -> list[Aim]:
+    """The approximate designs of the criteria with a bound for ``m_values``, in campaign order."""
+    out: list[Aim] = []
+    for m in m_values:
+        for c in criteria:
+            if c in BOUND_CRITERIA and aim(problem, c, m) not in out:
+                out.append(aim(problem, c, m))
+    return out
 
 
 @dataclass(frozen=True)
@@ -83,7 +101,7 @@ class Campaign:
     m_values: tuple[int, ...]
     settings: Settings
     designs: dict[tuple[str, int], Design]
-    approx: dict[str, ApproximateDesign]
+    approx: dict[Aim, ApproximateDesign]
 
 
 #: Approximate designs, a pure function of (the problem, criterion, steps, pool): the ones
@@ -95,43 +113,45 @@ APPROXIMATE: Memo[ApproximateDesign] = Memo(32, kind="approximate-design",
                                             on_read=lambda a: replace(a, kept=True))
 
 
-def approximate_key(problem: Problem, criterion: str, steps: int, pool: int) -> str:
+def approximate_key(problem: Problem, wanted: Aim, steps: int, pool: int) -> str:
     """The name of an approximate design in :data:`APPROXIMATE` (:func:`~casadi_design.runtime.cache.digest`)."""
-    return digest(*(str(v).encode() for v in (problem.fingerprint, criterion, steps, pool)))
+    c, m = wanted
+    return digest(*(str(v).encode() for v in (problem.fingerprint, c, steps, pool, *((m,) if m else ()))))
 
 
-def computed(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE
-             ) -> tuple[dict[str, ApproximateDesign], list[str]]:
-    """Of the approximate designs of ``criteria`` that have a bound (none when ``steps`` is 0):
-    those computed in this process already or kept on disk by an earlier run (these marked
-    ``kept``), and the criteria still to compute."""
-    wanted = [c for c in criteria if c in BOUND_CRITERIA and steps > 0]
-    have = {c: a for c in wanted for a in [APPROXIMATE.lookup(approximate_key(problem, c, steps, pool))]
+def computed(problem: Problem, wanted: Iterable[Aim], steps: int = BOUND_STEPS, pool: int = POOL_SIZE
+             ) -> tuple[dict[Aim, ApproximateDesign], list[Aim]]:
+    """Of the approximate designs ``wanted`` (:func:`aims`; none when ``steps`` is 0): those
+    computed in this process already or kept on disk by an earlier run (these marked
+    ``kept``), and those still to compute."""
+    wanted = [a for a in wanted if steps > 0]
+    have = {w: a for w in wanted for a in [APPROXIMATE.lookup(approximate_key(problem, w, steps, pool))]
             if isinstance(a, ApproximateDesign)}
-    return have, [c for c in wanted if c not in have]
+    return have, [w for w in wanted if w not in have]
 
 
 def keep(problem: Problem, steps: int, pool: int, approx: ApproximateDesign) -> None:
     """Keep ``approx`` (of ``problem`` with ``steps`` and ``pool``) for the commands that run
     after this one in this process and on this machine (:func:`computed`)."""
-    APPROXIMATE.keep(approximate_key(problem, approx.criterion, steps, pool), approx)
+    APPROXIMATE.keep(approximate_key(problem, (approx.criterion, approx.m), steps, pool), approx)
 
 
-def approximate_designs(problem: Problem, criteria, steps: int = BOUND_STEPS, pool: int = POOL_SIZE,
-                        executor=None, maximise: Maximise | None = None) -> dict[str, ApproximateDesign]:
-    """The approximate design (:func:`approximate_one`) of each of ``criteria`` that has a
-    bound; none when ``steps`` is 0. ``executor`` (:mod:`casadi_design.execution.parallel`) computes
+def approximate_designs(problem: Problem, wanted: Iterable[Aim], steps: int = BOUND_STEPS, pool: int = POOL_SIZE,
+                        executor=None, maximise: Maximise | None = None) -> dict[Aim, ApproximateDesign]:
+    """The approximate designs ``wanted`` (:func:`aims`, each by :func:`approximate_one`);
+    none when ``steps`` is 0. ``executor`` (:mod:`casadi_design.execution.parallel`) computes
     those not computed yet in this process at the same time, one per worker; None: here, one
     after the other, their searches run by ``maximise`` (:func:`approximate_design`'s). The
     result is the same either way."""
-    have, missing = computed(problem, criteria, steps, pool)
+    wanted = list(wanted)
+    have, missing = computed(problem, wanted, steps, pool)
     if missing:
         found = (executor.map_approximate(problem, missing, steps, pool) if executor is not None
-                 else (approximate_one(problem, c, steps, pool, maximise) for c in missing))
+                 else (approximate_one(problem, c, steps, pool, maximise, m) for c, m in missing))
         for a in found:
             keep(problem, steps, pool, a)
-            have[a.criterion] = a
-    return {c: have[c] for c in criteria if c in have}
+            have[a.criterion, a.m] = a
+    return {w: have[w] for w in wanted if w in have}
 
 
 def campaign_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],
@@ -158,11 +178,12 @@ def check_m_values(problem: Problem, m_values: Iterable[int]) -> None:
             f"m >= {problem.m_min} experiments; start the range at {problem.m_min}")
 
 
-def approximate(problem: Problem, criteria: Iterable[str], settings: Settings,
-                executor: StartExecutor | None = None) -> dict[str, ApproximateDesign]:
-    """The approximate designs of the criteria that have a bound (none when
+def approximate(problem: Problem, criteria: Iterable[str], m_values: Iterable[int], settings: Settings,
+                executor: StartExecutor | None = None) -> dict[Aim, ApproximateDesign]:
+    """The approximate designs of the criteria that have a bound for ``m_values`` (none when
     ``settings.bound_steps`` is 0), one per worker of ``executor`` at the same time."""
-    return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool, executor)
+    return approximate_designs(problem, aims(problem, criteria, m_values), settings.bound_steps,
+                               settings.bound_pool, executor)
 
 
 def has_bound(criterion: str, settings: Settings) -> bool:
@@ -182,7 +203,7 @@ def run_campaign(
     m_values: Iterable[int],
     settings: Settings,
     *,
-    approx: dict[str, ApproximateDesign] | None = None,
+    approx: dict[Aim, ApproximateDesign] | None = None,
     executor: StartExecutor | None = None,
     done: dict[tuple[str, int], Design] | None = None,
     extra_starts: ExtraStarts | None = None,
@@ -193,7 +214,7 @@ def run_campaign(
 
     Parameters
     ----------
-    approx : the approximate designs (:func:`approximate`); computed when None.
+    approx : approximate designs already made (:func:`approximate`); the others are computed.
     executor : where the starts run (:mod:`casadi_design.execution.parallel`); None: here, one by one.
     done : designs already solved (a resumed sweep): kept, not solved again.
     extra_starts : the caller's extra starts of each design (they run after the seeded ones
@@ -206,14 +227,17 @@ def run_campaign(
     check_m_values(problem, ms)
     designs: dict[tuple[str, int], Design] = dict(done or {})
     if executor is not None and hasattr(executor, "run"):
-        approx = _spread(problem, criteria, ms, settings, designs, executor) if approx is None else approx
+        approx = {**(_spread(problem, criteria, ms, settings, designs, executor, approx or {}) or {}),
+                  **(approx or {})}
         pipeline = _Pipeline(problem, criteria, ms, settings, designs, approx, extra_starts,
                              on_design, progress)
         for task, result in executor.run(pipeline):
             pipeline.returned(task, result)
         return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria},
-                        {c: pipeline.approx[c] for c in criteria if c in pipeline.approx})
-    approx = approximate(problem, criteria, settings, executor) if approx is None else approx
+                        {a: pipeline.approx[a] for a in aims(problem, criteria, ms) if a in pipeline.approx})
+    given = dict(approx or {})
+    approx = {**approximate_designs(problem, [a for a in aims(problem, criteria, ms) if a not in given],
+                                    settings.bound_steps, settings.bound_pool, executor), **given}
     for m in ms:
         for c in criteria:
             if (c, m) in designs:
@@ -234,29 +258,30 @@ def _later_starts(problem: Problem, c: str, m: int, designs: dict, approx: dict,
     """The starts of design (c, m) after its seeded ones, ``(Q0, F0, origin)``: the caller's
     extra starts (from the designs so far), then those rounded from its approximate design."""
     extra = extra_starts(c, m, designs) if extra_starts is not None else []
-    return extra + ([(Q, F, ROUNDED) for Q, F in rounded_plans(problem, approx[c], m)] if c in approx else [])
+    a = approx.get(aim(problem, c, m))
+    return extra + ([(Q, F, ROUNDED) for Q, F in rounded_plans(problem, a, m)] if a is not None else [])
 
 
 def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
     """``design`` with the bound of its criterion for its m, when it has an approximate design."""
-    if design.criterion not in approx:
-        return design
-    return replace(design, bound=bound(problem, design.m, approx[design.criterion]))
+    a = approx.get(aim(problem, design.criterion, design.m))
+    return design if a is None else replace(design, bound=bound(problem, design.m, a))
 
 
 def _spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
-            designs: dict, executor) -> dict[str, ApproximateDesign] | None:
+            designs: dict, executor, given: dict) -> dict[Aim, ApproximateDesign] | None:
     """The approximate designs computed here, one after the other, each exchange step's IPOPT
     searches split over the workers (:meth:`casadi_design.execution.parallel._Workers.maximise`), when
     the campaign has too little else to keep the workers busy meanwhile: fewer approximate
     designs to compute than workers, and no more seeded starts than workers (a one-start solve).
     Otherwise None: the pipeline runs each on one worker beside the starts. The same designs
     either way (each search is a pure function of its inputs)."""
-    missing = computed(problem, criteria, settings.bound_steps, settings.bound_pool)[1]
+    wanted = [a for a in aims(problem, criteria, ms) if a not in given]
+    missing = computed(problem, wanted, settings.bound_steps, settings.bound_pool)[1]
     seeded = settings.starts * sum((c, m) not in designs for m in ms for c in criteria)
     if not missing or len(missing) >= executor.slots or seeded > executor.slots:
         return None
-    return approximate_designs(problem, criteria, settings.bound_steps, settings.bound_pool,
+    return approximate_designs(problem, wanted, settings.bound_steps, settings.bound_pool,
                                maximise=executor.maximise)
 
 
@@ -301,10 +326,9 @@ class _Pipeline:
         self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
         self.ref = parallel.ProblemRef.of(problem)
         steps, pool = settings.bound_steps, settings.bound_pool
-        if approx is None:
-            self.approx, missing = computed(problem, criteria, steps, pool)
-        else:
-            self.approx, missing = dict(approx), []
+        self.approx, missing = computed(problem, [a for a in aims(problem, criteria, ms) if a not in approx],
+                                        steps, pool)
+        self.approx.update(approx)
         self.todo = [_Starts(c, m, plans, [SEEDED] * len(plans))
                      for m in ms for c in criteria if (c, m) not in designs
                      for plans in [seeded_plans(problem, c, m, settings.starts)]]
@@ -312,9 +336,9 @@ class _Pipeline:
             for c in criteria:
                 if (c, m) in designs and progress is not None:
                     progress(len(designs[c, m].starts))
-        self.pending = [parallel.Task(parallel.run_approximate, (self.ref, c, steps, pool),
-                                      f"the approximate design of {c}")
-                        for c in missing]
+        self.pending = [parallel.Task(parallel.run_approximate, (self.ref, c, m, steps, pool),
+                                      f"the approximate design of {c}" + (f" for m = {m}" if m else ""))
+                        for c, m in missing]
         self.waiting = dict(zip(self.pending, missing))
         self.starts: dict = {}  # task -> (its design, the index of its plan)
         self.order = (list(range(len(self.todo))) if extra_starts is not None else
@@ -325,7 +349,7 @@ class _Pipeline:
         if d.complete:
             return True
         c, m = d.criterion, d.m
-        if has_bound(c, self.settings) and c not in self.approx:
+        if has_bound(c, self.settings) and aim(self.problem, c, m) not in self.approx:
             return False
         if self.extra_starts is not None and not all(e.done and e.error is None for e in self.todo[:k]):
             return False
@@ -359,9 +383,9 @@ class _Pipeline:
     def returned(self, task, result) -> None:
         """Take the result of ``task``; finish the designs whose every start returned."""
         if task in self.waiting:
-            c = self.waiting.pop(task)
+            wanted = self.waiting.pop(task)
             keep(self.problem, self.settings.bound_steps, self.settings.bound_pool, result)
-            self.approx[c] = result
+            self.approx[wanted] = result
         else:
             d, i = self.starts.pop(task)
             d.results[i] = result

@@ -99,10 +99,10 @@ def _cached(ref: ProblemRef) -> tuple[Problem, dict]:
     return _PROBLEMS.get(ref.key, lambda: (build_problem(ref.spec), {}))
 
 
-def run_approximate(ref: ProblemRef, criterion: str, steps: int, pool: int) -> ApproximateDesign:
+def run_approximate(ref: ProblemRef, criterion: str, m: int, steps: int, pool: int) -> ApproximateDesign:
     """One approximate design, in a worker (:func:`casadi_design.optimisation.bound.approximate_one`)."""
     with _LOCK:
-        return approximate_one(_cached(ref)[0], criterion, steps, pool)
+        return approximate_one(_cached(ref)[0], criterion, steps, pool, m=m)
 
 
 def run_searches(ref: ProblemRef, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
@@ -259,12 +259,13 @@ class _Workers:
                 np.concatenate([f for _, f, _ in found] or [F[:0]]).reshape(k, F.shape[1]),
                 [u for _, _, us in found for u in us])
 
-    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
+    def map_approximate(self, problem: Problem, wanted: Sequence[tuple[str, int]], steps: int,
                         pool: int) -> Iterator[ApproximateDesign]:
-        """The approximate design of each of ``criteria``, one per worker at the same time."""
+        """The approximate designs ``wanted``, ``(criterion, m)`` (m = 0: for every m), one per
+        worker at the same time."""
         ref = ProblemRef.of(problem)
-        yield from self._map(run_approximate, [(ref, c, steps, pool) for c in criteria],
-                             f"the approximate designs of {', '.join(criteria)}")
+        yield from self._map(run_approximate, [(ref, c, m, steps, pool) for c, m in wanted],
+                             f"the approximate designs of {', '.join(c for c, _ in wanted)}")
 
 
 class ProcessExecutor(_Workers):

@@ -77,7 +77,7 @@ class Sweep:
     seeded_starts: int
     warm_start: bool
     reference: Design | None = None
-    approx: dict[str, ApproximateDesign] = field(default_factory=dict)
+    approx: dict[tuple[str, int], ApproximateDesign] = field(default_factory=dict)
 
     def warm_start_won(self, criterion: str, m: int) -> bool:
         """True when the warm start is strictly better than every seeded start."""
@@ -102,7 +102,7 @@ def run_sweep(
     executor: StartExecutor | None = None,
     progress: Callable[[int], object] | None = None,
     on_design: Callable[[Design], object] | None = None,
-    approx: dict[str, ApproximateDesign] | None = None,
+    approx: dict[tuple[str, int], ApproximateDesign] | None = None,
 ) -> Sweep:
     """The campaign of every (criterion, m), m ascending, with the warm starts; ``done``
     designs (a resumed sweep) are kept. ``on_design`` is called with each design as soon as it
@@ -187,7 +187,7 @@ RESUME_FILES = tuple(name for name, _ in RESUME_KEYS)
 
 
 def sweep_record(problem: Problem, sweep: Sweep, key: dict,
-                 approx: dict[str, ApproximateDesign] | None = None) -> dict:
+                 approx: dict[tuple[str, int], ApproximateDesign] | None = None) -> dict:
     """``sweep.json``: the results record of every design (and the approximate designs of
     the bounds) plus the sweep's table and settings (``key``: :func:`casadi_design.execution.campaign.campaign_key`)."""
     record = results_dict(problem, list(sweep.designs.values()), approx)

@@ -30,6 +30,7 @@ import numpy as np
 from ..model.build import Problem, model_arguments
 from ..errors import DesignError, ProblemError
 from ..model.identifiability import RANK_RTOL, stacked_jacobian
+from ..model.held import prior_std
 from ..model.mapped import evaluate
 from ..measures.measures import SINGULAR_RTOL, information_matrix
 from ..model.models import CalibrationModel, calibration_model
@@ -74,29 +75,6 @@ class FitModel:
         return np.arange(len(self.frame_names), self.model.L)
 
 
-def prior_std(problem: Problem, names: tuple[str, ...]) -> np.ndarray:
-    """The standard deviation (physical units; inf: none) of each parameter ``names`` under the
-    problem's ``[calibration.prior]`` (:class:`~casadi_design.model.problem.PriorSpec`)."""
-    from ..records.export import is_prismatic
-
-    prior = problem.spec.calibration.prior
-    joints = problem.robot.joints
-    std = np.full(len(names), np.inf)
-    for i, name in enumerate(names):
-        owner, _, e = name.rpartition(".")
-        if prior is None or owner in ("base", "tool"):
-            continue
-        if owner == "k":
-            value = prior.compliance_rad_per_Nm
-        elif e == "offset":
-            prismatic = owner in joints and is_prismatic(problem, joints.index(owner))
-            value = prior.length_m if prismatic else prior.offset_rad
-        else:
-            value = prior.length_m if e.startswith("t") else prior.angle_rad
-        std[i] = np.inf if value is None else value
-    return std
-
-
 def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None,
               prior: bool = False, gravity: bool = False) -> FitModel:
     """The fit's measurement model for measurements in the ``frame`` (module docstring), of the
@@ -120,7 +98,7 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
     if frame == "base":
         fm = FitModel(model if names == model.parameter_names and not gravity else build(names),
                       frame, (), names, ())
-        return replace(fm, prior_std=prior_std(problem, names)) if prior else fm
+        return replace(fm, prior_std=prior_std(problem.robot, problem.spec.calibration.prior, names)) if prior else fm
     geometric = tuple(p for p in names if p not in compliant and p not in FRAME_PARAMETERS)
     absorbed = [(p, "the tracker frame's placement") for p in names if p in FRAME_PARAMETERS]
     candidates = build(FRAME_PARAMETERS + geometric + compliant)
@@ -142,7 +120,7 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
     names = tuple(candidates.parameter_names[i] for i in kept)
     frame_names = tuple(p for p in names if p in FRAME_PARAMETERS)
     return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed),
-                    prior_std(problem, names) if prior else None)
+                    prior_std(problem.robot, problem.spec.calibration.prior, names) if prior else None)
 
 
 def frame_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:

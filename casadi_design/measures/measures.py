@@ -89,8 +89,10 @@ def observability_indices(sv: np.ndarray, m: int) -> dict[str, float]:
         } if L else {}
 
 
-def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
-    """All measures of a plan.
+def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray | None = None,
+               m_held: int = 0) -> Scores:
+    """All measures of a plan, of the campaign ``M = M_held + sum_i B_i^T B_i`` when
+    information is held before it (:mod:`casadi_design.model.held`).
 
     Parameters
     ----------
@@ -100,9 +102,13 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
         Transformation matrices at the s test poses (required rows).
     sigma : float, m
         Standard deviation of the measurement noise.
+    M_held : ndarray, shape (L, L), or None
+        Information of the experiments already measured and of the prior.
+    m_held : int
+        Number of experiments already measured (the observability indices count them).
     """
     B = np.asarray(B, dtype=float)
-    M = information_matrix(B)
+    M = information_matrix(B) if M_held is None else information_matrix(B) + M_held
     lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
     sv = np.sqrt(lam)
     identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
@@ -111,6 +117,6 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float) -> Scores:
     return Scores(
         rms_error_m=np.sqrt(rho),
         values={c.score: c.score_of(spectrum) for c in CRITERIA.values()},
-        observability=observability_indices(sv, B.shape[0]),
+        observability=observability_indices(sv, B.shape[0] + m_held),
         identifiable=identifiable,
     )

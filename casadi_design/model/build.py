@@ -23,6 +23,7 @@ import pinocchio as pin
 
 from ..runtime.cache import Memo, code_digest, digest
 from .cell import Cell, build_cell
+from .held import prior_information
 from ..errors import ProblemError
 from .identifiability import BaseSet, base_set
 from .ik import path_ik, sample_path
@@ -90,8 +91,12 @@ class Problem:
 
     ``base_set`` is set when the parameters were selected automatically
     (``parameters = "identifiable"``); ``m_min`` is the fewest experiments that can identify X,
-    ``ceil(L / d)`` with d the independent values per experiment. ``cell``: the robot's
-    capsules, obstacles and tracker of ``[cell]`` (None without one).
+    ``ceil(L / d)`` with d (``d_independent``) the independent values per experiment, or
+    with information held ``ceil((L - rank M_held) / d)`` new ones (at least one). ``cell``:
+    the robot's capsules, obstacles and tracker of ``[cell]`` (None without one).
+    ``M_held`` (L x L, scaled parameters, read-only): the information of the experiments
+    already measured and of the prior (:mod:`casadi_design.model.held`), added to every plan's;
+    None without either.
     """
 
     spec: ProblemSpec
@@ -101,6 +106,8 @@ class Problem:
     base_set: BaseSet | None
     m_min: int
     cell: Cell | None = None
+    d_independent: int = 1
+    M_held: np.ndarray | None = None
 
     @property
     def name(self) -> str:
@@ -133,6 +140,11 @@ class Problem:
     @property
     def solver(self) -> SolverSettings:
         return self.spec.solver
+
+    @property
+    def m_held(self) -> int:
+        """Number of experiments already measured (``--measured``)."""
+        return 0 if self.spec.held is None else self.spec.held.k
 
     @functools.cached_property
     def B0(self) -> np.ndarray:
@@ -183,9 +195,42 @@ def build_problem(spec: ProblemSpec) -> Problem:
     A spec that differs from a built one only in its solver settings (``--ipopt``) shares its
     robot, model, test poses and cell, and so the functions cached on them (:func:`per_model`).
     """
-    problem = _BUILT.get(spec_digest_blob(dataclasses.replace(spec, solver=SolverSettings())),
-                         lambda: _build_named(spec))
-    return problem if problem.spec == spec else dataclasses.replace(problem, spec=spec)
+    bare = dataclasses.replace(spec, solver=SolverSettings(), held=None)
+    problem = _BUILT.get(spec_digest_blob(bare), lambda: _build_named(dataclasses.replace(spec, held=None)))
+    if problem.spec == spec:
+        return problem
+    problem = dataclasses.replace(problem, spec=spec)
+    return with_held(problem) if spec.held is not None else problem
+
+
+def with_held(problem: Problem) -> Problem:
+    """``problem`` with the information it holds before any plan (:mod:`casadi_design.model.held`):
+    ``M_held`` and the fewest new experiments that identify X with it.
+
+    Raises
+    ------
+    ProblemError
+        For a prior of another problem (:func:`~casadi_design.model.held.prior_information`).
+    """
+    spec, model = problem.spec, problem.model
+    held = spec.held
+    P = prior_information(model.parameter_names, spec.calibration.prior, held, problem.robot,
+                          spec.measurement.sigma_m, spec.path)
+    k = 0 if held is None else held.k
+    if k == 0 and P is None:
+        return dataclasses.replace(problem, M_held=None)
+    c = model.column_scale
+    M = np.zeros((model.L, model.L)) if P is None else P / np.outer(c, c)
+    if k:
+        B = model.B_stack(np.array(held.q, dtype=float), np.array(held.F, dtype=float).reshape(k, model.nF))
+        S = B.reshape(-1, model.L)
+        M = M + S.T @ S
+    M = (M + M.T) / 2
+    M.setflags(write=False)
+    lam = np.linalg.eigvalsh(M)
+    rank = int(np.sum(lam > IDENTIFIABILITY_RTOL * max(lam[-1], np.finfo(float).tiny)))
+    m_min = max(1, -(-(model.L - rank) // problem.d_independent))
+    return dataclasses.replace(problem, M_held=M, m_min=m_min)
 
 
 def _build_named(spec: ProblemSpec) -> Problem:
@@ -236,12 +281,13 @@ def _build(spec: ProblemSpec) -> Problem:
     test_poses = _test_poses(spec.path, spec.test_poses, robot, model)
     check_size(spec.path, "[test_poses]", test_poses.s, MAX_TEST_POSES, BYTES_PER_TEST_POSE_L2,
                "test poses", "give fewer test poses", model.L)
-    S, m_min = check_identifiable(spec, model)
+    S, d = check_identifiable(spec, model)
     if spec.parameter_scaling == "column":
         # parameters in units that give every column of B unit RMS over random poses (Khalil)
         c = np.sqrt(np.mean(S.reshape(-1, model.d, model.L) ** 2, axis=0).sum(axis=0))
         model = calibration_model(kin, cal.case, column_scale=c, **model_args)
-    return Problem(spec, robot, model, test_poses, chosen, m_min, _cell(spec, robot, markers))
+    problem = Problem(spec, robot, model, test_poses, chosen, -(-model.L // d), _cell(spec, robot, markers), d)
+    return with_held(problem) if spec.calibration.prior is not None else problem
 
 
 def model_arguments(spec: ProblemSpec, geometric: tuple[str, ...]) -> dict:
@@ -330,7 +376,8 @@ def check_identifiable(spec: ProblemSpec, model: CalibrationModel) -> tuple[np.n
     Stacks B over ``IDENTIFIABILITY_SAMPLES`` random configurations with the calibration
     loads (random directions where free), scales its columns by their norms under random
     loads and requires every singular value above ``IDENTIFIABILITY_RTOL`` times the largest
-    (and the largest above zero). Returns the stacked (unscaled) B and the smallest m.
+    (and the largest above zero). Returns the stacked (unscaled) B and the number d of
+    independent values per experiment (the smallest m is ``ceil(L / d)``).
     """
     L, robot, force = model.L, model.kinematics.robot, spec.force
     rng = np.random.default_rng(12345)
@@ -382,4 +429,4 @@ def check_identifiable(spec: ProblemSpec, model: CalibrationModel) -> tuple[np.n
             f"({', '.join(model.parameter_names)}) with {d} independent measured values per experiment "
             f"need m >= {m_min}; use m >= {m_min}"
         )
-    return S, m_min
+    return S, d

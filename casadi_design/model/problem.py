@@ -303,6 +303,28 @@ class SolverSettings:
 
 
 @dataclass(frozen=True)
+class HeldSpec:
+    """What is known before this design (``--measured``, ``--prior``): experiments already
+    measured and a prior on the parameters, whose information every design adds to its own.
+
+    ``q`` (k, n), rad (m for prismatic joints), and ``F`` (k, nF), N (N m): the measured
+    experiments; ``prior_names`` and ``prior_covariance`` (SI units per parameter pair): an
+    identification's covariance of the parameters it names (those of this problem's
+    parameters it does not name have no prior); ``sources``: the files it was read from."""
+
+    q: Mat = ()
+    F: Mat = ()
+    prior_names: tuple[str, ...] = ()
+    prior_covariance: Mat | None = None
+    sources: tuple[str, ...] = ()
+
+    @property
+    def k(self) -> int:
+        """Number of measured experiments."""
+        return len(self.q)
+
+
+@dataclass(frozen=True)
 class ProblemSpec:
     """A read and checked problem file: plain data only (see the module docstring)."""
 
@@ -320,6 +342,7 @@ class ProblemSpec:
     parameter_scaling: str = "column"
     solver: SolverSettings = field(default_factory=SolverSettings)
     cell: CellSpec | None = None
+    held: HeldSpec | None = None
 
 
 # --------------------------------------------------------------------------- field reader

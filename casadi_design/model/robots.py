@@ -71,6 +71,10 @@ class Robot:
     def joint_ids(self) -> tuple[int, ...]:
         return tuple(self.model.getJointId(j) for j in self.joints)
 
+    def is_prismatic(self, k: int) -> bool:
+        """Whether joint ``k`` of the chain is prismatic (its value in m, not rad)."""
+        return self.model.joints[self.joint_ids[k]].shortname().startswith("JointModelP")
+
     def full_q(self, q: np.ndarray) -> np.ndarray:
         """Pinocchio configuration of the whole model with the chain at ``q`` (others neutral)."""
         q_full = pin.neutral(self.model)

@@ -29,6 +29,16 @@ best of them and from the support points. The bound is certified only as well as
 is found: a missed higher maximum of d makes the reported bound too optimistic by the same
 ratio; a last search over a fresh sample checks the certificate that is reported.
 
+With information held before the plan (``problem.M_held``: experiments already measured, a
+prior; :mod:`casadi_design.model.held`), ``M = M_held + m Wbar`` is no longer homogeneous in m:
+the approximate design is made for one m, over ``F0 + W`` with the fixed part ``F0 = M_held / m``,
+and the tangent of the convex ``tr(H (F0 + W)^-1)`` at W gives for any W* of the hull
+
+    tr(H (F0 + W*)^-1) >= tr(H N) + tr(N H N W) - max_x d(x, W),   N = (F0 + W)^-1,
+
+and for D ``log det(F0 + W*) <= log det(F0 + W) + max_x tr(N A(x)) - tr(N W)``: both tight at
+the optimum, where ``max_x d`` is ``tr(N H N W)`` (``tr(N W)``), the support's mean d.
+
 Units: M, W and A in the units of B (:meth:`casadi_design.model.models.CalibrationModel.B_stack`);
 errors in m; the test-pose values ``t`` in (m / unit of X)^2 per (unit of B)^2, i.e. ``rho =
 sigma^2 t / m`` in m^2.
@@ -37,6 +47,7 @@ sigma^2 t / m`` in m^2.
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -120,6 +131,8 @@ class ApproximateDesign:
         reported certificate's.
     pool_size : candidates priced (random ones and local maxima); ``wall_s`` : time, s.
     kept : read back from the disk (:func:`computed`), computed by an earlier run in ``wall_s``.
+    m : the number of new experiments it is for, with information held (``F0 = M_held / m``);
+        0 without: the design of every m.
     """
 
     criterion: str
@@ -136,13 +149,22 @@ class ApproximateDesign:
     pool_size: int
     wall_s: float
     kept: bool = False
+    m: int = 0
 
 
 def bound(problem: Problem, m: int, approx: ApproximateDesign) -> Bound:
     """The bound for ``m`` experiments in the units of the criterion's score
     (:attr:`casadi_design.measures.criteria.BoundForm.score`): ``sqrt(sigma^2 t / m)`` (m) for
     test-pose and I, ``t / m`` for A, ``L log m + log det W + d_max - L`` for D (see the
-    module docstring)."""
+    module docstring). An approximate design made for one m (``approx.m``) bounds that m only.
+
+    Raises
+    ------
+    DesignError
+        For an ``approx`` made for another m."""
+    if approx.m and approx.m != m:
+        raise DesignError(f"the approximate design of {approx.criterion} was made for m = {approx.m} new "
+                          f"experiments, not {m}")
     L, score = problem.model.L, CRITERIA[approx.criterion].bound.score
     return Bound(approx.criterion, m, score(approx.certified, m, problem.sigma_m, L),
                  score(approx.value, m, problem.sigma_m, L), L)
@@ -159,9 +181,11 @@ def _sample(problem: Problem, size: int, rng: np.random.Generator) -> tuple[np.n
     return random_plan(problem, size, rng)
 
 
-def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray,
+                  F0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The convex problem on a pool ``A`` (k, L, L), ``W = sum_k w_k A_k`` with w in the simplex,
-    solved by IPOPT with exact derivatives from ``w0`` (k,):
+    solved by IPOPT with exact derivatives from ``w0`` (k,), ``N = (F0 + W)^-1`` with the
+    fixed part ``F0`` (L x L; None: 0):
 
     - test-pose and A (``Hj`` = ``B0_j^T B0_j``, shape (s, L, L)): ``min t`` subject to
       ``f_j = tr(Hj_j N) <= t``, ``N = W^-1``; the rows' multipliers are the test-pose weights
@@ -183,7 +207,8 @@ def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray) -> tuple
 
     def inverse(x: np.ndarray) -> np.ndarray:
         if "x" not in last or not np.array_equal(last["x"], x):
-            N = np.linalg.inv((x[:k] @ Av).reshape(L, L))
+            W = (x[:k] @ Av).reshape(L, L)
+            N = np.linalg.inv(W if F0 is None else F0 + W)
             last.update(x=x.copy(), N=(N + N.T) / 2)
         return last["N"]
 
@@ -493,6 +518,7 @@ def approximate_design(
     problem: Problem,
     criterion: str = "test-pose",
     *,
+    m: int = 0,
     pool_size: int = POOL_SIZE,
     sample_size: int = SAMPLE_SIZE,
     rtol: float = EXCHANGE_RTOL,
@@ -546,7 +572,11 @@ def approximate_design(
     A = _information(problem, Q, F)
     c = L / np.mean(np.trace(A, axis1=1, axis2=2))  # the weights see c A: W of order 1
     A = c * A
-    lam = np.linalg.eigvalsh(A[:pool_size].mean(axis=0))
+    if problem.M_held is not None and m < 1:
+        raise DesignError("approximate design: the problem holds information (measured experiments or a "
+                          "prior), so the design is made for one number of new experiments; give m >= 1")
+    F0 = None if problem.M_held is None else c * problem.M_held / m
+    lam = np.linalg.eigvalsh(A[:pool_size].mean(axis=0) + (0.0 if F0 is None else F0))
     if not lam[0] > POOL_RCOND * lam[-1]:
         rank = int(np.sum(lam > POOL_RCOND * lam[-1]))
         raise DesignError(f"approximate design: the first pool of {pool_size} random experiments "
@@ -559,9 +589,10 @@ def approximate_design(
     duals: dict[int, Duals] = {}  # the candidates that are maxima of an earlier step: theirs
     checked, proven = [], None  # the checked steps, the best checked certificate
     for step in range(iterations):
-        w, mu = _pool_optimum(A[pool], Hj, w)
+        w, mu = _pool_optimum(A[pool], Hj, w, F0)
         W = np.einsum("k,kij->ij", w, A[pool])
-        G, phi, step_value = _linearised(W, mu, Hj)
+        lin = _linearised(W, mu, Hj, F0)
+        G, phi, step_value = lin.G, lin.phi, lin.value
         value = max(value, step_value) if Hj is None else min(value, step_value)
         d = np.einsum("kij,ij->k", A, G)
         support = w > WEIGHT_RTOL * w.max()
@@ -570,14 +601,14 @@ def approximate_design(
         Qp, Fp, Ap, dp, up = _maxima(problem, G, c, Q[starts], F[starts], d[starts],
                                      [duals.get(int(i)) for i in starts], phi, maximise)
         d_max = float(max(d.max(), dp.max(initial=0.0)))
-        certified = _certificate(Hj, phi, step_value, d_max)
+        certified = _certificate(Hj, lin, d_max)
         if best is None or sense * (certified - best[0]) < 0:
             best = (certified, pool[support], w[support] / w[support].sum(), W, mu, d_max)
         priced = np.setdiff1d(np.flatnonzero(d > phi), pool[support])
         added = priced[np.argsort(d[priced])[::-1][:ADDED_CANDIDATES]]
         if form.moves and step and step % form.moves == 0:  # the heavy support moved: new candidates
             Qm, Fm = _moved(problem, criterion, Q[pool[support]], F[pool[support]], w[support],
-                            A[pool[support]] / c)
+                            A[pool[support]] / c, None if F0 is None else F0 / c)
             Am = c * _information(problem, Qm, Fm)
             Qp, Fp, Ap = (np.concatenate(pair) for pair in ((Qp, Qm), (Fp, Fm), (Ap, Am)))
             up = [*up, *[None] * len(Qm)]  # no duals: their searches start cold
@@ -588,7 +619,7 @@ def approximate_design(
         if gap <= rtol or not (added.size or new.any()) or last:
             # the best step's certificate from a fresh sample: it stands when that search finds
             # no larger d; otherwise what it found joins the candidates and the steps go on
-            certified, d_max, Qv, Fv, Av = _verified(problem, c, *best[3:], Hj, rng, sample_size, maximise)
+            certified, d_max, Qv, Fv, Av = _verified(problem, c, *best[3:], Hj, F0, rng, sample_size, maximise)
             agreed = sense * (certified - best[0]) <= rtol * (L if Hj is None else best[0])
             best = (certified, *best[1:5], d_max)
             if proven is not None and sense * (proven[0] - certified) < 0:
@@ -612,7 +643,8 @@ def approximate_design(
         value, certified = value - L * np.log(c), certified - L * np.log(c)
         history = [h - L * np.log(c) for h in history]
     return ApproximateDesign(criterion, Q[idx], F[idx], weights, W / c, mu, value, certified, d_max,
-                             tuple(history), tuple(checked), len(A), time.perf_counter() - t0)
+                             tuple(history), tuple(checked), len(A), time.perf_counter() - t0,
+                             m=0 if F0 is None else m)
 
 
 #: A move of the support (:func:`_moved`, every ``BoundForm.moves`` exchange steps): the
@@ -632,12 +664,12 @@ MOVE_TOL = 1e-8
 
 
 def _moved(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, w: np.ndarray,
-           A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+           A: np.ndarray, held: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The support points ``Q`` (k, n), rad, ``F`` (k, nF), N of weights ``w`` (k,) and
     information ``A`` (k, L, L) moved to better places: with the weights fixed, the heavy
     points (the fewest carrying ``1 - MOVE_TAIL`` of the weight) minimise the criterion of
 
-        W = sum_heavy w_i B(z_i)^T B(z_i) + sum_light w_l A_l
+        W = sum_heavy w_i B(z_i)^T B(z_i) + sum_light w_l A_l (+ held, the fixed part)
 
     over their experiments z_i, from where they are (the criterion's design NLP,
     :func:`casadi_design.optimisation.nlp.build_nlp` with ``weights`` and the light points' information
@@ -657,7 +689,7 @@ def _moved(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, w: np
     Q, F = Q[heavy], F[heavy]
     nlp = build_nlp(problem, criterion, K,
                     active=pose_constraints(problem).near(Q, START_MARGIN_M), weights=K * w[heavy],
-                    fixed=K * np.einsum("k,kij->ij", w[light], A[light]))
+                    fixed=K * (np.einsum("k,kij->ij", w[light], A[light]) + (0.0 if held is None else held)))
     solver = nlp.solver("move", {**QUIET, "ipopt.mu_init": MOVE_MU,
                                  "ipopt.max_iter": MOVE_ITERATIONS, "ipopt.tol": MOVE_TOL})
     with ipopt_call():
@@ -685,22 +717,45 @@ def _distinct(Ap: np.ndarray, Aref: np.ndarray, rtol: float = DISTINCT_RTOL) -> 
     return keep
 
 
-def _linearised(W: np.ndarray, mu: np.ndarray, Hj: np.ndarray | None) -> tuple[np.ndarray, float, float]:
-    """What the certificate of ``W`` (scaled, L x L) and ``mu`` needs: ``G`` with ``d(x, W) =
-    <A(x), G>``, ``phi`` and W's value. Test-pose and A: ``G = W^-1 H W^-1``, ``phi = tr(H
-    W^-1)``, value ``max_j tr(Hj_j W^-1)``, ``H = sum_j mu_j Hj_j``; D: ``G = W^-1``, ``phi =
-    L``, value ``log det W``."""
-    Wi = np.linalg.inv(W)
+class Linearised(NamedTuple):
+    """What the certificate of a W and mu needs (:func:`_linearised`): ``G`` with ``d(x, W) =
+    <A(x), G>``, ``phi = <W, G>`` (the support's mean d), W's value and the mu-weighted value
+    ``level`` (test-pose, A, I: ``tr(H N)``; D: 0)."""
+
+    G: np.ndarray
+    phi: float
+    value: float
+    level: float
+    held: bool
+
+
+def _linearised(W: np.ndarray, mu: np.ndarray, Hj: np.ndarray | None, F0: np.ndarray | None = None) -> Linearised:
+    """:class:`Linearised` of ``W`` (scaled, L x L), ``mu`` and the fixed part ``F0`` (None: 0),
+    ``N = (F0 + W)^-1``. Test-pose and A: ``G = N H N``, value ``max_j tr(Hj_j N)``, ``H =
+    sum_j mu_j Hj_j``, ``phi = tr(H N) - tr(G F0)``; D: ``G = N``, value ``log det(F0 + W)``,
+    ``phi = L - tr(N F0)``."""
+    T = W if F0 is None else F0 + W
+    N = np.linalg.inv(T)
     if Hj is None:
-        return Wi, float(len(W)), float(np.linalg.slogdet(W)[1])
+        phi = float(len(W)) - (0.0 if F0 is None else float(np.einsum("ij,ji->", N, F0)))
+        return Linearised(N, phi, float(np.linalg.slogdet(T)[1]), 0.0, F0 is not None)
     H = np.einsum("j,jil->il", mu, Hj)
-    return Wi @ H @ Wi, float(np.trace(H @ Wi)), float(np.einsum("jil,li->j", Hj, Wi).max())
+    G = N @ H @ N
+    level = float(np.trace(H @ N))
+    phi = level - (0.0 if F0 is None else float(np.einsum("ij,ji->", G, F0)))
+    return Linearised(G, phi, float(np.einsum("jil,li->j", Hj, N).max()), level, F0 is not None)
 
 
-def _certificate(Hj: np.ndarray | None, phi: float, value: float, d_max: float) -> float:
-    """``phi^2 / d_max`` (test-pose, A: a lower bound of t*) or ``log det W + d_max - L`` (D:
-    an upper bound of log det Wbar), from :func:`_linearised`'s phi and value."""
-    return float(value + d_max - phi if Hj is None else phi**2 / d_max)
+def _certificate(Hj: np.ndarray | None, lin: Linearised, d_max: float) -> float:
+    """The certificate of :func:`_linearised`'s W and mu (module docstring). D: ``value + d_max
+    - phi``, an upper bound of ``log det`` of any hull point (``log det W + d_max - L`` without a
+    fixed part). Test-pose, A, I: a lower bound of t*, ``phi^2 / d_max`` without a fixed part
+    (tangent at the best multiple of W), ``level + phi - d_max`` (at least 0) with one."""
+    if Hj is None:
+        return float(lin.value + d_max - lin.phi)
+    if lin.held:
+        return float(max(lin.level + lin.phi - d_max, 0.0))
+    return float(lin.phi**2 / d_max)
 
 
 def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndarray, d: np.ndarray,
@@ -728,15 +783,16 @@ def verify_starts(size: int) -> int:
 
 
 def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: float,
-              Hj: np.ndarray | None, rng: np.random.Generator, size: int, maximise: Maximise
-              ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+              Hj: np.ndarray | None, F0: np.ndarray | None, rng: np.random.Generator, size: int,
+              maximise: Maximise) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """The certificate of ``W`` (scaled by c) and ``mu`` once more, with max_x d searched over a
     fresh sample of ``size`` experiments and IPOPT from its :func:`verify_starts` best: a search
     independent of the exchange, whose own maxima went into the pool. Returns the certified
     value, d_max (the larger of ``d_max`` and the new search's) and the experiments of the new
     search with d above ``d_max`` (the sample's and the maxima's: Q (k, n), F (k, nF), their
     scaled information (k, L, L))."""
-    G, phi, value = _linearised(W, mu, Hj)
+    lin = _linearised(W, mu, Hj, F0)
+    G = lin.G
     Q, F = _sample(problem, size, rng)
     A = c * _information(problem, Q, F)
     d = np.einsum("kij,ij->k", A, G)
@@ -744,7 +800,7 @@ def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: 
     Qp, Fp, Ap, dp, _ = _maxima(problem, G, c, Q[best], F[best], d[best], [None] * len(best), d_max, maximise)
     above = best[d[best] > d_max]
     d_max = float(max(d_max, d.max(), dp.max(initial=0.0)))
-    return (_certificate(Hj, phi, value, d_max), d_max, np.concatenate([Q[above], Qp]),
+    return (_certificate(Hj, lin, d_max), d_max, np.concatenate([Q[above], Qp]),
             np.concatenate([F[above], Fp]), np.concatenate([A[above], Ap]))
 
 
@@ -789,9 +845,10 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
 
 
 def approximate_one(problem: Problem, criterion: str, steps: int, pool: int,
-                    maximise: Maximise | None = None) -> ApproximateDesign:
-    """The approximate design of ``criterion`` with ``steps`` exchange steps at most, a first
-    pool of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE`` times as many for
-    the search of max d (``maximise``: :func:`approximate_design`'s)."""
-    return approximate_design(problem, criterion, iterations=steps, pool_size=pool,
+                    maximise: Maximise | None = None, m: int = 0) -> ApproximateDesign:
+    """The approximate design of ``criterion`` (for ``m`` new experiments when the problem
+    holds information, module docstring) with ``steps`` exchange steps at most, a first pool
+    of ``pool`` candidates and a sample of ``SAMPLE_SIZE / POOL_SIZE`` times as many for the
+    search of max d (``maximise``: :func:`approximate_design`'s)."""
+    return approximate_design(problem, criterion, m=m, iterations=steps, pool_size=pool,
                               sample_size=pool * SAMPLE_SIZE // POOL_SIZE, maximise=maximise)

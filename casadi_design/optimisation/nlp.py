@@ -87,9 +87,10 @@ def build_nlp(problem: Problem, criterion: str, m: int, power: float = 0.0, acti
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem);
     ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``);
     ``active``: the capsule rows it holds, (experiment, row) pairs (K x 2; None: all);
-    ``weights`` (m,) and ``fixed`` (L x L, unscaled): ``M = sum_i w_i B_i^T B_i + fixed``, the
-    support of an approximate design (:func:`casadi_design.optimisation.reduced.reduced_nlp`; no
-    joint-distance rows)."""
+    ``weights`` (m,): ``M = sum_i w_i B_i^T B_i + fixed``, the support of an approximate design
+    (:func:`casadi_design.optimisation.reduced.reduced_nlp`; no joint-distance rows);
+    ``fixed`` (L x L, unscaled): information held before the plan (``problem.M_held`` for a
+    design, the light support points' for a move of the approximate design)."""
     n, loads = problem.robot.n, load_variables(problem)
     scale = information_scale(problem.model.L, problem.B0)
     nlp = reduced_nlp(problem, criterion, m, scale, power, active, weights, fixed)

@@ -50,7 +50,7 @@ class StartExecutor(Protocol):
     def map_starts(self, problem: Problem, criterion: str, m: int,
                    plans: Sequence[StartPlan], verbose: bool) -> Iterator[StartResult]: ...
 
-    def map_approximate(self, problem: Problem, criteria: Sequence[str], steps: int,
+    def map_approximate(self, problem: Problem, wanted: Sequence[tuple[str, int]], steps: int,
                         pool: int) -> Iterator: ...
 
 
@@ -61,7 +61,7 @@ def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
 
 def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray) -> Scores:
     """Scores of a plan given as ``Q`` (m, n), rad, and ``F`` (m, nF), N."""
-    return score_plan(problem.model.B_stack(Q, F), problem.B0, problem.sigma_m)
+    return score_plan(problem.model.B_stack(Q, F), problem.B0, problem.sigma_m, problem.M_held, problem.m_held)
 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: str = "cold",
@@ -227,7 +227,8 @@ class DesignSolver:
         """The NLP of stage k holding the capsule rows ``active`` (K x 2) and its solver
         (options of :func:`make_solver`)."""
         def make():
-            nlp = build_nlp(self.problem, self.criterion, self.m, self.powers[k], active)
+            nlp = build_nlp(self.problem, self.criterion, self.m, self.powers[k], active,
+                            fixed=self.problem.M_held)
             return nlp, make_solver(self.problem, nlp, self.verbose, how, max_iter, watch)
 
         return self._kept(("stage", k, active.tobytes(), how, max_iter, watch), make)
@@ -236,7 +237,7 @@ class DesignSolver:
         """The D-optimal NLP of the polish run (criteria marked ``polished``) holding the
         capsule rows ``active``, and its solver."""
         def make():
-            nlp = build_nlp(self.problem, "D", self.m, active=active)
+            nlp = build_nlp(self.problem, "D", self.m, active=active, fixed=self.problem.M_held)
             return nlp, nlp.solver("polish", {**QUIET, "ipopt.max_iter": POLISH_ITERATIONS})
 
         return self._kept(("polish", active.tobytes()), make)

@@ -43,8 +43,7 @@ CLEARANCE_COLUMNS = ("clearance_mm", "closest_bodies")
 
 def is_prismatic(problem: Problem, k: int) -> bool:
     """Whether joint ``k`` of the chain is prismatic (its value in m, not rad)."""
-    robot = problem.robot
-    return robot.model.joints[robot.joint_ids[k]].shortname().startswith("JointModelP")
+    return problem.robot.is_prismatic(k)
 
 
 def joint_units(problem: Problem, k: int) -> tuple[str, str, float]:

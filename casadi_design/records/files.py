@@ -254,7 +254,7 @@ def load_partial(out: Path, key: dict, sources: tuple[tuple[str, tuple[str, ...]
 
 
 def write_results(path: Path, problem: Problem, designs: list[Design],
-                  approx: dict[str, ApproximateDesign] | None = None) -> dict:
+                  approx: dict[tuple[str, int], ApproximateDesign] | None = None) -> dict:
     """``results.json`` of ``designs`` (:func:`casadi_design.records.results.results_dict`), atomically;
     returns the record."""
     record = results_dict(problem, designs, approx)

@@ -79,7 +79,7 @@ def approximate_record(approx: ApproximateDesign) -> dict:
             "relaxation": approx.value, "certified": approx.certified, "d_max": approx.d_max,
             "exchange_steps": len(approx.history), "independent_checks": len(approx.checked),
             "pool_size": approx.pool_size,
-            "wall_s": approx.wall_s}
+            "wall_s": approx.wall_s, **({"m_new": approx.m} if approx.m else {})}
 
 
 #: The libraries whose versions a results record names (their rounding decides which start wins).
@@ -87,7 +87,7 @@ NUMERIC_LIBRARIES = ("casadi", "numpy", "scipy", "pin")
 
 
 def results_dict(problem: Problem, designs: list[Design],
-                 approx: dict[str, ApproximateDesign] | None = None) -> dict:
+                 approx: dict[tuple[str, int], ApproximateDesign] | None = None) -> dict:
     """The whole results record of a solved problem (with the approximate designs of the
     bounds, when computed)."""
     tp = problem.test_poses

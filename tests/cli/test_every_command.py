@@ -112,9 +112,9 @@ def test_the_bound_command_runs_on_every_problem(path, capsys):
     out, err = capsys.readouterr()
     assert err == ""  # (main() raises on a bug, and returns 2 after an "error: ..." line)
     assert len([line for line in out.splitlines() if line.split()[:1] in ([str(m)], [str(m + 1)])]) == 2
-    approx = approximate_designs(problem, ["D"], 1, POOL)  # those of the bound command (kept in this process)
+    approx = approximate_designs(problem, [("D", 0)], 1, POOL)  # those of the bound command (kept in this process)
     Q, F = random_plan(problem, m, np.random.default_rng(0))  # a feasible plan: its log det M is below the bound
-    assert bound(problem, m, approx["D"]).value >= np.linalg.slogdet(information_matrix(problem.model.B_stack(Q, F)))[1]
+    assert bound(problem, m, approx["D", 0]).value >= np.linalg.slogdet(information_matrix(problem.model.B_stack(Q, F)))[1]
 
 
 def test_a_bug_raises_and_the_command_as_a_process_runs_clean(tmp_path, monkeypatch, capsys):

@@ -82,12 +82,12 @@ def test_a_one_start_solve_spreads_the_searches_over_the_workers_to_the_same_des
 
     settings = Settings(1, bound_steps=1, bound_pool=SMALL_POOL)
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
-    serial = campaign.approximate_designs(paper, ["test-pose"], 1, SMALL_POOL)["test-pose"]
+    serial = campaign.approximate_designs(paper, [("test-pose", 0)], 1, SMALL_POOL)["test-pose", 0]
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     with ProcessExecutor(2) as ex:
-        spread = campaign._spread(paper, ("test-pose",), (1,), settings, {}, ex)["test-pose"]
+        spread = campaign._spread(paper, ("test-pose",), (1,), settings, {}, ex, {})["test-pose", 0]
         monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
-        assert campaign._spread(paper, ("test-pose", "D"), (1,), settings, {}, ex) is None
+        assert campaign._spread(paper, ("test-pose", "D"), (1,), settings, {}, ex, {}) is None
     assert (spread.value, spread.certified, spread.d_max, spread.history, spread.checked) == \
         (serial.value, serial.certified, serial.d_max, serial.history, serial.checked)
     for field in ("Q", "F", "weights", "W", "mu"):
@@ -104,7 +104,7 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
     args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2, bound_pool=SMALL_POOL))
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     plain = run_sweep(*args)
-    serial = campaign.computed(paper, ["test-pose"], 2, args[3].bound_pool)[0]["test-pose"]
+    serial = campaign.computed(paper, [("test-pose", 0)], 2, args[3].bound_pool)[0]["test-pose", 0]
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())  # computed again, on the workers
     with ProcessExecutor(2) as ex:
         pooled = run_sweep(*args, executor=ex)

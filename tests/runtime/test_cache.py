@@ -144,7 +144,7 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
     this one with its in-process designs cleared) without computing, to the bit and marked
     ``kept``; another pool, steps or criterion is computed."""
     campaign = kept_designs
-    first = campaign.approximate_designs(paper, ["test-pose", "D"], 2, 50)
+    first = campaign.approximate_designs(paper, [("test-pose", 0), ("D", 0)], 2, 50)
     assert not any(a.kept for a in first.values())
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     computing = []
@@ -154,7 +154,7 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
         raise LookupError("computing")
 
     monkeypatch.setattr(campaign, "approximate_one", computes)
-    again = campaign.approximate_designs(paper, ["test-pose", "D"], 2, 50)
+    again = campaign.approximate_designs(paper, [("test-pose", 0), ("D", 0)], 2, 50)
     assert computing == [] and all(a.kept for a in again.values())
     for c, a in first.items():
         b = again[c]
@@ -164,7 +164,7 @@ def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_desig
             (a.value, a.certified, a.d_max, a.history, a.checked, a.pool_size, a.wall_s)
     for steps, pool in ((2, 60), (1, 50)):  # not on the disk: computed (here: stopped as it starts)
         with pytest.raises(LookupError, match="computing"):
-            campaign.approximate_designs(paper, ["test-pose"], steps, pool)
+            campaign.approximate_designs(paper, [("test-pose", 0)], steps, pool)
     assert computing == [("test-pose", 2, 60), ("test-pose", 1, 50)]
 
 
