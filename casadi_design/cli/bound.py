@@ -22,6 +22,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--m", type=common.m_values, metavar="RANGE",
                    help="numbers of experiments, e.g. 1:10 or 1,5 (default: the smallest "
                         "identifiable m to the largest [experiments].m)")
+    common.add_held(p)
     common.add_workers(p)
     common.add_bound_steps(p, minimum=1)
     common.add_common(p)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from dataclasses import replace
 
 from ..model.build import Problem
 from ..execution.campaign import Campaign, Settings
@@ -156,9 +157,22 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str) -> None:
                         "(default: [design].criteria of the problem)")
     p.add_argument("--starts", type=integer("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
+    add_held(p)
     add_workers(p)
     add_bound_steps(p)
     add_common(p)
+
+
+def add_held(p: argparse.ArgumentParser) -> None:
+    """``--measured`` and ``--prior``: what is known before the plan (a second round)."""
+    p.add_argument("--measured", action="append", metavar="CSV",
+                   help="experiments already measured (a plan or measurement CSV: its joint and load "
+                        "columns): their information is added to every plan's, --m counts the new "
+                        "experiments; repeatable")
+    p.add_argument("--prior", metavar="JSON",
+                   help="an earlier identification (DIR/identification.json of casadi-design identify): "
+                        "the inverse of its covariance is added to every plan's information (give "
+                        "DIR/calibrated.toml as the problem to design at the identified robot)")
 
 
 def add_workers(p: argparse.ArgumentParser) -> None:
@@ -193,8 +207,6 @@ def read_spec(args: argparse.Namespace) -> ProblemSpec:
     """Read and check the problem file of ``args`` (:func:`casadi_design.model.problem.read_problem`,
     no robot built yet), with the ``--ipopt`` options over its [solver.ipopt]. A command that
     starts worker processes reads it first, so a malformed file fails before any worker starts."""
-    from dataclasses import replace
-
     from ..model.problem import read_problem
 
     spec = read_problem(args.problem)
@@ -206,11 +218,18 @@ def read_spec(args: argparse.Namespace) -> ProblemSpec:
 
 def load(args: argparse.Namespace, check_solver: bool = True, spec: ProblemSpec | None = None) -> Problem:
     """Build the problem of ``args`` (``spec``: as :func:`read_spec` read it; None: read it
-    now); with ``check_solver``, also try the IPOPT options."""
+    now) with what ``--measured`` and ``--prior`` hold (:mod:`casadi_design.records.held`);
+    with ``check_solver``, also try the IPOPT options."""
     from ..model.build import build_problem
     from ..optimisation.solve import check_ipopt_options
 
-    problem = build_problem(read_spec(args) if spec is None else spec)
+    from ..records.held import read_held
+
+    spec = read_spec(args) if spec is None else spec
+    problem = build_problem(spec)
+    held = read_held(problem, getattr(args, "measured", None), getattr(args, "prior", None))
+    if held is not None:
+        problem = build_problem(replace(spec, held=held))
     interrupt.check()  # a Ctrl-C that CasADi's argument conversion swallowed while building
     if check_solver:
         check_ipopt_options(problem)
@@ -228,7 +247,22 @@ def case_line(problem: Problem) -> str:
     line = (f"{problem.name}: {problem.model.case} calibration of "
             f"{', '.join(problem.model.parameter_names)}; {problem.test_poses.s} test poses; "
             f"sigma = {problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
-    return line if problem.base_set is None else line + "\n" + problem.base_set.report()
+    line = line if problem.base_set is None else line + "\n" + problem.base_set.report()
+    return line if problem.M_held is None else line + "\n" + held_line(problem)
+
+
+def held_line(problem: Problem) -> str:
+    """What the designs hold before their plans, for people."""
+    held, what = problem.spec.held, []
+    if problem.m_held:
+        files = held.sources[: len(held.sources) - (held.prior_covariance is not None)]
+        what.append(f"{problem.m_held} experiments measured ({', '.join(files)})")
+    if held is not None and held.prior_covariance is not None:
+        what.append(f"the prior of {held.sources[-1]} on {len(held.prior_names)} parameters")
+    if problem.spec.calibration.prior is not None:
+        what.append("the problem's [calibration.prior]")
+    return (f"held before the plan: {' and '.join(what)}; m counts the new experiments and the errors "
+            f"are the whole campaign's (smallest m: {problem.m_min})")
 
 
 def study(args: argparse.Namespace, problem: Problem, partial: Path | None = None,

@@ -33,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="also check the moves of the plan as it runs: straight joint moves from home through "
                         "the rows in file order and back (as casadi-design program checks them)")
     p.add_argument("--home", metavar="DEG,...", help="home pose of --moves (default: as casadi-design program)")
+    common.add_held(p)
     common.add_common(p)
     p.set_defaults(run=run)
 

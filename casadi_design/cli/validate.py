@@ -94,7 +94,11 @@ def run(args: argparse.Namespace) -> int:
     else:
         study, done, _ = common.design(args, "validate")
         problem = study.problem
-        plans, source = plans_from_designs(list(done.designs.values())), "solved as casadi-design solve does"
+        plans, source = plans_from_designs(problem, list(done.designs.values())), "solved as casadi-design solve does"
+    if problem.M_held is not None and (problem.spec.calibration.prior is not None or (
+            problem.spec.held is not None and problem.spec.held.prior_covariance is not None)):
+        common.say(args, "note: the prior is not simulated: each trial identifies the campaign's experiments "
+                         "by least squares alone, and sqrt(rho) is predicted for them alone")
     t0 = time.perf_counter()
     validation = validate(problem, plans, args.trials, args.seed, spreads, source)
     study = (linearisation_study(problem, plans, args.scales, args.trials, args.seed, spreads, source)

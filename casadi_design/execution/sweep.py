@@ -204,7 +204,7 @@ def sweep_record(problem: Problem, sweep: Sweep, key: dict,
                   "other measures": "SI units of B (lengths in m)"},
         "columns": list(COLUMNS),
         "rows": sweep_rows(sweep),
-        "reference": None if sweep.reference is None else design_record(sweep.reference),
+        "reference": None if sweep.reference is None else design_record(sweep.reference, problem),
     }
     return record
 

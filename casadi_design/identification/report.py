@@ -80,6 +80,8 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
         "parameters": [{"name": n, "value": float(x), "std": float(s), "unit": parameter_unit(c, n),
                         "of": "tracker frame" if n in f.fit.frame_names else "robot"}
                        for n, x, s in zip(c.names, f.X, c.std)],
+        "covariance": (c.std[:, None] * c.correlation * c.std[None, :]).tolist(),
+        "covariance_unit": "SI: the product of the two parameters' units (the order of 'parameters')",
         "absorbed": [{"name": n, "why": why} for n, why in f.fit.absorbed],
         "tracker_from_base": f.tracker_from_base.tolist(),
         "tracker_from_base_std": tracker_std(c).tolist(),

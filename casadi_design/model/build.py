@@ -146,6 +146,19 @@ class Problem:
         """Number of experiments already measured (``--measured``)."""
         return 0 if self.spec.held is None else self.spec.held.k
 
+    def campaign(self, Q: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The whole campaign of a plan ``Q`` (m, n), ``F`` (m, nF): the measured experiments
+        (``--measured``) first, then the plan's, and which rows are measured (bool)."""
+        Q = np.asarray(Q, dtype=float).reshape(-1, self.robot.n)
+        F = np.asarray(F, dtype=float).reshape(len(Q), self.model.nF)
+        k = self.m_held
+        if not k:
+            return Q, F, np.zeros(len(Q), dtype=bool)
+        held = self.spec.held
+        return (np.vstack([np.array(held.q, dtype=float), Q]),
+                np.vstack([np.array(held.F, dtype=float).reshape(k, self.model.nF), F]),
+                np.arange(k + len(Q)) < k)
+
     @functools.cached_property
     def B0(self) -> np.ndarray:
         """``B0_j = de_j/dX`` at every test pose j, shape (s, r, L): how the required

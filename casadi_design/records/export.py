@@ -36,6 +36,8 @@ UNIT_AGREEMENT_TOL = 1e-6
 #: Joint values this far outside their limits (rad or m) are accepted silently (rounding in a CSV).
 LIMIT_TOL = 1e-6
 POSITION_COLUMNS = ("x_mm", "y_mm", "z_mm")
+#: Column of a campaign's plan CSV that marks the experiments already measured (``yes``/``no``).
+MEASURED_COLUMN = "measured"
 #: Columns written for people with a [cell] and ignored when read: the experiment's clearance on
 #: the real geometry (mm) and the two closest bodies.
 CLEARANCE_COLUMNS = ("clearance_mm", "closest_bodies")
@@ -78,13 +80,27 @@ def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray,
               + [f"{j}_{u[0]}" for j, u in zip(joints, units)] + force_columns(problem)
               + list(POSITION_COLUMNS) + (list(CLEARANCE_COLUMNS) if near else []))
     Q = np.asarray(Q, float)
+    blank = ["", ""] if near else []  # an experiment without a clearance (a measured one)
     near = near or [None] * len(Q)
     rows = []
     for i, (q, f, c) in enumerate(zip(Q, np.asarray(F, float).reshape(len(Q), -1), near)):
         p = np.asarray(problem.model.position(q), dtype=float).ravel() * 1e3
         rows.append([i + 1] + [qk / u[2] for qk, u in zip(q, units)] + list(q) + list(f) + list(p)
-                    + ([c.distance_m * 1e3, " / ".join(c.between)] if c else []))
+                    + ([c.distance_m * 1e3, " / ".join(c.between)] if c else blank))
     return header, rows
+
+
+def design_table(problem: Problem, design: Design) -> tuple[list[str], list[list]]:
+    """:func:`plan_table` of a design's campaign (:meth:`~casadi_design.model.build.Problem.campaign`):
+    with experiments already measured, they come first and a last column ``measured`` says
+    ``yes`` or ``no``."""
+    Q, F, measured = problem.campaign(design.Q, design.F)
+    k = int(measured.sum())
+    near = None if design.clearances is None else (None,) * k + tuple(design.clearances)
+    header, rows = plan_table(problem, Q, F, near)
+    if not k:
+        return header, rows
+    return header + [MEASURED_COLUMN], [r + ["yes" if flag else "no"] for r, flag in zip(rows, measured)]
 
 
 def csv_text(header: list[str], rows: list[list]) -> str:
@@ -99,7 +115,7 @@ def csv_text(header: list[str], rows: list[list]) -> str:
 
 def write_plan_csv(path: Path, problem: Problem, design: Design) -> None:
     """The design's plan, one row per experiment, atomically."""
-    write_atomic(Path(path), csv_text(*plan_table(problem, design.Q, design.F, design.clearances)).encode())
+    write_atomic(Path(path), csv_text(*design_table(problem, design)).encode())
 
 
 def write_plans(out: Path, problem: Problem, designs: list[Design]) -> list[str]:
@@ -174,6 +190,18 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
     return Q, F
 
 
+def measured_rows(path: Path | str) -> np.ndarray:
+    """Which rows of a plan file are marked measured (its ``measured`` column says ``yes``:
+    the experiments of a campaign measured before its plan); none without the column."""
+    (_, head), *body = _plan_lines(str(path))
+    header = _csv_cells(head)
+    if MEASURED_COLUMN not in header:
+        return np.zeros(len(body), dtype=bool)
+    c = header.index(MEASURED_COLUMN)
+    return np.array([len(cells) > c and cells[c].lower() in ("yes", "true", "1")
+                     for cells in (_csv_cells(ln) for _, ln in body)], dtype=bool)
+
+
 def _plan_lines(path: str) -> list[tuple[int, str]]:
     """The (line number, text) of a plan file's header and rows: empty lines and ``#``
     comments dropped."""
@@ -241,7 +269,7 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
             columns[f"{name}_{si}"] = (k, 1.0)
             columns[f"{name}_{people}"] = (k, scale)
     forces = force_columns(problem)
-    allowed = set(columns) | set(forces) | {"experiment", *POSITION_COLUMNS, *CLEARANCE_COLUMNS, *extra}
+    allowed = set(columns) | set(forces) | {"experiment", MEASURED_COLUMN, *POSITION_COLUMNS, *CLEARANCE_COLUMNS, *extra}
     if "" in header:
         raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
                            "name it or delete the column")
@@ -371,7 +399,7 @@ def _md_table(header: list[str], rows: list[list[str]]) -> str:
 def plan_markdown(problem: Problem, design: Design) -> str:
     """A plan as a Markdown table: joints (deg or mm), load (N), measured point (mm), with a
     ``[cell]`` the clearance (mm) and the closest bodies."""
-    header, rows = plan_table(problem, design.Q, design.F, design.clearances)
+    header, rows = design_table(problem, design)
     n = problem.robot.n
     keep = [0, *range(1, 1 + n), *range(1 + 2 * n, len(header))]
     return _md_table([header[c] for c in keep],

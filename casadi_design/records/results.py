@@ -33,16 +33,28 @@ def experiment_records(Q: np.ndarray, F: np.ndarray, near: tuple[Clearance, ...]
             for q, f, c in zip(Q, F, near or [None] * len(Q))]
 
 
-def design_record(design: Design) -> dict:
+def campaign_records(problem: Problem | None, design: Design) -> list[dict]:
+    """The experiments of a design's campaign (:meth:`~casadi_design.model.build.Problem.campaign`):
+    the measured ones first, marked ``"measured": true``, then the plan's."""
+    held = [] if problem is None or not problem.m_held else experiment_records(
+        *problem.campaign(design.Q[:0], design.F[:0])[:2], None)
+    return [e | {"measured": True} for e in held] + experiment_records(design.Q, design.F, design.clearances)
+
+
+def design_record(design: Design, problem: Problem | None = None) -> dict:
     """One design as plain data (SI units); with a ``[cell]``, each experiment carries its
     clearance on the real geometry (``clearance_m``, m) and the two bodies at that distance
-    (``closest_bodies``)."""
+    (``closest_bodies``). With experiments already measured (``problem.m_held``), they come
+    first (:func:`campaign_records`); ``m`` counts the new ones, ``m_measured`` the others, and
+    the errors and scores are the campaign's."""
     values = [st.value for st in design.starts if st.converged]
     crit = CRITERIA[design.criterion]
+    k = 0 if problem is None else problem.m_held
     return {
         "criterion": design.criterion,
         "m": design.m,
-        "experiments": experiment_records(design.Q, design.F, design.clearances),
+        **({"m_measured": k} if k else {}),
+        "experiments": campaign_records(problem, design),
         "rms_error_m": design.scores.rms_error_m.tolist(),
         "max_rms_error_m": design.scores.max_rms_error_m,
         "scores": {k: v for k, v in design.scores.as_dict().items() if k != "rms_error_m"},
@@ -117,7 +129,8 @@ def results_dict(problem: Problem, designs: list[Design],
             {"q_rad": q.tolist(), "force": f.tolist(), "position_m": p.tolist()}
             for q, f, p in zip(tp.q, tp.F, tp.position_m)
         ],
-        "designs": [design_record(d) for d in designs],
+        **({"held": held} if (held := held_record(problem)) else {}),
+        "designs": [design_record(d, problem) for d in designs],
         "approximate_designs": [approximate_record(a) for a in (approx or {}).values()],
         "cell": cell_record(problem),
     }
@@ -143,9 +156,22 @@ def cell_record(problem: Problem) -> dict | None:
     }
 
 
+def held_record(problem: Problem) -> dict | None:
+    """What the designs of ``problem`` hold before their plans (None: nothing): the files, the
+    number of measured experiments and the prior's parameters."""
+    held = problem.spec.held
+    if held is None and problem.M_held is None:
+        return None
+    return {"files": [] if held is None else list(held.sources), "m_measured": problem.m_held,
+            "prior_parameters": [] if held is None else list(held.prior_names),
+            "calibration_prior": problem.spec.calibration.prior is not None,
+            "smallest_m_new": problem.m_min}
+
+
 def design_from_record(record: dict) -> Design:
-    """The :class:`Design` written by :func:`design_record` (exact: JSON floats round-trip)."""
-    m, exps = record["m"], record["experiments"]
+    """The :class:`Design` written by :func:`design_record` (exact: JSON floats round-trip);
+    the measured experiments of its campaign left out."""
+    m, exps = record["m"], [e for e in record["experiments"] if not e.get("measured")]
     saved = record["scores"]
     scores = Scores(np.array(record["rms_error_m"], dtype=float),
                     {c.score: saved[c.score] for c in CRITERIA.values()}, saved["observability"],
@@ -248,8 +274,10 @@ def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> N
             _need(_is_number(b[k]), f"{where}.bound.{k}", "a finite number", b[k])
         _int(b["L"], f"{where}.bound.L", 1)
     exps = d["experiments"]
-    _need(isinstance(exps, list) and len(exps) == d["m"], f"{where}.experiments",
-          f"a list of m = {d['m']} experiments", exps)
+    k = d.get("m_measured", 0)
+    _int(k, f"{where}.m_measured", 0)
+    _need(isinstance(exps, list) and len(exps) == d["m"] + k, f"{where}.experiments",
+          f"a list of m + m_measured = {d['m'] + k} experiments", exps)
     for i, e in enumerate(exps):
         e = _object(e, f"{where}.experiments[{i}]", ("q_rad", "force"))
         _numbers(e["q_rad"], f"{where}.experiments[{i}].q_rad", sizes, "q_rad")

@@ -13,9 +13,10 @@ from ..records.files import read_results
 from .simulate import Plan
 
 
-def plans_from_designs(designs: list[Design]) -> list[Plan]:
-    """The plans of solved designs."""
-    return [Plan(d.criterion, d.m, np.asarray(d.Q, float), np.asarray(d.F, float)) for d in designs]
+def plans_from_designs(problem: Problem, designs: list[Design]) -> list[Plan]:
+    """The plans of solved designs, each with its campaign's measured experiments first
+    (:meth:`~casadi_design.model.build.Problem.campaign`): the whole campaign is identified."""
+    return [Plan(d.criterion, len(Q), Q, F) for d in designs for Q, F, _ in [problem.campaign(d.Q, d.F)]]
 
 
 def plans_from_results(problem: Problem, path: str | Path) -> list[Plan]:
@@ -48,13 +49,14 @@ def plans_from_results(problem: Problem, path: str | Path) -> list[Plan]:
             )
     plans = []
     for i, d in enumerate(record["designs"]):
-        Q = np.array([e["q_rad"] for e in d["experiments"]], dtype=float).reshape(d["m"], -1)
-        F = np.array([e["force"] for e in d["experiments"]], dtype=float).reshape(d["m"], -1)
+        k = len(d["experiments"])  # the campaign's: its measured experiments too
+        Q = np.array([e["q_rad"] for e in d["experiments"]], dtype=float).reshape(k, -1)
+        F = np.array([e["force"] for e in d["experiments"]], dtype=float).reshape(k, -1)
         if Q.shape[1] != model.n or F.shape[1] != model.nF:
             raise ProblemError(
                 f"--results: {path} designs[{i}] has {Q.shape[1]} joints and {F.shape[1]} force "
                 f"components per experiment, {problem.path} has {model.n} and {model.nF}; give the "
                 "results of this problem"
             )
-        plans.append(Plan(d["criterion"], int(d["m"]), Q, F))
+        plans.append(Plan(d["criterion"], k, Q, F))
     return plans

@@ -1,0 +1,81 @@
+"""What a second round starts from, read from files: experiments already measured (a plan or
+measurement CSV, ``--measured``) and an earlier identification (``identification.json``,
+``--prior``), as the :class:`~casadi_design.model.problem.HeldSpec` of a problem
+(:mod:`casadi_design.model.held` turns it into information)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ProblemError
+from ..model.build import Problem
+from ..model.problem import HeldSpec
+from .export import check_joint_limits, read_plan_table
+
+
+def read_measured(problem: Problem, path: str) -> tuple[np.ndarray, np.ndarray]:
+    """The experiments of a plan or measurement CSV: ``Q`` (k, n), rad (m), and ``F`` (k, nF),
+    N (N m); the joint and load columns are read, the others ignored.
+
+    Raises
+    ------
+    ProblemError
+        A file that is not a plan of this robot, or a joint value outside the joint limits (one
+        line naming the row and column).
+    """
+    Q, F, _, lines = read_plan_table(problem, path, ignore_unknown=True)
+    check_joint_limits(problem, path, Q, lines)
+    return Q, F
+
+
+def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray]:
+    """The robot parameters of an ``identification.json`` and their covariance (SI units).
+
+    Raises
+    ------
+    ProblemError
+        A missing or unreadable file, or one without ``parameters`` and ``covariance`` (written
+        by an older ``identify``, or not an identification).
+    """
+    where = f"--prior {path}"
+    try:
+        record = json.loads(Path(path).read_bytes().decode("utf-8-sig"))
+    except FileNotFoundError:
+        raise ProblemError(f"{where}: no such file; give the identification.json written by "
+                           "casadi-design identify") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ProblemError(f"{where}: cannot be read as JSON ({exc}); give the identification.json "
+                           "written by casadi-design identify") from None
+    parameters = record.get("parameters") if isinstance(record, dict) else None
+    C = record.get("covariance") if isinstance(record, dict) else None
+    try:
+        names = [p["name"] for p in parameters]
+        robot = [p.get("of") != "tracker frame" for p in parameters]
+        C = np.array(C, dtype=float)
+    except (TypeError, KeyError, ValueError):
+        raise ProblemError(f"{where}: has no 'parameters' and 'covariance' of an identification; give the "
+                           "identification.json written by casadi-design identify") from None
+    L = len(names)
+    if C.shape != (L, L) or not np.all(np.isfinite(C)):
+        raise ProblemError(f"{where}: 'covariance' is not a finite {L} x {L} matrix of its {L} parameters; "
+                           "give the identification.json written by casadi-design identify")
+    keep = np.flatnonzero(robot)  # the tracker frame of that round is not this one's
+    return tuple(names[i] for i in keep), C[np.ix_(keep, keep)]
+
+
+def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -> HeldSpec | None:
+    """The :class:`~casadi_design.model.problem.HeldSpec` of ``--measured`` files (their rows
+    in order) and a ``--prior`` identification; None without either."""
+    if not measured and prior is None:
+        return None
+    Q, F = np.zeros((0, problem.robot.n)), np.zeros((0, problem.model.nF))
+    for path in measured or []:
+        q, f = read_measured(problem, path)
+        Q, F = np.vstack([Q, q]), np.vstack([F, f])
+    names, C = ((), None) if prior is None else read_prior(problem, prior)
+    return HeldSpec(tuple(map(tuple, Q.tolist())), tuple(map(tuple, F.tolist())), names,
+                    None if C is None else tuple(map(tuple, C.tolist())),
+                    tuple(measured or []) + (() if prior is None else (prior,)))
