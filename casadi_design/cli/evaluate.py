@@ -40,7 +40,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..model.cell import clearances
-    from ..records.export import read_plan_csv
+    from ..records.export import measured_rows, read_plan_csv
     from ..records.results import design_from_record, experiment_records
     from ..plan.rules import plan_violations
     from ..optimisation.solve import plan_scores
@@ -48,6 +48,9 @@ def run(args: argparse.Namespace) -> int:
     out = common.output_folder(args, "evaluate")
     problem = common.load(args, check_solver=False)
     Q, F = read_plan_csv(problem, args.plan)
+    if problem.m_held:  # a campaign's plan CSV: its measured rows are those of --measured
+        new = ~measured_rows(args.plan)
+        Q, F = Q[new], F[new]
     m = len(Q)
     others = []
     if args.compare:

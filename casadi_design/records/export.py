@@ -274,14 +274,16 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
         raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
                            "name it or delete the column")
     unknown = [h for h in header if h not in allowed]
+    alien = sorted((h for h in unknown if h.rpartition("_")[0] and h.rpartition("_")[2] in ("deg", "rad", "mm", "m")),
+                   key=lambda h: h.rpartition("_")[2] not in ("deg", "rad"))  # angles first: coordinates are in mm too
+    if alien and not any(h in columns for h in header):
+        joint = alien[0].rpartition("_")[0]
+        raise ProblemError(
+            f"{path}: column '{alien[0]}' names joint '{joint}', which the robot of "
+            f"{problem.path} does not have ({', '.join(robot.joints)}): the plan is for another "
+            "problem; give the plan made for this one")
     if unknown and not ignore_unknown:
         si, people, _ = joint_units(problem, 0)
-        joint, _, unit = unknown[0].rpartition("_")
-        if joint and unit in ("deg", "rad", "mm", "m") and not any(h in columns for h in header):
-            raise ProblemError(
-                f"{path}: column '{unknown[0]}' names joint '{joint}', which the robot of "
-                f"{problem.path} does not have ({', '.join(robot.joints)}): the plan is for another "
-                "problem; give the plan made for this one")
         raise ProblemError(
             f"{path}: unknown column '{unknown[0]}'; allowed: q1_{people} or q1_{si} ... "
             f"q{robot.n}_<unit> (or joint names {', '.join(robot.joints)} with the unit suffix)"
