@@ -163,6 +163,18 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str) -> None:
     add_common(p)
 
 
+def add_target(p: argparse.ArgumentParser, sweep: bool = False) -> None:
+    """``--target-mm``: the tolerance whose smallest m is searched (solve) or read (sweep)."""
+    from ..execution.target import LIMIT_FACTOR
+
+    p.add_argument("--target-mm", type=number("--target-mm", "a positive number of mm"), metavar="T",
+                   help="the max error along the test poses to reach, mm: "
+                        + ("say the smallest m of the sweep whose test-pose plan reaches it" if sweep else
+                           "design test-pose plans for the smallest m that reaches it (searched from the "
+                           f"smallest identifiable m to the last of --m, default {LIMIT_FACTOR}x the "
+                           "largest [experiments].m), and say whether m - 1 is excluded by the bound"))
+
+
 def add_held(p: argparse.ArgumentParser) -> None:
     """``--measured`` and ``--prior``: what is known before the plan (a second round)."""
     p.add_argument("--measured", action="append", metavar="CSV",
@@ -256,7 +268,7 @@ def held_line(problem: Problem) -> str:
     held, what = problem.spec.held, []
     if problem.m_held:
         files = held.sources[: len(held.sources) - (held.prior_covariance is not None)]
-        what.append(f"{problem.m_held} experiments measured ({', '.join(files)})")
+        what.append(f"{problem.m_held} experiment{'s' if problem.m_held > 1 else ''} measured ({', '.join(files)})")
     if held is not None and held.prior_covariance is not None:
         what.append(f"the prior of {held.sources[-1]} on {len(held.prior_names)} parameters")
     if problem.spec.calibration.prior is not None:
@@ -271,12 +283,16 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     settings (defaults: the problem file's; a ``sweep``: every m from the smallest identifiable
     to the largest of the file), where the starts run, where the designs are kept
     (``partial``) and whether to resume."""
-    criteria = tuple(args.criteria or problem.criteria)
-    default_m = range(problem.m_min, max(problem.m_values) + 1) if sweep else sorted(problem.m_values)
+    from ..execution.target import TARGET_CRITERION, default_limit
+
+    target = getattr(args, "target_mm", None)
+    criteria = tuple(args.criteria or ((TARGET_CRITERION,) if target and not sweep else problem.criteria))
+    default_m = (range(problem.m_min, max(problem.m_values) + 1) if sweep else
+                 range(problem.m_min, default_limit(problem) + 1) if target else sorted(problem.m_values))
     settings = Settings(args.starts or problem.solver.starts, args.bound_steps, args.bound_pool, args.verbose)
     return Study(problem, criteria, tuple(args.m or default_m), settings, sweep,
                  not getattr(args, "no_warm_start", False), args.jobs, args.dask_scheduler, partial,
-                 getattr(args, "resume", False))
+                 getattr(args, "resume", False), None if target is None else target * 1e-3)
 
 
 def say_approximate(args: argparse.Namespace, approx: dict) -> None:
@@ -314,7 +330,8 @@ def design(args: argparse.Namespace, label: str, partial: Path | None = None,
     with executor(args) as ex:
         problem = load(args, spec=spec)
         request = study(args, problem, partial, sweep)
-        panels = fig_m(getattr(args, "fig_m", None), list(request.m_values), problem.m_values)
+        panels = (None if request.searches else
+                  fig_m(getattr(args, "fig_m", None), list(request.m_values), problem.m_values))
         if sweep:
             say(args, f"sweep of {request.designs} designs ({len(request.criteria)} criteria x "
                       f"{len(request.m_values)} values of m, {request.m_values[0]} to {request.m_values[-1]})")
@@ -325,6 +342,8 @@ def design(args: argparse.Namespace, label: str, partial: Path | None = None,
                 on_resume=lambda n: say(args, f"resuming: {n} of {request.designs} designs already in "
                                               f"{partial.parent}"))
     say_approximate(args, result.approx)
+    if panels is None:  # a search: the m it designed are known now
+        panels = fig_m(getattr(args, "fig_m", None), sorted({m for _, m in result.designs}), problem.m_values)
     return request, result, panels
 
 

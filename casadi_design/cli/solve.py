@@ -26,6 +26,7 @@ DESCRIPTION = ("Design the optimal plans of a problem file for each criterion an
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("solve", help=HELP, description=DESCRIPTION)
     common.add_campaign(p, "numbers of experiments: 1,5 or a range 1:10 (default: [experiments].m)")
+    common.add_target(p)
     common.add_output(p, "folder for results.json, fig1.png/pdf, plans/*.csv, report.md (created if missing)")
     p.add_argument("--program", metavar="FORMAT",
                    help="also write each plan as a robot program, programs/<criterion>_m<m>.<ext> (as "
@@ -52,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
     print(format_table(designs))
+    if done.target is not None:
+        print(done.target.line())
     common.say(args, "", format_solver_lines(designs),
                f"total {wall:.2f} s for {len(designs)} designs {study.where} (after imports)")
     if out:
@@ -73,7 +76,8 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
     from ..reports.plotting import fig1, poses_figure, write_figures
 
     designs, first = list(done.designs.values()), done.criteria[0]
-    write_results(out / "results.json", problem, designs, done.approx)
+    target = None if done.target is None else done.target.as_dict()
+    write_results(out / "results.json", problem, designs, done.approx, target)
     files = ["results.json"]
     files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, fig_m))
     figures = [("Fig. 1: +/- sqrt(rho) along the test poses", "fig1.png")]
@@ -84,6 +88,7 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
                         "tracker's beams and the test poses", "poses.png"))
     files += write_plans(out, problem, designs)
     report = report_markdown(problem, designs, table=format_table(designs), figures=figures,
-                             plans_for=fig_m, files=files, starts=done.settings.starts)
+                             plans_for=fig_m, files=files, starts=done.settings.starts,
+                             notes=[] if target is None else [target["answer"]])
     write_atomic(out / "report.md", report.encode())
     return files + ["report.md"]

@@ -26,6 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sweep", help=HELP, description=DESCRIPTION)
     common.add_campaign(p, "numbers of experiments: a range first:last[:step], e.g. 1:10, or a list "
                            "1,2,5 (default: the smallest identifiable m to the largest [experiments].m)")
+    common.add_target(p, sweep=True)
     common.add_output(p, "folder for sweep.csv/json, figures, plans/*.csv, report.md (created if missing)")
     p.add_argument("--log", action="store_true",
                    help="logarithmic axes in sweep_max_error (the repeat line is then straight)")
@@ -44,26 +45,36 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     print(common.case_line(problem))
     print(format_sweep_table(sweep))
+    target = None
+    if study.target_m is not None:
+        from ..execution.target import answer_from
+
+        target = answer_from(problem, study.target_m, sweep.designs, max(sweep.m_values))
+        print(target.line())
     common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({study.settings.starts} seeded starts "
                      f"each{', plus one warm start for m after the first' if study.warm_start else ''}) {study.where}")
     if out:
         with writing(study):
-            files = write_sweep(out, problem, sweep, fig_m, args.log, study.key, sweep.approx)
+            files = write_sweep(out, problem, sweep, fig_m, args.log, study.key, sweep.approx, target)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {sum(f.startswith('plans/') for f in files)} plans in {out / 'plans'}")
     return 0
 
 
 def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log: bool, key: dict,
-                approx: dict) -> list[str]:
-    """sweep.json, sweep.csv, the figures, the plans and report.md."""
+                approx: dict, target=None) -> list[str]:
+    """sweep.json, sweep.csv, the figures, the plans and report.md (``target``: the
+    :class:`~casadi_design.execution.target.TargetAnswer` of ``--target-mm``)."""
     from ..records.export import report_markdown, write_plans, write_table_csv
     from ..records.files import write_json
     from ..reports.plotting import fig1, sweep_figure, write_figures
     from ..execution.sweep import COLUMNS, sweep_record, sweep_rows
 
     designs = list(sweep.designs.values())
-    write_json(out / "sweep.json", sweep_record(problem, sweep, key, approx))
+    record = sweep_record(problem, sweep, key, approx)
+    if target is not None:
+        record["target"] = target.as_dict()
+    write_json(out / "sweep.json", record)
     write_table_csv(out / "sweep.csv", COLUMNS, sweep_rows(sweep))
     files = ["sweep.json", "sweep.csv"]
     files += write_figures(out, "sweep_max_error", sweep_figure(sweep, log))
@@ -75,6 +86,8 @@ def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log
          "new random poses. It wins only when strictly better, so a row can be better than "
          "`solve`, never worse (`warm_start_won` in sweep.csv)."),
     ]
+    if target is not None:
+        notes.append(target.line())
     if sweep.reference is not None:
         e_ref = sweep.reference.scores.max_rms_error_m
         notes.append(f"Repeat line: the best test-pose plan of {sweep.reference.m} experiment(s) "

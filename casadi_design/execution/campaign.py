@@ -94,14 +94,16 @@ class Settings:
 
 @dataclass(frozen=True, eq=False)
 class Campaign:
-    """The designs of a campaign, ``{(criterion, m): Design}`` in solve order, and the
-    approximate designs their bounds and rounded starts came from."""
+    """The designs of a campaign, ``{(criterion, m): Design}`` in solve order, the
+    approximate designs their bounds and rounded starts came from and, for a campaign that
+    searched the m of a tolerance, its answer (:class:`~casadi_design.execution.target.TargetAnswer`)."""
 
     criteria: tuple[str, ...]
     m_values: tuple[int, ...]
     settings: Settings
     designs: dict[tuple[str, int], Design]
     approx: dict[Aim, ApproximateDesign]
+    target: object | None = None
 
 
 #: Approximate designs, a pure function of (the problem, criterion, steps, pool): the ones

@@ -24,10 +24,11 @@ from ..runtime import interrupt
 from ..model.build import Problem
 from .campaign import Campaign, Settings, campaign_key, check_criteria, check_m_values, run_campaign, total_starts
 from ..plan.design import Design
-from ..errors import DesignError, OutputError
+from ..errors import DesignError, OutputError, ProblemError
 from ..records.files import load_partial, partial_record
 from .parallel import WorkerLost, make_executor
 from .sweep import RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
+from .target import TARGET_CRITERION, run_target
 
 
 class Interrupted(Exception):
@@ -48,6 +49,9 @@ class Study:
     dask_scheduler : address of a Dask scheduler to run the starts on instead.
     partial : the file each finished design is saved to at once (None: not kept).
     resume : continue from the designs saved in ``partial``'s folder by an interrupted run.
+    target_m : a tolerance on the max error along the test poses, m: a campaign searches the
+        smallest m of ``m_values`` that reaches it (:mod:`casadi_design.execution.target`);
+        a sweep says which of its m does.
     """
 
     problem: Problem
@@ -60,20 +64,33 @@ class Study:
     dask_scheduler: str | None = None
     partial: Path | None = None
     resume: bool = False
+    target_m: float | None = None
 
     def __post_init__(self) -> None:
         check_criteria(self.problem, self.criteria)
         check_m_values(self.problem, self.m_values)
+        if self.target_m is not None and TARGET_CRITERION not in self.criteria:
+            raise ProblemError(f"--target-mm is met by the {TARGET_CRITERION} plans; add {TARGET_CRITERION} "
+                               "to --criteria")
 
     @property
     def key(self) -> dict:
         """What its designs depend on (:func:`casadi_design.execution.campaign.campaign_key`): a resumed
         study must match it."""
-        return campaign_key(self.problem, self.criteria, self.m_values, self.settings,
-                            self.sweep and self.warm_start)
+        key = campaign_key(self.problem, self.criteria, self.m_values, self.settings,
+                           self.sweep and self.warm_start)
+        return key if self.target_m is None else {**key, "target_m": self.target_m}
+
+    @property
+    def searches(self) -> bool:
+        """Whether the campaign searches the m of ``target_m`` (not every m of ``m_values``)."""
+        return self.target_m is not None and not self.sweep
 
     @property
     def designs(self) -> int:
+        """Designs in all (a search: those of its first two m, a guess)."""
+        if self.searches:
+            return len(self.criteria) + 1
         return len(self.criteria) * len(self.m_values)
 
     @property
@@ -81,6 +98,8 @@ class Study:
         """IPOPT starts in all (for a progress bar)."""
         if self.sweep:
             return sweep_total_starts(self.problem, self.criteria, self.m_values, self.settings, self.warm_start)
+        if self.searches:
+            return total_starts(self.criteria + (TARGET_CRITERION,), self.m_values[:1], self.settings)
         return total_starts(self.criteria, self.m_values, self.settings)
 
     @property
@@ -147,6 +166,9 @@ def run_study(study: Study, *, progress: Callable[[int], object] | None = None,
             return run_sweep(study.problem, study.criteria, study.m_values, study.settings,
                              warm_start=study.warm_start, done=done, executor=ex, progress=checked,
                              on_design=save)
+        if study.searches:
+            return run_target(study.problem, study.criteria, min(study.m_values), max(study.m_values), study.settings,
+                              study.target_m, executor=ex, done=done, on_design=save, progress=checked)[0]
         return run_campaign(study.problem, study.criteria, study.m_values, study.settings, executor=ex,
                             done=done, on_design=save, progress=checked)
 

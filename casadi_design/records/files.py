@@ -254,9 +254,10 @@ def load_partial(out: Path, key: dict, sources: tuple[tuple[str, tuple[str, ...]
 
 
 def write_results(path: Path, problem: Problem, designs: list[Design],
-                  approx: dict[tuple[str, int], ApproximateDesign] | None = None) -> dict:
-    """``results.json`` of ``designs`` (:func:`casadi_design.records.results.results_dict`), atomically;
-    returns the record."""
-    record = results_dict(problem, designs, approx)
+                  approx: dict[tuple[str, int], ApproximateDesign] | None = None,
+                  target: dict | None = None) -> dict:
+    """``results.json`` of ``designs`` (:func:`casadi_design.records.results.results_dict`) and
+    the answer of a ``--target-mm`` search, atomically; returns the record."""
+    record = results_dict(problem, designs, approx) | ({"target": target} if target is not None else {})
     write_json(path, record)
     return record

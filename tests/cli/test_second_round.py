@@ -36,7 +36,7 @@ def test_a_campaign_is_its_measured_experiments_then_the_new_ones(paper, tmp_pat
     assert main(["solve", str(PAPER), "--m", "2", "--criteria", "test-pose", "--measured", str(first),
                  "--out", str(out), *TINY]) == 0
     printed = capsys.readouterr().out
-    assert "held before the plan: 1 experiments measured" in printed
+    assert "held before the plan: 1 experiment measured" in printed
     res = json.loads((out / "results.json").read_text())
     d = res["designs"][0]
     assert d["m"] == 2 and d["m_measured"] == 1 and res["held"]["m_measured"] == 1
