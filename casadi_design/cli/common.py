@@ -157,6 +157,10 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str) -> None:
                         "(default: [design].criteria of the problem)")
     p.add_argument("--starts", type=integer("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
+    p.add_argument("--candidates", metavar="CSV",
+                   help="choose each plan's experiments from these postures (a plan or measurement CSV: its "
+                        "joint and load columns), by exchange from a greedy plan, the pool's approximate "
+                        "design and --starts random choices; the bound is the pool's (solve only)")
     add_held(p)
     add_workers(p)
     add_bound_steps(p)
@@ -284,15 +288,18 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     to the largest of the file), where the starts run, where the designs are kept
     (``partial``) and whether to resume."""
     from ..execution.target import TARGET_CRITERION, default_limit
+    from ..records.held import read_measured
 
     target = getattr(args, "target_mm", None)
     criteria = tuple(args.criteria or ((TARGET_CRITERION,) if target and not sweep else problem.criteria))
     default_m = (range(problem.m_min, max(problem.m_values) + 1) if sweep else
                  range(problem.m_min, default_limit(problem) + 1) if target else sorted(problem.m_values))
     settings = Settings(args.starts or problem.solver.starts, args.bound_steps, args.bound_pool, args.verbose)
+    candidates = getattr(args, "candidates", None)
+    pool = None if candidates is None else read_measured(problem, candidates)
     return Study(problem, criteria, tuple(args.m or default_m), settings, sweep,
                  not getattr(args, "no_warm_start", False), args.jobs, args.dask_scheduler, partial,
-                 getattr(args, "resume", False), None if target is None else target * 1e-3)
+                 getattr(args, "resume", False), None if target is None else target * 1e-3, pool)
 
 
 def say_approximate(args: argparse.Namespace, approx: dict) -> None:

@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 
 from ..optimisation.bound import (
     BOUND_STEPS,
@@ -253,6 +254,32 @@ def run_campaign(
             if on_design is not None:
                 on_design(d)
     return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
+
+
+def choose_campaign(problem: Problem, criteria: Sequence[str], m_values: Iterable[int], settings: Settings,
+                    Q: np.ndarray, F: np.ndarray, *, done: dict[tuple[str, int], Design] | None = None,
+                    on_design: Callable[[Design], object] | None = None,
+                    progress: Callable[[int], object] | None = None) -> Campaign:
+    """Every (criterion, m) chosen from the postures ``Q`` (k, n), ``F`` (k, nF) of a pool
+    (:func:`casadi_design.optimisation.pool.choose_design`: greedy, the pool's approximate
+    design and ``settings.starts`` random subsets, each exchanged), with the pool's bound
+    when ``settings.bound_steps`` > 0; ``done``, ``on_design``, ``progress`` as for
+    :func:`run_campaign`."""
+    from ..optimisation.pool import choose_design
+
+    criteria, ms = tuple(criteria), tuple(sorted(set(m_values)))
+    check_criteria(problem, criteria)
+    check_m_values(problem, ms)
+    designs: dict[tuple[str, int], Design] = dict(done or {})
+    for m in ms:
+        for c in criteria:
+            if (c, m) not in designs:
+                designs[c, m] = d = choose_design(problem, c, m, Q, F, settings.starts, settings.bound_steps > 0)
+                if on_design is not None:
+                    on_design(d)
+            if progress is not None:
+                progress(len(designs[c, m].starts))
+    return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, {})
 
 
 def _later_starts(problem: Problem, c: str, m: int, designs: dict, approx: dict,

@@ -20,9 +20,13 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..runtime import interrupt
+from ..runtime.cache import digest
 from ..model.build import Problem
-from .campaign import Campaign, Settings, campaign_key, check_criteria, check_m_values, run_campaign, total_starts
+from .campaign import (Campaign, Settings, campaign_key, check_criteria, check_m_values, choose_campaign,
+                       run_campaign, total_starts)
 from ..plan.design import Design
 from ..errors import DesignError, OutputError, ProblemError
 from ..records.files import load_partial, partial_record
@@ -52,6 +56,8 @@ class Study:
     target_m : a tolerance on the max error along the test poses, m: a campaign searches the
         smallest m of ``m_values`` that reaches it (:mod:`casadi_design.execution.target`);
         a sweep says which of its m does.
+    pool : the postures ``(Q, F)`` the plans are chosen from (``--candidates``;
+        :func:`~casadi_design.execution.campaign.choose_campaign`), None: designed freely.
     """
 
     problem: Problem
@@ -65,10 +71,14 @@ class Study:
     partial: Path | None = None
     resume: bool = False
     target_m: float | None = None
+    pool: tuple[np.ndarray, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         check_criteria(self.problem, self.criteria)
         check_m_values(self.problem, self.m_values)
+        if self.pool is not None and (self.sweep or self.target_m is not None):
+            raise ProblemError("--candidates chooses the plans of solve; give it without --target-mm, "
+                               "and run solve instead of sweep")
         if self.target_m is not None and TARGET_CRITERION not in self.criteria:
             raise ProblemError(f"--target-mm is met by the {TARGET_CRITERION} plans; add {TARGET_CRITERION} "
                                "to --criteria")
@@ -79,7 +89,11 @@ class Study:
         study must match it."""
         key = campaign_key(self.problem, self.criteria, self.m_values, self.settings,
                            self.sweep and self.warm_start)
-        return key if self.target_m is None else {**key, "target_m": self.target_m}
+        if self.target_m is not None:
+            key["target_m"] = self.target_m
+        if self.pool is not None:
+            key["candidates_sha256"] = digest(*(np.ascontiguousarray(a, dtype=float).tobytes() for a in self.pool))
+        return key
 
     @property
     def searches(self) -> bool:
@@ -100,6 +114,8 @@ class Study:
             return sweep_total_starts(self.problem, self.criteria, self.m_values, self.settings, self.warm_start)
         if self.searches:
             return total_starts(self.criteria + (TARGET_CRITERION,), self.m_values[:1], self.settings)
+        if self.pool is not None:  # greedy, the pool's approximate design and the seeded subsets
+            return self.designs * (self.settings.starts + 2)
         return total_starts(self.criteria, self.m_values, self.settings)
 
     @property
@@ -166,6 +182,9 @@ def run_study(study: Study, *, progress: Callable[[int], object] | None = None,
             return run_sweep(study.problem, study.criteria, study.m_values, study.settings,
                              warm_start=study.warm_start, done=done, executor=ex, progress=checked,
                              on_design=save)
+        if study.pool is not None:
+            return choose_campaign(study.problem, study.criteria, study.m_values, study.settings, *study.pool,
+                                   done=done, on_design=save, progress=checked)
         if study.searches:
             return run_target(study.problem, study.criteria, min(study.m_values), max(study.m_values), study.settings,
                               study.target_m, executor=ex, done=done, on_design=save, progress=checked)[0]

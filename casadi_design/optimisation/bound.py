@@ -170,7 +170,7 @@ def bound(problem: Problem, m: int, approx: ApproximateDesign) -> Bound:
                  score(approx.value, m, problem.sigma_m, L), L)
 
 
-def _information(problem: Problem, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
+def experiment_information(problem: Problem, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
     """``B_k^T B_k`` of experiments ``Q`` (k, n), ``F`` (k, nF): shape (k, L, L)."""
     B = problem.model.B_stack(Q, F)
     return np.einsum("kri,krj->kij", B, B)
@@ -181,7 +181,7 @@ def _sample(problem: Problem, size: int, rng: np.random.Generator) -> tuple[np.n
     return random_plan(problem, size, rng)
 
 
-def _pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray,
+def pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray,
                   F0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The convex problem on a pool ``A`` (k, L, L), ``W = sum_k w_k A_k`` with w in the simplex,
     solved by IPOPT with exact derivatives from ``w0`` (k,), ``N = (F0 + W)^-1`` with the
@@ -530,7 +530,7 @@ def approximate_design(
 
     Column generation over single experiments. The candidates are ``pool_size`` random feasible
     experiments (seeded by ``problem.solver.seed``), the first pool, and ``sample_size`` more.
-    Each step solves the convex problem on the pool (:func:`_pool_optimum`), prices every
+    Each step solves the convex problem on the pool (:func:`pool_optimum`), prices every
     candidate by ``d(x, W)``, and polishes by IPOPT (:func:`maximise_d`) the support points and
     the ``POLISH_STARTS`` best candidates: at the optimum every support point is a local
     maximum of d, so the support moves to where the continuum wants it. A support point that
@@ -569,7 +569,7 @@ def approximate_design(
     L, form = problem.model.L, CRITERIA[criterion].bound
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, CRITERIA[criterion].seed_id])
     Q, F = _sample(problem, pool_size + sample_size, rng)
-    A = _information(problem, Q, F)
+    A = experiment_information(problem, Q, F)
     c = L / np.mean(np.trace(A, axis1=1, axis2=2))  # the weights see c A: W of order 1
     A = c * A
     if problem.M_held is not None and m < 1:
@@ -589,9 +589,9 @@ def approximate_design(
     duals: dict[int, Duals] = {}  # the candidates that are maxima of an earlier step: theirs
     checked, proven = [], None  # the checked steps, the best checked certificate
     for step in range(iterations):
-        w, mu = _pool_optimum(A[pool], Hj, w, F0)
+        w, mu = pool_optimum(A[pool], Hj, w, F0)
         W = np.einsum("k,kij->ij", w, A[pool])
-        lin = _linearised(W, mu, Hj, F0)
+        lin = linearised(W, mu, Hj, F0)
         G, phi, step_value = lin.G, lin.phi, lin.value
         value = max(value, step_value) if Hj is None else min(value, step_value)
         d = np.einsum("kij,ij->k", A, G)
@@ -601,7 +601,7 @@ def approximate_design(
         Qp, Fp, Ap, dp, up = _maxima(problem, G, c, Q[starts], F[starts], d[starts],
                                      [duals.get(int(i)) for i in starts], phi, maximise)
         d_max = float(max(d.max(), dp.max(initial=0.0)))
-        certified = _certificate(Hj, lin, d_max)
+        certified = certificate(Hj, lin, d_max)
         if best is None or sense * (certified - best[0]) < 0:
             best = (certified, pool[support], w[support] / w[support].sum(), W, mu, d_max)
         priced = np.setdiff1d(np.flatnonzero(d > phi), pool[support])
@@ -609,7 +609,7 @@ def approximate_design(
         if form.moves and step and step % form.moves == 0:  # the heavy support moved: new candidates
             Qm, Fm = _moved(problem, criterion, Q[pool[support]], F[pool[support]], w[support],
                             A[pool[support]] / c, None if F0 is None else F0 / c)
-            Am = c * _information(problem, Qm, Fm)
+            Am = c * experiment_information(problem, Qm, Fm)
             Qp, Fp, Ap = (np.concatenate(pair) for pair in ((Qp, Qm), (Fp, Fm), (Ap, Am)))
             up = [*up, *[None] * len(Qm)]  # no duals: their searches start cold
         new = _distinct(Ap, A[pool[support]])
@@ -718,7 +718,7 @@ def _distinct(Ap: np.ndarray, Aref: np.ndarray, rtol: float = DISTINCT_RTOL) -> 
 
 
 class Linearised(NamedTuple):
-    """What the certificate of a W and mu needs (:func:`_linearised`): ``G`` with ``d(x, W) =
+    """What the certificate of a W and mu needs (:func:`linearised`): ``G`` with ``d(x, W) =
     <A(x), G>``, ``phi = <W, G>`` (the support's mean d), W's value and the mu-weighted value
     ``level`` (test-pose, A, I: ``tr(H N)``; D: 0)."""
 
@@ -729,7 +729,7 @@ class Linearised(NamedTuple):
     held: bool
 
 
-def _linearised(W: np.ndarray, mu: np.ndarray, Hj: np.ndarray | None, F0: np.ndarray | None = None) -> Linearised:
+def linearised(W: np.ndarray, mu: np.ndarray, Hj: np.ndarray | None, F0: np.ndarray | None = None) -> Linearised:
     """:class:`Linearised` of ``W`` (scaled, L x L), ``mu`` and the fixed part ``F0`` (None: 0),
     ``N = (F0 + W)^-1``. Test-pose and A: ``G = N H N``, value ``max_j tr(Hj_j N)``, ``H =
     sum_j mu_j Hj_j``, ``phi = tr(H N) - tr(G F0)``; D: ``G = N``, value ``log det(F0 + W)``,
@@ -746,8 +746,8 @@ def _linearised(W: np.ndarray, mu: np.ndarray, Hj: np.ndarray | None, F0: np.nda
     return Linearised(G, phi, float(np.einsum("jil,li->j", Hj, N).max()), level, F0 is not None)
 
 
-def _certificate(Hj: np.ndarray | None, lin: Linearised, d_max: float) -> float:
-    """The certificate of :func:`_linearised`'s W and mu (module docstring). D: ``value + d_max
+def certificate(Hj: np.ndarray | None, lin: Linearised, d_max: float) -> float:
+    """The certificate of :func:`linearised`'s W and mu (module docstring). D: ``value + d_max
     - phi``, an upper bound of ``log det`` of any hull point (``log det W + d_max - L`` without a
     fixed part). Test-pose, A, I: a lower bound of t*, ``phi^2 / d_max`` without a fixed part
     (tangent at the best multiple of W), ``level + phi - d_max`` (at least 0) with one."""
@@ -769,7 +769,7 @@ def _maxima(problem: Problem, G: np.ndarray, c: float, Q: np.ndarray, F: np.ndar
     >= phi): they are left out before the check on the real geometry, the costly part of the
     plan check."""
     Qp, Fp, up = maximise(problem, 1.0 / np.max(d), G, Q, F, duals)  # IPOPT sees d of order 1
-    Ap = c * _information(problem, Qp, Fp)
+    Ap = c * experiment_information(problem, Qp, Fp)
     dp = np.einsum("kij,ij->k", Ap, G)
     keep = dp > above
     keep[keep] = _untouched(problem, Qp[keep])
@@ -791,16 +791,16 @@ def _verified(problem: Problem, c: float, W: np.ndarray, mu: np.ndarray, d_max: 
     value, d_max (the larger of ``d_max`` and the new search's) and the experiments of the new
     search with d above ``d_max`` (the sample's and the maxima's: Q (k, n), F (k, nF), their
     scaled information (k, L, L))."""
-    lin = _linearised(W, mu, Hj, F0)
+    lin = linearised(W, mu, Hj, F0)
     G = lin.G
     Q, F = _sample(problem, size, rng)
-    A = c * _information(problem, Q, F)
+    A = c * experiment_information(problem, Q, F)
     d = np.einsum("kij,ij->k", A, G)
     best = np.argsort(d)[::-1][:verify_starts(size)]
     Qp, Fp, Ap, dp, _ = _maxima(problem, G, c, Q[best], F[best], d[best], [None] * len(best), d_max, maximise)
     above = best[d[best] > d_max]
     d_max = float(max(d_max, d.max(), dp.max(initial=0.0)))
-    return (_certificate(Hj, lin, d_max), d_max, np.concatenate([Q[above], Qp]),
+    return (certificate(Hj, lin, d_max), d_max, np.concatenate([Q[above], Qp]),
             np.concatenate([F[above], Fp]), np.concatenate([A[above], Ap]))
 
 

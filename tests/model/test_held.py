@@ -14,6 +14,7 @@ from casadi_design.optimisation.solve import plan_scores, solve_design
 from casadi_design.plan.sampling import random_plan
 
 from tests.conftest import ROOT
+from tests.pinocchio_oracle import rms_errors as pinocchio_rms
 
 
 def held(problem, Q, F, **prior) -> object:
@@ -60,6 +61,8 @@ def test_six_measured_ur10_experiments_make_six_new_ones_identifiable():
     assert scores.identifiable
     np.testing.assert_allclose(scores.rms_error_m, np.sqrt(numpy_rho(ur10, np.vstack([Qh, Q]), np.vstack([Fh, F]))),
                                rtol=1e-8)
+    # and by Pinocchio alone, in a redundant parameterisation of every geometric error
+    np.testing.assert_allclose(scores.rms_error_m, pinocchio_rms(ur10, np.vstack([Qh, Q])), rtol=1e-7)
 
 
 def test_a_group_prior_adds_sigma_squared_over_the_variance_in_the_scaled_parameters():

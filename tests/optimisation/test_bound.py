@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from casadi_design.optimisation.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _search_one, _information, _pool_optimum, _sample, apportion,
+from casadi_design.optimisation.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _search_one, experiment_information, pool_optimum, _sample, apportion,
                                  approximate_design, bound, rounded_plans)
 from casadi_design.model.build import load_problem
 from casadi_design.measures.criteria import CRITERIA
@@ -93,7 +93,7 @@ def ur10_pool():
     """40 random feasible UR10 experiments in their cell, scaled as the exchange scales them."""
     problem = load_problem(ROOT / "problems" / "ur10_drilling.toml")
     Q, F = _sample(problem, 40, np.random.default_rng(1))
-    A = _information(problem, Q, F)
+    A = experiment_information(problem, Q, F)
     c = problem.model.L / np.mean(np.trace(A, axis1=1, axis2=2))
     B0 = np.sqrt(c) * problem.B0
     return c * A, B0
@@ -108,7 +108,7 @@ def test_pool_optimum_equals_semidefinite_program(ur10_pool):
     A, B0 = ur10_pool
     k, L = A.shape[:2]
     Hj = np.einsum("jri,jrl->jil", B0, B0)
-    w, mu = _pool_optimum(A, Hj, np.full(k, 1.0 / k))
+    w, mu = pool_optimum(A, Hj, np.full(k, 1.0 / k))
     N = np.linalg.inv(np.einsum("k,kij->ij", w, A))
     f = np.einsum("jil,li->j", Hj, N)
     H = np.einsum("j,jil->il", mu, Hj)
@@ -127,7 +127,7 @@ def test_pool_optimum_D_is_titterington_fixed_point(ur10_pool):
     support points are where it is reached."""
     A, _ = ur10_pool
     k, L = A.shape[:2]
-    w, mu = _pool_optimum(A, None, np.full(k, 1.0 / k))
+    w, mu = pool_optimum(A, None, np.full(k, 1.0 / k))
     d = np.einsum("kij,ji->k", A, np.linalg.inv(np.einsum("k,kij->ij", w, A)))
     assert mu.tolist() == [1.0]
     assert d.max() == pytest.approx(L, rel=1e-6)
@@ -300,11 +300,11 @@ def test_a_move_lowers_the_criterion_at_fixed_weights(paper, criterion):
     """The heavy points of a support, moved with their weights kept, give a W of lower
     criterion (computed here with numpy) than where they were; the light points stay."""
     Q, F = _sample(paper, SUPPORT_WEIGHTS.size, np.random.default_rng(11))
-    A = _information(paper, Q, F)
+    A = experiment_information(paper, Q, F)
     Qm, Fm = _moved(paper, criterion, Q, F, SUPPORT_WEIGHTS, A)
     assert len(Qm) == 4
     W = np.einsum("k,kij->ij", SUPPORT_WEIGHTS, A)
-    Wm = np.einsum("k,kij->ij", SUPPORT_WEIGHTS[:4], _information(paper, Qm, Fm)) + \
+    Wm = np.einsum("k,kij->ij", SUPPORT_WEIGHTS[:4], experiment_information(paper, Qm, Fm)) + \
         np.einsum("k,kij->ij", SUPPORT_WEIGHTS[4:], A[4:])
     assert _criterion_of(paper, criterion, Wm) < _criterion_of(paper, criterion, W) - 1e-3 * abs(
         _criterion_of(paper, criterion, W))
@@ -317,7 +317,7 @@ def test_moved_points_keep_every_rule(ur10_cell):
     rng = np.random.default_rng(12)
     Q, F = _sample(ur10_cell, 12, rng)
     w = rng.uniform(0.5, 1.0, len(Q))
-    Qm, Fm = _moved(ur10_cell, "test-pose", Q, F, w, _information(ur10_cell, Q, F))
+    Qm, Fm = _moved(ur10_cell, "test-pose", Q, F, w, experiment_information(ur10_cell, Q, F))
     assert len(Qm) >= 1
     assert not np.allclose(Qm, Q[np.argsort(w)[::-1][:len(Qm)]]), "the points moved"
     for q, f in zip(Qm, Fm):
@@ -374,7 +374,7 @@ def test_a_search_holding_the_rows_that_can_bind_ends_at_a_maximum_of_every_row(
     multipliers, stays there: a local maximum of the whole rulebook."""
     search, rng = _search(ur10_cell), np.random.default_rng(5)
     Q, F = _sample(ur10_cell, 200, rng)
-    A = _information(ur10_cell, Q, F)
+    A = experiment_information(ur10_cell, Q, F)
     Wi = np.linalg.inv(A.mean(axis=0))
     G = Wi @ Wi
     d = np.einsum("kij,ij->k", A, G)
@@ -409,7 +409,7 @@ def test_the_search_objective_is_minus_d_with_its_derivatives_where_the_load_is_
     for q, f, G in zip(Q, F, (_sym(L, rng), rng.normal(size=(L, L)), _sym(L, rng))):
         z = np.concatenate([q, loads.variables(f[None]).ravel()])
         p = np.concatenate([G.ravel(order="F"), index])
-        A = _information(abb, q[None], f[None])[0]
+        A = experiment_information(abb, q[None], f[None])[0]
         assert float(f_fn(z, p)) == pytest.approx(-np.sum(G * A), rel=1e-12)
         h = 1e-6 * np.maximum(1.0, np.abs(z))
         E = np.diag(h)

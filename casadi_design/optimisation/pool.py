@@ -1,0 +1,156 @@
+"""Plans chosen from postures the user already has (``--candidates``): exchange over a pool.
+
+Given a pool of k feasible experiments (taught by hand, known safe, or measured) with
+information ``A_i = B_i^T B_i``, a plan of m of them (each at most once) has ``M = M_held +
+sum_{i in S} A_i``. The choice:
+
+1. starts: the greedy plan (one experiment at a time, the one that improves the criterion most;
+   while M is singular, the one that raises ``log det(M + eps I)`` most), the m heaviest
+   postures of the pool's approximate design, and ``starts`` random subsets (seeded by the
+   problem's seed, the criterion and m);
+2. exchange (Fedorov): the best swap of a chosen posture with one left out, repeated until no
+   swap improves the criterion's score;
+3. the best plan over the starts, scored as any plan (:func:`~casadi_design.optimisation.solve.plan_scores`).
+
+The bound is the pool's relaxation with its certificate (:mod:`casadi_design.optimisation.bound`):
+over a finite pool the largest ``d(x, W)`` is exact, so it bounds every choice of m postures
+from the pool (repeats allowed), not every plan of the robot.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..errors import ProblemError
+from ..measures.criteria import BOUND_CRITERIA, CRITERIA
+from ..measures.measures import SINGULAR_RTOL
+from ..model.cell import clearances
+from ..model.build import Problem
+from ..plan.design import Bound, Design, StartRecord
+from .bound import certificate, linearised, pool_optimum
+from ..measures.measures import Scores, score_plan
+from .solve import start_rng
+
+#: Status of a start whose exchange ended (no swap improves): a converged start.
+EXCHANGED = "Solve_Succeeded"
+#: Regularisation of the greedy steps while M is singular, relative to the pool's mean trace.
+GREEDY_EPS = 1e-9
+#: Exchange passes of one start at most.
+MAX_PASSES = 200
+
+
+def _scores(problem: Problem, B: np.ndarray, S: list[int]) -> Scores:
+    """The scores of the postures ``S`` of the pool (their B precomputed, (k, d, L)): the
+    plan's scores (:func:`~casadi_design.measures.measures.score_plan`, as
+    :func:`~casadi_design.optimisation.solve.plan_scores` gives them)."""
+    return score_plan(B[S], problem.B0, problem.sigma_m, problem.M_held, problem.m_held)
+
+
+def _key(criterion: str, value: float) -> float:
+    """The score as a quantity to minimise (NaN and a singular plan last)."""
+    if not np.isfinite(value):
+        return np.inf
+    return value if CRITERIA[criterion].sense == "min" else -value
+
+
+def _greedy(problem: Problem, criterion: str, m: int, B: np.ndarray, A: np.ndarray) -> list[int]:
+    """m postures one at a time, each the one that improves the criterion most (while M is
+    singular: ``log det(M + eps I)``)."""
+    L = problem.model.L
+    M = np.zeros((L, L)) if problem.M_held is None else problem.M_held.copy()
+    eps = GREEDY_EPS * float(np.mean(np.trace(A, axis1=1, axis2=2))) / L
+    chosen: list[int] = []
+    for _ in range(m):
+        free = [i for i in range(len(A)) if i not in chosen]
+        lam = np.linalg.eigvalsh(M)
+        if lam[0] > SINGULAR_RTOL * max(lam[-1], np.finfo(float).tiny):
+            keys = [_key(criterion, _scores(problem, B, chosen + [i]).value(criterion)) for i in free]
+        else:
+            keys = [-np.linalg.slogdet(M + A[i] + eps * np.eye(L))[1] for i in free]
+        best = free[int(np.argmin(keys))]
+        chosen.append(best)
+        M = M + A[best]
+    return chosen
+
+
+def _exchange(problem: Problem, criterion: str, S: list[int], B: np.ndarray) -> tuple[list[int], float, int]:
+    """Fedorov's exchange from the subset ``S``: the subset, its score key and the passes."""
+    k = len(B)
+    S = list(S)
+    current = _key(criterion, _scores(problem, B, S).value(criterion))
+    for passes in range(1, MAX_PASSES + 1):
+        best = (current, None, None)
+        for a in range(len(S)):
+            for j in range(k):
+                if j in S:
+                    continue
+                T = S[:a] + [j] + S[a + 1:]
+                v = _key(criterion, _scores(problem, B, T).value(criterion))
+                if v < best[0] - 1e-12 * max(1.0, abs(best[0])):
+                    best = (v, a, j)
+        if best[1] is None:
+            return S, current, passes
+        current = best[0]
+        S[best[1]] = best[2]
+    return S, current, MAX_PASSES
+
+
+def pool_bound(problem: Problem, criterion: str, m: int, A: np.ndarray) -> tuple[Bound, np.ndarray]:
+    """The certified bound of any choice of m postures from the pool (information ``A``, (k, L,
+    L)) and the pool's approximate design weights (k,)."""
+    L, form = problem.model.L, CRITERIA[criterion].bound
+    c = L / np.mean(np.trace(A, axis1=1, axis2=2))
+    Ac = c * A
+    F0 = None if problem.M_held is None else c * problem.M_held / m
+    Hj = None if form.log_det else c * form.rows(problem.B0)
+    w, mu = pool_optimum(Ac, Hj, np.full(len(A), 1.0 / len(A)), F0)
+    W = np.einsum("k,kij->ij", w, Ac)
+    lin = linearised(W, mu, Hj, F0)
+    d_max = float(np.max(np.einsum("kij,ij->k", Ac, lin.G)))
+    certified, value = certificate(Hj, lin, d_max), lin.value
+    if Hj is None:
+        certified, value = certified - L * np.log(c), value - L * np.log(c)
+    return Bound(criterion, m, form.score(certified, m, problem.sigma_m, L),
+                 form.score(value, m, problem.sigma_m, L), L), w
+
+
+def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np.ndarray,
+                  starts: int, with_bound: bool = True) -> Design:
+    """The plan of m postures of the pool ``Q`` (k, n), rad, ``F`` (k, nF), N that is best by
+    ``criterion`` (module docstring), with the pool's bound when the criterion has one.
+
+    Raises
+    ------
+    ProblemError
+        A pool of fewer than m postures.
+    """
+    t0 = time.perf_counter()
+    k = len(Q)
+    if m > k:
+        raise ProblemError(f"--candidates: the pool has {k} postures, fewer than m = {m}; give m <= {k} "
+                           "or more postures")
+    B = problem.model.B_stack(Q, F)
+    A = np.einsum("kri,krj->kij", B, B)
+    bnd, w = pool_bound(problem, criterion, m, A) if with_bound and criterion in BOUND_CRITERIA else (None, None)
+    rng = start_rng(problem.solver.seed, criterion, m)
+    first = [("greedy", _greedy(problem, criterion, m, B, A))]
+    if w is not None:
+        first.append(("heaviest of the pool's approximate design", list(np.argsort(w)[::-1][:m])))
+    first += [("seeded", list(rng.choice(k, size=m, replace=False))) for _ in range(starts)]
+    records, best = [], None
+    for origin, S in first:
+        S, key, passes = _exchange(problem, criterion, S, B)
+        scores = _scores(problem, B, S)
+        records.append(StartRecord(EXCHANGED, passes, scores.value(criterion), scores.max_rms_error_m,
+                                   scores.identifiable, origin))
+        if scores.identifiable and (best is None or key < best[0]):
+            best = (key, sorted(S), scores, records[-1])
+    if best is None:
+        raise ProblemError(f"--candidates: no choice of {m} postures of the pool identifies the parameters; "
+                           "give more varied postures or a larger m")
+    _, S, scores, rec = best
+    return Design(criterion, m, Q[S], F[S], scores, rec.status, tuple(records), time.perf_counter() - t0,
+                  problem.solver.seed, bound=bnd,
+                  clearances=tuple(clearances(problem.cell, Q[S])) if problem.cell else None)
