@@ -74,6 +74,14 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert main(["identify", str(path), "--measurements", str(measured), "--frame", "base",
                  "--model", "identifiable",  # auto's candidates: tests/identification
                  "--out", str(tmp_path / "identify")]) == 0
+    # the second round: the plan measured, the identification as a prior, one more experiment
+    second = tmp_path / "second"
+    held = ["--measured", str(plan), "--prior", str(tmp_path / "identify" / "identification.json")]
+    assert main(["solve", str(path), "--m", "1", *tiny, *NO_BOUND, *held, "--out", str(second)]) == 0
+    campaign = second / "plans" / f"{CRITERION}_m1.csv"
+    assert main(["evaluate", str(path), "--plan", str(campaign), *held, "--quiet"]) == 0
+    assert main(["validate", str(path), "--results", str(second / "results.json"), "--trials", "4", *held,
+                 "--quiet"]) == 0
     rows = [line for line in plan.read_text().splitlines() if not line.startswith("#")]
     first = tmp_path / "first.csv"  # the program of the plan's first PROGRAM_EXPERIMENTS experiments
     first.write_text("\n".join(rows[:1 + PROGRAM_EXPERIMENTS]) + "\n")
@@ -99,6 +107,8 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
         urdf = make_robot(pin.buildModelFromUrdf(str(tmp_path / "identify" / "calibrated.urdf")), MEASURED_POINT)
         for q in Q:
             assert np.abs(frame_placement(table, q).homogeneous - frame_placement(urdf, q).homogeneous).max() < 1e-9
+    again = json.loads((second / "results.json").read_text())["designs"][0]
+    assert [e.get("measured", False) for e in again["experiments"]] == [True] * m + [False]
     program = json.loads((tmp_path / "program" / "program.json").read_text())
     assert sorted(p["experiment"] for p in program["points"] if p["experiment"]) == \
         list(range(1, min(m, PROGRAM_EXPERIMENTS) + 1))
