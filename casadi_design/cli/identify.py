@@ -53,8 +53,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from ..identification.measurements import COORDINATE_UNITS, LIMIT_TOLERANCE
 
     p.add_argument("problem", help="problem file (TOML) of the measured robot, e.g. problems/ur10_drilling.toml")
-    p.add_argument("--measurements", required=True, metavar="CSV",
-                   help="measured plan: the plan CSV with meas_x_mm, meas_y_mm, meas_z_mm (or meas1_x_mm ...) appended")
+    p.add_argument("--measurements", required=True, metavar="CSV", action="append",
+                   help="measured plan: the plan CSV with meas_x_mm, meas_y_mm, meas_z_mm (or meas1_x_mm ...) "
+                        "appended; repeat it for the rounds of a campaign, each in a tracker frame of its own "
+                        "(the tracker moved between them) unless --same-frame")
+    p.add_argument("--same-frame", action="store_true",
+                   help="the --measurements files share one tracker frame (the tracker did not move)")
     p.add_argument("--validation", metavar="CSV",
                    help="poses measured for validation only (same format), not used in the fit")
     p.add_argument("--frame", choices=FRAMES, default="tracker",
@@ -94,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         an ``--out`` that cannot be written (before anything is computed).
     """
     from ..identification.calibrate import calibrate
-    from ..identification.measurements import FileFormat, parse_columns, read_measurements
+    from ..identification.measurements import FileFormat, parse_columns, read_measurements, rounds_of
     from ..identification.dh_table import calibrated_dh, has_dh_table
     from ..identification.problem_file import calibrated_dh_problem, calibrated_problem, toml_text
     from ..identification.report import (
@@ -111,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
     fmt = FileFormat(args.units, tuple(u.strip() for u in args.joint_units.split(",") if u.strip()),
                      parse_columns(args.columns), args.limit_tolerance)
     problem = load_without_cell(args.problem)
-    meas = read_measurements(problem, args.measurements, fmt)
+    meas = rounds_of([read_measurements(problem, path, fmt) for path in args.measurements], args.same_frame)
     valid = None if args.validation is None else read_measurements(problem, args.validation, fmt)
-    if valid is not None and valid.path == meas.path:
+    if valid is not None and valid.path in (meas.paths or (meas.path,)):
         raise ProblemError(f"--validation {valid.path}: is the file of the fit; give poses not used in the fit")
     cal = calibrate(problem, meas, args.frame, valid, args.outlier_sigma, args.loss, args.model)
     problem = cal.problem  # with the measured points located when they were far off

@@ -45,7 +45,7 @@ from ..errors import DesignError, ProblemError
 from ..measures.measures import information_matrix, rho_at_test_poses
 from .choice import MODELS, Candidate, candidates, choose, has_weight
 from .compensate import compensate
-from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, in_tracker, model_points, point_errors, pose_rms,
+from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, frames_projected, in_tracker, model_points, point_errors, pose_rms,
                   register, row_errors)
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
@@ -209,8 +209,10 @@ def design_information(f: Fit, meas: Measurements) -> np.ndarray:
     that was measured (the standard deviations use ``J`` at the estimate), plus a MAP fit's
     prior ``diag((sigma / std)^2)``."""
     model = f.fit.model
-    B = model.B_stack(meas.Q[f.used], meas.F[f.used]) * model.column_scale * f.mask[f.used][:, :, None]
-    return f.with_prior(information_matrix(B))
+    B = model.B_stack(meas.Q, meas.F) * model.column_scale * f.mask[:, :, None]
+    if f.frames is not None:  # the later rounds' frames unknown
+        B = frames_projected(B, f.frame_of, f.used, len(f.fit.frame_names))
+    return f.with_prior(information_matrix(B[f.used]))
 
 
 def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
@@ -298,11 +300,11 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     std = np.sqrt(np.diagonal(C))
     correlation = C / np.outer(std, std)
     N = int(f.mask[f.used].sum())
-    dof = N - L
+    dof = N - L - (0 if f.frames is None else f.frames.size)  # the later rounds' frames too
     ssr = float(np.sum(f.r[f.used] ** 2))
     interval = ((float(chi2.ppf((1 - CONFIDENCE) / 2, dof)), float(chi2.ppf((1 + CONFIDENCE) / 2, dof)))
                 if dof > 0 else (0.0, float("inf")))
-    model_P = in_tracker(f.T0, model_points(fm.model, meas.Q, meas.F, f.X))
+    model_P = f.tracker_points(meas.Q, meas.F, meas.frame_of)
     e = point_errors(problem, meas.P_m, model_P)
     axes_m = meas.P_m - model_P
     axes_m[:, :, [a for a in range(3) if a not in measured_axes(problem)]] = np.nan

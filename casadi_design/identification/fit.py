@@ -35,7 +35,7 @@ from ..model.mapped import evaluate
 from ..measures.measures import SINGULAR_RTOL, information_matrix
 from ..model.models import CalibrationModel, calibration_model
 from ..model.symbolic import PLACEMENT_ERRORS
-from .lsq import Identification, identify_nonlinear, measurement_jacobian, nominal_poses
+from .lsq import Identification, expanded, identify_nonlinear, measurement_jacobian, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
 
@@ -147,14 +147,20 @@ class Fit:
 
     Attributes
     ----------
-    X : ndarray, shape (L,): the fit's parameters (``fit.model.parameter_names``; SI units).
-    T0 : ndarray, shape (4, 4), m: the closed-form registration (identity in the base frame).
+    X : ndarray, shape (L,): the fit's parameters (``fit.model.parameter_names``; SI units),
+        the tracker frame's those of the first round.
+    T0s : ndarray, shape (R, 4, 4), m: the closed-form registration of each tracker frame
+        (identity in the base frame); ``T0`` the first.
     ref : ndarray, shape (m, 12): nominal poses of the rows.
     y : ndarray, shape (m, d): whitened measured deviations (0 where not measured), m.
     mask : ndarray of bool, shape (m, d): the values measured.
     used : ndarray of bool, shape (m,): the rows in the fit.
     r : ndarray, shape (m, d), m: whitened residuals ``y - h(X)`` (0 where not measured).
-    J : ndarray, shape (m, d, L): ``dh/dX`` at ``X`` (masked).
+    J : ndarray, shape (m, d, L): ``dh/dX`` at ``X`` (masked); with several tracker frames,
+        each later round's rows with its frame's parameters projected out, so that ``J^T J``
+        is the information on X with those frames unknown (their Schur complement).
+    frames : ndarray, shape (R - 1, nf): the frame parameters of the later rounds (one tracker
+        frame per round), and ``frame_of`` (m,) the frame of each row.
     identification : evaluations and convergence of the least squares.
     prior_information : ndarray, shape (L,), m^2 per parameter unit^2: ``(sigma / std)^2`` of a
         MAP fit's prior (0: none), None for least squares.
@@ -162,7 +168,7 @@ class Fit:
 
     fit: FitModel
     X: np.ndarray
-    T0: np.ndarray
+    T0s: np.ndarray
     ref: np.ndarray
     y: np.ndarray
     mask: np.ndarray
@@ -171,6 +177,28 @@ class Fit:
     J: np.ndarray
     identification: Identification
     prior_information: np.ndarray | None = None
+    frames: np.ndarray | None = None
+    frame_of: np.ndarray | None = None
+
+    @property
+    def T0(self) -> np.ndarray:
+        """The closed-form registration of the first round's tracker frame (4 x 4, m)."""
+        return self.T0s[0]
+
+    def rows_X(self, frame_of: np.ndarray) -> np.ndarray:
+        """The model parameters of rows measured in the frames ``frame_of`` (k,): shape (k, L)."""
+        nf = len(self.fit.frame_names)
+        if self.frames is None or not nf:
+            return np.tile(self.X, (len(frame_of), 1))
+        return expanded(np.concatenate([self.X, self.frames.ravel()]), np.asarray(frame_of), nf, len(self.X))
+
+    def tracker_points(self, Q: np.ndarray, F: np.ndarray, frame_of: np.ndarray | None = None) -> np.ndarray:
+        """The model's points (k, p, 3), m, of the rows ``Q``, ``F`` in their tracker frames
+        (``frame_of``; None: the first round's)."""
+        frame_of = np.zeros(len(Q), dtype=int) if frame_of is None else np.asarray(frame_of)
+        points = model_points(self.fit.model, Q, F, self.rows_X(frame_of))
+        T = self.T0s[frame_of]
+        return np.einsum("kij,kpj->kpi", T[:, :3, :3], points) + T[:, None, :3, 3]
 
     @property
     def tracker_from_base(self) -> np.ndarray:
@@ -221,40 +249,47 @@ def whitening(problem: Problem) -> np.ndarray:
 
 
 def model_points(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """Points (m, k, 3), m, of the markers of robot ``X`` (fit parameters) under the loads
-    ``F``, in the base frame (the frame's ``delta`` included when ``X`` holds it)."""
-    poses = evaluate(model.pose, Q, F.reshape(len(Q), model.nF), np.tile(X, (len(Q), 1)))[0][:, :, 0]
+    """Points (m, k, 3), m, of the markers of robot ``X`` (fit parameters; one row per
+    experiment, shape (m, L), or one for all) under the loads ``F``, in the base frame (the
+    frame's ``delta`` included when ``X`` holds it)."""
+    X = np.asarray(X, dtype=float)
+    rows = X if X.ndim == 2 else np.tile(X, (len(Q), 1))
+    poses = evaluate(model.pose, Q, F.reshape(len(Q), model.nF), rows)[0][:, :, 0]
     R, p = poses[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), poses[:, 9:]
     return p[:, None, :] + np.einsum("tij,kj->tki", R, model.markers_m)
 
 
 def registration(problem: Problem, fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float, int]:
-    """``T0`` (4 x 4): the closed-form tracker frame of the nominal model (identity in the base
-    frame), the RMS distance (m) of the measured points from the nominal ones it leaves, and
-    the row (index) of the worst.
+    """``T0s`` (R, 4, 4): the closed-form tracker frame of the nominal model in each round's
+    frame (identity in the base frame), the RMS distance (m) of the measured points from the
+    nominal ones they leave, and the row (index) of the worst.
 
     Raises
     ------
     ProblemError
-        When the points do not determine the frame.
+        When the points do not determine a frame.
     """
     axes = measured_axes(problem)
     nominal = model_points(fm.model, meas.Q, meas.F, np.zeros(fm.model.L))
+    frame_of = meas.frame_of
+    T0s = np.tile(np.eye(4), (meas.frames, 1, 1))
+    for k in range(meas.frames):
+        seen = meas.seen & (frame_of == k)[:, None]
+        A, B = nominal[seen], meas.P_m[seen]
+        if fm.frame == "tracker":
+            found = rigid_fit(A, B, axes)
+            if found is None:
+                where = meas.paths[k] if meas.frames > 1 else meas.path
+                raise ProblemError(
+                    f"{where}: the {len(B)} measured points do not determine the tracker frame (they "
+                    f"lie on a line, or fewer than {len(axes)}); measure more varied poses, or give "
+                    "base-frame coordinates with --frame base")
+            T0s[k] = frame_matrix(*found)
     seen = meas.seen
-    A, B = nominal[seen], meas.P_m[seen]
-    if fm.frame == "base":
-        T0 = np.eye(4)
-    else:
-        found = rigid_fit(A, B, axes)
-        if found is None:
-            raise ProblemError(
-                f"{meas.path}: the {len(B)} measured points do not determine the tracker frame (they "
-                f"lie on a line, or fewer than {len(axes)}); measure more varied poses, or give "
-                "base-frame coordinates with --frame base")
-        T0 = frame_matrix(*found)
-    off = (B - (A @ T0[:3, :3].T + T0[:3, 3]))[:, list(axes)]
+    T = T0s[np.broadcast_to(frame_of[:, None], seen.shape)[seen]]
+    off = (meas.P_m[seen] - (np.einsum("kij,kj->ki", T[:, :3, :3], nominal[seen]) + T[:, :3, 3]))[:, list(axes)]
     rows = np.nonzero(seen)[0]
-    return T0, float(np.sqrt(np.mean(np.sum(off**2, axis=1)))), int(rows[np.argmax(np.sum(off**2, axis=1))])
+    return T0s, float(np.sqrt(np.mean(np.sum(off**2, axis=1)))), int(rows[np.argmax(np.sum(off**2, axis=1))])
 
 
 def with_points(problem: Problem, d: np.ndarray, build: bool = True):
@@ -311,7 +346,7 @@ def register(problem: Problem, frame: str, meas: Measurements) -> tuple[Problem,
     if rms <= REGISTRATION_TOL_M:
         return problem, fm, T0, []
     located = ""
-    if frame == "tracker" and len(measured_axes(problem)) == 3:
+    if frame == "tracker" and len(measured_axes(problem)) == 3 and meas.frames == 1:
         d, left = locate_points(fm, meas)
         where = f"{point_keys(problem)} = {point_values(with_points(problem, d, build=False))} m"
         if left > REGISTRATION_TOL_M:
@@ -385,15 +420,17 @@ def locate_points(fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float]:
 
 
 def measured_values(problem: Problem, fm: FitModel, meas: Measurements,
-                    T0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``ref`` (m, 12), ``y`` (m, d) and ``mask`` (m, d) of :class:`Fit` for the rows of ``meas``."""
+                    T0s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``ref`` (m, 12), ``y`` (m, d) and ``mask`` (m, d) of :class:`Fit` for the rows of
+    ``meas``, each row's points taken out of its round's frame ``T0s[k]`` (R, 4, 4)."""
     model, axes = fm.model, list(measured_axes(problem))
     ref = nominal_poses(model, meas.Q, meas.F)
     R, p = ref[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), ref[:, 9:]
     nominal = p[:, None, :] + np.einsum("tij,kj->tki", R, model.markers_m)
     P = meas.P_m.copy()
     P[:, :, [a for a in range(3) if a not in axes]] = 0.0  # not measured: left alone by T0
-    base = (P - T0[:3, 3]) @ T0[:3, :3]  # T0^-1 P
+    T0 = np.asarray(T0s).reshape(-1, 4, 4)[meas.frame_of]
+    base = np.einsum("tpj,tji->tpi", P - T0[:, None, :3, 3], T0[:, :3, :3])  # T0^-1 P
     dev = (base - nominal)[:, :, axes].reshape(meas.m, -1)  # the order of model.measurement
     mask = np.isfinite(dev)
     Wh = whitening(problem)
@@ -414,9 +451,9 @@ def check_identifiable(problem: Problem, fm: FitModel, meas: Measurements, used:
     ProblemError
         Naming the numbers of rows, values and parameters.
     """
-    L, values, rows = fm.model.L, int(mask[used].sum()), int(used.sum())
+    L, values, rows = fm.model.L + (meas.frames - 1) * len(fm.frame_names), int(mask[used].sum()), int(used.sum())
     names = ", ".join(fm.model.parameter_names)
-    frame = f" ({len(fm.frame_names)} of them the tracker frame's)" if fm.frame_names else ""
+    frame = (f" ({L - fm.model.L + len(fm.frame_names)} of them the tracker frames')" if fm.frame_names else "")
     per_row = max(1, values // max(rows, 1))
     if values < L:
         raise ProblemError(
@@ -431,10 +468,12 @@ def check_identifiable(problem: Problem, fm: FitModel, meas: Measurements, used:
             f"{L}); measure more, and more varied, poses (a plan of casadi-design solve)")
 
 
-def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used: np.ndarray,
+def fit(problem: Problem, fm: FitModel, meas: Measurements, T0s: np.ndarray, used: np.ndarray,
         loss: str = "linear") -> Fit:
     """Least squares (``loss``: :data:`~.lsq.LOSSES`) on the rows ``used`` of ``meas`` (module
-    docstring); the MAP estimate when ``fm`` has a prior.
+    docstring); the MAP estimate when ``fm`` has a prior. Rows of several rounds each in a
+    tracker frame of its own (``meas.frames``) share the robot's parameters and fit a frame per
+    round (:func:`~.lsq.identify_nonlinear`'s ``frames``).
 
     Raises
     ------
@@ -443,29 +482,45 @@ def fit(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray, used
     DesignError
         When the fit does not converge.
     """
-    ref, y, mask = measured_values(problem, fm, meas, T0)
+    T0s = np.asarray(T0s).reshape(-1, 4, 4)
+    ref, y, mask = measured_values(problem, fm, meas, T0s)
     check_identifiable(problem, fm, meas, used, mask)
     model, sigma = fm.model, problem.sigma_m
-    m = len(y)
-    X, ident = identify_nonlinear(model, meas.Q[used], meas.F[used], ref[used], y[used].reshape(1, -1),
+    nf, frame_of = len(fm.frame_names), meas.frame_of
+    several = meas.frames > 1 and nf > 0
+    Z, ident = identify_nonlinear(model, meas.Q[used], meas.F[used], ref[used], y[used].reshape(1, -1),
                                   sigma, mask=mask[used].reshape(-1), loss=loss,
-                                  prior_std=fm.prior_std)
+                                  prior_std=fm.prior_std, frames=(frame_of[used], nf) if several else None)
     if ident.non_converged:
         raise DesignError(
             f"{meas.path}: the fit did not meet its tolerances in {ident.iterations} evaluations "
             "of the model; the robot is far from its nominal model or the rows disagree: check the "
             "file, or fit fewer parameters first (--model offsets)")
-    X = X[0]
-    h, J = evaluate(measurement_jacobian(model), meas.Q, meas.F, np.tile(X, (m, 1)), ref)
-    h = h[:, :, 0]
+    X, frames = Z[0, :model.L], Z[0, model.L:].reshape(-1, nf) if several else None
+    h, J = evaluate(measurement_jacobian(model), meas.Q, meas.F, expanded(Z[0], frame_of, nf, model.L), ref)
+    h, J = h[:, :, 0], J * mask[:, :, None]
+    if several:
+        J = frames_projected(J, frame_of, used, nf)
     prior = None if fm.prior_std is None else (sigma / fm.prior_std) ** 2
-    return Fit(fm, X, T0, ref, y, mask, used, np.where(mask, y - h, 0.0), J * mask[:, :, None], ident,
-               prior)
+    return Fit(fm, X, T0s, ref, y, mask, used, np.where(mask, y - h, 0.0), J, ident, prior,
+               frames, frame_of if several else None)
+
+
+def frames_projected(J: np.ndarray, frame_of: np.ndarray, used: np.ndarray, nf: int) -> np.ndarray:
+    """``J`` (m, d, L) with, for the rows ``used`` of each later round (``frame_of`` > 0), the
+    directions of their frame's ``nf`` parameters (the first) projected out: ``J^T J`` is then
+    the information on X with those frames unknown (the Schur complement of their block)."""
+    J = J.copy()
+    for k in range(1, int(frame_of.max(initial=0)) + 1):
+        rows = np.flatnonzero((frame_of == k) & used)
+        Jk = J[rows].reshape(-1, J.shape[2])
+        G = Jk[:, :nf]
+        J[rows] = (Jk - G @ np.linalg.lstsq(G, Jk, rcond=None)[0]).reshape(len(rows), -1, J.shape[2])
+    return J
 
 
 def row_errors(problem: Problem, f: Fit, meas: Measurements, rows: np.ndarray | None = None) -> np.ndarray:
     """RMS over each row's points of ``|P - T0 p(X)|`` (m) of the fit ``f`` at the rows ``rows``
     (indices or mask, default all) of ``meas``, in the frame the fit identified."""
     sub = meas if rows is None else meas.subset(rows)
-    model_P = in_tracker(f.T0, model_points(f.fit.model, sub.Q, sub.F, f.X))
-    return pose_rms(point_errors(problem, sub.P_m, model_P))
+    return pose_rms(point_errors(problem, sub.P_m, f.tracker_points(sub.Q, sub.F, sub.frame_of)))

@@ -109,6 +109,31 @@ def taylor_jacobian(model: CalibrationModel, Q: np.ndarray, F: np.ndarray,
     return J0, dJ.reshape(m, L, d, L).transpose(0, 2, 3, 1).reshape(m * d, L, L)
 
 
+def expanded(X: np.ndarray, rounds: np.ndarray, nf: int, L: int) -> np.ndarray:
+    """Each row's model parameters (m, L) from a fit's parameters ``X`` (L + (R - 1) nf: the
+    model's, then the ``nf`` frame parameters of rounds 1..R-1): row i takes the frame of its
+    ``rounds[i]`` as its first ``nf``."""
+    rows = np.tile(X[:L], (len(rounds), 1))
+    later = rounds > 0
+    if later.any():
+        rows[later, :nf] = X[L:].reshape(-1, nf)[rounds[later] - 1]
+    return rows
+
+
+def contracted(J: np.ndarray, rounds: np.ndarray, nf: int, P: int) -> np.ndarray:
+    """``dh/dX`` of the fit's parameters (m, d, P) from each row's ``dh/dX`` of its model
+    parameters ``J`` (m, d, L) (:func:`expanded`'s transpose)."""
+    m, d, L = J.shape
+    out = np.zeros((m, d, P))
+    out[:, :, :L] = J
+    later = np.flatnonzero(rounds > 0)
+    for i in later:
+        k = L + (rounds[i] - 1) * nf
+        out[i, :, k:k + nf] = J[i, :, :nf]
+        out[i, :, :nf] = 0.0
+    return out
+
+
 def check_loss(loss: str) -> str:
     if loss not in LOSSES:
         raise ProblemError(f"--loss {loss}: allowed: {', '.join(LOSSES)}")
@@ -119,7 +144,8 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
                        y: np.ndarray, sigma: float, max_iterations: int = LSQ_MAX_EVALUATIONS,
                        mask: np.ndarray | None = None, loss: str = "linear",
                        X0: np.ndarray | None = None, jacobian: str = "exact",
-                       prior_std: np.ndarray | None = None) -> tuple[np.ndarray, Identification]:
+                       prior_std: np.ndarray | None = None,
+                       frames: tuple[np.ndarray, int] | None = None) -> tuple[np.ndarray, Identification]:
     """Fit X to each row of ``y`` (module docstring), from ``X0`` (default 0), with the
     ``jacobian`` of ``JACOBIANS``.
 
@@ -135,10 +161,14 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
     prior_std : ndarray, shape (L,), physical units: the standard deviation of a zero-mean
         normal prior on each parameter (inf: none); the fit is then the MAP estimate,
         ``min |r / sigma|^2 + |X / prior_std|^2``.
+    frames : ``(round, nf)``: the rows were measured in several frames, row i in frame
+        ``round[i]`` (0..R-1), whose parameters are the first ``nf`` of X; the fit's
+        parameters are then X followed by the ``nf`` frame parameters of rounds 1..R-1
+        (:func:`expanded`).
 
     Returns
     -------
-    X : ndarray, shape (trials, L), physical parameters.
+    X : ndarray, shape (trials, L + (R - 1) nf), physical parameters.
     report : :class:`Identification`.
     """
     from scipy.optimize import least_squares  # imported here: scipy.optimize takes ~0.3 s
@@ -146,20 +176,22 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
     check_loss(loss)
     y = np.atleast_2d(np.asarray(y, dtype=float))
     trials, m, L = y.shape[0], Q.shape[0], model.L
+    rounds, nf = (np.zeros(m, dtype=int), 0) if frames is None else (np.asarray(frames[0]), frames[1])
+    P = L + (int(rounds.max(initial=0))) * nf  # the fit's parameters
     w = np.ones(y.shape[1]) if mask is None else np.asarray(mask, dtype=float)
     y = np.where(w > 0, y, 0.0)
     if jacobian not in JACOBIANS:
         raise ValueError(f"identify_nonlinear: jacobian {jacobian!r}; allowed: {', '.join(JACOBIANS)}")
-    X0 = np.zeros((trials, L)) if X0 is None else np.broadcast_to(np.asarray(X0, float), (trials, L))
+    X0 = np.zeros((trials, P)) if X0 is None else np.broadcast_to(np.asarray(X0, float), (trials, P))
     s = max(float(sigma), np.finfo(float).tiny)
     if jacobian == "exact":
         fn = measurement_jacobian(model)
 
         def model_at(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            h, J = evaluate(fn, Q, F, np.tile(X, (m, 1)), ref, threads=1)
-            return h.reshape(-1) * w / s, J.reshape(-1, L) * w[:, None] / s
+            h, J = evaluate(fn, Q, F, expanded(X, rounds, nf, L), ref, threads=1)
+            return h.reshape(-1) * w / s, contracted(J, rounds, nf, P).reshape(-1, P) * w[:, None] / s
 
-        _, J0 = model_at(np.zeros(L))
+        _, J0 = model_at(np.zeros(P))
     else:
         Ja, T = taylor_jacobian(model, Q, F, ref)
         J0, T = Ja * w[:, None] / s, T * w[:, None, None] / s
@@ -174,19 +206,19 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
     norms = np.linalg.norm(J0, axis=0)
     x_scale = 1.0 / (s * np.where(norms > 0, norms, 1.0))  # parameter units per m of the values
     if prior_std is not None:
-        weight = 1.0 / np.asarray(prior_std, dtype=float)  # 0 where no prior
+        weight = np.concatenate([1.0 / np.asarray(prior_std, dtype=float), np.zeros(P - L)])  # 0: no prior
         plain = model_at
 
         def model_at(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             h, J = plain(X)
             return np.concatenate([h, -weight * X]), np.vstack([J, -np.diag(weight)])
 
-        y = np.hstack([y, np.zeros((trials, L))])
+        y = np.hstack([y, np.zeros((trials, P))])
     # MINPACK's Levenberg-Marquardt (a trust region in C) for least squares, 1.4x faster than
     # the trust-region reflective method at the same optimum; trf for the robust losses and
     # for fewer values than parameters, which MINPACK refuses
     method = "lm" if loss == "linear" and J0.shape[0] >= L else "trf"
-    X = np.empty((trials, L))
+    X = np.empty((trials, P))
     evaluations, stopped = 0, 0
     for t in range(trials):
         target, last = y[t] / s, {}

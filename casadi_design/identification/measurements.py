@@ -109,6 +109,10 @@ class Measurements:
         frame of the measurements; NaN for a marker not seen and for a component not measured.
     notes : what the reader did that a person should know (columns ignored, the layout
         recognised, readings past a joint limit).
+    rounds : ndarray of int, shape (m,), or None: the file of each row (0, 1, ...: rounds
+        measured one after the other; :func:`rounds_of`), None: one file.
+    paths : the file of each round (``path`` names them all).
+    same_frame : the rounds share one tracker frame (else each has its own: the tracker moved).
     """
 
     path: str
@@ -117,12 +121,26 @@ class Measurements:
     F: np.ndarray
     P_m: np.ndarray
     notes: tuple[str, ...] = ()
+    rounds: np.ndarray | None = None
+    paths: tuple[str, ...] = ()
+    same_frame: bool = False
 
     def subset(self, rows: np.ndarray) -> "Measurements":
         """The rows ``rows`` (indices or a bool mask) of these measurements."""
         i = np.arange(self.m)[rows]
         return Measurements(self.path, tuple(self.lines[k] for k in i), self.Q[i], self.F[i],
-                            self.P_m[i], self.notes)
+                            self.P_m[i], self.notes, None if self.rounds is None else self.rounds[i], self.paths,
+                            self.same_frame)
+
+    @property
+    def frames(self) -> int:
+        """Number of tracker frames the rows were measured in."""
+        return 1 if self.rounds is None or self.same_frame else len(self.paths)
+
+    @property
+    def frame_of(self) -> np.ndarray:
+        """The tracker frame of each row (0..frames-1), shape (m,)."""
+        return np.zeros(self.m, dtype=int) if self.frames == 1 else self.rounds
 
     @property
     def m(self) -> int:
@@ -134,7 +152,20 @@ class Measurements:
         return np.any(np.isfinite(self.P_m), axis=2)
 
     def row(self, i: int) -> str:
-        return f"{self.path}: row {self.lines[i]}"
+        return f"{self.paths[self.rounds[i]] if self.paths else self.path}: row {self.lines[i]}"
+
+
+def rounds_of(files: list[Measurements], same_frame: bool = False) -> Measurements:
+    """The rows of several measurement files as one set, each file a round measured in a frame
+    of its own (the tracker moved between rounds) unless ``same_frame``."""
+    if len(files) == 1:
+        return files[0]
+    rounds = np.concatenate([np.full(f.m, k) for k, f in enumerate(files)])
+    notes = tuple(f"{f.path}: {n}" for f in files for n in f.notes)
+    return Measurements(" + ".join(f.path for f in files), tuple(line for f in files for line in f.lines),
+                        np.vstack([f.Q for f in files]), np.vstack([f.F for f in files]),
+                        np.concatenate([f.P_m for f in files]), notes, rounds, tuple(f.path for f in files),
+                        same_frame)
 
 
 def measured_axes(problem: Problem) -> tuple[int, ...]:

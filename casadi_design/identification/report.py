@@ -27,6 +27,14 @@ def parameter_unit(calibration: Calibration, name: str) -> str:
     return "rad"
 
 
+def frame_delta(f, values: np.ndarray) -> np.ndarray:
+    """The 6 placement errors of a tracker frame from the fit's kept frame parameters ``values``."""
+    delta = np.zeros(6)
+    for name, value in zip(f.fit.frame_names, values):
+        delta[FRAME_PARAMETERS.index(name)] = value
+    return delta
+
+
 def tracker_std(calibration: Calibration) -> np.ndarray:
     """Standard deviations (4 x 4, m) of the entries of ``tracker_from_base``:
     ``sqrt(diag(G C G^T))``, ``G`` the finite-difference derivative of ``T0 E(delta)`` in the
@@ -86,6 +94,11 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
         "tracker_from_base": f.tracker_from_base.tolist(),
         "tracker_from_base_std": tracker_std(c).tolist(),
         "tracker_from_base_unit": "m (4 x 4 homogeneous: base-frame points to tracker-frame points)",
+        **({"rounds": [{"file": path, "rows": int(np.sum(meas.rounds == k))} for k, path in enumerate(meas.paths)],
+            "tracker_frames": "one per round" if meas.frames > 1 else "one for every round",
+            "tracker_from_base_per_round": [f.tracker_from_base.tolist(), *(
+                (f.T0s[k + 1] @ error_placement(frame_delta(f, d))).tolist() for k, d in enumerate(f.frames))]
+            if f.frames is not None else [f.tracker_from_base.tolist()]} if meas.paths else {}),
         "least_squares": {**f.identification.as_dict(), "converged": f.identification.non_converged == 0},
         "model": c.model,
         "model_choice": "leave-one-out cross-validation, one-standard-error rule" if c.model_chosen else "given (--model)",

@@ -16,7 +16,8 @@ from casadi_design.identification import lsq
 from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.fit import model_points
 from casadi_design.identification.measurements import read_measurements
-from casadi_design.identification.report import tracker_std
+from casadi_design.errors import ProblemError
+from casadi_design.identification.report import identification_record, tracker_std
 from casadi_design.model.robots import frame_placement, make_robot
 from casadi_design.plan.sampling import random_plan
 from casadi_design.virtual import identify as virtual_identify
@@ -310,3 +311,42 @@ def test_base_frame_prediction_is_the_designs_measure(ur10, tmp_path):
     design = score_plan(ur10.model.B_stack(Q, F), ur10.B0, ur10.sigma_m)
     np.testing.assert_allclose(cal.predicted_rms_m, design.rms_error_m, rtol=1e-6)
     assert cal.names == ur10.model.parameter_names and cal.noise_consistent
+
+
+def test_rounds_in_two_tracker_frames_identify_one_robot(ur10, tmp_path, capsys):
+    """Two rounds of 8 rows, the tracker moved in between: fitted with a frame per round, the
+    residuals are the noise (chi-square consistent) and each frame is its round's true one;
+    taken as one frame (--same-frame) they are millimetres off. The robot's covariance with a
+    frame per round is that of the Schur complement: at least the one-frame fit's of the same
+    rows (a frame known adds information)."""
+    from casadi_design.identification.measurements import rounds_of
+
+    true = perturbed(ur10, np.random.default_rng(5), base_like=False)
+    moved = type(true)(true.model, true.frame_id, true.k,
+                       pin.SE3(pin.exp3(np.array([0.1, 0.2, -0.4])), np.array([0.3, 1.1, -0.2])) * true.tracker)
+    write_measurements(tmp_path / "first.csv", ur10, true, 8, 21)
+    write_measurements(tmp_path / "second.csv", ur10, moved, 8, 22)
+    files = [read_measurements(ur10, str(tmp_path / n)) for n in ("first.csv", "second.csv")]
+    two = calibrate(ur10, rounds_of(files), model="identifiable")
+    assert two.noise_consistent and not two.outliers
+    assert two.fit.frames.shape == (1, len(two.fit.fit.frame_names))
+    T1 = two.fit.tracker_from_base
+    assert angle_between(T1[:3, :3], true.tracker.rotation) < 1e-4
+    record = identification_record(two, {})
+    T2 = np.array(record["tracker_from_base_per_round"][1])
+    assert angle_between(T2[:3, :3], moved.tracker.rotation) < 1e-4
+    assert np.abs(T2[:3, 3] - moved.tracker.translation).max() < 1e-3
+    assert [r["rows"] for r in record["rounds"]] == [8, 8]
+    assert rms(two.residual_rms_m) < 2 * ur10.sigma_m
+    with pytest.raises(ProblemError, match="cannot be registered"):  # one frame: the tracker's move is metres
+        calibrate(ur10, rounds_of(files, same_frame=True), model="identifiable")
+    # the same rows in one frame: the information of the robot parameters is at least as large
+    same = [read_measurements(ur10, str(tmp_path / "first.csv"))]
+    write_measurements(tmp_path / "second_same.csv", ur10, true, 8, 22)
+    same.append(read_measurements(ur10, str(tmp_path / "second_same.csv")))
+    joint = calibrate(ur10, rounds_of(same, same_frame=True), model="identifiable")
+    robot = slice(len(two.fit.fit.frame_names), None)
+    assert np.all(joint.std[robot] <= two.std[robot] * (1 + 1e-9))
+    assert main(["identify", str(UR10), "--measurements", str(tmp_path / "first.csv"), "--measurements",
+                 str(tmp_path / "second.csv"), "--model", "identifiable", "--out", str(tmp_path / "out")]) == 0
+    assert "first.csv + " in json.loads((tmp_path / "out" / "identification.json").read_text())["measurements"]

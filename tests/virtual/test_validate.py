@@ -461,3 +461,24 @@ def test_validate_without_results_validates_the_plans_of_solve(tmp_path):
         assert a["predicted_rms_m"] == b["predicted_rms_m"] == d["rms_error_m"]
         assert a["empirical_rms_m"] == b["empirical_rms_m"]
     assert any(st["origin"] == "rounded approximate design" for d in solved for st in d["solver"]["per_start"])
+
+
+def test_a_two_round_campaign_is_simulated_whole(paper, tmp_path, capsys):
+    """validate --measured: round 2 designed around the measured round 1, then each trial
+    measures and identifies both rounds together; the simulated max error agrees with the
+    campaign's predicted sqrt(rho) within 5 % (2000 trials: about 2 % standard error)."""
+    from casadi_design.cli import main
+    from casadi_design.plan.sampling import random_plan
+    from casadi_design.records.export import csv_text, plan_table
+    from tests.conftest import PAPER
+
+    Q, F = random_plan(paper, 1, np.random.default_rng(3))
+    first = tmp_path / "first.csv"
+    first.write_text(csv_text(*plan_table(paper, Q, F)))
+    assert main(["validate", str(PAPER), "--m", "2", "--criteria", "test-pose", "--measured", str(first),
+                 "--starts", "2", "--bound-pool", "50", "--jobs", "1", "--trials", "2000",
+                 "--out", str(tmp_path / "v"), "--quiet"]) == 0
+    capsys.readouterr()
+    plan = json.loads((tmp_path / "v" / "validation.json").read_text())["plans"][0]
+    assert plan["m"] == 3  # the campaign: 1 measured + 2 new
+    assert plan["max"]["empirical_m"] == pytest.approx(plan["max"]["predicted_m"], rel=0.05)
