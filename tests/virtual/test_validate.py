@@ -64,7 +64,7 @@ def geometric():
 
 @pytest.fixture(scope="module")
 def geometric_plans(geometric):
-    return plans_from_designs(solve_all(geometric))
+    return plans_from_designs(geometric, solve_all(geometric))
 
 
 @pytest.fixture(scope="module")
@@ -293,7 +293,7 @@ def test_paper_example_agrees_within_5_percent_at_every_node(paper, paper_design
     ~1 / sqrt(2 N nu) = 1.6 % for N = 2000, nu >= 1, so 5 % at every one of 6 x 61 nodes is
     a 3-sigma bound; 1000 trials would make it 2.2 sigma."""
     t0 = time.perf_counter()
-    v = validate(paper, plans_from_designs(paper_designs), trials=2000, seed=0)
+    v = validate(paper, plans_from_designs(paper, paper_designs), trials=2000, seed=0)
     print(f"\npaper example, 6 plans x 2000 trials: {time.perf_counter() - t0:.2f} s")
     assert len(v.plans) == 6
     for p, d in zip(v.plans, paper_designs):
