@@ -80,7 +80,7 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert main(["solve", str(path), "--m", "1", *tiny, *NO_BOUND, *held, "--out", str(second)]) == 0
     campaign = second / "plans" / f"{CRITERION}_m1.csv"
     assert main(["evaluate", str(path), "--plan", str(campaign), *held, "--quiet"]) == 0
-    assert main(["validate", str(path), "--results", str(second / "results.json"), "--trials", "4", *held,
+    assert main(["validate", str(path), "--results", str(second / "results.json"), "--trials", "2", *held,
                  "--quiet"]) == 0
     rows = [line for line in plan.read_text().splitlines() if not line.startswith("#")]
     first = tmp_path / "first.csv"  # the program of the plan's first PROGRAM_EXPERIMENTS experiments

@@ -10,7 +10,7 @@ from casadi_design.execution.campaign import Settings
 from casadi_design.execution.target import TargetAnswer, run_target
 from tests.conftest import PAPER
 
-SETTINGS = Settings(4, bound_steps=40, bound_pool=100)
+SETTINGS = Settings(2, bound_steps=10, bound_pool=50)
 
 
 def test_the_search_finds_the_smallest_m_and_excludes_fewer_by_the_bound(paper):
@@ -45,13 +45,13 @@ def test_the_statement_on_one_fewer(bounds, errors, said):
 
 
 def test_solve_and_sweep_write_the_answer(tmp_path, capsys):
-    tiny = ["--starts", "2", "--bound-pool", "100", "--jobs", "1", "--quiet"]
+    tiny = ["--starts", "2", "--bound-steps", "10", "--bound-pool", "50", "--jobs", "1", "--quiet"]
     assert main(["solve", str(PAPER), "--target-mm", "0.05", "--out", str(tmp_path / "s"), *tiny]) == 0
     assert "target 0.05 mm: m = 6" in capsys.readouterr().out
     target = json.loads((tmp_path / "s" / "results.json").read_text())["target"]
     assert target["m"] == 6 and target["fewer_excluded_by_bound"] is True
     assert target["answer"] in (tmp_path / "s" / "report.md").read_text()
-    assert main(["sweep", str(PAPER), "--m", "4:7", "--criteria", "test-pose", "--target-mm", "0.05",
+    assert main(["sweep", str(PAPER), "--m", "5:6", "--criteria", "test-pose", "--target-mm", "0.05",
                  "--out", str(tmp_path / "w"), *tiny]) == 0
     assert "target 0.05 mm: m = 6" in capsys.readouterr().out
     swept = json.loads((tmp_path / "w" / "sweep.json").read_text())["target"]

@@ -90,7 +90,7 @@ def test_the_bound_of_a_completion_holds_for_every_completion_and_is_tight(paper
     a few percent of it."""
     rng = np.random.default_rng(11)
     campaign = held(paper, *random_plan(paper, 1, rng))
-    approx = approximate_design(campaign, criterion, m=2, pool_size=100, sample_size=1000)
+    approx = approximate_design(campaign, criterion, m=2, pool_size=60, sample_size=600)
     b = bound(campaign, 2, approx)
     values = [plan_scores(campaign, *random_plan(campaign, 2, rng)).value(criterion) for _ in range(200)]
     best = solve_design(campaign, criterion, 2, starts=4).scores.value(criterion)

@@ -307,7 +307,7 @@ def _set(path, value):
     (_set(["designs", 1, "m"], "2"), r"designs\[1\].m: expected an integer >= 1, got \"2\""),
     (_set(["designs", 1, "m"], 2.0), r"designs\[1\].m: expected an integer >= 1, got 2.0"),
     (_set(["designs", 1, "m"], True), r"designs\[1\].m: expected an integer >= 1, got true"),
-    (_set(["designs", 0, "m"], 3), r"designs\[0\].experiments: expected a list of m = 3 experiments, "
+    (_set(["designs", 0, "m"], 3), r"designs\[0\].experiments: expected a list of m \+ m_measured = 3 experiments, "
                                    "got a list of 2"),
     (_set(["designs", 0, "criterion"], "G"), r"designs\[0\].criterion: expected one of test-pose, D"),
     (_set(["designs", 0, "experiments"], "none"), r"designs\[0\].experiments: expected a list"),
