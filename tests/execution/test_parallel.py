@@ -216,6 +216,7 @@ def test_dask_scheduler_option_of_the_command_equals_a_serial_run(tmp_path):
         assert x["experiments"] == y["experiments"] and x["solver"]["per_start"] == y["solver"]["per_start"]
 
 
+@pytest.mark.slow  # 12 s: four commands twice; the default suite keeps the executors' equality (Dask, spread searches)
 def test_the_commands_give_the_same_numbers_for_any_jobs(tmp_path, monkeypatch, capsys):
     """``--jobs 1`` (everything in this process) and ``--jobs 2`` (starts and approximate
     designs on workers) write the same results.json, bounds included: one thread for BLAS and

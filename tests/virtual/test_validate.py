@@ -286,6 +286,7 @@ def test_rms_interval_covers_the_true_rms_95_percent_of_the_time():
     assert 0.93 <= covered <= 0.97
 
 
+@pytest.mark.slow  # 10 s: 2000 trials of six plans; the default suite keeps the geometric case and the two-round campaign
 def test_paper_example_agrees_within_5_percent_at_every_node(paper, paper_designs):
     """Table 4's six plans, 2000 virtual calibrations each on the nonlinear compliant arm.
 
