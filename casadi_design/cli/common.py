@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from dataclasses import replace
 
@@ -346,6 +347,8 @@ def design(args: argparse.Namespace, label: str, partial: Path | None = None,
             result = run_study(
                 request, progress=bar.update, executor=ex,
                 on_design=lambda d: bar.set_postfix_str(f"done: {d.criterion}, m = {d.m}"),
+                on_better=lambda i: (bar.write(i.line(), file=sys.stderr) if not args.quiet else None,
+                                     bar.set_postfix_str(f"running: {', '.join(i.running)}" if i.running else "")),
                 on_resume=lambda n: say(args, f"resuming: {n} of {request.designs} designs already in "
                                               f"{partial.parent}"))
     say_approximate(args, result.approx)

@@ -42,7 +42,7 @@ from ..optimisation.bound import (
 from ..runtime.cache import Memo, digest
 from ..model.build import Problem
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA
-from ..plan.design import SEEDED, Design
+from ..plan.design import SEEDED, Bound, Design
 from ..errors import DesignError, ProblemError
 from . import parallel
 from ..optimisation.solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
@@ -91,6 +91,34 @@ class Settings:
         if self.starts < 1 or self.bound_steps < 0 or self.bound_pool < 1:
             raise ValueError(f"campaign settings: starts >= 1, bound_steps >= 0 and bound_pool >= 1, "
                              f"got {self.starts}, {self.bound_steps}, {self.bound_pool}")
+
+
+@dataclass(frozen=True)
+class Interim:
+    """The best plan of a design so far, while its starts run (:func:`run_campaign`'s
+    ``on_better``): its criterion's score and max error (m), how many of its starts returned
+    (of ``total``; None while its rounded and extra starts are not known yet), the bound when
+    its approximate design is done, and what is still running."""
+
+    criterion: str
+    m: int
+    value: float
+    max_rms_error_m: float
+    returned: int
+    total: int | None
+    bound: Bound | None
+    running: tuple[str, ...]
+
+    def line(self) -> str:
+        """For people: the score (mm for errors), the starts, the gap, what still runs."""
+        crit = CRITERIA[self.criterion]
+        score = (f"{self.value * crit.per_mm:{crit.fmt}} mm" if crit.per_mm != 1 else
+                 f"{crit.row.split(': ', 1)[-1]} {self.value:{crit.fmt}} (max error {self.max_rms_error_m * 1e3:.4f} mm)")
+        gap = ("" if self.bound is None else
+               f", {self.bound.gap_percent(self.value):.1f} % from the bound")
+        of = "" if self.total is None else f" of {self.total}"
+        running = f"; running: {', '.join(self.running)}" if self.running else ""
+        return f"best so far: {self.criterion}, m = {self.m}: {score} after {self.returned}{of} starts{gap}{running}"
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,6 +240,7 @@ def run_campaign(
     extra_starts: ExtraStarts | None = None,
     on_design: Callable[[Design], object] | None = None,
     progress: Callable[[int], object] | None = None,
+    on_better: Callable[[Interim], object] | None = None,
 ) -> Campaign:
     """Solve every (criterion, m), m ascending (module docstring).
 
@@ -224,6 +253,8 @@ def run_campaign(
         and win only when strictly better).
     on_design : called with each design as soon as it is solved (to save it).
     progress : called with the number of starts after each start (``tqdm.update``).
+    on_better : on workers, called with the design's :class:`Interim` each time a start
+        returns a better plan than its design had (the first answer comes before the bound).
     """
     criteria, ms = tuple(criteria), tuple(sorted(set(m_values)))
     check_criteria(problem, criteria)
@@ -233,7 +264,7 @@ def run_campaign(
         approx = {**(_spread(problem, criteria, ms, settings, designs, executor, approx or {}) or {}),
                   **(approx or {})}
         pipeline = _Pipeline(problem, criteria, ms, settings, designs, approx, extra_starts,
-                             on_design, progress)
+                             on_design, progress, on_better)
         for task, result in executor.run(pipeline):
             pipeline.returned(task, result)
         return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria},
@@ -331,6 +362,7 @@ class _Starts:
     error: DesignError | None = None
     results: dict[int, StartResult] = field(default_factory=dict)
     t0: float | None = None
+    best: float | None = None
 
 
 class _Pipeline:
@@ -350,9 +382,11 @@ class _Pipeline:
 
     def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
                  settings: Settings, designs: dict, approx: dict | None,
-                 extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None):
+                 extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None,
+                 on_better: Callable | None = None):
         self.problem, self.settings, self.designs = problem, settings, designs
         self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
+        self.on_better = on_better
         self.ref = parallel.ProblemRef.of(problem)
         steps, pool = settings.bound_steps, settings.bound_pool
         self.approx, missing = computed(problem, [a for a in aims(problem, criteria, ms) if a not in approx],
@@ -409,6 +443,21 @@ class _Pipeline:
                 out.append(task)
         return out
 
+    def _better(self, d: _Starts, result: StartResult) -> None:
+        """Tell ``on_better`` when the start ``result`` of design ``d`` beats its best so far."""
+        rec, _, _, scores = result
+        crit = CRITERIA[d.criterion]
+        if self.on_better is None or not rec.converged or (d.best is not None and (
+                not crit.better(rec.value, d.best) or crit.same_optimum(rec.value, d.best))):
+            return
+        d.best = rec.value
+        a = self.approx.get(aim(self.problem, d.criterion, d.m))
+        running = tuple(f"the approximate design of {c}" + (f" (m = {m})" if m else "")
+                        for c, m in self.waiting.values())
+        self.on_better(Interim(d.criterion, d.m, rec.value, scores.max_rms_error_m, len(d.results),
+                               len(d.plans) if d.complete else None,
+                               None if a is None else bound(self.problem, d.m, a), running))
+
     def returned(self, task, result) -> None:
         """Take the result of ``task``; finish the designs whose every start returned."""
         if task in self.waiting:
@@ -420,6 +469,7 @@ class _Pipeline:
             d.results[i] = result
             if self.progress is not None:
                 self.progress(1)
+            self._better(d, result)
         for k, d in enumerate(self.todo):  # in campaign order: a finished one may complete the next
             if d.done or not (self._completed(k, d) and len(d.results) == len(d.plans)):
                 continue

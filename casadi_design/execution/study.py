@@ -25,8 +25,8 @@ import numpy as np
 from ..runtime import interrupt
 from ..runtime.cache import digest
 from ..model.build import Problem
-from .campaign import (Campaign, Settings, campaign_key, check_criteria, check_m_values, choose_campaign,
-                       run_campaign, total_starts)
+from .campaign import (Campaign, Interim, Settings, campaign_key, check_criteria, check_m_values,
+                       choose_campaign, run_campaign, total_starts)
 from ..plan.design import Design
 from ..errors import DesignError, OutputError, ProblemError
 from ..records.files import load_partial, partial_record
@@ -144,12 +144,14 @@ def executor_of(study: Study):
 
 def run_study(study: Study, *, progress: Callable[[int], object] | None = None,
               on_design: Callable[[Design], object] | None = None,
-              on_resume: Callable[[int], object] | None = None, executor=None) -> Campaign | Sweep:
+              on_resume: Callable[[int], object] | None = None, executor=None,
+              on_better: Callable[[Interim], object] | None = None) -> Campaign | Sweep:
     """Run ``study``: its designs (a :class:`~casadi_design.execution.campaign.Campaign`, or a
     :class:`~casadi_design.execution.sweep.Sweep`), each saved in ``study.partial`` as it finishes and
     passed to ``on_design``; ``progress(n)`` after each start; ``on_resume(n)`` with the number
     of designs a resumed study read back; ``executor``: one already started
-    (:func:`executor_of`), else one is started here.
+    (:func:`executor_of`), else one is started here; ``on_better``: the best plan of a design
+    so far, each time it improves (a campaign on workers: :class:`~casadi_design.execution.campaign.Interim`).
 
     Raises
     ------
@@ -189,7 +191,7 @@ def run_study(study: Study, *, progress: Callable[[int], object] | None = None,
             return run_target(study.problem, study.criteria, min(study.m_values), max(study.m_values), study.settings,
                               study.target_m, executor=ex, done=done, on_design=save, progress=checked)[0]
         return run_campaign(study.problem, study.criteria, study.m_values, study.settings, executor=ex,
-                            done=done, on_design=save, progress=checked)
+                            done=done, on_design=save, progress=checked, on_better=on_better)
 
 
 @contextlib.contextmanager

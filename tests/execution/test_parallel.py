@@ -306,3 +306,24 @@ def test_a_pool_that_breaks_before_a_task_is_sent_runs_every_task_once():
     assert list(pool._map(pow, [(2, k) for k in range(6)], "powers")) == [2**k for k in range(6)]
     # the task running when the pool broke ran again alone; the one not sent went to the new pool
     assert pool.alone == [(2, 1)] and pool.generation == 1
+
+
+def test_the_best_plan_so_far_is_told_as_it_improves(paper, monkeypatch):
+    """On workers each design tells its best plan as its starts return: better each time
+    (beyond the criterion's same-optimum tolerance), the last one the design's optimum, with
+    the gap once the bound is known and what still runs."""
+    from casadi_design.execution import campaign
+
+    monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
+    told = []
+    with ProcessExecutor(2) as ex:
+        done = campaign.run_campaign(paper, ("test-pose", "D"), (5,), Settings(2, bound_steps=2, bound_pool=SMALL_POOL),
+                                     executor=ex, on_better=told.append)
+    for c in ("test-pose", "D"):
+        ours = [i for i in told if i.criterion == c]
+        crit = campaign.CRITERIA[c]
+        assert ours and all(crit.better(b.value, a.value) for a, b in zip(ours, ours[1:]))
+        assert crit.same_optimum(ours[-1].value, done.designs[c, 5].scores.value(c))  # (told beyond the tolerance)
+    last = [i for i in told if i.bound is not None][-1]
+    assert f"% from the bound" in last.line() and last.total is not None
+    assert any(i.running for i in told) or all(i.bound is not None for i in told)
