@@ -317,7 +317,7 @@ def test_the_best_plan_so_far_is_told_as_it_improves(paper, monkeypatch):
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     told = []
     with ProcessExecutor(2) as ex:
-        done = campaign.run_campaign(paper, ("test-pose", "D"), (5,), Settings(2, bound_steps=2, bound_pool=SMALL_POOL),
+        done = campaign.run_campaign(paper, ("test-pose", "D"), (5,), Settings(2, bound_steps=1, bound_pool=30),
                                      executor=ex, on_better=told.append)
     for c in ("test-pose", "D"):
         ours = [i for i in told if i.criterion == c]
