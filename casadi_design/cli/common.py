@@ -235,12 +235,12 @@ def read_spec(args: argparse.Namespace) -> ProblemSpec:
 
 def load(args: argparse.Namespace, check_solver: bool = True, spec: ProblemSpec | None = None) -> Problem:
     """Build the problem of ``args`` (``spec``: as :func:`read_spec` read it; None: read it
-    now) with what ``--measured`` and ``--prior`` hold (:mod:`casadi_design.records.held`);
+    now) with what ``--measured`` and ``--prior`` hold (:mod:`casadi_design.identification.held`);
     with ``check_solver``, also try the IPOPT options."""
     from ..model.build import build_problem
     from ..optimisation.solve import check_ipopt_options
 
-    from ..records.held import read_held
+    from ..identification.held import read_held
 
     spec = read_spec(args) if spec is None else spec
     problem = build_problem(spec)
@@ -289,7 +289,7 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     to the largest of the file), where the starts run, where the designs are kept
     (``partial``) and whether to resume."""
     from ..execution.target import TARGET_CRITERION, default_limit
-    from ..records.held import read_measured
+    from ..identification.held import read_measured
 
     target = getattr(args, "target_mm", None)
     criteria = tuple(args.criteria or ((TARGET_CRITERION,) if target and not sweep else problem.criteria))

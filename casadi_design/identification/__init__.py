@@ -7,6 +7,7 @@ model, also the identification of every simulated calibration of ``validate``), 
 poses' commands, shared with ``validate``), :mod:`.calibrate` (outliers, statistics, validation
 rows), :mod:`.report` (``identification.json``, the summary, the compensated poses),
 :mod:`.urdf` (``calibrated.urdf``), :mod:`.dh_table` (the calibrated DH table) and
-:mod:`.problem_file` (``calibrated.toml``, ``calibrated_dh.toml``). The command
+:mod:`.problem_file` (``calibrated.toml``, ``calibrated_dh.toml``); :mod:`.held` reads what a
+second round starts from (measured experiments, an identification as a prior). The command
 is ``casadi-design identify`` (:mod:`casadi_design.cli.identify`).
 """

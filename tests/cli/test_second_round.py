@@ -12,7 +12,7 @@ from casadi_design.model.build import build_problem
 from casadi_design.model.problem import read_problem
 from casadi_design.plan.sampling import random_plan
 from casadi_design.records.export import csv_text, plan_table
-from casadi_design.records.held import read_held
+from casadi_design.identification.held import read_held
 from tests.cli.test_cli import _A
 from tests.conftest import PAPER, ROOT
 from tests.identify_data import TrueRobot, measured, measurement_csv

@@ -1,6 +1,7 @@
 """Plans chosen from a pool of postures (--candidates): exchange, bound, and a real check."""
 
 import itertools
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -63,6 +64,13 @@ def test_solve_candidates_from_the_command_line(paper, tmp_path, capsys):
     assert "test-pose" in capsys.readouterr().out
     assert main(["sweep", str(PAPER), "--m", "1:2", "--candidates", str(pool), "--quiet"]) == 2
     assert "--candidates chooses the plans of solve" in capsys.readouterr().err
+    # a measurement file in FIGAROH's layout (bare joint names) is a pool too
+    tiago = PAPER.parents[1] / "tests" / "data" / "tiago_mocap"
+    assert main(["solve", str(tiago / "tiago_mocap.toml"), "--candidates", str(tiago / "qualisys_2021-11-30_static_postures.csv"),
+                 "--m", "12", "--criteria", "test-pose", "--starts", "1", "--bound-steps", "0", "--jobs", "1",
+                 "--out", str(tmp_path / "tiago")]) == 0
+    chosen = json.loads((tmp_path / "tiago" / "results.json").read_text())["designs"][0]
+    assert len(chosen["experiments"]) == 12 and "test-pose" in capsys.readouterr().out
 
 
 @pytest.mark.slow  # 60 s: two choices of 12 of 37 postures and 22 identifications on real data

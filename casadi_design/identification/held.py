@@ -13,12 +13,15 @@ import numpy as np
 from ..errors import ProblemError
 from ..model.build import Problem
 from ..model.problem import HeldSpec
-from .export import check_joint_limits, read_plan_table
+from ..records.export import check_joint_limits, plan_header, read_plan_table
+from .measurements import read_measurements
 
 
 def read_measured(problem: Problem, path: str) -> tuple[np.ndarray, np.ndarray]:
     """The experiments of a plan or measurement CSV: ``Q`` (k, n), rad (m), and ``F`` (k, nF),
-    N (N m); the joint and load columns are read, the others ignored.
+    N (N m); the joint and load columns are read, the others ignored. A file whose joints are
+    named without a unit (FIGAROH's layout) is read as ``identify`` reads it
+    (:func:`~.measurements.read_measurements`: rad and m, coordinates required).
 
     Raises
     ------
@@ -26,6 +29,9 @@ def read_measured(problem: Problem, path: str) -> tuple[np.ndarray, np.ndarray]:
         A file that is not a plan of this robot, or a joint value outside the joint limits (one
         line naming the row and column).
     """
+    if any(j in plan_header(path) for j in problem.robot.joints):
+        meas = read_measurements(problem, path)
+        return meas.Q, meas.F
     Q, F, _, lines = read_plan_table(problem, path, ignore_unknown=True)
     check_joint_limits(problem, path, Q, lines)
     return Q, F
