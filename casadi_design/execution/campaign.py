@@ -98,7 +98,8 @@ class Interim:
     """The best plan of a design so far, while its starts run (:func:`run_campaign`'s
     ``on_better``): its criterion's score and max error (m), how many of its starts returned
     (of ``total``; None while its rounded and extra starts are not known yet), the bound when
-    its approximate design is done, and what is still running."""
+    its approximate design is done, what is still running, and the time since its first start
+    was handed out (s)."""
 
     criterion: str
     m: int
@@ -108,6 +109,7 @@ class Interim:
     total: int | None
     bound: Bound | None
     running: tuple[str, ...]
+    elapsed_s: float = 0.0
 
     def line(self) -> str:
         """For people: the score (mm for errors), the starts, the gap, what still runs."""
@@ -456,7 +458,8 @@ class _Pipeline:
                         for c, m in self.waiting.values())
         self.on_better(Interim(d.criterion, d.m, rec.value, scores.max_rms_error_m, len(d.results),
                                len(d.plans) if d.complete else None,
-                               None if a is None else bound(self.problem, d.m, a), running))
+                               None if a is None else bound(self.problem, d.m, a), running,
+                               time.perf_counter() - d.t0))
 
     def returned(self, task, result) -> None:
         """Take the result of ``task``; finish the designs whose every start returned."""
