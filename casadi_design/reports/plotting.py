@@ -324,7 +324,7 @@ def identification_figure(calibration) -> Figure:
         ax_r.plot(x + 0.2 * (k - 1), e, "o", ms=3.5, label=f"{'xyz'[a]} residual", **AXIS_STYLES[a])
     out = ~c.fit.used
     if out.any():
-        top = np.nanmax(np.sqrt(np.nanmean(c.residual_axes_m[out] ** 2, axis=1)), axis=1) * 1e3
+        top = np.nanmax(np.sqrt(np.nanmean(c.residual_axes_m[out][:, :, axes] ** 2, axis=1)), axis=1) * 1e3
         ax_r.plot(x[out], top, "kx", ms=8, label="outlier (not in the fit)")
     every = max(1, -(-len(x) // 15))  # at most 15 labels: they stay legible at 100 rows
     ax_r.set_xticks(x[::every], [str(line) for line in c.measurements.lines][::every], fontsize=8)
