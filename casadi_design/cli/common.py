@@ -275,10 +275,10 @@ def held_line(problem: Problem) -> str:
     """What the designs hold before their plans, for people."""
     held, what = problem.spec.held, []
     if problem.m_held:
-        files = held.sources[: len(held.sources) - (held.prior_covariance is not None)]
-        what.append(f"{problem.m_held} experiment{'s' if problem.m_held > 1 else ''} measured ({', '.join(files)})")
+        what.append(f"{problem.m_held} experiment{'s' if problem.m_held > 1 else ''} measured "
+                    f"({', '.join(held.measured_files)})")
     if held is not None and held.prior_covariance is not None:
-        what.append(f"the prior of {held.sources[-1]} on {len(held.prior_names)} parameters")
+        what.append(f"the prior of {held.prior_file} on {len(held.prior_names)} parameters")
     if problem.spec.calibration.prior is not None:
         what.append("the problem's [calibration.prior]")
     return (f"held before the plan: {' and '.join(what)}; m counts the new experiments and the errors "

@@ -83,5 +83,4 @@ def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -
         Q, F = np.vstack([Q, q]), np.vstack([F, f])
     names, C = ((), None) if prior is None else read_prior(problem, prior)
     return HeldSpec(tuple(map(tuple, Q.tolist())), tuple(map(tuple, F.tolist())), names,
-                    None if C is None else tuple(map(tuple, C.tolist())),
-                    tuple(measured or []) + (() if prior is None else (prior,)))
+                    None if C is None else tuple(map(tuple, C.tolist())), tuple(measured or []), prior)

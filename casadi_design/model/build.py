@@ -24,6 +24,7 @@ import pinocchio as pin
 from ..runtime.cache import Memo, code_digest, digest
 from .cell import Cell, build_cell
 from .held import prior_information
+from ..measures.measures import information_matrix
 from ..errors import ProblemError
 from .identifiability import BaseSet, base_set
 from .ik import path_ik, sample_path
@@ -146,18 +147,20 @@ class Problem:
         """Number of experiments already measured (``--measured``)."""
         return 0 if self.spec.held is None else self.spec.held.k
 
+    @property
+    def measured(self) -> tuple[np.ndarray, np.ndarray]:
+        """The experiments already measured (``--measured``): Q (k, n), rad, F (k, nF), N."""
+        held, k = self.spec.held, self.m_held
+        return (np.array(held.q if k else (), dtype=float).reshape(k, self.robot.n),
+                np.array(held.F if k else (), dtype=float).reshape(k, self.model.nF))
+
     def campaign(self, Q: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The whole campaign of a plan ``Q`` (m, n), ``F`` (m, nF): the measured experiments
-        (``--measured``) first, then the plan's, and which rows are measured (bool)."""
+        (:attr:`measured`) first, then the plan's, and which rows are measured (bool)."""
+        Qh, Fh = self.measured
         Q = np.asarray(Q, dtype=float).reshape(-1, self.robot.n)
         F = np.asarray(F, dtype=float).reshape(len(Q), self.model.nF)
-        k = self.m_held
-        if not k:
-            return Q, F, np.zeros(len(Q), dtype=bool)
-        held = self.spec.held
-        return (np.vstack([np.array(held.q, dtype=float), Q]),
-                np.vstack([np.array(held.F, dtype=float).reshape(k, self.model.nF), F]),
-                np.arange(k + len(Q)) < k)
+        return np.vstack([Qh, Q]), np.vstack([Fh, F]), np.arange(len(Qh) + len(Q)) < len(Qh)
 
     @functools.cached_property
     def B0(self) -> np.ndarray:
@@ -226,18 +229,14 @@ def with_held(problem: Problem) -> Problem:
         For a prior of another problem (:func:`~casadi_design.model.held.prior_information`).
     """
     spec, model = problem.spec, problem.model
-    held = spec.held
-    P = prior_information(model.parameter_names, spec.calibration.prior, held, problem.robot,
+    P = prior_information(model.parameter_names, spec.calibration.prior, spec.held, problem.robot,
                           spec.measurement.sigma_m, spec.path)
-    k = 0 if held is None else held.k
-    if k == 0 and P is None:
+    if not problem.m_held and P is None:
         return dataclasses.replace(problem, M_held=None)
     c = model.column_scale
-    M = np.zeros((model.L, model.L)) if P is None else P / np.outer(c, c)
-    if k:
-        B = model.B_stack(np.array(held.q, dtype=float), np.array(held.F, dtype=float).reshape(k, model.nF))
-        S = B.reshape(-1, model.L)
-        M = M + S.T @ S
+    M = information_matrix(model.B_stack(*problem.measured)) if problem.m_held else np.zeros((model.L, model.L))
+    if P is not None:
+        M = M + P / np.outer(c, c)
     M = (M + M.T) / 2
     M.setflags(write=False)
     lam = np.linalg.eigvalsh(M)

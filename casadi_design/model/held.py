@@ -62,9 +62,9 @@ def prior_information(names: tuple[str, ...], prior: PriorSpec | None, held: Hel
     has_file = held is not None and held.prior_covariance is not None
     if not has_groups and not has_file:
         return None
-    P = np.diag(np.where(np.isfinite(std), sigma_m**2 / np.where(np.isfinite(std), std, 1.0) ** 2, 0.0))
+    P = np.diag(sigma_m**2 / std**2)  # 0 where there is no prior (std inf)
     if has_file:
-        source = held.sources[-1] if held.sources else "--prior"
+        source = held.prior_file or "--prior"
         shared = [n for n in held.prior_names if n in names]
         if not shared:
             raise ProblemError(

@@ -310,18 +310,25 @@ class HeldSpec:
     ``q`` (k, n), rad (m for prismatic joints), and ``F`` (k, nF), N (N m): the measured
     experiments; ``prior_names`` and ``prior_covariance`` (SI units per parameter pair): an
     identification's covariance of the parameters it names (those of this problem's
-    parameters it does not name have no prior); ``sources``: the files it was read from."""
+    parameters it does not name have no prior); ``measured_files`` and ``prior_file``: the files
+    they were read from."""
 
     q: Mat = ()
     F: Mat = ()
     prior_names: tuple[str, ...] = ()
     prior_covariance: Mat | None = None
-    sources: tuple[str, ...] = ()
+    measured_files: tuple[str, ...] = ()
+    prior_file: str | None = None
 
     @property
     def k(self) -> int:
         """Number of measured experiments."""
         return len(self.q)
+
+    @property
+    def sources(self) -> tuple[str, ...]:
+        """Every file it was read from: the measured experiments', then the prior's."""
+        return self.measured_files + (() if self.prior_file is None else (self.prior_file,))
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,7 @@ def experiment_records(Q: np.ndarray, F: np.ndarray, near: tuple[Clearance, ...]
 def campaign_records(problem: Problem | None, design: Design) -> list[dict]:
     """The experiments of a design's campaign (:meth:`~casadi_design.model.build.Problem.campaign`):
     the measured ones first, marked ``"measured": true``, then the plan's."""
-    held = [] if problem is None or not problem.m_held else experiment_records(
-        *problem.campaign(design.Q[:0], design.F[:0])[:2], None)
+    held = [] if problem is None else experiment_records(*problem.measured, None)
     return [e | {"measured": True} for e in held] + experiment_records(design.Q, design.F, design.clearances)
 
 

@@ -78,7 +78,7 @@ def test_a_group_prior_adds_sigma_squared_over_the_variance_in_the_scaled_parame
 def test_a_prior_that_names_none_of_the_parameters_is_refused(paper):
     with pytest.raises(ProblemError, match="names none of this problem's parameters") as e:
         held(paper, np.zeros((0, 2)), np.zeros((0, 2)), prior_names=("shoulder_pan_joint.offset",),
-             prior_covariance=((1e-6,),), sources=("ur10/identification.json",))
+             prior_covariance=((1e-6,),), prior_file="ur10/identification.json")
     assert "\n" not in str(e.value)
 
 
