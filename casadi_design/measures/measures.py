@@ -62,6 +62,13 @@ def information_matrix(B: np.ndarray) -> np.ndarray:
     return S.T @ S
 
 
+def information_matrices(B: np.ndarray) -> np.ndarray:
+    """``B_i^T B_i`` of each experiment of ``B`` (m, d, L): shape (m, L, L), whose sum is
+    :func:`information_matrix`."""
+    B = np.asarray(B, dtype=float)
+    return np.einsum("kri,krj->kij", B, B)
+
+
 def rho_at_test_poses(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
     """``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)`` (m^2) for ``B0`` of shape (s, r, L).
 

@@ -57,6 +57,7 @@ import numpy as np
 from ..model.build import Problem, per_model
 from ..model.compiled import compiled_group
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA
+from ..measures.measures import information_matrices
 from ..plan.design import Bound
 from ..errors import DesignError
 from .ipopt import QUIET, WARM_START, ipopt_call
@@ -172,8 +173,64 @@ def bound(problem: Problem, m: int, approx: ApproximateDesign) -> Bound:
 
 def experiment_information(problem: Problem, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
     """``B_k^T B_k`` of experiments ``Q`` (k, n), ``F`` (k, nF): shape (k, L, L)."""
-    B = problem.model.B_stack(Q, F)
-    return np.einsum("kri,krj->kij", B, B)
+    return information_matrices(problem.model.B_stack(Q, F))
+
+
+class _Scaled(NamedTuple):
+    """A pool's information as the convex problem sees it (:func:`_scaled`): ``c`` (the weights
+    see ``c A``: W of order 1), ``A`` scaled (k, L, L), the fixed part ``F0 = c M_held / m``
+    (None: nothing held) and ``Hj = c`` times the criterion's rows (None for D)."""
+
+    c: float
+    A: np.ndarray
+    F0: np.ndarray | None
+    Hj: np.ndarray | None
+
+
+def _scaled(problem: Problem, criterion: str, A: np.ndarray, m: int) -> _Scaled:
+    """:class:`_Scaled` of the information ``A`` (k, L, L) of a pool, for ``m`` new experiments
+    when the problem holds information (module docstring).
+
+    Raises
+    ------
+    DesignError
+        With information held and no m (0) (:func:`_check_m`).
+    """
+    _check_m(problem, m)
+    form = CRITERIA[criterion].bound
+    c = problem.model.L / np.mean(np.trace(A, axis1=1, axis2=2))
+    return _Scaled(c, c * A, None if problem.M_held is None else c * problem.M_held / m,
+                  None if form.log_det else c * form.rows(problem.B0))
+
+
+def _check_m(problem: Problem, m: int) -> None:
+    """With information held an approximate design is for one m: refuse none (0)."""
+    if problem.M_held is not None and m < 1:
+        raise DesignError("approximate design: the problem holds information (measured experiments or a "
+                          "prior), so the design is made for one number of new experiments; give m >= 1")
+
+
+def pool_design(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, A: np.ndarray,
+                m: int = 0) -> ApproximateDesign:
+    """The approximate design of a finite pool of experiments ``Q`` (k, n), ``F`` (k, nF) of
+    information ``A`` (k, L, L): the convex problem on the pool (:func:`pool_optimum`) and its
+    certificate, exact, since max_x d is taken over the pool itself. It bounds any choice of
+    m of them (repeats allowed), not every plan of the robot; ``weights`` holds every point's."""
+    t0 = time.perf_counter()
+    s = _scaled(problem, criterion, A, m)
+    w, mu = pool_optimum(s.A, s.Hj, np.full(len(A), 1.0 / len(A)), s.F0)
+    W = np.einsum("k,kij->ij", w, s.A)
+    lin = linearised(W, mu, s.Hj, s.F0)
+    d_max = float(np.max(np.einsum("kij,ij->k", s.A, lin.G)))
+    value, certified = _unscaled(s.Hj, s.c, len(W), lin.value, certificate(s.Hj, lin, d_max))
+    return ApproximateDesign(criterion, Q, F, w, W / s.c, mu, value, certified, d_max, (), (), len(A),
+                             time.perf_counter() - t0, m=0 if s.F0 is None else m)
+
+
+def _unscaled(Hj: np.ndarray | None, c: float, L: int, *values: float) -> list[float]:
+    """Values of the problem scaled by ``c`` in the units of B: D's (``Hj`` None) log det
+    less ``L log c``; the others as they are."""
+    return list(values) if Hj is not None else [v - L * np.log(c) for v in values]
 
 
 def _sample(problem: Problem, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -564,25 +621,19 @@ def approximate_design(
     if criterion not in BOUND_CRITERIA:
         raise DesignError(f"approximate design: criterion '{criterion}' has no bound; "
                           f"allowed: {', '.join(BOUND_CRITERIA)}")
+    _check_m(problem, m)  # before the sample
     t0 = time.perf_counter()
     maximise = maximise_d if maximise is None else maximise
     L, form = problem.model.L, CRITERIA[criterion].bound
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, CRITERIA[criterion].seed_id])
     Q, F = _sample(problem, pool_size + sample_size, rng)
-    A = experiment_information(problem, Q, F)
-    c = L / np.mean(np.trace(A, axis1=1, axis2=2))  # the weights see c A: W of order 1
-    A = c * A
-    if problem.M_held is not None and m < 1:
-        raise DesignError("approximate design: the problem holds information (measured experiments or a "
-                          "prior), so the design is made for one number of new experiments; give m >= 1")
-    F0 = None if problem.M_held is None else c * problem.M_held / m
+    c, A, F0, Hj = _scaled(problem, criterion, experiment_information(problem, Q, F), m)
     lam = np.linalg.eigvalsh(A[:pool_size].mean(axis=0) + (0.0 if F0 is None else F0))
     if not lam[0] > POOL_RCOND * lam[-1]:
         rank = int(np.sum(lam > POOL_RCOND * lam[-1]))
         raise DesignError(f"approximate design: the first pool of {pool_size} random experiments "
                           f"(--bound-pool) identifies {rank} of the {L} parameters; use a larger pool "
                           f"(default {POOL_SIZE})")
-    Hj = None if form.log_det else c * form.rows(problem.B0)
     sense = 1.0 if Hj is None else -1.0  # D's certificate is an upper bound, the others' lower
     pool, w = np.arange(pool_size), np.full(pool_size, 1.0 / pool_size)
     best, value, history = None, -np.inf * sense, []
@@ -639,9 +690,7 @@ def approximate_design(
         w = np.concatenate([w[support], np.full(len(pool) - support.sum(), NEW_WEIGHT * w[support].mean())])
         w /= w.sum()
     certified, idx, weights, W, mu, d_max = best
-    if Hj is None:  # log det of the unscaled W
-        value, certified = value - L * np.log(c), certified - L * np.log(c)
-        history = [h - L * np.log(c) for h in history]
+    value, certified, *history = _unscaled(Hj, c, L, value, certified, *history)  # log det of the unscaled W
     return ApproximateDesign(criterion, Q[idx], F[idx], weights, W / c, mu, value, certified, d_max,
                              tuple(history), tuple(checked), len(A), time.perf_counter() - t0,
                              m=0 if F0 is None else m)

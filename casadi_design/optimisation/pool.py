@@ -12,9 +12,10 @@ sum_{i in S} A_i``. The choice:
    swap improves the criterion's score;
 3. the best plan over the starts, scored as any plan (:func:`~casadi_design.optimisation.solve.plan_scores`).
 
-The bound is the pool's relaxation with its certificate (:mod:`casadi_design.optimisation.bound`):
-over a finite pool the largest ``d(x, W)`` is exact, so it bounds every choice of m postures
-from the pool (repeats allowed), not every plan of the robot.
+The bound is the pool's relaxation with its certificate
+(:func:`casadi_design.optimisation.bound.pool_design`): over a finite pool the largest
+``d(x, W)`` is exact, so it bounds every choice of m postures from the pool (repeats allowed),
+not every plan of the robot.
 """
 
 from __future__ import annotations
@@ -25,12 +26,11 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA
-from ..measures.measures import SINGULAR_RTOL
+from ..measures.measures import Scores, information_matrices, score_plan
 from ..model.cell import clearances
 from ..model.build import Problem
-from ..plan.design import Bound, Design, StartRecord
-from .bound import certificate, linearised, pool_optimum
-from ..measures.measures import Scores, score_plan
+from ..plan.design import Design, StartRecord
+from .bound import bound, pool_design
 from .solve import start_rng
 
 #: Status of a start whose exchange ended (no swap improves): a converged start.
@@ -64,8 +64,7 @@ def _greedy(problem: Problem, criterion: str, m: int, B: np.ndarray, A: np.ndarr
     chosen: list[int] = []
     for _ in range(m):
         free = [i for i in range(len(A)) if i not in chosen]
-        lam = np.linalg.eigvalsh(M)
-        if lam[0] > SINGULAR_RTOL * max(lam[-1], np.finfo(float).tiny):
+        if _scores(problem, B, chosen).identifiable:
             keys = [_key(criterion, _scores(problem, B, chosen + [i]).value(criterion)) for i in free]
         else:
             keys = [-np.linalg.slogdet(M + A[i] + eps * np.eye(L))[1] for i in free]
@@ -97,25 +96,6 @@ def _exchange(problem: Problem, criterion: str, S: list[int], B: np.ndarray) -> 
     return S, current, MAX_PASSES
 
 
-def pool_bound(problem: Problem, criterion: str, m: int, A: np.ndarray) -> tuple[Bound, np.ndarray]:
-    """The certified bound of any choice of m postures from the pool (information ``A``, (k, L,
-    L)) and the pool's approximate design weights (k,)."""
-    L, form = problem.model.L, CRITERIA[criterion].bound
-    c = L / np.mean(np.trace(A, axis1=1, axis2=2))
-    Ac = c * A
-    F0 = None if problem.M_held is None else c * problem.M_held / m
-    Hj = None if form.log_det else c * form.rows(problem.B0)
-    w, mu = pool_optimum(Ac, Hj, np.full(len(A), 1.0 / len(A)), F0)
-    W = np.einsum("k,kij->ij", w, Ac)
-    lin = linearised(W, mu, Hj, F0)
-    d_max = float(np.max(np.einsum("kij,ij->k", Ac, lin.G)))
-    certified, value = certificate(Hj, lin, d_max), lin.value
-    if Hj is None:
-        certified, value = certified - L * np.log(c), value - L * np.log(c)
-    return Bound(criterion, m, form.score(certified, m, problem.sigma_m, L),
-                 form.score(value, m, problem.sigma_m, L), L), w
-
-
 def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np.ndarray,
                   starts: int, with_bound: bool = True) -> Design:
     """The plan of m postures of the pool ``Q`` (k, n), rad, ``F`` (k, nF), N that is best by
@@ -132,12 +112,12 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
         raise ProblemError(f"--candidates: the pool has {k} postures, fewer than m = {m}; give m <= {k} "
                            "or more postures")
     B = problem.model.B_stack(Q, F)
-    A = np.einsum("kri,krj->kij", B, B)
-    bnd, w = pool_bound(problem, criterion, m, A) if with_bound and criterion in BOUND_CRITERIA else (None, None)
+    A = information_matrices(B)
+    approx = pool_design(problem, criterion, Q, F, A, m) if with_bound and criterion in BOUND_CRITERIA else None
     rng = start_rng(problem.solver.seed, criterion, m)
     first = [("greedy", _greedy(problem, criterion, m, B, A))]
-    if w is not None:
-        first.append(("heaviest of the pool's approximate design", list(np.argsort(w)[::-1][:m])))
+    if approx is not None:
+        first.append(("heaviest of the pool's approximate design", list(np.argsort(approx.weights)[::-1][:m])))
     first += [("seeded", list(rng.choice(k, size=m, replace=False))) for _ in range(starts)]
     records, best = [], None
     for origin, S in first:
@@ -152,5 +132,5 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
                            "give more varied postures or a larger m")
     _, S, scores, rec = best
     return Design(criterion, m, Q[S], F[S], scores, rec.status, tuple(records), time.perf_counter() - t0,
-                  problem.solver.seed, bound=bnd,
+                  problem.solver.seed, bound=None if approx is None else bound(problem, m, approx),
                   clearances=tuple(clearances(problem.cell, Q[S])) if problem.cell else None)
