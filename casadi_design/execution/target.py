@@ -14,7 +14,7 @@ design ("might"). Without a bound (``bound_steps`` 0) the designs start at the s
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from ..model.build import Problem
 from ..optimisation.bound import bound
@@ -95,12 +95,13 @@ class TargetAnswer:
 
 
 def answer_from(problem: Problem, target_m: float, designs: dict[tuple[str, int], Design],
-                limit: int) -> TargetAnswer:
-    """The answer read from designs already solved (a sweep): the smallest m of their
-    test-pose designs that reaches the target, with their bounds."""
+                limit: int, bounds: dict[int, float] | None = None) -> TargetAnswer:
+    """The answer read from designs already solved (a sweep, a search): the smallest m of
+    their test-pose designs that reaches the target, with their bounds and ``bounds`` (m: the
+    bound of m experiments, m) of m not designed."""
     ours = {m: d for (c, m), d in designs.items() if c == TARGET_CRITERION}
     errors = {m: d.scores.max_rms_error_m for m, d in ours.items()}
-    bounds = {m: d.bound.value for m, d in ours.items() if d.bound is not None}
+    bounds = {**(bounds or {}), **{m: d.bound.value for m, d in ours.items() if d.bound is not None}}
     m = min((m for m, e in errors.items() if e <= target_m), default=None)
     return TargetAnswer(target_m, m, limit, errors, bounds, problem.m_min, problem.m_held)
 
@@ -131,41 +132,32 @@ def run_target(problem: Problem, criteria: tuple[str, ...], first: int, limit: i
         approx.update(found.approx)
 
     lo, hi = first, limit
-    start = lo
+    m = first
     bounded = has_bound(TARGET_CRITERION, settings)
-    if bounded:
-        if bound_at(hi) > target_m:
-            start = None  # no m up to the limit: design the limit to show how close it comes
-        elif bound_at(lo) <= target_m:
-            start = lo
-        else:  # bound(lo) > T >= bound(hi): bisect for the smallest m with bound <= T
-            while hi - lo > 1:
-                mid = (lo + hi) // 2
-                lo, hi = (mid, hi) if bound_at(mid) > target_m else (lo, mid)
-            start = hi
-    m, answer = start, None
-    while m is not None and m <= limit:
+    if bounded and bound_at(hi) > target_m:
+        m = limit + 1  # no m up to the limit: only the limit is designed, to show how close it comes
+    elif bounded and bound_at(lo) > target_m:  # bound(lo) > T >= bound(hi): the smallest m with bound <= T
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if bound_at(mid) > target_m else (lo, mid)
+        m = hi
+    reached = None
+    while m <= limit and reached is None:
         design((TARGET_CRITERION,), m)
-        if designs[TARGET_CRITERION, m].scores.max_rms_error_m <= target_m:
-            answer = m
-            break
+        reached = m if designs[TARGET_CRITERION, m].scores.max_rms_error_m <= target_m else None
         m += 1
-    if bounded and answer is not None and answer - 1 >= problem.m_min:
-        bound_at(answer - 1)  # whether fewer could: the answer's statement
-    final = limit if answer is None else answer
+    if bounded and reached is not None and reached - 1 >= problem.m_min:
+        bound_at(reached - 1)  # whether fewer could: the answer's statement
+    final = limit if reached is None else reached
     if (TARGET_CRITERION, final) not in designs:
         design((TARGET_CRITERION,), final)
     others = tuple(c for c in criteria if c != TARGET_CRITERION)
     if others:
         design(others, final)
-    for m_design, d in designs.items():  # the bounds the designs carry
-        if d.bound is not None and m_design[0] == TARGET_CRITERION:
-            bounds.setdefault(m_design[1], d.bound.value)
-    errors = {m: d.scores.max_rms_error_m for (c, m), d in designs.items() if c == TARGET_CRITERION}
     ms = tuple(sorted({m for _, m in designs}))
     order = (TARGET_CRITERION, *others)
+    answer = answer_from(problem, target_m, designs, limit, bounds)
     campaign = Campaign(order, ms, settings,
-                        {(c, m): designs[c, m] for m in ms for c in order if (c, m) in designs}, approx)
-    answer = TargetAnswer(target_m, answer, limit, errors, bounds, problem.m_min, problem.m_held)
-    return replace(campaign, target=answer), answer
+                        {(c, m): designs[c, m] for m in ms for c in order if (c, m) in designs}, approx, answer)
+    return campaign, answer
 
