@@ -274,19 +274,28 @@ def run_campaign(
     given = dict(approx or {})
     approx = {**approximate_designs(problem, [a for a in aims(problem, criteria, ms) if a not in given],
                                     settings.bound_steps, settings.bound_pool, executor), **given}
+    _one_by_one(criteria, ms, designs, lambda c, m: _bounded(problem, solve_design(
+        problem, c, m, starts=settings.starts, verbose=settings.verbose,
+        initial_plans=_later_starts(problem, c, m, designs, approx, extra_starts),
+        executor=executor, progress=progress), approx), on_design, progress)
+    return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
+
+
+def _one_by_one(criteria: tuple[str, ...], ms: tuple[int, ...], designs: dict[tuple[str, int], Design],
+                make: Callable[[str, int], Design], on_design: Callable[[Design], object] | None,
+                progress: Callable[[int], object] | None) -> None:
+    """Make every design (c, m) not in ``designs`` yet, m ascending, in criteria order, into
+    ``designs`` and ``on_design``; ``progress`` is told the starts of those already there
+    (``make`` tells it its own)."""
     for m in ms:
         for c in criteria:
             if (c, m) in designs:
                 if progress is not None:
                     progress(len(designs[c, m].starts))
                 continue
-            d = solve_design(problem, c, m, starts=settings.starts, verbose=settings.verbose,
-                             initial_plans=_later_starts(problem, c, m, designs, approx, extra_starts),
-                             executor=executor, progress=progress)
-            designs[c, m] = d = _bounded(problem, d, approx)
+            designs[c, m] = d = make(c, m)
             if on_design is not None:
                 on_design(d)
-    return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
 
 
 def choose_campaign(problem: Problem, criteria: Sequence[str], m_values: Iterable[int], settings: Settings,
@@ -304,14 +313,14 @@ def choose_campaign(problem: Problem, criteria: Sequence[str], m_values: Iterabl
     check_criteria(problem, criteria)
     check_m_values(problem, ms)
     designs: dict[tuple[str, int], Design] = dict(done or {})
-    for m in ms:
-        for c in criteria:
-            if (c, m) not in designs:
-                designs[c, m] = d = choose_design(problem, c, m, Q, F, settings.starts, settings.bound_steps > 0)
-                if on_design is not None:
-                    on_design(d)
-            if progress is not None:
-                progress(len(designs[c, m].starts))
+
+    def make(c: str, m: int) -> Design:
+        d = choose_design(problem, c, m, Q, F, settings.starts, settings.bound_steps > 0)
+        if progress is not None:
+            progress(len(d.starts))
+        return d
+
+    _one_by_one(criteria, ms, designs, make, on_design, progress)
     return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, {})
 
 
