@@ -196,9 +196,7 @@ class Fit:
         """The model's points (k, p, 3), m, of the rows ``Q``, ``F`` in their tracker frames
         (``frame_of``; None: the first round's)."""
         frame_of = np.zeros(len(Q), dtype=int) if frame_of is None else np.asarray(frame_of)
-        points = model_points(self.fit.model, Q, F, self.rows_X(frame_of))
-        T = self.T0s[frame_of]
-        return np.einsum("kij,kpj->kpi", T[:, :3, :3], points) + T[:, None, :3, 3]
+        return in_tracker(self.T0s[frame_of], model_points(self.fit.model, Q, F, self.rows_X(frame_of)))
 
     @property
     def tracker_from_base(self) -> np.ndarray:
@@ -239,7 +237,11 @@ def pose_rms(e: np.ndarray) -> np.ndarray:
 
 
 def in_tracker(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return p @ T[:3, :3].T + T[:3, 3]
+    """Points ``p`` (k, q, 3) moved by ``T``: one 4 x 4 for every row, or one per row (k, 4, 4)."""
+    T = np.asarray(T)
+    if T.ndim == 2:
+        return p @ T[:3, :3].T + T[:3, 3]
+    return np.einsum("kij,kqj->kqi", T[:, :3, :3], p) + T[:, None, :3, 3]
 
 
 def whitening(problem: Problem) -> np.ndarray:
@@ -286,8 +288,7 @@ def registration(problem: Problem, fm: FitModel, meas: Measurements) -> tuple[np
                     "base-frame coordinates with --frame base")
             T0s[k] = frame_matrix(*found)
     seen = meas.seen
-    T = T0s[np.broadcast_to(frame_of[:, None], seen.shape)[seen]]
-    off = (meas.P_m[seen] - (np.einsum("kij,kj->ki", T[:, :3, :3], nominal[seen]) + T[:, :3, 3]))[:, list(axes)]
+    off = (meas.P_m - in_tracker(T0s[frame_of], nominal))[seen][:, list(axes)]
     rows = np.nonzero(seen)[0]
     return T0s, float(np.sqrt(np.mean(np.sum(off**2, axis=1)))), int(rows[np.argmax(np.sum(off**2, axis=1))])
 
