@@ -325,5 +325,5 @@ def test_the_best_plan_so_far_is_told_as_it_improves(paper, monkeypatch):
         assert ours and all(crit.better(b.value, a.value) for a, b in zip(ours, ours[1:]))
         assert crit.same_optimum(ours[-1].value, done.designs[c, 5].scores.value(c))  # (told beyond the tolerance)
     last = [i for i in told if i.bound is not None][-1]
-    assert f"% from the bound" in last.line() and last.total is not None
+    assert "% from the bound" in last.line() and last.total is not None
     assert any(i.running for i in told) or all(i.bound is not None for i in told)
