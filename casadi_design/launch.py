@@ -4,21 +4,35 @@ second: CasADi, Pinocchio, numpy)."""
 
 from __future__ import annotations
 
+import atexit
 import os
 import sys
+from typing import NoReturn
 
 from .runtime import interrupt
 from .runtime.interrupt import EXIT_INTERRUPTED
 from .runtime.threads import fixed_blas
 
 
-def _interrupted() -> None:
-    print("interrupted", file=sys.stderr, flush=True)
+def _exit_interrupted() -> NoReturn:
+    """End the process now with code 130, after the exit functions (multiprocessing's
+    clean-up of its semaphores, logging) and with its output flushed.
+
+    A plain return would let ``python -m casadi_design`` end by SIGINT (status -2) instead:
+    when the ``KeyboardInterrupt`` passed through Python code that a native library ran with
+    ``PyRun_String``, CPython marks the interrupt unhandled (``_Py_UnhandledKeyboardInterrupt``,
+    set in 2 of 60 solves interrupted during their first second) though the command caught it,
+    and kills itself with SIGINT after finalisation.
+    """
+    atexit._run_exitfuncs()
     sys.stdout.flush()
-    # Ctrl-C inside a native library's import can leave Python believing the signal went
-    # unhandled, and it would then end the process by SIGINT (status -2), not 130: nothing
-    # is open yet, so end here.
+    sys.stderr.flush()
     os._exit(EXIT_INTERRUPTED)
+
+
+def _interrupted() -> NoReturn:
+    print("interrupted", file=sys.stderr)
+    _exit_interrupted()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,9 +43,10 @@ def main(argv: list[str] | None = None) -> int:
         from .cli import main as run
     except KeyboardInterrupt:
         _interrupted()
-    except ImportError:
-        # a native module whose initialisation Ctrl-C broke says "initialization failed"
-        # (scipy's HiGHS through pybind11): the interrupt, not a broken install
+    except Exception:
+        # Ctrl-C inside an import can come out as another error: a native module whose
+        # initialisation it broke says "initialization failed" (scipy's HiGHS through pybind11),
+        # a dataclass field's __set_name__ a RuntimeError; the interrupt, not a broken install
         if interrupt.pressed():
             _interrupted()
         raise
@@ -39,8 +54,5 @@ def main(argv: list[str] | None = None) -> int:
         _interrupted()
     code = run(argv)
     if code == EXIT_INTERRUPTED:
-        # the command said what it kept: a SIGINT still pending now would raise a
-        # KeyboardInterrupt in the interpreter's exit, which ends the process by SIGINT
-        # (status -2, about once in 30 on a loaded machine) instead of 130
-        interrupt.ignore()
+        _exit_interrupted()  # the command said what it kept
     return code

@@ -48,11 +48,6 @@ def install() -> None:
     sys.unraisablehook = _unraisable
 
 
-def ignore() -> None:
-    """From now on Ctrl-C does nothing: the command has ended and said what it kept."""
-    signal.signal(signal.SIGINT, lambda signum, frame: None)
-
-
 def pressed() -> bool:
     """Whether Ctrl-C was pressed since :func:`install` (CasADi may have turned the
     ``KeyboardInterrupt`` of a Python callback into its own ``RuntimeError``)."""

@@ -202,6 +202,38 @@ def test_ctrl_c_during_start_up_exits_130_with_one_line(tmp_path, delay_s):
     assert not (tmp_path / "out" / "results.json").exists()
 
 
+#: A command whose Ctrl-C passed through code that a native library ran with ``PyRun_String``
+#: (CPython then marks it unhandled, though the command caught it).
+_PYRUN_INTERRUPTED = """
+import ctypes, sys
+import casadi_design.cli
+from casadi_design.launch import main
+
+def interrupted(argv):
+    run = ctypes.pythonapi.PyRun_String
+    run.restype, run.argtypes = ctypes.py_object, [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
+    try:
+        run(b"raise KeyboardInterrupt", 257, {}, {})  # 257: Py_file_input
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+casadi_design.cli.main = interrupted
+sys.exit(main([]))
+"""
+
+
+def test_ctrl_c_through_a_native_librarys_python_code_still_exits_130(tmp_path):
+    """Python run as ``python -m`` ends itself by SIGINT (status -2) after a Ctrl-C it believes
+    unhandled; the command ends with 130 all the same (``launch``; fails with -2 when
+    ``launch.main`` returns 130 instead of ending the process)."""
+    (tmp_path / "pyrun_interrupted.py").write_text(_PYRUN_INTERRUPTED)
+    done = subprocess.run([sys.executable, "-m", "pyrun_interrupted"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr == "interrupted\n"
+
+
 @pytest.mark.parametrize("edit, option, match", [
     (("sigma_m = 1.0e-4", "sigma_m = 1e300"), [], r"\[measurement\]\.sigma_m: is 1e\+300 m, above 1 m"),
     (("magnitude_N = 100.0", "magnitude_N = 1e300"), [], r"\[experiments.force\]\.magnitude_N: is 1e\+300 N"),
