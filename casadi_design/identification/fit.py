@@ -35,6 +35,7 @@ from ..model.mapped import evaluate
 from ..measures.measures import SINGULAR_RTOL, information_matrix
 from ..model.models import CalibrationModel, calibration_model
 from ..model.symbolic import PLACEMENT_ERRORS
+from ..runtime.cache import Memo
 from .lsq import Identification, expanded, identify_nonlinear, measurement_jacobian, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
@@ -80,11 +81,28 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
     """The fit's measurement model for measurements in the ``frame`` (module docstring), of the
     robot parameters ``names`` (default the problem's own); with ``prior`` a MAP fit under the
     problem's ``[calibration.prior]``; with ``gravity`` the compliances ``k.<joint>`` of
-    ``names`` deflect the joints under the robot's own weight too (the URDF's inertias)."""
+    ``names`` deflect the joints under the robot's own weight too (the URDF's inertias).
+
+    The model is derived once per problem model, frame, names and gravity in a process
+    (:data:`_FITS`): a virtual calibration fits the same model in every trial, and the choice
+    of a model fits each candidate in every fold."""
     if frame not in FRAMES:
         raise ProblemError(f"--frame {frame}: allowed: {', '.join(FRAMES)}")
+    names = problem.model.parameter_names if names is None else tuple(names)
+    fm = _FITS.get((problem.model, frame, names, gravity), lambda: _fit_model(problem, frame, names, gravity))
+    return replace(fm, prior_std=prior_std(problem.robot, problem.spec.calibration.prior,
+                                             fm.frame_names + fm.robot_names)) if prior else fm
+
+
+#: The fit models derived in this process, by problem model, frame, names and gravity: as many
+#: as the candidates of a model choice (:mod:`casadi_design.identification.choice`) and a few.
+KEEP_FITS = 32
+_FITS: Memo[FitModel] = Memo(KEEP_FITS)
+
+
+def _fit_model(problem: Problem, frame: str, names: tuple[str, ...], gravity: bool) -> FitModel:
+    """:func:`fit_model` without a prior, derived anew."""
     model = problem.model
-    names = model.parameter_names if names is None else tuple(names)
     kin = model.kinematics
     compliant = tuple(p for p in names if p.startswith("k."))
     case = "both" if compliant else "geometric"
@@ -96,9 +114,8 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
         return calibration_model(kin, case, **args, gravity=gravity)
 
     if frame == "base":
-        fm = FitModel(model if names == model.parameter_names and not gravity else build(names),
-                      frame, (), names, ())
-        return replace(fm, prior_std=prior_std(problem.robot, problem.spec.calibration.prior, names)) if prior else fm
+        return FitModel(model if names == model.parameter_names and not gravity else build(names),
+                        frame, (), names, ())
     geometric = tuple(p for p in names if p not in compliant and p not in FRAME_PARAMETERS)
     absorbed = [(p, "the tracker frame's placement") for p in names if p in FRAME_PARAMETERS]
     candidates = build(FRAME_PARAMETERS + geometric + compliant)
@@ -119,8 +136,7 @@ def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None
             absorbed.append((name, ABSORBED))
     names = tuple(candidates.parameter_names[i] for i in kept)
     frame_names = tuple(p for p in names if p in FRAME_PARAMETERS)
-    return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed),
-                    prior_std(problem.robot, problem.spec.calibration.prior, names) if prior else None)
+    return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed))
 
 
 def frame_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
