@@ -184,12 +184,13 @@ class Problem:
         between runs (:mod:`casadi_design.runtime.cache`): its checked data, the robot's Pinocchio
         model, the cell's capsules and real geometry (the meshes' vertices: an edited URDF or
         mesh file is another problem, though its path is the same), the package's code, the
-        libraries' versions, the BLAS kernels and thread count."""
+        libraries' versions, the BLAS kernels and thread count. Not the file's path: a copy of
+        a problem file is the same problem."""
         cell = self.cell
         robot = pickle.dumps(self.robot.model)
         geometry = b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry))
         capsules = b"" if cell is None else repr(cell.capsules).encode()
-        return digest(spec_digest_blob(self.spec), robot, geometry, capsules, code_digest().encode(),
+        return digest(spec_digest_blob(dataclasses.replace(self.spec, path="")), robot, geometry, capsules, code_digest().encode(),
                       *(str(v).encode() for v in blas_setup()))
 
 

@@ -24,16 +24,24 @@ def _blocks(language: str) -> list[str]:
     return blocks
 
 
-def test_the_python_example_prints_what_the_readme_says(tmp_path, monkeypatch, capsys):
-    """Run as a user runs it from the repository (here in a copy of problems/, in this process)."""
+def test_the_python_example_prints_what_the_readme_says(tmp_path, monkeypatch, capsys, paper_solve_out):
+    """Run as a user runs it from the repository (here in a copy of problems/, in this process);
+    its bounds are those `solve` writes for the same file (a copy is the same problem: the
+    approximate designs computed for the suite's solve are read back here)."""
+    import json
+
     (code,) = _blocks("python")
     printed = next(b for b in _blocks("") if b.startswith("2 parameters"))
     shutil.copytree(ROOT / "problems", tmp_path / "problems")
     monkeypatch.chdir(tmp_path)
     capsys.readouterr()
-    exec(compile(code, "README.md", "exec"), {"__name__": "__main__"})
+    example = {"__name__": "__main__"}
+    exec(compile(code, "README.md", "exec"), example)
     assert capsys.readouterr().out == printed
     assert (tmp_path / "fig1.png").stat().st_size > 10_000 and (tmp_path / "fig1.pdf").exists()
+    solved = {(d["criterion"], d["m"]): d for d in json.loads((paper_solve_out / "results.json").read_text())["designs"]}
+    for (criterion, m), design in example["campaign"].designs.items():
+        assert design.bound.value == solved[criterion, m]["bound"]["value"]
 
 
 def test_the_first_screen_table_is_the_paper_example_as_solve_finds_it(paper_solve_out):
