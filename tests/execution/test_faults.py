@@ -109,6 +109,7 @@ def test_a_solve_keeps_what_it_finished_and_resumes(tmp_path, kill_at_m, capsys)
     assert [(d["criterion"], d["m"]) for d in designs] == [("D", 1), ("D", 2)]
 
 
+@pytest.mark.slow  # a Dask cluster with a worker killed (2.5 s); a killed process-pool worker in the default run
 def test_dask_reschedules_the_start_of_a_worker_that_went_away(paper, kill_once):
     distributed = pytest.importorskip("distributed")
     serial = solve_design(paper, "D", 2, starts=4)

@@ -63,6 +63,7 @@ def test_dask_local_cluster_equals_serial(paper, serial, processes):
         assert client.status == "running"
 
 
+@pytest.mark.slow  # a sweep twice (2.5 s); process pools equal serial runs in the default run (test_process_pool_equals_serial)
 def test_sweep_on_processes_equals_serial_sweep(paper):
     args = (paper, ["test-pose", "D"], [1, 2, 3], Settings(2, bound_steps=0))
     plain = run_sweep(*args)

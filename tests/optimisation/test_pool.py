@@ -60,7 +60,7 @@ def test_solve_candidates_from_the_command_line(paper, tmp_path, capsys):
     pool = tmp_path / "pool.csv"
     pool.write_text(csv_text(*plan_table(paper, Q, F)))
     assert main(["solve", str(PAPER), "--m", "2", "--criteria", "test-pose", "--candidates", str(pool),
-                 "--starts", "2", "--out", str(tmp_path / "out"), "--quiet"]) == 0
+                 "--starts", "2", "--jobs", "1", "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert "test-pose" in capsys.readouterr().out
     assert main(["sweep", str(PAPER), "--m", "1:2", "--candidates", str(pool), "--quiet"]) == 2
     assert "--candidates chooses the plans of solve" in capsys.readouterr().err

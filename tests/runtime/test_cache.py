@@ -82,6 +82,7 @@ def test_an_unwritable_cache_still_gives_the_value(tmp_path, monkeypatch):
     assert cache.stored("test", cache.digest(b"k"), lambda: [1, 2]) == [1, 2]
 
 
+@pytest.mark.slow  # fits the UR10's capsules twice (4 s); the cell's pairs read back in the default run
 def test_the_ur10_capsules_read_back_as_fitted(directory, monkeypatch):
     model = load_urdf(UR10)
     geometry = load_collision_geometry(model, urdf_file(UR10), _package_dirs(UR10))
