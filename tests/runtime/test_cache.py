@@ -225,6 +225,11 @@ def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
     urdf.write_text(text.replace('xyz="0.0 0.0 0.1273"', 'xyz="0.0 0.0 0.127301"', 1))
     after = built()
     assert after.digest == before.digest and after.fingerprint != before.fingerprint
+    copy = tmp_path / "copy" / "case.toml"  # the same file elsewhere: the same problem
+    copy.parent.mkdir()
+    copy.write_text(path.read_text())
+    monkeypatch.setattr(build, "_BUILT", build._BUILT.empty())
+    assert build.load_problem(copy).fingerprint == after.fingerprint
 
 
 def test_the_fingerprint_names_the_blas_thread_count(monkeypatch):
