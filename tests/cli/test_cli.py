@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from casadi_design.cli import main
-from tests.conftest import CLI_STARTS, PAPER, ROOT
+from tests.conftest import STARTS, PAPER, ROOT
 
 L1, L2 = 0.6, 0.4  # the paper's arm, m
 
@@ -36,7 +36,7 @@ def test_results_json_recomputes_without_the_package(solved):
         assert len(d["experiments"]) == d["m"]
         assert d["solver"]["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
         rounded = {"test-pose": 4, "D": 8}.get(d["criterion"], 0)  # starts from the approximate design
-        assert d["solver"]["starts"] == CLI_STARTS + rounded and d["solver"]["wall_s"] > 0
+        assert d["solver"]["starts"] == STARTS + rounded and d["solver"]["wall_s"] > 0
         assert (d["bound"] is not None) == (rounded > 0)
         if d["criterion"] == "test-pose":
             assert d["bound"]["value"] <= d["max_rms_error_m"]

@@ -17,12 +17,11 @@ from casadi_design.errors import ProblemError
 from casadi_design.model.build import load_problem
 from casadi_design.cli.common import parse_m_values
 from casadi_design.execution.sweep import sweep_from_record, sweep_rows
-from tests.conftest import CLI_STARTS, PAPER, ROOT
+from tests.conftest import STARTS, PAPER, ROOT
 
 #: Seeded starts per design in these tests: few (fast), yet with the warm start the sweep
 #: finds the Table-4 optima of the paper's example at m = 1 and 5 (20 is the problem's default);
 #: the same as the suite's `solve` run it is compared with (conftest).
-STARTS = CLI_STARTS
 #: m of the sweep (the README's table goes to 10; 1 and 5 are Table 4's, 2 gives a warm start
 #: from m = 1 and 5 one from m = 2).
 M_VALUES = (1, 2, 5)

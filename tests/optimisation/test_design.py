@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 from casadi_design.optimisation.solve import plan_scores, solve_design
-from tests.conftest import build, paper_raw
+from tests.conftest import STARTS, build, paper_raw
 
 #: Table 4 of the paper, max sqrt(rho) along the line, mm.
 TABLE4 = {("test-pose", 1): 0.137, ("test-pose", 5): 0.055, ("D", 1): 0.170, ("D", 5): 0.069,
@@ -57,7 +57,7 @@ def test_solutions_satisfy_the_load_and_joint_limits(designs, paper):
 
 
 def test_designs_are_reproducible_from_the_seed(paper, designs):
-    again = solve_design(paper, "test-pose", 5)
+    again = solve_design(paper, "test-pose", 5, starts=STARTS)
     np.testing.assert_array_equal(again.Q, designs["test-pose", 5].Q)
     assert [s.value for s in again.starts] == [s.value for s in designs["test-pose", 5].starts]
 
