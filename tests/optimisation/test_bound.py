@@ -207,14 +207,14 @@ def test_rounded_plans_are_feasible_starts(paper, paper_tp):
 
 
 def test_too_small_a_pool_is_refused(capsys):
-    """One UR10 experiment (3 values) cannot identify 27 parameters: a clear error, not a
-    bound computed from a singular W."""
+    """One experiment of the geometric planar arm (2 values) cannot identify its 4 parameters:
+    a clear error, not a bound computed from a singular W."""
     from casadi_design.cli import main
 
-    assert main(["bound", str(ROOT / "problems" / "ur10_drilling.toml"), "--bound-pool", "1", "--m", "9"]) == 2
+    assert main(["bound", str(ROOT / "problems" / "planar_2r_geometric.toml"), "--bound-pool", "1", "--m", "9"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0] == ("error: approximate design: the first pool of 1 random experiments (--bound-pool) "
-                       "identifies 3 of the 27 parameters; use a larger pool (default 300)")
+                       "identifies 2 of the 4 parameters; use a larger pool (default 300)")
 
 
 def test_unknown_criterion(paper):

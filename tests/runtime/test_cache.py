@@ -140,6 +140,7 @@ def kept_designs(directory, monkeypatch):
     return campaign
 
 
+@pytest.mark.slow  # an approximate design computed twice (3.5 s); a design read back start by start runs by default
 def test_an_approximate_design_is_read_back_to_the_bit_by_a_later_run(kept_designs, monkeypatch, paper):
     """An approximate design computed once is read back from the disk by a later process (here:
     this one with its in-process designs cleared) without computing, to the bit and marked

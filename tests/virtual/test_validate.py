@@ -442,6 +442,7 @@ def test_validate_subcommand_and_script(tmp_path, paper, paper_designs, capsys):
     assert err.startswith("error: --results") and err.count("\n") == 1
 
 
+@pytest.mark.slow  # two paths compared (3.5 s); validate of solve's results.json runs by default (test_cli, test_every_command)
 def test_validate_without_results_validates_the_plans_of_solve(tmp_path):
     """``validate CASE OPTIONS`` simulates exactly the plans ``solve CASE OPTIONS`` writes (one
     campaign for both, rounded starts and bounds included): its validation.json equals the one
