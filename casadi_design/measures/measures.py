@@ -115,7 +115,9 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray |
         Number of experiments already measured (the observability indices count them).
     """
     B = np.asarray(B, dtype=float)
-    M = information_matrix(B) if M_held is None else information_matrix(B) + M_held
+    M = information_matrix(B)
+    if M_held is not None:
+        M = M + M_held
     lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
     sv = np.sqrt(lam)
     identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))

@@ -190,7 +190,8 @@ class Problem:
         robot = pickle.dumps(self.robot.model)
         geometry = b"" if cell is None else pickle.dumps((cell.check.model, cell.check.geometry))
         capsules = b"" if cell is None else repr(cell.capsules).encode()
-        return digest(spec_digest_blob(dataclasses.replace(self.spec, path="")), robot, geometry, capsules, code_digest().encode(),
+        data = spec_digest_blob(dataclasses.replace(self.spec, path=""))
+        return digest(data, robot, geometry, capsules, code_digest().encode(),
                       *(str(v).encode() for v in blas_setup()))
 
 
