@@ -5,10 +5,11 @@ solve (:func:`casadi_design.optimisation.solve.solve_design`) from
 
 1. the seeded random starts (``settings.starts``, drawn from ``(seed, m, criterion)``),
 2. the caller's extra starts (a sweep's warm start from the previous m),
-3. the starts rounded from the criterion's approximate design, when it has one
-   (:func:`casadi_design.optimisation.bound.rounded_plans`),
+3. the starts rounded from an approximate design (:func:`casadi_design.optimisation.bound.rounded_plans`):
+   the criterion's own when it has a bound, A's for E and condition
+   (:attr:`~casadi_design.measures.criteria.Criterion.approximate`),
 
-and it carries the certified bound of its criterion for m experiments
+and it carries the certified bound of its criterion for m experiments, when it has one
 (:func:`casadi_design.optimisation.bound.bound`). Every command that designs plans (``solve``, ``sweep``,
 ``validate`` without ``--results``, and what comes) calls :func:`run_campaign`, so the same
 problem and settings give the same plans whichever command solved them.
@@ -55,17 +56,27 @@ Aim = tuple[str, int]
 
 
 def aim(problem: Problem, criterion: str, m: int) -> Aim:
-    """The approximate design that bounds and starts the design (criterion, m)."""
+    """The approximate design of ``criterion`` for the designs of m experiments: the one that
+    bounds them when the criterion has a bound."""
     return (criterion, m if problem.M_held is not None else 0)
 
 
+def start_aim(problem: Problem, criterion: str, m: int) -> Aim | None:
+    """The approximate design that rounds the starts of the design (criterion, m)
+    (:attr:`~casadi_design.measures.criteria.Criterion.approximate`); None: it has no rounded starts."""
+    source = CRITERIA[criterion].approximate
+    return None if source is None else aim(problem, source, m)
+
+
 def aims(problem: Problem, criteria: Iterable[str], m_values: Iterable[int]) -> list[Aim]:
-    """The approximate designs of the criteria with a bound for ``m_values``, in campaign order."""
+    """The approximate designs that bound or start the designs of ``criteria`` for
+    ``m_values``, in campaign order."""
     out: list[Aim] = []
     for m in m_values:
         for c in criteria:
-            if c in BOUND_CRITERIA and aim(problem, c, m) not in out:
-                out.append(aim(problem, c, m))
+            a = start_aim(problem, c, m)
+            if a is not None and a not in out:
+                out.append(a)
     return out
 
 
@@ -220,13 +231,18 @@ def approximate(problem: Problem, criteria: Iterable[str], m_values: Iterable[in
 
 
 def has_bound(criterion: str, settings: Settings) -> bool:
-    """Whether the designs of ``criterion`` carry a bound and rounded starts."""
+    """Whether the designs of ``criterion`` carry a bound."""
     return criterion in BOUND_CRITERIA and settings.bound_steps > 0
+
+
+def has_rounded(criterion: str, settings: Settings) -> bool:
+    """Whether the designs of ``criterion`` have starts rounded from an approximate design."""
+    return CRITERIA[criterion].approximate is not None and settings.bound_steps > 0
 
 
 def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings) -> int:
     """IPOPT starts of a campaign (for progress bars), the caller's extra starts left out."""
-    per_m = sum(settings.starts + (CRITERIA[c].bound.rounded if has_bound(c, settings) else 0) for c in criteria)
+    per_m = sum(settings.starts + (CRITERIA[c].rounded if has_rounded(c, settings) else 0) for c in criteria)
     return len(m_values) * per_m
 
 
@@ -327,10 +343,12 @@ def choose_campaign(problem: Problem, criteria: Sequence[str], m_values: Iterabl
 def _later_starts(problem: Problem, c: str, m: int, designs: dict, approx: dict,
                   extra_starts: ExtraStarts | None) -> list[tuple]:
     """The starts of design (c, m) after its seeded ones, ``(Q0, F0, origin)``: the caller's
-    extra starts (from the designs so far), then those rounded from its approximate design."""
+    extra starts (from the designs so far), then those rounded from its approximate design
+    (:func:`start_aim`)."""
     extra = extra_starts(c, m, designs) if extra_starts is not None else []
-    a = approx.get(aim(problem, c, m))
-    return extra + ([(Q, F, ROUNDED) for Q, F in rounded_plans(problem, a, m)] if a is not None else [])
+    a = approx.get(start_aim(problem, c, m))
+    return extra + ([(Q, F, ROUNDED) for Q, F in rounded_plans(problem, a, m, CRITERIA[c].rounded)]
+                    if a is not None else [])
 
 
 def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
@@ -423,7 +441,7 @@ class _Pipeline:
         if d.complete:
             return True
         c, m = d.criterion, d.m
-        if has_bound(c, self.settings) and aim(self.problem, c, m) not in self.approx:
+        if has_rounded(c, self.settings) and start_aim(self.problem, c, m) not in self.approx:
             return False
         if self.extra_starts is not None and not all(e.done and e.error is None for e in self.todo[:k]):
             return False

@@ -81,21 +81,12 @@ class BoundForm:
         them, so D has none; A's support is spread (77 to 105 points carry 95 % of the weight)
         and its moves take 1.7x the time for no better bound, so A and I (not measured) have
         none either.
-    rounded : starts rounded from the approximate design per design
-        (:func:`casadi_design.optimisation.bound.rounded_plans`: the apportioned support, then jittered
-        copies; the first four the same whatever the count). Of 12 on the UR10 study (README,
-        Speed), the best is the 8th (test-pose, m = 9), 6th (test-pose, m = 12), 6th (D, m = 9:
-        0.3 higher in log det than the best of the first 4) and 4th (A, m = 9). D's and A's
-        rounded starts cost what a seeded one does (50 to 250 IPOPT iterations), so D and A
-        have 8; test-pose's from m = 12 on cost 3 to 10 seeded ones (1000 to 2800 iterations,
-        some stall), and 8 make the UR10 sweep 1.4x slower, so the others have 4.
     """
 
     rows: Callable[[np.ndarray], np.ndarray] | None
     score: Callable[[float, int, float, int], float]
     meaning: str
     moves: int = 0
-    rounded: int = 4
 
     @property
     def log_det(self) -> bool:
@@ -141,6 +132,20 @@ class Criterion:
     log_value : the value is a logarithm (same optimum: absolute tolerance on it).
     powers : the powers r of the surrogate of a non-smooth criterion, one NLP run each.
     bound : its bound form, None if it has none.
+    rounded_from : a criterion with a bound whose approximate design rounds this one's starts,
+        for a criterion without a bound of its own (E and condition: A's, whose plans the
+        A-optimal support spreads over every direction of M; on the ABB study the rounded A
+        plans end at a condition number 6 % below the best of 16 seeded starts at m = 8, and
+        improve E at m = 8 and the UR10's condition number at m = 12; D's do not); None: its
+        own approximate design, or none.
+    rounded : starts rounded from that approximate design per design
+        (:func:`casadi_design.optimisation.bound.rounded_plans`: the apportioned support, then jittered
+        copies; the first four the same whatever the count). Of 12 on the UR10 study, the best
+        is the 8th (test-pose, m = 9), 6th (test-pose, m = 12), 6th (D, m = 9: 0.3 higher in
+        log det than the best of the first 4) and 4th (A, m = 9). D's and A's rounded starts
+        cost what a seeded one does (50 to 250 IPOPT iterations), so D and A have 8;
+        test-pose's from m = 12 on cost 3 to 10 seeded ones (1000 to 2800 iterations, some
+        stall), and 8 make the UR10 sweep 1.4x slower, so the others have 4.
     """
 
     name: str
@@ -160,6 +165,14 @@ class Criterion:
     log_value: bool = False
     powers: tuple[float, ...] = ()
     bound: BoundForm | None = None
+    rounded_from: str | None = None
+    rounded: int = 4
+
+    @property
+    def approximate(self) -> str | None:
+        """The criterion whose approximate design rounds this one's starts: its own when it has a
+        bound, ``rounded_from`` otherwise (None: no rounded starts)."""
+        return self.name if self.bound is not None else self.rounded_from
 
     def better(self, a: float, b: float) -> bool:
         """Whether value ``a`` is strictly better than ``b``."""
@@ -194,19 +207,19 @@ CRITERIA: dict[str, Criterion] = {
                   {"color": "tab:blue", "ls": "--", "lw": 1.5}, 1, LogDet(),
                   "log_det_M", "D: log det M", log_value=True,
                   bound=BoundForm(None, lambda c, m, sigma, L: L * np.log(m) + c,
-                                  "upper bound of log_det_M of any plan of m experiments", rounded=8)),
+                                  "upper bound of log_det_M of any plan of m experiments"), rounded=8),
         Criterion("A", "min", "trace_M_inv", _regular(lambda sp: float(np.sum(1.0 / sp.lam)), np.inf),
                   "trace M^-1 (A-optimality)", "A-optimality",
                   {"color": "tab:green", "ls": "-.", "lw": 1.5}, 2, TraceInverse(),
                   "trace_M_inv", "A: trace M^-1",
                   bound=BoundForm(lambda B0: _outer(np.eye(B0.shape[2])[None]),
                                   lambda c, m, sigma, L: c / m,
-                                  "lower bound of trace_M_inv of any plan of m experiments", rounded=8)),
+                                  "lower bound of trace_M_inv of any plan of m experiments"), rounded=8),
         Criterion("E", "max", "s_min", lambda sp: float(sp.sv[-1]),
                   "smallest singular value s_L (E-optimality, SVD approach)", "SVD approach (E-optimality)",
                   {"color": "tab:purple", "ls": ":", "lw": 2.0}, 3,
                   SpectralSurrogate(terms=((-1.0, -1.0),)), "s_min", "E: smallest singular value s_L",
-                  polished=True, powers=SURROGATE_POWERS),
+                  polished=True, powers=SURROGATE_POWERS, rounded_from="A"),
         Criterion("T", "max", "trace_M", lambda sp: sp.trace_M, "trace M (T-optimality)", "T-optimality",
                   {"color": "tab:brown", "ls": (0, (5, 1, 1, 1)), "lw": 1.5}, 4, Trace(),
                   "trace_M", "T: trace M"),
@@ -214,7 +227,7 @@ CRITERIA: dict[str, Criterion] = {
                   "condition number s_1/s_L", "Condition number",
                   {"color": "tab:gray", "ls": (0, (3, 1)), "lw": 1.5}, 5,
                   SpectralSurrogate(terms=((1.0, 1.0), (-1.0, -1.0))), "condition",
-                  "condition number s_1/s_L", polished=True, powers=SURROGATE_POWERS),
+                  "condition number s_1/s_L", polished=True, powers=SURROGATE_POWERS, rounded_from="A"),
         Criterion("I", "min", "rms_over_test_poses_m", lambda sp: float(np.sqrt(np.mean(sp.rho))),
                   "RMS over test poses of the error, sqrt(mean rho) (m)", "I-optimality (mean rho)",
                   {"color": "tab:orange", "ls": (0, (1, 1)), "lw": 2.0}, 6, MeanTestPose(),

@@ -874,13 +874,14 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     """Plans of m experiments from the approximate design, as extra starts of
     :func:`casadi_design.optimisation.solve.solve_design` (``initial_plans``).
 
-    ``count`` plans (None: the criterion's :attr:`~casadi_design.measures.criteria.BoundForm.rounded`).
+    ``count`` plans (None: the :attr:`~casadi_design.measures.criteria.Criterion.rounded` of the approximate
+    design's criterion).
     The first repeats support point i ``n_i`` times (:func:`apportion`); the other ``count - 1``
     move each of its joint values by a normal step of ``ROUNDING_JITTER`` times the joint's
     range (seeded by ``problem.solver.seed`` and m), so repeated experiments can separate.
     Returns ``(Q0, F0)`` pairs: Q0 shape (m, n), rad; F0 shape (m, nF), N.
     """
-    count = CRITERIA[approx.criterion].bound.rounded if count is None else count
+    count = CRITERIA[approx.criterion].rounded if count is None else count
     idx = np.repeat(np.arange(len(approx.weights)), apportion(approx.weights, m))
     Q0, F0 = approx.Q[idx], approx.F[idx]
     limits = joint_limits(problem)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from casadi_design.measures.criteria import BOUND_CRITERIA, CRITERIA
+from casadi_design.optimisation.bound import ROUNDED
 
 import casadi_design.execution.campaign as campaign_module
 import casadi_design.execution.sweep as sweep_module
@@ -69,9 +70,10 @@ def test_sweep_writes_table_csv_json_plots_plans_and_report(swept):
     for r, j in zip(rows, record["sweep"]["rows"]):
         assert float(r["max_error_mm"]) == j["max_error_mm"]  # CSV keeps full precision
         assert r["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-        # the warm start from m = 2 on; the rounded plans of the approximate design (test-pose, D)
+        # the warm start from m = 2 on; the rounded plans of an approximate design (test-pose's
+        # and D's own, A's for E)
         bounded = r["criterion"] in BOUND_CRITERIA
-        assert int(r["starts"]) == STARTS + (int(r["m"]) > 1) + (CRITERIA[r["criterion"]].bound.rounded if bounded else 0)
+        assert int(r["starts"]) == STARTS + (int(r["m"]) > 1) + CRITERIA[r["criterion"]].rounded
         assert (float(r["gap_percent"]) >= -1e-6) if bounded else r["gap_percent"] in ("", "None")
     for name in ("sweep_max_error.png", "fig1.png"):
         _png_is_a_real_image(out / name)
@@ -252,3 +254,39 @@ def test_warm_start_adds_new_poses_to_the_previous_plan(paper):
     np.testing.assert_allclose(np.linalg.norm(F0, axis=1), 100.0)
     again = sweep_module.warm_start_plan(paper, prev, 4)
     np.testing.assert_array_equal(again[0], Q0)  # seeded by (seed, criterion, m)
+
+
+def test_e_starts_from_the_rounded_plans_of_a_and_carries_no_bound(swept):
+    """E has no bound of its own: its starts after the seeded ones are rounded from A's
+    approximate design (the registry's ``rounded_from``), which the campaign makes though A is
+    not among the criteria; the bound stays test-pose's and D's."""
+    _, record, _ = swept
+    assert [a["criterion"] for a in record["approximate_designs"]] == ["test-pose", "D", "A"]
+    for d in record["designs"]:
+        origins = [s["origin"] for s in d["solver"]["per_start"]]
+        assert origins.count(ROUNDED) == CRITERIA[d["criterion"]].rounded
+        assert (d["bound"] is None) == (d["criterion"] == "E")
+    assert CRITERIA["E"].approximate == CRITERIA["condition"].approximate == "A"
+    assert CRITERIA["T"].approximate is None and CRITERIA["D"].approximate == "D"
+
+
+def test_the_later_starts_of_e_are_the_rounded_plans_of_a(paper):
+    """The routing alone, on a stand-in for A's approximate design (three random experiments):
+    E's rounded starts are ``rounded_plans`` of A's design with E's count; a criterion finds
+    only the design its registry entry names."""
+    from casadi_design.optimisation.bound import ApproximateDesign, rounded_plans
+    from casadi_design.plan.sampling import random_plan
+
+    Q, F = random_plan(paper, 3, np.random.default_rng(0))
+    L = paper.model.L
+    approx_A = ApproximateDesign("A", Q, F, np.array([0.5, 0.3, 0.2]), np.eye(L), np.ones(1), 1.0, 1.0, 1.0,
+                                 (), (), 3, 0.0)
+    later = campaign_module._later_starts(paper, "E", 5, {}, {("A", 0): approx_A}, None)
+    expected = rounded_plans(paper, approx_A, 5, CRITERIA["E"].rounded)
+    assert len(later) == len(expected) == 4
+    for (Q, F, origin), (Qe, Fe) in zip(later, expected):
+        assert origin == ROUNDED
+        np.testing.assert_array_equal(Q, Qe)
+        np.testing.assert_array_equal(F, Fe)
+    assert campaign_module._later_starts(paper, "D", 5, {}, {("A", 0): approx_A}, None) == []
+    assert campaign_module._later_starts(paper, "T", 5, {}, {("A", 0): approx_A}, None) == []

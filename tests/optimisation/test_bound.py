@@ -200,7 +200,7 @@ def test_rounded_plans_are_feasible_starts(paper, paper_tp):
     best = solve_design(paper, "test-pose", 5, starts=1, initial_plans=plans)
     assert best.scores.max_rms_error_m >= bound(paper, 5, paper_tp).value
     # as many as the criterion's registry entry says, and more plans only add to the same first ones
-    assert len(plans) == CRITERIA["test-pose"].bound.rounded == 4 and CRITERIA["D"].bound.rounded == 8
+    assert len(plans) == CRITERIA["test-pose"].rounded == 4 and CRITERIA["D"].rounded == 8
     more = rounded_plans(paper, paper_tp, 5, 8)
     assert len(more) == 8 and all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
                                   for a, b in zip(plans, more))
