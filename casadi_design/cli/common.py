@@ -24,8 +24,9 @@ from ..execution.study import Study, run_study
 from ..runtime.threads import cpu_count
 from ..execution.sweep import Sweep
 
-#: A design's better plans are printed once its starts have run this long (s): a long design
-#: says its best plan so far, a quick one only its result.
+#: A design's better plans are printed once its starts have run this long (s), or when its
+#: approximate design comes after them (a one-start solve): a long design says its best plan
+#: so far, a quick one only its result.
 BETTER_AFTER_S = 5.0
 #: Figure formats ``plot --format`` writes.
 FIGURE_FORMATS = ("png", "pdf", "svg")
@@ -351,7 +352,7 @@ def design(args: argparse.Namespace, label: str, partial: Path | None = None,
                 request, progress=bar.update, executor=ex,
                 on_design=lambda d: bar.set_postfix_str(f"done: {d.criterion}, m = {d.m}"),
                 on_better=lambda i: (bar.write(i.line(), file=sys.stderr)
-                                     if not args.quiet and i.elapsed_s >= BETTER_AFTER_S else None,
+                                     if not args.quiet and (i.elapsed_s >= BETTER_AFTER_S or i.later) else None,
                                      bar.set_postfix_str(f"running: {', '.join(i.running)}" if i.running else "")),
                 on_resume=lambda n: say(args, f"resuming: {n} of {request.designs} designs already in "
                                               f"{partial.parent}"))

@@ -109,8 +109,9 @@ class Interim:
     """The best plan of a design so far, while its starts run (:func:`run_campaign`'s
     ``on_better``): its criterion's score and max error (m), how many of its starts returned
     (of ``total``; None while its rounded and extra starts are not known yet), the bound when
-    its approximate design is done, what is still running, and the time since its first start
-    was handed out (s)."""
+    its approximate design is done, what is still running, the time since its first start was
+    handed out (s), and what runs once these starts have returned (a one-start solve's
+    approximate design, :func:`_to_spread`)."""
 
     criterion: str
     m: int
@@ -121,6 +122,7 @@ class Interim:
     bound: Bound | None
     running: tuple[str, ...]
     elapsed_s: float = 0.0
+    later: tuple[str, ...] = ()
 
     def line(self) -> str:
         """For people: the score (mm for errors), the starts, the gap, what still runs."""
@@ -131,7 +133,9 @@ class Interim:
                f", {self.bound.gap_percent(self.value):.1f} % from the bound")
         of = "" if self.total is None else f" of {self.total}"
         running = f"; running: {', '.join(self.running)}" if self.running else ""
-        return f"best so far: {self.criterion}, m = {self.m}: {score} after {self.returned}{of} starts{gap}{running}"
+        later = f"; next: {', '.join(self.later)}" if self.later else ""
+        return (f"best so far: {self.criterion}, m = {self.m}: {score} after {self.returned}{of} "
+                f"starts{gap}{running}{later}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -279,12 +283,18 @@ def run_campaign(
     check_m_values(problem, ms)
     designs: dict[tuple[str, int], Design] = dict(done or {})
     if executor is not None and hasattr(executor, "run"):
-        approx = {**(_spread(problem, criteria, ms, settings, designs, executor, approx or {}) or {}),
-                  **(approx or {})}
+        approx = dict(approx or {})
+        spread = _to_spread(problem, criteria, ms, settings, designs, executor, approx)
         pipeline = _Pipeline(problem, criteria, ms, settings, designs, approx, extra_starts,
-                             on_design, progress, on_better)
-        for task, result in executor.run(pipeline):
+                             on_design, progress, on_better, later=spread)
+        for task, result in executor.run(pipeline):  # with ``spread``: the seeded starts alone
             pipeline.returned(task, result)
+        if spread:  # then the approximate designs, each step's searches over every worker
+            pipeline.approx.update(approximate_designs(problem, spread, settings.bound_steps, settings.bound_pool,
+                                                       maximise=executor.maximise))
+            pipeline.later = []
+            for task, result in executor.run(pipeline):
+                pipeline.returned(task, result)
         return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria},
                         {a: pipeline.approx[a] for a in aims(problem, criteria, ms) if a in pipeline.approx})
     given = dict(approx or {})
@@ -357,21 +367,22 @@ def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
     return design if a is None else replace(design, bound=bound(problem, design.m, a))
 
 
-def _spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
-            designs: dict, executor, given: dict) -> dict[Aim, ApproximateDesign] | None:
-    """The approximate designs computed here, one after the other, each exchange step's IPOPT
-    searches split over the workers (:meth:`casadi_design.execution.parallel._Workers.maximise`), when
-    the campaign has too little else to keep the workers busy meanwhile: fewer approximate
-    designs to compute than workers, and no more seeded starts than workers (a one-start solve).
-    Otherwise None: the pipeline runs each on one worker beside the starts. The same designs
-    either way (each search is a pure function of its inputs)."""
+def _to_spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
+               designs: dict, executor, given: dict) -> list[Aim]:
+    """The approximate designs to compute after the seeded starts, one after the other, each
+    exchange step's IPOPT searches split over the workers
+    (:meth:`casadi_design.execution.parallel._Workers.maximise`), when the campaign has too little
+    else to keep the workers busy meanwhile: fewer approximate designs to compute than workers,
+    and no more seeded starts than workers (a one-start solve, whose seeded plan is then told
+    before the approximate design). Otherwise none: the pipeline runs each on one worker beside
+    the starts. The same designs either way (each search and each start is a pure function of
+    its inputs)."""
     wanted = [a for a in aims(problem, criteria, ms) if a not in given]
     missing = computed(problem, wanted, settings.bound_steps, settings.bound_pool)[1]
     seeded = settings.starts * sum((c, m) not in designs for m in ms for c in criteria)
     if not missing or len(missing) >= executor.slots or seeded > executor.slots:
-        return None
-    return approximate_designs(problem, wanted, settings.bound_steps, settings.bound_pool,
-                               maximise=executor.maximise)
+        return []
+    return missing
 
 
 @dataclass(eq=False)
@@ -412,8 +423,9 @@ class _Pipeline:
     def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
                  settings: Settings, designs: dict, approx: dict | None,
                  extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None,
-                 on_better: Callable | None = None):
+                 on_better: Callable | None = None, later: Sequence[Aim] = ()):
         self.problem, self.settings, self.designs = problem, settings, designs
+        self.later = list(later)  # approximate designs the caller computes after these starts
         self.extra_starts, self.on_design, self.progress = extra_starts, on_design, progress
         self.on_better = on_better
         self.ref = parallel.ProblemRef.of(problem)
@@ -421,6 +433,7 @@ class _Pipeline:
         self.approx, missing = computed(problem, [a for a in aims(problem, criteria, ms) if a not in approx],
                                         steps, pool)
         self.approx.update(approx)
+        missing = [a for a in missing if a not in self.later]
         self.todo = [_Starts(c, m, plans, [SEEDED] * len(plans))
                      for m in ms for c in criteria if (c, m) not in designs
                      for plans in [seeded_plans(problem, c, m, settings.starts)]]
@@ -481,12 +494,12 @@ class _Pipeline:
             return
         d.best = rec.value
         a = self.approx.get(aim(self.problem, d.criterion, d.m))
-        running = tuple(f"the approximate design of {c}" + (f" (m = {m})" if m else "")
-                        for c, m in self.waiting.values())
+        running, later = ([f"the approximate design of {c}" + (f" (m = {m})" if m else "") for c, m in wanted]
+                          for wanted in (self.waiting.values(), self.later))
         self.on_better(Interim(d.criterion, d.m, rec.value, scores.max_rms_error_m, len(d.results),
                                len(d.plans) if d.complete else None,
-                               None if a is None else bound(self.problem, d.m, a), running,
-                               time.perf_counter() - d.t0))
+                               None if a is None else bound(self.problem, d.m, a), tuple(running),
+                               time.perf_counter() - d.t0, tuple(later)))
 
     def returned(self, task, result) -> None:
         """Take the result of ``task``; finish the designs whose every start returned."""

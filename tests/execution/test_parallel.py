@@ -75,27 +75,37 @@ def test_sweep_on_processes_equals_serial_sweep(paper):
 
 
 def test_a_one_start_solve_spreads_the_searches_over_the_workers_to_the_same_design(paper, monkeypatch):
-    """A one-start solve's approximate design: each exchange step's searches split over the
-    workers; the same design as computed here. Two to compute on two workers: one per worker,
-    beside the starts (None). The whole pipeline with bounds: the slow test below and
-    test_the_commands_give_the_same_numbers_for_any_jobs."""
+    """A one-start solve on workers: its seeded start first, told as the best plan so far with
+    the approximate design named as what comes next, then the approximate design with each
+    exchange step's searches split over the workers, then the rounded starts; the same design,
+    starts and bound as the campaign run here, one after the other. Two approximate designs to
+    compute on two workers: one per worker, beside the starts (nothing spread). The whole
+    pipeline with bounds: the slow test below and test_the_commands_give_the_same_numbers_for_any_jobs."""
     from casadi_design.execution import campaign
 
     settings = Settings(1, bound_steps=1, bound_pool=SMALL_POOL)
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
-    serial = campaign.approximate_designs(paper, [("test-pose", 0)], 1, SMALL_POOL)["test-pose", 0]
+    serial = campaign.run_campaign(paper, ["test-pose"], [1], settings)
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
+    told = []
     with ProcessExecutor(2) as ex:
-        spread = campaign._spread(paper, ("test-pose",), (1,), settings, {}, ex, {})["test-pose", 0]
-        monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
-        assert campaign._spread(paper, ("test-pose", "D"), (1,), settings, {}, ex, {}) is None
-    assert (spread.value, spread.certified, spread.d_max, spread.history, spread.checked) == \
-        (serial.value, serial.certified, serial.d_max, serial.history, serial.checked)
+        assert campaign._to_spread(paper, ("test-pose",), (1,), settings, {}, ex, {}) == [("test-pose", 0)]
+        assert campaign._to_spread(paper, ("test-pose", "D"), (1,), settings, {}, ex, {}) == []
+        spread = campaign.run_campaign(paper, ["test-pose"], [1], settings, executor=ex, on_better=told.append)
+    first = told[0]
+    assert (first.returned, first.total, first.bound, first.running) == (1, None, None, ())
+    assert first.later == ("the approximate design of test-pose",)
+    assert "next: the approximate design of test-pose" in first.line()
+    a, b = spread.approx["test-pose", 0], serial.approx["test-pose", 0]
+    assert (a.value, a.certified, a.d_max, a.history, a.checked) == (b.value, b.certified, b.d_max, b.history, b.checked)
     for field in ("Q", "F", "weights", "W", "mu"):
-        np.testing.assert_array_equal(getattr(spread, field), getattr(serial, field))
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    d, e = spread.designs["test-pose", 1], serial.designs["test-pose", 1]
+    _assert_same(d, e)
+    assert [s.origin for s in d.starts] == [s.origin for s in e.starts] and d.bound == e.bound
 
 
-@pytest.mark.slow  # 10 s: three campaigns with their approximate designs, two on workers
+@pytest.mark.slow  # 10 s: two sweeps with their approximate designs, one on workers
 def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch):
     """On workers the campaign is a pipeline (the approximate designs, the seeded starts of
     later designs, the rounded and warm starts once their inputs returned): the same designs,
@@ -105,20 +115,9 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
     args = (paper, ["test-pose", "D"], [1, 2], Settings(1, bound_steps=2, bound_pool=SMALL_POOL))
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     plain = run_sweep(*args)
-    serial = campaign.computed(paper, [("test-pose", 0)], 2, args[3].bound_pool)[0]["test-pose", 0]
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())  # computed again, on the workers
     with ProcessExecutor(2) as ex:
         pooled = run_sweep(*args, executor=ex)
-        # a one-start solve's approximate design: here, each step's searches split over the
-        # workers; two to compute on two workers: one per worker, beside the starts
-        monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
-        spread = campaign._spread(paper, ("test-pose",), (1,), args[3], {}, ex)["test-pose"]
-        monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
-        assert campaign._spread(paper, ("test-pose", "D"), (1,), args[3], {}, ex) is None
-    assert (spread.value, spread.certified, spread.d_max, spread.history, spread.checked) == \
-        (serial.value, serial.certified, serial.d_max, serial.history, serial.checked)
-    for field in ("Q", "F", "weights", "W", "mu"):
-        np.testing.assert_array_equal(getattr(spread, field), getattr(serial, field))
     assert list(pooled.designs) == list(plain.designs)
     for key, d in plain.designs.items():
         _assert_same(pooled.designs[key], d)
