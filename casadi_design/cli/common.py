@@ -140,7 +140,8 @@ def add_bound_steps(p: argparse.ArgumentParser, minimum: int = 0) -> None:
     p.add_argument("--bound-steps", type=integer("--bound-steps", minimum), default=BOUND_STEPS,
                    metavar="K",
                    help=f"exchange steps of the approximate design behind the certified bound of "
-                        f"{', '.join(BOUND_CRITERIA)} and their rounded starts (default {BOUND_STEPS}: "
+                        f"{', '.join(BOUND_CRITERIA)} and their rounded starts (E's and condition's: A's) "
+                        f"(default {BOUND_STEPS}: "
                         "more steps tighten the bound"
                         + ("; 0: no bound, no rounded starts)" if minimum == 0 else ")"))
     p.add_argument("--bound-pool", type=integer("--bound-pool"), default=POOL_SIZE, metavar="N",
