@@ -118,7 +118,7 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
 
 def _capsule_rows(problem) -> int:
     """Capsule rows of one experiment (0 without a cell)."""
-    collision = getattr(module("casadi_design.plan.rules").pose_constraints(problem), "collision", None)
+    collision = getattr(module("casadi_design.plan.rules").problem.rules.pose, "collision", None)
     return 0 if collision is None else len(collision.inputs)
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from casadi_design.optimisation import nlp as nlp_module
 from casadi_design.model.build import Problem
 from casadi_design.optimisation.nlp import DesignNLP, information_scale
-from casadi_design.plan.rules import joint_distance_sq, joint_limits, load_variables, pose_constraints
+from casadi_design.plan.rules import joint_distance_sq
 
 
 @dataclass(frozen=True, eq=False)
@@ -102,7 +102,7 @@ def lifted_nlp(problem: Problem, criterion: str,
     """The NLP as one symbolic CasADi graph of ``M = scale sum_i B_i^T B_i`` and ``objective``
     (its exact Hessian from CasADi)."""
     model, robot = problem.model, problem.robot
-    loads = load_variables(problem)
+    loads = problem.rules.loads
     Q = ca.SX.sym("Q", robot.n, m)
     V = ca.SX.sym("V", loads.nv, m)
     F = ca.horzcat(*[loads.load(V[:, i]) for i in range(m)])
@@ -113,7 +113,7 @@ def lifted_nlp(problem: Problem, criterion: str,
         M += scale * (Bi.T @ Bi)
     obj = objective(M, np.sqrt(scale) * B0)
 
-    rules = pose_constraints(problem)
+    rules = problem.rules.pose
     g = [obj.g, ca.sum1(V**2).T if loads.norm_lb is not None else ca.SX(0, 1)]
     if rules.collision is None:
         g += [rules.g(Q[:, i]) for i in range(m)]
@@ -121,7 +121,7 @@ def lifted_nlp(problem: Problem, criterion: str,
         held = rules.collision.first
         g += [rules.g(Q[:, i])[:held] for i in range(m)] + [rules.g(Q[:, i])[held:] for i in range(m)]
     if problem.workspace.min_joint_distance_rad > 0:
-        limits = joint_limits(problem)
+        limits = problem.rules.limits
         g += [joint_distance_sq(limits, Q[:, i], Q[:, j]) for i in range(m) for j in range(i + 1, m)]
     lb_rules, ub_rules = nlp_module.rule_bounds(problem, m, loads)
     lb_plan, ub_plan = nlp_module.plan_bounds(problem, m, loads)

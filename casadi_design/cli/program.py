@@ -46,12 +46,11 @@ def home_pose(problem, text: str | None) -> np.ndarray:
     """The home pose (n,), rad: ``--home`` (deg, mm) or the default of ``--help``."""
     from ..errors import ProblemError
     from ..records.export import joint_scales
-    from ..plan.rules import joint_limits
 
     n = problem.robot.n
     if text is None:
         seed = problem.spec.test_poses.seed_q_rad
-        return np.array(seed) if seed is not None else joint_limits(problem).middle
+        return np.array(seed) if seed is not None else problem.rules.limits.middle
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:

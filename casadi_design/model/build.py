@@ -55,6 +55,7 @@ from .robots import (
     planar_2r_ik,
     planar_arm,
 )
+from .rules import PlanRules
 from .symbolic import symbolic_kinematics
 from ..runtime.threads import blas_setup
 
@@ -97,7 +98,9 @@ class Problem:
     the robot's capsules, obstacles and tracker of ``[cell]`` (None without one).
     ``M_held`` (L x L, scaled parameters, read-only): the information of the experiments
     already measured and of the prior (:mod:`casadi_design.model.held`), added to every plan's;
-    None without either.
+    None without either. ``rules``: the rules of one experiment (joint limits, workspace and
+    cell rows, load variables; :class:`~casadi_design.model.rules.PlanRules`), each built on first
+    use and shared by the copies that differ in solver settings or held information.
     """
 
     spec: ProblemSpec
@@ -106,6 +109,7 @@ class Problem:
     test_poses: TestPoses
     base_set: BaseSet | None
     m_min: int
+    rules: PlanRules
     cell: Cell | None = None
     d_independent: int = 1
     M_held: np.ndarray | None = None
@@ -300,7 +304,9 @@ def _build(spec: ProblemSpec) -> Problem:
         # parameters in units that give every column of B unit RMS over random poses (Khalil)
         c = np.sqrt(np.mean(S.reshape(-1, model.d, model.L) ** 2, axis=0).sum(axis=0))
         model = calibration_model(kin, cal.case, column_scale=c, **model_args)
-    problem = Problem(spec, robot, model, test_poses, chosen, -(-model.L // d), _cell(spec, robot, markers), d)
+    cell = _cell(spec, robot, markers)
+    rules = PlanRules(robot, model, spec.workspace, spec.force, cell, meas.markers_m)
+    problem = Problem(spec, robot, model, test_poses, chosen, -(-model.L // d), rules, cell, d)
     return with_held(problem) if spec.calibration.prior is not None else problem
 
 

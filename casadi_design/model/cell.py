@@ -3,7 +3,7 @@
 Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
 
 * the cell's rows of one configuration (:func:`cell_rows`), added to the workspace rows of
-  :func:`casadi_design.plan.rules.pose_constraints`, hence imposed on every experiment by the NLP
+  :attr:`casadi_design.model.rules.PlanRules.pose`, hence imposed on every experiment by the NLP
   and checked by :func:`casadi_design.plan.rules.plan_violations`:
   - self-collision, obstacles (the floor of ``[experiments.workspace]`` included: every moving
     capsule stays above it) and the line of sight to the reflectors, from :func:`casadi_design.model.collision.capsule_rows`

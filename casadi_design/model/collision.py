@@ -186,7 +186,7 @@ def capsule_rows(robot: Robot, capsules: Sequence[Capsule], q: ca.SX, clearance_
                  pairs: Sequence[tuple[int, int]] | None = None,
                  near: Sequence[tuple[int, int]] | None = None) -> list[tuple[ca.SX, float, float, str]]:
     """Collision rows of configuration ``q`` (CasADi SX, n): ``(g(q), 0, inf, label)``, each
-    ``g >= 0`` (m), in the format of :func:`casadi_design.plan.rules.pose_constraints`' rows.
+    ``g >= 0`` (m), in the format of :attr:`casadi_design.model.rules.PlanRules.pose`' rows.
 
     * self-collision, for ``pairs`` of capsule indices (default :func:`self_collision_pairs`):
       ``dist(s_i, s_j) - r_i - r_j - clearance_m``;

@@ -63,7 +63,8 @@ from ..errors import DesignError
 from .ipopt import QUIET, WARM_START, ipopt_call
 from .nlp import build_nlp, plan_bounds, rule_bounds
 from .reduced import NumericFunction, experiment_functions
-from ..plan.rules import ADD_MARGIN_M, START_MARGIN_M, CollisionRows, joint_limits, load_variables, mesh_contacts, plan_violations, pose_constraints
+from ..model.rules import CollisionRows
+from ..plan.rules import ADD_MARGIN_M, START_MARGIN_M, mesh_contacts, plan_violations
 from ..plan.sampling import random_plan
 #: Candidate experiments of the first pool, and of the dense sample searched for max_x d.
 POOL_SIZE = 300
@@ -345,7 +346,7 @@ class Search:
     with parameter ``vec G`` (L x L), started cold or from a point and its multipliers (warm,
     :data:`WARM_SEARCH`); the bounds of z and of every rule row (``lbg``, ``ubg``; the capsule
     rows are rows ``capsules`` of them, in the order of
-    :class:`~casadi_design.plan.rules.CollisionRows`).
+    :class:`~casadi_design.model.rules.CollisionRows`).
 
     A search holds the rule rows that are not capsule rows and only the capsule rows that can
     bind: the NLP of :meth:`solvers` has room for K capsule rows, and which rows is a parameter
@@ -353,7 +354,7 @@ class Search:
     set of rows. ``fixed`` are the functions of z (and G) of the objective and the other rows:
     values, first and second derivatives, compiled (:mod:`casadi_design.model.compiled`). The
     capsule rows go through the world points of the capsules' ends, as in the design NLP
-    (:class:`~casadi_design.plan.rules.CollisionRows`): ``row["points"]`` gives ``w(q)`` (3K) and
+    (:class:`~casadi_design.model.rules.CollisionRows`): ``row["points"]`` gives ``w(q)`` (3K) and
     ``dw/dq`` once per evaluation, ``row["value"]``, ``row["slope"]`` and ``row["curvature"]``
     the held rows place by place through the rows' compiled switches of ``w_r`` (mapped over
     the K places), by the chain rule
@@ -431,7 +432,7 @@ class Search:
 @per_model
 def _search(problem: Problem) -> Search:
     """The :class:`Search` of the problem (built once per problem)."""
-    fns, loads = experiment_functions(problem), load_variables(problem)
+    fns, loads = experiment_functions(problem), problem.rules.loads
     L = problem.model.L
     z, G = ca.SX.sym("z", fns.p), ca.SX.sym("G", L, L)
     B, c, _ = fns.values(z)
@@ -442,7 +443,7 @@ def _search(problem: Problem) -> Search:
              "dc": ca.Function("drules", [z], [ca.densify(ca.jacobian(c, z))]),
              "d2c": ca.Function("d2rules", [z, lam_c], [ca.densify(ca.hessian(ca.dot(lam_c, c), z)[0])])}
     fixed = dict(zip(fixed, compiled_group(list(fixed.values()))))
-    rules = pose_constraints(problem)
+    rules = problem.rules.pose
     R = 0 if rules.collision is None else len(rules.collision.cases)
     row = {} if rules.collision is None else _search_rows(rules.collision, fns.n, fns.p)  # none without a cell
     lbx, ubx = plan_bounds(problem, 1, loads)
@@ -503,8 +504,8 @@ Maximise = Callable[[Problem, float, np.ndarray, np.ndarray, np.ndarray, list], 
 
 def _held(problem: Problem, q: np.ndarray, margin_m: float, held: np.ndarray | None = None) -> np.ndarray:
     """The capsule rows within ``margin_m`` (m) of their bound at ``q`` (n,), rad, joined to
-    ``held`` (sorted row numbers of :class:`~casadi_design.plan.rules.CollisionRows`)."""
-    near = pose_constraints(problem).near(q[None], margin_m)[:, 1]
+    ``held`` (sorted row numbers of :class:`~casadi_design.model.rules.CollisionRows`)."""
+    near = problem.rules.pose.near(q[None], margin_m)[:, 1]
     return near if held is None else np.union1d(held, near)
 
 
@@ -553,7 +554,7 @@ def maximise_d(problem: Problem, scale: float, G: np.ndarray, Q: np.ndarray, F: 
     (:func:`casadi_design.plan.rules.plan_violations` with ``meshes=False``; the caller checks
     those it uses, :func:`_untouched`): Q (p, n), F (p, nF), their duals."""
     search = _search(problem)
-    loads, n = load_variables(problem), problem.robot.n
+    loads, n = problem.rules.loads, problem.robot.n
     found = []
     for q0, f0, start in zip(Q, F, duals):
         z0 = np.concatenate([q0, loads.variables(f0[None]).ravel()])
@@ -737,14 +738,14 @@ def _moved(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, w: np
     heavy, light = order[:K], order[K:]
     Q, F = Q[heavy], F[heavy]
     nlp = build_nlp(problem, criterion, K,
-                    active=pose_constraints(problem).near(Q, START_MARGIN_M), weights=K * w[heavy],
+                    active=problem.rules.pose.near(Q, START_MARGIN_M), weights=K * w[heavy],
                     fixed=K * (np.einsum("k,kij->ij", w[light], A[light]) + (0.0 if held is None else held)))
     solver = nlp.solver("move", {**QUIET, "ipopt.mu_init": MOVE_MU,
                                  "ipopt.max_iter": MOVE_ITERATIONS, "ipopt.tol": MOVE_TOL})
     with ipopt_call():
         sol = solver(x0=nlp.start(Q, F), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     Qm, Fm = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
-    Qm = joint_limits(problem).wrap(Qm)
+    Qm = problem.rules.limits.wrap(Qm)
     ok = np.array([not plan_violations(problem, q[None], f[None], meshes=False)
                    for q, f in zip(Qm, Fm)], dtype=bool)
     ok[ok] = _untouched(problem, Qm[ok])
@@ -884,7 +885,7 @@ def rounded_plans(problem: Problem, approx: ApproximateDesign, m: int,
     count = CRITERIA[approx.criterion].rounded if count is None else count
     idx = np.repeat(np.arange(len(approx.weights)), apportion(approx.weights, m))
     Q0, F0 = approx.Q[idx], approx.F[idx]
-    limits = joint_limits(problem)
+    limits = problem.rules.limits
     rng = np.random.default_rng([problem.solver.seed, SEED_ID, m])
     span = limits.upper - limits.lower
     plans = [(Q0, F0)]

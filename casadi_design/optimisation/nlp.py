@@ -1,7 +1,7 @@
 """The design NLP: choose the plan ``{(q_i, F_i)}, i = 1..m`` that optimises a criterion.
 
 Decision variables: ``Q`` (m, n), rad, the load variables ``V`` (m, nv; see
-:class:`~casadi_design.plan.rules.LoadVariables`: ``Fbar = F / |F|_max``, a magnitude ``a`` for a
+:class:`~casadi_design.model.rules.LoadVariables`: ``Fbar = F / |F|_max``, a magnitude ``a`` for a
 load of fixed direction, none for fixed loads and geometric cases), and the criterion's own
 bound ``t`` of the test-pose criterion: ``x = (Q, V, t)`` row by row, so that the variables of
 one experiment are contiguous. The test-pose criterion is the min-max of
@@ -13,7 +13,7 @@ the paper (eq. 15) in epigraph form:
 
 Constraint rows, in this order: the criterion's rows, the loads (``|Fbar_i|^2 = 1`` or
 ``<= 1``), the workspace rows of every experiment
-(:func:`~casadi_design.plan.rules.pose_constraints`) but a cell's capsule rows, the capsule rows
+(:attr:`~casadi_design.model.rules.PlanRules.pose`) but a cell's capsule rows, the capsule rows
 the NLP holds (``active``: all of them, or those that can bind at the plans of a start,
 :mod:`casadi_design.optimisation.solve`), and the joint distance of every pair of experiments; joint limits
 and load magnitudes are bounds of x.
@@ -36,7 +36,7 @@ import numpy as np
 
 from ..model.build import Problem
 from .reduced import all_rows, reduced_nlp
-from ..plan.rules import LoadVariables, joint_limits, load_variables, pose_constraints
+from ..model.rules import LoadVariables
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,7 +91,7 @@ def build_nlp(problem: Problem, criterion: str, m: int, power: float = 0.0, acti
     (:func:`casadi_design.optimisation.reduced.reduced_nlp`; no joint-distance rows);
     ``fixed`` (L x L, unscaled): information held before the plan (``problem.M_held`` for a
     design, the light support points' for a move of the approximate design)."""
-    n, loads = problem.robot.n, load_variables(problem)
+    n, loads = problem.robot.n, problem.rules.loads
     scale = information_scale(problem.model.L, problem.B0)
     nlp = reduced_nlp(problem, criterion, m, scale, power, active, weights, fixed)
     oracle, options = nlp.functions()
@@ -124,7 +124,7 @@ def build_nlp(problem: Problem, criterion: str, m: int, power: float = 0.0, acti
 def plan_bounds(problem: Problem, m: int, loads: LoadVariables) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of ``(Q, V)``: joint limits (rad, m; :meth:`JointLimits.bounds`) and the
     load variables."""
-    lower, upper = joint_limits(problem).bounds()
+    lower, upper = problem.rules.limits.bounds()
     return (np.concatenate([np.tile(lower, m), np.full(loads.nv * m, loads.lower)]),
             np.concatenate([np.tile(upper, m), np.ones(loads.nv * m)]))
 
@@ -135,7 +135,7 @@ def rule_bounds(problem: Problem, m: int, loads: LoadVariables,
     rows apart), the capsule rows ``active`` ((experiment, row) pairs; None: all), joint
     distance of each pair ``i < j`` (squared, rad^2;
     :func:`~casadi_design.plan.rules.joint_distance_sq`; none when not ``pairs``)."""
-    rules, dmin = pose_constraints(problem), problem.workspace.min_joint_distance_rad
+    rules, dmin = problem.rules.pose, problem.workspace.min_joint_distance_rad
     held = rules.lb.size if rules.collision is None else rules.collision.first
     rows = held + (all_rows(problem, m) if active is None else active)[:, 1]
     n_norm = m if loads.norm_lb is not None else 0

@@ -51,7 +51,8 @@ from ..model.build import Problem, per_model
 from ..model.compiled import compiled
 from ..measures.criteria import CRITERIA
 from ..measures.objectives import EpigraphRows, Local, Objective
-from ..plan.rules import CollisionRows, joint_distance_sq, joint_limits, load_variables, pose_constraints
+from ..model.rules import CollisionRows
+from ..plan.rules import joint_distance_sq
 
 
 class NumericFunction(ca.Callback):
@@ -152,7 +153,7 @@ class ExperimentFunctions:
     """CasADi functions of one experiment's variables ``z = (q, v)`` (p = n + nv).
 
     ``c(z)`` are the experiment's rule rows held in every experiment: ``|v|^2`` when the load
-    direction is free, then the workspace rows :func:`~casadi_design.plan.rules.pose_constraints` of
+    direction is free, then the workspace rows :attr:`~casadi_design.model.rules.PlanRules.pose` of
     q (m), but for a cell's capsule rows: those enter row by row (``collision``, from the world
     points ``w(q)``, 3K, m), only where they can bind.
 
@@ -197,7 +198,7 @@ def _function(name: str, ins: list, outs: list, in_names: list[str], out_names: 
 @per_model
 def experiment_functions(problem: Problem) -> ExperimentFunctions:
     """The functions of one experiment of ``problem`` (built once per problem)."""
-    model, loads, rules = problem.model, load_variables(problem), pose_constraints(problem)
+    model, loads, rules = problem.model, problem.rules.loads, problem.rules.pose
     n = model.n
     q, v = ca.SX.sym("q", n), ca.SX.sym("v", loads.nv)
     z = ca.vertcat(q, v)
@@ -210,7 +211,7 @@ def experiment_functions(problem: Problem) -> ExperimentFunctions:
     second = ca.hessian(ca.dot(W, B) + ca.dot(lam, c) + ca.dot(u, w), z)[0]
     qa, qb, mu = ca.SX.sym("qa", n), ca.SX.sym("qb", n), ca.SX.sym("mu")
     ab = ca.vertcat(qa, qb)
-    d = joint_distance_sq(joint_limits(problem), qa, qb)
+    d = joint_distance_sq(problem.rules.limits, qa, qb)
     return ExperimentFunctions(
         n, loads.nv, c.numel(),
         _function("B", [z], [B, c, w], ["z"], ["B", "c", "w"]),
@@ -236,7 +237,7 @@ class ReducedNLP:
     pairs : ndarray, shape (P, 2): the experiments (a < b) of each joint-distance row.
     pair_rows : ndarray, shape (P,): their index in g.
     active : ndarray, shape (K, 2): the capsule rows held, as (experiment i, row r of
-        :class:`~casadi_design.plan.rules.CollisionRows`); ``active_rows`` (K,): their index in g.
+        :class:`~casadi_design.model.rules.CollisionRows`); ``active_rows`` (K,): their index in g.
     n_rows : number of criterion rows (s for an epigraph criterion, 0 otherwise), first in g.
     nx, ng : sizes of x and g.
     objective : the criterion's part (:mod:`casadi_design.measures.objectives`).
@@ -588,7 +589,7 @@ def _plan_hessian(nlp: ReducedNLP, v: _Values, sl: _Slopes, lam_f: float,
 def all_rows(problem: Problem, m: int) -> np.ndarray:
     """Every capsule row of every experiment, as (experiment, row) pairs (K, 2): the whole
     rulebook."""
-    rows = pose_constraints(problem).collision
+    rows = problem.rules.pose.collision
     R = 0 if rows is None else len(rows.inputs)
     return np.array([(i, r) for i in range(m) for r in range(R)], dtype=int).reshape(-1, 2)
 
@@ -614,7 +615,7 @@ def reduced_nlp(problem: Problem, criterion: str, m: int,
     n_rows = B0.shape[0] if objective.epigraph else 0
     idx = np.arange(m)[:, None]
     cols = np.concatenate([idx * n + np.arange(n), n * m + idx * nv + np.arange(nv)], axis=1)
-    has_norm = int(load_variables(problem).norm_lb is not None)
+    has_norm = int(problem.rules.loads.norm_lb is not None)
     n_ws = fns.nc - has_norm
     rule_rows = np.concatenate([n_rows + idx + np.zeros((1, has_norm), dtype=int),
                                 n_rows + has_norm * m + idx * n_ws + np.arange(n_ws)], axis=1)

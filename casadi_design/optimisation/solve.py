@@ -28,7 +28,8 @@ from ..errors import DesignError, ProblemError
 from .ipopt import QUIET, WARM_START, ipopt_call
 from ..measures.measures import Scores, score_plan
 from .nlp import DesignNLP, build_nlp
-from ..plan.rules import ADD_MARGIN_M, FEASIBILITY_TOL, START_MARGIN_M, PoseConstraints, joint_limits, plan_violations, pose_constraints
+from ..model.rules import PoseConstraints
+from ..plan.rules import ADD_MARGIN_M, FEASIBILITY_TOL, START_MARGIN_M, plan_violations
 from ..plan.sampling import random_plan
 
 #: IPOPT statuses of a run stopped by one of its limits: the options were taken.
@@ -83,7 +84,7 @@ def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: st
     if verbose:
         opts.update({"ipopt.print_level": 5, "print_time": True, "show_eval_warnings": True})
     opts.update({f"ipopt.{k}": v for k, v in settings.ipopt})
-    if watch or pose_constraints(problem).collision is not None:
+    if watch or problem.rules.pose.collision is not None:
         opts["iteration_callback"] = _Watch(problem, nlp, rows=watch)
     solver = nlp.solver(f"design_m{nlp.m}", opts)
     solver.watch = opts.get("iteration_callback")  # alive as long as the solver
@@ -117,7 +118,7 @@ class _Watch(ca.Callback):
 
     def __init__(self, problem: Problem, nlp: DesignNLP, rows: bool = True):
         ca.Callback.__init__(self)
-        self._rules, self._plan, self._active = pose_constraints(problem), nlp.plan, nlp.active
+        self._rules, self._plan, self._active = problem.rules.pose, nlp.plan, nlp.active
         self._rows, self._lbg, self._ubg = rows, nlp.lbg, nlp.ubg
         self._sizes = {"x": nlp.lbx.size, "g": nlp.lbg.size, "f": 1, "lam_x": nlp.lbx.size,
                        "lam_g": nlp.lbg.size}
@@ -212,7 +213,7 @@ class DesignSolver:
     def _kept(self, key: tuple, make: Callable[[], tuple]) -> tuple:
         """Without capsule rows a stage's NLP and solver are the same for every start: made
         once. With them each run holds its own rows and iteration budget: made for it."""
-        if pose_constraints(self.problem).collision is not None:
+        if self.problem.rules.pose.collision is not None:
             return make()
         if key not in self.made:
             self.made[key] = make()
@@ -301,7 +302,7 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
     M the PSD-factor form of E / condition has a stationary point with lam = 0."""
     if not CRITERIA[ds.criterion].polished:
         return Q0, F0
-    d_nlp, d_solver = ds.polish(pose_constraints(problem).near(Q0, START_MARGIN_M))
+    d_nlp, d_solver = ds.polish(problem.rules.pose.near(Q0, START_MARGIN_M))
     x0 = d_nlp.start(Q0, F0)
     lam = np.linalg.eigvalsh(np.asarray(d_nlp.information(x0)))
     if lam[0] > POLISH_RCOND * lam[-1]:
@@ -309,7 +310,7 @@ def _polished(problem: Problem, ds: DesignSolver, Q0: np.ndarray, F0: np.ndarray
     with ipopt_call():
         sol = d_solver(x0=x0, lbx=d_nlp.lbx, ubx=d_nlp.ubx, lbg=d_nlp.lbg, ubg=d_nlp.ubg)
     Q, F = (np.asarray(v, dtype=float) for v in d_nlp.plan(sol["x"]))
-    return joint_limits(problem).wrap(Q), F
+    return problem.rules.limits.wrap(Q), F
 
 
 def solve_start(
@@ -351,7 +352,7 @@ def _solved_start(
 ) -> tuple[StartRecord, np.ndarray, np.ndarray, Scores]:
     """:func:`solve_start` computed."""
     Q0, F0 = _polished(problem, ds, Q0, F0)
-    rules = pose_constraints(problem)
+    rules = problem.rules.pose
     active = rules.near(Q0, START_MARGIN_M)
     x, duals, last, iterations, runs, status = None, {}, None, 0, 0, None
     for k in range(len(ds.powers)):
@@ -390,7 +391,7 @@ def _solved_start(
                 break
             active = grown
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(x))
-    Q = joint_limits(problem).wrap(Q)
+    Q = problem.rules.limits.wrap(Q)
     scores = plan_scores(problem, Q, F)
     rec = StartRecord(
         status=str(status),

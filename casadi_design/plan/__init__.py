@@ -1,2 +1,3 @@
-"""A plan of experiments: its rules (joint limits, loads, workspace, the cell; ``rules``), random
-feasible plans (``sampling``) and a designed plan as data (``design``)."""
+"""A plan of experiments: the checks of a whole plan (every experiment's rules, distinct
+experiments, the real meshes; ``rules``), random feasible plans (``sampling``) and a designed
+plan as data (``design``)."""

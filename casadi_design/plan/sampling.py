@@ -1,8 +1,8 @@
 """Random feasible plans: the seeded starts of the multi-start and the candidates of the bound.
 
 A plan is drawn one experiment at a time: configurations uniform within the joint limits
-(:meth:`~casadi_design.plan.rules.JointLimits.sample`), kept when every workspace and cell row holds
-(:meth:`~casadi_design.plan.rules.PoseConstraints.feasible`), and a load that satisfies the
+(:meth:`~casadi_design.model.rules.JointLimits.sample`), kept when every workspace and cell row holds
+(:meth:`~casadi_design.model.rules.PoseConstraints.feasible`), and a load that satisfies the
 problem's load rule. Each experiment tries one configuration, then growing batches, and takes
 the first feasible one of the first batch that has one. The configurations are judged in large
 blocks ahead of that rule (a few CasADi calls for a whole plan instead of several per
@@ -16,7 +16,6 @@ import numpy as np
 
 from ..model.build import Problem
 from ..errors import DesignError
-from .rules import joint_limits, pose_constraints
 
 #: Random configurations tried per experiment to satisfy the workspace constraints, drawn one
 #: first, then in batches of ``SAMPLING_BATCH`` doubling up to ``SAMPLING_BATCH_MAX``.
@@ -49,7 +48,7 @@ def random_plan(problem: Problem, m: int, rng: np.random.Generator) -> tuple[np.
 
 def _configurations(problem: Problem, m: int, rng: np.random.Generator) -> np.ndarray:
     """The configurations of a random plan, ``Q`` (m, n), rad (:func:`random_plan`)."""
-    rules, limits = pose_constraints(problem), joint_limits(problem)
+    rules, limits = problem.rules.pose, problem.rules.limits
     start = rng.bit_generator.state
     drawn, ok = np.empty((0, problem.robot.n)), np.empty(0, dtype=bool)
 

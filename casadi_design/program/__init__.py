@@ -6,7 +6,7 @@ and the code a controller runs.
   the order of the experiments that minimises the load changes first and then the time from
   and back to home (Held-Karp up to ``order.EXACT_UP_TO`` experiments, 2-opt / or-opt beyond).
 * :mod:`.moves`: each move checked along its whole path with the cell's capsule rows
-  (:func:`casadi_design.plan.rules.pose_constraints`) and the real meshes
+  (:attr:`casadi_design.model.rules.PlanRules.pose`) and the real meshes
   (:func:`casadi_design.model.cell.clearances`);
 * :mod:`.detours`: a blocked move's via points, found by a search over collision-free
   configurations;

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.build import Problem
-from ..plan.rules import FEASIBILITY_TOL, joint_limits
+from ..plan.rules import FEASIBILITY_TOL
 from .order import TimeModel
 
 #: Largest displacement of any capsule between two samples of a move where it touches the
@@ -130,7 +130,7 @@ class MoveSearch:
     @functools.cached_property
     def global_vias(self) -> np.ndarray:
         """``GLOBAL_VIAS`` seeded collision-free configurations of the whole workspace."""
-        return self._free(lambda size: joint_limits(self.problem).sample(self.rng, size), GLOBAL_VIAS)
+        return self._free(lambda size: self.problem.rules.limits.sample(self.rng, size), GLOBAL_VIAS)
 
     def _free(self, draw, count: int) -> np.ndarray:
         """Up to ``count`` collision-free configurations of ``draw(size)``, in draw order."""
@@ -146,7 +146,7 @@ class MoveSearch:
         ``LIFTED_SAMPLES`` samples where the clearance breaks, steps of ``LIFT_STEPS_RAD``
         along the gradient (central differences) of the sum of the capsule rows within
         ``ACTIVE_M`` of their bound there (the row broken most, if none is)."""
-        rules, limits = self.rules, joint_limits(self.problem)
+        rules, limits = self.rules, self.problem.rules.limits
         S, G = scan(rules, qa, qb)
         Q, G = qa + S[:, None] * (qb - qa), G[:, rules.collision]
         broken = np.flatnonzero(G.min(axis=1) < -FEASIBILITY_TOL)
@@ -189,7 +189,7 @@ class MoveSearch:
     def local_vias(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
         """``LOCAL_VIAS`` collision-free configurations near the move's middle per spread of
         ``LOCAL_SPREADS_RAD`` (each joint drawn around the middle with that std)."""
-        limits, middle = joint_limits(self.problem), (qa + qb) / 2
+        limits, middle = self.problem.rules.limits, (qa + qb) / 2
         return np.vstack([self._free(lambda size, s=s: limits.wrap(middle + s * self.rng.standard_normal((size, middle.size))),
                                      LOCAL_VIAS) for s in LOCAL_SPREADS_RAD])
 
@@ -229,7 +229,7 @@ class MoveSearch:
         ``qa`` and ``qb`` towards seeded random configurations (half of them in the box of both
         ends widened by ``RRT_BOX_RAD``, half within the joint limits) by steps
         of at most ``RRT_STEP_RAD``, each step a checked move, until they meet."""
-        limits, rng = joint_limits(self.problem), np.random.default_rng(VIA_SEED)
+        limits, rng = self.problem.rules.limits, np.random.default_rng(VIA_SEED)
         trees = [([qa], [-1]), ([qb], [-1])]
 
         def extend(tree, target):

@@ -1,7 +1,7 @@
 """Moves that cannot collide: each move checked along its whole path.
 
 A move is the straight joint-space line ``q(s) = q_a + s (q_b - q_a)``, ``0 <= s <= 1``. It is
-checked with the rows of the plan's rules, written once (:func:`casadi_design.plan.rules.pose_constraints`):
+checked with the rows of the plan's rules, written once (:attr:`casadi_design.model.rules.PlanRules.pose`):
 
 * the cell's **capsule rows** (self-collision, obstacles and the floor: ``g >= 0`` keeps the
   clearance c) at samples close enough that no capsule can come more than ``c / 2`` inside
@@ -42,7 +42,7 @@ from ..model.capsules import capsule_names, carrier
 from ..model.compiled import compiled
 from ..records.export import is_prismatic
 from ..model.mapped import OneByOne, evaluate
-from ..plan.rules import FEASIBILITY_TOL, joint_limits, pose_constraints
+from ..plan.rules import FEASIBILITY_TOL
 
 #: Largest displacement of any capsule between two samples of a move where it touches the
 #: clearance, as a fraction of the clearance (module docstring).
@@ -57,7 +57,7 @@ STEP_WITHOUT_CLEARANCE_M = 0.005
 MESH_SAMPLES = 3
 @dataclass(frozen=True, eq=False)
 class MoveRules:
-    """The rows a move is checked with (indices into :func:`casadi_design.plan.rules.pose_constraints`):
+    """The rows a move is checked with (indices into :attr:`casadi_design.model.rules.PlanRules.pose`):
     ``collision`` (capsule rows: self-collision, obstacles, floor), ``sight`` (lines of sight)
     and ``incidence`` (the reflector's acceptance angle, ``g >= lb``), the rows ``g`` of one
     configuration (compiled, :mod:`casadi_design.model.compiled`), ``reach_m`` (rows, n): per row,
@@ -97,7 +97,7 @@ def move_rules(problem: Problem) -> MoveRules | None:
     cell = problem.cell
     if cell is None:
         return None
-    rules = pose_constraints(problem)
+    rules = problem.rules.pose
     screen = rules.screen.numel_out(0)
     index = np.arange(len(rules.labels))
     sight = np.array([k >= screen and label.startswith("line of sight") for k, label in enumerate(rules.labels)])
@@ -134,7 +134,7 @@ def reach(problem: Problem, points: list[tuple[str, np.ndarray]]) -> np.ndarray:
     prismatic joints among them, plus the point's distance from joint j's origin.
     """
     robot = problem.robot
-    model, limits = robot.model, joint_limits(problem)
+    model, limits = robot.model, problem.rules.limits
     chain = {jid: k for k, jid in enumerate(robot.joint_ids)}
     travel = {jid: max(abs(limits.lower[k]), abs(limits.upper[k])) if is_prismatic(problem, k) else 0.0
               for jid, k in chain.items()}
@@ -244,7 +244,7 @@ def on_meshes(problem: Problem, move: Move) -> Move:
 def home_problems(problem: Problem, home: np.ndarray) -> str | None:
     """Why ``home`` (n,), rad, cannot start a program (outside the joint limits, breaking the
     clearance or touching on the meshes), None when it can."""
-    limits = joint_limits(problem)
+    limits = problem.rules.limits
     for k, j in enumerate(problem.robot.joints):
         if not limits.lower[k] - FEASIBILITY_TOL <= home[k] <= limits.upper[k] + FEASIBILITY_TOL:
             return (f"{j} = {np.rad2deg(home[k]):.6g} deg is outside [{np.rad2deg(limits.lower[k]):.6g}, "

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..model.build import Problem
 from ..errors import DesignError, ProblemError
-from ..plan.rules import LOAD_RTOL, joint_limits
+from ..plan.rules import LOAD_RTOL
 from .detours import MoveSearch, NoSafePath, Route
 from .moves import home_problems, on_meshes
 from .order import TimeModel, best_order, load_changes, order_cost, time_model, tour_cost
@@ -78,9 +78,9 @@ def load_text(problem: Problem, f: np.ndarray) -> str:
 
 def turns(problem: Problem, q: np.ndarray, home: np.ndarray) -> list[np.ndarray]:
     """The configurations of the pose ``q`` (n,), rad: each periodic joint (a range of more than
-    a turn, as the UR10's +/-360 deg: :class:`casadi_design.plan.rules.JointLimits`) at its angle
+    a turn, as the UR10's +/-360 deg: :class:`casadi_design.model.rules.JointLimits`) at its angle
     plus any whole turns within the limits; the fastest from ``home`` first."""
-    limits = joint_limits(problem)
+    limits = problem.rules.limits
     options = [[q[k] + 2 * np.pi * t for t in range(-2, 3) if limits.lower[k] <= q[k] + 2 * np.pi * t <= limits.upper[k]]
                if limits.periodic[k] else [q[k]] for k in range(len(q))]
     out = [np.array(c) for c in itertools.product(*options)]

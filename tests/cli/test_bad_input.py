@@ -166,10 +166,9 @@ def test_plan_check_covers_the_flange_and_tool_frames():
     import numpy as np
     import pinocchio as pin
 
-    from casadi_design.plan.rules import pose_constraints
 
     problem = load_problem(ROOT / "problems" / "ur10_drilling.toml")
-    robot, rules = problem.robot, pose_constraints(problem)
+    robot, rules = problem.robot, problem.rules.pose
     floor = [k for k, label in enumerate(rules.labels) if "below the floor" in label]
     data = robot.model.createData()
     for q in np.random.default_rng(0).uniform(robot.q_min, robot.q_max, (5, robot.n)):

@@ -20,7 +20,7 @@ from casadi_design.model.problem import parse_problem, read_problem
 from casadi_design.optimisation.nlp import build_nlp
 from casadi_design.optimisation.reduced import reduced_nlp
 from casadi_design.optimisation.solve import make_design_solver, solve_start, start_rng
-from casadi_design.plan.rules import joint_distance_sq, joint_limits, plan_violations, pose_constraints
+from casadi_design.plan.rules import joint_distance_sq, plan_violations
 from casadi_design.plan.sampling import random_plan
 from tests.conftest import ROOT
 
@@ -62,7 +62,7 @@ def test_old_plan_through_the_floor_is_rejected(ur10):
 
 def test_random_plans_satisfy_every_row_and_the_mesh_check(ur10):
     Q, F = random_plan(ur10, 3, np.random.default_rng(4))
-    rules = pose_constraints(ur10)
+    rules = ur10.rules.pose
     assert all(np.all(rules.violation(q) == 0) for q in Q)
     # capsules are conservative: rows satisfied means the meshes keep the clearance on every
     # pair the rows constrain; the forearm and the second wrist link, some of whose capsules
@@ -79,7 +79,7 @@ def test_the_collision_query_finds_the_pairs_the_distances_find(case):
     same first touching pair as the distance of every pair (``clearances``), on random
     configurations anywhere in the joint limits (most of them cross something)."""
     problem = load_problem(ROOT / "problems" / f"{case}.toml")
-    limits = joint_limits(problem)
+    limits = problem.rules.limits
     Q = limits.lower + (limits.upper - limits.lower) * np.random.default_rng(3).uniform(size=(60, problem.robot.n))
     by_distance = [c.touching for c in clearances(problem.cell, Q)]
     assert touching(problem.cell, Q) == by_distance
@@ -95,7 +95,7 @@ def test_random_plans_follow_the_one_then_growing_batches_rule(case):
     from casadi_design.plan import sampling
 
     problem = load_problem(ROOT / "problems" / f"{case}.toml")
-    rules, limits = pose_constraints(problem), joint_limits(problem)
+    rules, limits = problem.rules.pose, problem.rules.limits
     mine, rule = np.random.default_rng(8), np.random.default_rng(8)
     Q = sampling._configurations(problem, 12, mine)
     for q in Q:
@@ -116,8 +116,8 @@ def test_only_rows_linear_in_the_points_are_left_out_of_the_curvature(ur10):
     random points; every row whose Hessian is not zero somewhere is kept. (The table's rows,
     a box's, are piecewise linear too, but CasADi's derivative of fmin / fmax keeps their
     structure: kept, and zero.)"""
-    rows = pose_constraints(ur10).collision
-    labels = pose_constraints(ur10).labels[rows.first:]
+    rows = ur10.rules.pose.collision
+    labels = ur10.rules.pose.labels[rows.first:]
     flat = np.flatnonzero(~rows.curved)
     assert flat.size == 22 and all(labels[r].endswith("to the floor") for r in flat)
     W = np.random.default_rng(2).normal(size=(20, rows.inputs.shape[1]))
@@ -130,7 +130,7 @@ def test_only_rows_linear_in_the_points_are_left_out_of_the_curvature(ur10):
 def test_incidence_row_is_the_cosine_of_the_beam_angle(ur10):
     """Against Pinocchio: the angle between the reflector's axis (x of tool0, turned by the
     tool frame) and the beam from the reflector to the tracker."""
-    rules, robot = pose_constraints(ur10), ur10.robot
+    rules, robot = ur10.rules.pose, ur10.robot
     row = rules.labels.index("reflector: tracker beam beyond the 30 deg acceptance angle")
     assert rules.units[row] == "cos" and rules.lb[row] == pytest.approx(np.cos(np.deg2rad(30)))
     data = robot.model.createData()
@@ -161,12 +161,12 @@ def test_cell_rows_hessian_equals_finite_differences(ur10):
     H = np.triu(H) + np.triu(H, 1).T
     h = 1e-6
     fd = np.column_stack([(jac(x + h * e) - jac(x - h * e)).T @ lam / (2 * h) for e in np.eye(x.size)])
-    assert len(nlp.active) == m * len(pose_constraints(ur10).collision.inputs)  # every capsule row
+    assert len(nlp.active) == m * len(ur10.rules.pose.collision.inputs)  # every capsule row
     np.testing.assert_allclose(H, fd, atol=HESSIAN_FD_RTOL * np.abs(H).max())
 
 
 def test_periodic_joints_are_free_and_wrapped(ur10):
-    limits, robot = joint_limits(ur10), ur10.robot
+    limits, robot = ur10.rules.limits, ur10.robot
     # the UR10's +/-2 pi joints are periodic; the elbow's +/-pi (exactly a turn) is not
     assert limits.periodic.tolist() == [True, True, False, True, True, True]
     lb, ub = limits.bounds()
@@ -252,7 +252,7 @@ def test_one_incidence_and_sight_row_stand_for_every_reflector():
     from casadi_design.model.collision import LineOfSight, capsule_clearances
 
     abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
-    rules, robot, cell = pose_constraints(abb), abb.robot, abb.cell
+    rules, robot, cell = abb.rules.pose, abb.robot, abb.cell
     markers = np.array(abb.spec.measurement.markers_m)
     incidence = rules.labels.index("reflectors: tracker beam beyond the 30 deg acceptance angle")
     sight = [k for k, label in enumerate(rules.labels) if label.startswith("line of sight")]
@@ -283,7 +283,7 @@ def test_dh_robot_is_checked_on_its_capsules_with_coal():
     from casadi_design.model.cell import world_capsules
 
     abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
-    cell, robot, rules = abb.cell, abb.robot, pose_constraints(abb)
+    cell, robot, rules = abb.cell, abb.robot, abb.rules.pose
     assert cell.check.source == "capsules"
     names = capsule_names(cell.capsules)
     rows = [(k, names.index(label.split()[1]), names.index(label.split()[3]))
@@ -321,7 +321,7 @@ def test_a_start_holding_the_rows_that_can_bind_ends_at_an_optimum_of_every_row(
     B0 = ur10.B0
     Q0, F0 = random_plan(ur10, m, start_rng(ur10.solver.seed, criterion, m))
     rec, Q, F, _ = solve_start(ur10, make_design_solver(ur10, criterion, m), Q0, F0)
-    rows = m * len(pose_constraints(ur10).collision.inputs)
+    rows = m * len(ur10.rules.pose.collision.inputs)
     assert rec.converged and rec.runs > 1 and 0 < rec.rows_held < rows / 4
     assert plan_violations(ur10, Q, F) == []
     full = build_nlp(ur10, criterion, m)

@@ -12,7 +12,6 @@ import pytest
 from casadi_design.model import compiled as cc
 from casadi_design.model.mapped import OneByOne, Stacked, evaluate
 from casadi_design.optimisation.reduced import experiment_functions
-from casadi_design.plan.rules import pose_constraints
 from casadi_design.plan.sampling import random_plan
 from tests.conftest import ROOT
 
@@ -70,7 +69,7 @@ def test_every_rule_row_of_a_configuration_gives_the_same_bits(cache, ur10, Q_ur
     program, :func:`casadi_design.program.moves.move_rules`) at sampled configurations."""
     from casadi_design.program.moves import move_rules
 
-    g, Q = pose_constraints(ur10).g, Q_ur10[:20]
+    g, Q = ur10.rules.pose.g, Q_ur10[:20]
     fast = move_rules(ur10).g
     assert fast.class_name() == "External" and fast is cc.compiled(g)
     _same(g, fast, Q)
@@ -118,7 +117,7 @@ def test_stacked_gives_evaluate_s_bits_call_after_call(paper):
 def test_some_capsule_rows_give_the_same_bits(cache, ur10, Q_ur10):
     """The value, slope and curvature of a few capsule rows (of the switches' cases), compiled,
     at the points of sampled configurations (the whole switches: the slow test below)."""
-    rows, Q = pose_constraints(ur10).collision, Q_ur10[:8]
+    rows, Q = ur10.rules.pose.collision, Q_ur10[:8]
     rng = np.random.default_rng(4)
     w = np.concatenate([evaluate(rows.points, Q, threads=1)[0][:, :, 0], np.zeros((len(Q), 1))], axis=1)
     for r in rng.choice(len(rows.cases), size=6, replace=False):
@@ -132,7 +131,7 @@ def test_some_capsule_rows_give_the_same_bits(cache, ur10, Q_ur10):
 def test_the_capsule_rows_give_the_same_bits(cache, ur10):
     """Every row's value, slope and curvature through the compiled switches, at the points of
     sampled configurations, against the virtual machine's switch of the same cases."""
-    rows = pose_constraints(ur10).collision
+    rows = ur10.rules.pose.collision
     rng = np.random.default_rng(5)
     Q = np.array([random_plan(ur10, 1, rng)[0][0] for _ in range(8)])
     w = np.concatenate([evaluate(rows.points, Q, threads=1)[0][:, :, 0], np.zeros((len(Q), 1))], axis=1)

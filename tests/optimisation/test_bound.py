@@ -11,7 +11,7 @@ from casadi_design.optimisation.bound import (EXCHANGE_RTOL, _distinct, _moved, 
 from casadi_design.model.build import load_problem
 from casadi_design.measures.criteria import CRITERIA
 from casadi_design.errors import DesignError
-from casadi_design.plan.rules import load_variables, plan_violations, pose_constraints
+from casadi_design.plan.rules import plan_violations
 from casadi_design.optimisation.solve import solve_design
 
 from conftest import PROBLEM_FILES, ROOT, build, paper_raw
@@ -339,7 +339,7 @@ def test_a_search_of_held_rows_has_their_values_and_derivatives(ur10_cell):
     rows at those places (free places 0), its Jacobian and Hessian of the Lagrangian match
     central differences of its rows and of the Lagrangian's gradient."""
     search, rng = _search(ur10_cell), np.random.default_rng(3)
-    rules, L = pose_constraints(ur10_cell), ur10_cell.model.L
+    rules, L = ur10_cell.rules.pose, ur10_cell.model.L
     held, K = np.array([3, 17, 42]), 8
     cold, _ = search.solvers(K)
     index, where, _, _ = search.rows(held, K)
@@ -399,7 +399,7 @@ def test_the_search_objective_is_minus_d_with_its_derivatives_where_the_load_is_
     the objective's part of the Hessian of the Lagrangian match central differences."""
     abb = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
     search, rng = _search(abb), np.random.default_rng(11)
-    loads, L = load_variables(abb), abb.model.L
+    loads, L = abb.rules.loads, abb.model.L
     assert loads.nv > 0
     K = search.size(0)  # no capsule row held: every place left over
     cold, _ = search.solvers(K)

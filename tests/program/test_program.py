@@ -30,7 +30,6 @@ from casadi_design.program.order import (
     tour_cost,
 )
 from casadi_design.program.sequence import make_program
-from casadi_design.plan.rules import joint_limits
 from casadi_design.plan.sampling import random_plan
 from tests.conftest import PAPER, ROOT, build, paper_raw
 
@@ -208,7 +207,7 @@ READERS = {"urscript": _read_urscript, "rapid": _read_rapid, "krl": _read_krl, "
 def _read_back(problem, program, fmt, Q):
     read, unit = READERS[fmt](program_text(problem, program, fmt, "plan.csv"))
     assert [k for k, _ in read] == list(program.order)  # every experiment, in program order
-    ctrl, periodic = controller(problem), joint_limits(problem).periodic
+    ctrl, periodic = controller(problem), problem.rules.limits.periodic
     for k, values in read:
         want = Q[k - 1] if unit == "model rad" else ctrl(Q[k - 1])
         got = np.radians(values[:problem.robot.n]) if unit == "deg" else np.array(values)
@@ -358,7 +357,7 @@ def test_programs_of_the_case_studies_test_pose_plans_are_safe_on_the_meshes(pat
     points = [np.array(p["positions"]) for p in record["points"]]
     smallest, touching = _dense_check(problem, points)
     assert not touching and smallest >= problem.cell.spec.clearance_m / 2
-    periodic = joint_limits(problem).periodic
+    periodic = problem.rules.limits.periodic
     for p in record["points"]:
         if p["experiment"] is not None:
             d = np.array(p["positions"]) - Q[p["experiment"] - 1]
