@@ -97,7 +97,7 @@ EXCHANGE_ITERATIONS = 40
 #: Weights below this fraction of the largest are left out of the reported support.
 WEIGHT_RTOL = 1e-4
 #: The step of the jittered plans of :func:`rounded_plans` (fraction of the joint range); how
-#: many plans: the criterion's :attr:`~casadi_design.measures.criteria.BoundForm.rounded`.
+#: many plans: the design criterion's :attr:`~casadi_design.measures.criteria.Criterion.rounded`.
 ROUNDING_JITTER = 0.02
 #: Seed id of the bound's random numbers (beside the criteria's ids 0..6).
 SEED_ID = 100
