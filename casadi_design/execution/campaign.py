@@ -385,6 +385,11 @@ def _to_spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
     return missing
 
 
+def _named(wanted: Iterable[Aim]) -> tuple[str, ...]:
+    """Approximate designs for people: "the approximate design of C (m = M)"."""
+    return tuple(f"the approximate design of {c}" + (f" (m = {m})" if m else "") for c, m in wanted)
+
+
 @dataclass(eq=False)
 class _Starts:
     """The starts of one design of a pipelined campaign: its plans and their origins (the
@@ -494,12 +499,10 @@ class _Pipeline:
             return
         d.best = rec.value
         a = self.approx.get(aim(self.problem, d.criterion, d.m))
-        running, later = ([f"the approximate design of {c}" + (f" (m = {m})" if m else "") for c, m in wanted]
-                          for wanted in (self.waiting.values(), self.later))
         self.on_better(Interim(d.criterion, d.m, rec.value, scores.max_rms_error_m, len(d.results),
                                len(d.plans) if d.complete else None,
-                               None if a is None else bound(self.problem, d.m, a), tuple(running),
-                               time.perf_counter() - d.t0, tuple(later)))
+                               None if a is None else bound(self.problem, d.m, a), _named(self.waiting.values()),
+                               time.perf_counter() - d.t0, _named(self.later)))
 
     def returned(self, task, result) -> None:
         """Take the result of ``task``; finish the designs whose every start returned."""
