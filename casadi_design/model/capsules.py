@@ -47,6 +47,10 @@ def fit_capsule(frame: str, points_m: np.ndarray, inflation_m: np.ndarray | None
     rho = np.zeros(len(X)) if inflation_m is None else np.asarray(inflation_m, dtype=float)
     mean = X.mean(axis=0)
     _, _, Vt = np.linalg.svd(X - mean, full_matrices=False)
+    # the volume sees only maxima and minima over the balls: each distinct ball once (a mesh
+    # vertex is in about six triangles), the first axes from all of them
+    X, rho = np.hsplit(np.unique(np.column_stack([X, rho]), axis=0), [3])
+    X, rho = np.ascontiguousarray(X), rho.ravel()
 
     def shape(x: np.ndarray, basis: np.ndarray):
         # x: tilt of the axis basis[0] about basis[1], basis[2] (rad), centre offset (m)
