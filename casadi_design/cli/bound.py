@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
         problem = common.load(args, check_solver=False, spec=spec)
         ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
         check_m_values(problem, ms)
-        settings = Settings(problem.solver.starts, args.bound_steps, args.bound_pool)
+        settings = Settings.of(problem, bound_steps=args.bound_steps, bound_pool=args.bound_pool)
         approx = approximate(problem, ("test-pose", "D"), ms, settings, ex)
     print(common.case_line(problem))
     print(format_bounds([bound(problem, m, approx[aim(problem, "test-pose", m)]) for m in ms],

@@ -300,7 +300,8 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     criteria = tuple(args.criteria or ((TARGET_CRITERION,) if target and not sweep else problem.criteria))
     default_m = (range(problem.m_min, max(problem.m_values) + 1) if sweep else
                  range(problem.m_min, default_limit(problem) + 1) if target else sorted(problem.m_values))
-    settings = Settings(args.starts or problem.solver.starts, args.bound_steps, args.bound_pool, args.verbose)
+    settings = Settings.of(problem, args.starts, bound_steps=args.bound_steps, bound_pool=args.bound_pool,
+                           verbose=args.verbose)
     candidates = getattr(args, "candidates", None)
     pool = None if candidates is None else read_measured(problem, candidates)
     return Study(problem, criteria, tuple(args.m or default_m), settings, sweep,

@@ -88,7 +88,7 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
                         "tracker's beams and the test poses", "poses.png"))
     files += write_plans(out, problem, designs)
     report = report_markdown(problem, designs, table=format_table(designs), figures=figures,
-                             plans_for=fig_m, files=files, starts=done.settings.starts,
+                             plans_for=fig_m, files=files, starts=done.settings.starts_text(),
                              notes=[] if target is None else [target["answer"]])
     write_atomic(out / "report.md", report.encode())
     return files + ["report.md"]

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..model.build import Problem
+from ..model.problem import starts_text
 from ..records.files import write_atomic
 from ..execution.study import writing
 from ..execution.sweep import PARTIAL_NAME, RESUME_FILES, Sweep
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
 
         target = answer_from(problem, study.target_m, sweep.designs, max(sweep.m_values))
         print(target.line())
-    common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({study.settings.starts} seeded starts "
+    common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({study.settings.starts_text()} seeded starts "
                      f"each{', plus one warm start for m after the first' if study.warm_start else ''}) {study.where}")
     if out:
         with writing(study):
@@ -98,7 +99,8 @@ def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log
                      f"than at m = {sweep.reference.m}; repetition alone gives "
                      f"{math.sqrt(m_last / sweep.reference.m):.2f}.")
     report = report_markdown(
-        problem, designs, table=format_sweep_table(sweep), starts=sweep.seeded_starts,
+        problem, designs, table=format_sweep_table(sweep),
+        starts=starts_text(sweep.seeded_starts, sweep.criterion_starts),
         figures=[("Max error along the test poses vs m", "sweep_max_error.png"),
                  (f"Fig. 1: +/- sqrt(rho) along the test poses, m = {', '.join(map(str, fig_m))}",
                   "fig1.png")],

@@ -3,7 +3,7 @@
 For each m (ascending) and each criterion (in the order given), a design is the multi-start
 solve (:func:`casadi_design.optimisation.solve.solve_design`) from
 
-1. the seeded random starts (``settings.starts``, drawn from ``(seed, m, criterion)``),
+1. the seeded random starts (``settings.seeded(criterion)``, drawn from ``(seed, m, criterion)``),
 2. the caller's extra starts (a sweep's warm start from the previous m),
 3. the starts rounded from an approximate design (:func:`casadi_design.optimisation.bound.rounded_plans`):
    the criterion's own when it has a bound, A's for E and condition
@@ -42,6 +42,7 @@ from ..optimisation.bound import (
 )
 from ..runtime.cache import Memo, digest
 from ..model.build import Problem
+from ..model.problem import seeded_starts, starts_text
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA
 from ..plan.design import SEEDED, Bound, Design
 from ..errors import DesignError, ProblemError
@@ -91,17 +92,35 @@ class Settings:
         starts (0: no bound, no rounded starts).
     bound_pool : random feasible experiments in the approximate design's first pool.
     verbose : IPOPT prints its iterations.
+    criterion_starts : (criterion, starts) pairs that replace ``starts`` for the designs of
+        those criteria (``[solver.criterion_starts]``).
     """
 
     starts: int
     bound_steps: int = BOUND_STEPS
     bound_pool: int = POOL_SIZE
     verbose: bool = False
+    criterion_starts: tuple[tuple[str, int], ...] = ()
 
     def __post_init__(self) -> None:
-        if self.starts < 1 or self.bound_steps < 0 or self.bound_pool < 1:
+        if min([self.starts, *dict(self.criterion_starts).values()]) < 1 or self.bound_steps < 0 or self.bound_pool < 1:
             raise ValueError(f"campaign settings: starts >= 1, bound_steps >= 0 and bound_pool >= 1, "
-                             f"got {self.starts}, {self.bound_steps}, {self.bound_pool}")
+                             f"got {self.starts} {self.criterion_starts}, {self.bound_steps}, {self.bound_pool}")
+
+    @classmethod
+    def of(cls, problem: Problem, starts: int | None = None, **kw) -> Settings:
+        """The settings of ``problem``'s ``[solver]`` (its starts and criterion starts), or
+        ``starts`` for every design."""
+        solver = problem.solver
+        return cls(starts or solver.starts, criterion_starts=() if starts else solver.criterion_starts, **kw)
+
+    def seeded(self, criterion: str) -> int:
+        """The seeded starts of a design of ``criterion``."""
+        return seeded_starts(self.starts, self.criterion_starts, criterion)
+
+    def starts_text(self) -> str:
+        """The seeded starts per design, for people (``16 (test-pose: 4)``)."""
+        return starts_text(self.starts, self.criterion_starts)
 
 
 @dataclass(frozen=True)
@@ -208,7 +227,8 @@ def campaign_key(problem: Problem, criteria: Iterable[str], m_values: Iterable[i
     checked data, seed, starts, the sweep's warm start, m, criteria and the bound's steps and
     pool."""
     return {"problem_sha256": problem.digest, "seed": problem.solver.seed,
-            "starts": settings.starts, "warm_start": warm_start, "m": sorted(set(m_values)),
+            "starts": settings.starts, "criterion_starts": [list(p) for p in settings.criterion_starts],
+            "warm_start": warm_start, "m": sorted(set(m_values)),
             "criteria": list(criteria), "bound_steps_pool": [settings.bound_steps, settings.bound_pool]}
 
 
@@ -246,7 +266,7 @@ def has_rounded(criterion: str, settings: Settings) -> bool:
 
 def total_starts(criteria: Sequence[str], m_values: Sequence[int], settings: Settings) -> int:
     """IPOPT starts of a campaign (for progress bars), the caller's extra starts left out."""
-    per_m = sum(settings.starts + (CRITERIA[c].rounded if has_rounded(c, settings) else 0) for c in criteria)
+    per_m = sum(settings.seeded(c) + (CRITERIA[c].rounded if has_rounded(c, settings) else 0) for c in criteria)
     return len(m_values) * per_m
 
 
@@ -301,7 +321,7 @@ def run_campaign(
     approx = {**approximate_designs(problem, [a for a in aims(problem, criteria, ms) if a not in given],
                                     settings.bound_steps, settings.bound_pool, executor), **given}
     _one_by_one(criteria, ms, designs, lambda c, m: _bounded(problem, solve_design(
-        problem, c, m, starts=settings.starts, verbose=settings.verbose,
+        problem, c, m, starts=settings.seeded(c), verbose=settings.verbose,
         initial_plans=_later_starts(problem, c, m, designs, approx, extra_starts),
         executor=executor, progress=progress), approx), on_design, progress)
     return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
@@ -330,7 +350,7 @@ def choose_campaign(problem: Problem, criteria: Sequence[str], m_values: Iterabl
                     progress: Callable[[int], object] | None = None) -> Campaign:
     """Every (criterion, m) chosen from the postures ``Q`` (k, n), ``F`` (k, nF) of a pool
     (:func:`casadi_design.optimisation.pool.choose_design`: greedy, the pool's approximate
-    design and ``settings.starts`` random subsets, each exchanged), with the pool's bound
+    design and ``settings.seeded(c)`` random subsets, each exchanged), with the pool's bound
     when ``settings.bound_steps`` > 0; ``done``, ``on_design``, ``progress`` as for
     :func:`run_campaign`."""
     from ..optimisation.pool import choose_design
@@ -341,7 +361,7 @@ def choose_campaign(problem: Problem, criteria: Sequence[str], m_values: Iterabl
     designs: dict[tuple[str, int], Design] = dict(done or {})
 
     def make(c: str, m: int) -> Design:
-        d = choose_design(problem, c, m, Q, F, settings.starts, settings.bound_steps > 0)
+        d = choose_design(problem, c, m, Q, F, settings.seeded(c), settings.bound_steps > 0)
         if progress is not None:
             progress(len(d.starts))
         return d
@@ -379,7 +399,7 @@ def _to_spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
     its inputs)."""
     wanted = [a for a in aims(problem, criteria, ms) if a not in given]
     missing = computed(problem, wanted, settings.bound_steps, settings.bound_pool)[1]
-    seeded = settings.starts * sum((c, m) not in designs for m in ms for c in criteria)
+    seeded = sum(settings.seeded(c) for m in ms for c in criteria if (c, m) not in designs)
     if not missing or len(missing) >= executor.slots or seeded > executor.slots:
         return []
     return missing
@@ -441,7 +461,7 @@ class _Pipeline:
         missing = [a for a in missing if a not in self.later]
         self.todo = [_Starts(c, m, plans, [SEEDED] * len(plans))
                      for m in ms for c in criteria if (c, m) not in designs
-                     for plans in [seeded_plans(problem, c, m, settings.starts)]]
+                     for plans in [seeded_plans(problem, c, m, settings.seeded(c))]]
         for m in ms:
             for c in criteria:
                 if (c, m) in designs and progress is not None:

@@ -115,7 +115,7 @@ class Study:
         if self.searches:
             return total_starts(self.criteria + (TARGET_CRITERION,), self.m_values[:1], self.settings)
         if self.pool is not None:  # greedy, the pool's approximate design and the seeded subsets
-            return self.designs * (self.settings.starts + 2)
+            return len(self.m_values) * sum(self.settings.seeded(c) + 2 for c in self.criteria)
         return total_starts(self.criteria, self.m_values, self.settings)
 
     @property

@@ -65,6 +65,7 @@ class Sweep:
     ----------
     designs : {(criterion, m): Design}
     seeded_starts : seeded starts per design.
+    criterion_starts : (criterion, starts) pairs that replace ``seeded_starts`` for those criteria.
     reference : the best test-pose design at ``problem.m_min``, for the "repeat" line (None when
         the sweep has no test-pose criterion).
     approx : the approximate designs behind its bounds and rounded starts (empty for a sweep
@@ -78,6 +79,7 @@ class Sweep:
     warm_start: bool
     reference: Design | None = None
     approx: dict[tuple[str, int], ApproximateDesign] = field(default_factory=dict)
+    criterion_starts: tuple[tuple[str, int], ...] = ()
 
     def warm_start_won(self, criterion: str, m: int) -> bool:
         """True when the warm start is strictly better than every seeded start."""
@@ -121,7 +123,8 @@ def run_sweep(
     if reference is None and "test-pose" in criteria:
         reference = run_campaign(problem, ("test-pose",), (problem.m_min,), settings, approx=campaign.approx,
                                  executor=executor, progress=progress).designs["test-pose", problem.m_min]
-    return Sweep(ms, criteria, campaign.designs, settings.starts, warm_start, reference, campaign.approx)
+    return Sweep(ms, criteria, campaign.designs, settings.starts, warm_start, reference, campaign.approx,
+                 settings.criterion_starts)
 
 
 def sweep_total_starts(problem: Problem, criteria: Iterable[str], m_values: Iterable[int],
@@ -196,6 +199,7 @@ def sweep_record(problem: Problem, sweep: Sweep, key: dict,
         "m": list(sweep.m_values),
         "criteria": list(sweep.criteria),
         "seeded_starts": sweep.seeded_starts,
+        "criterion_starts": dict(sweep.criterion_starts),
         "warm_start": sweep.warm_start,
         "units": {"max_error_mm": "mm", "repeat_best_single_pose_mm": "mm",
                   "bound": "in the unit of the criterion's column: mm for test-pose and I (lower "
@@ -215,4 +219,4 @@ def sweep_from_record(record: dict) -> Sweep:
     designs = {(d["criterion"], d["m"]): design_from_record(d) for d in record["designs"]}
     reference = None if saved["reference"] is None else design_from_record(saved["reference"])
     return Sweep(tuple(saved["m"]), tuple(saved["criteria"]), designs, saved["seeded_starts"], saved["warm_start"],
-                 reference)
+                 reference, criterion_starts=tuple(saved.get("criterion_starts", {}).items()))

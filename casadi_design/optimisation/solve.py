@@ -423,10 +423,11 @@ def _grown(rules: PoseConstraints, Q: np.ndarray, active: np.ndarray, status: st
 
 
 def seeded_plans(problem: Problem, criterion: str, m: int, starts: int | None = None) -> list[StartPlan]:
-    """The ``starts`` (default ``[solver].starts``) seeded random start plans of a design, from
-    :func:`start_rng`: they depend on the seed, the criterion and m only."""
+    """The ``starts`` (default: the problem's, :meth:`~casadi_design.model.problem.SolverSettings.starts_for`)
+    seeded random start plans of a design, from :func:`start_rng`: they depend on the seed, the
+    criterion and m only, and fewer starts are the first of more."""
     rng = start_rng(problem.solver.seed, criterion, m)
-    return [random_plan(problem, m, rng) for _ in range(starts or problem.solver.starts)]
+    return [random_plan(problem, m, rng) for _ in range(starts or problem.solver.starts_for(criterion))]
 
 
 def initial_starts(problem: Problem, m: int, initial_plans: Sequence[tuple]) -> tuple[list[StartPlan], list[str]]:

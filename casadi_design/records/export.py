@@ -424,7 +424,7 @@ def bound_notes(designs: list[Design]) -> list[str]:
 
 
 def report_markdown(problem: Problem, designs: list[Design], *, table: str, figures: list[tuple[str, str]],
-                    plans_for: list[int], files: list[str], starts: int, title: str = "Calibration plan",
+                    plans_for: list[int], files: list[str], starts: str, title: str = "Calibration plan",
                     notes: list[str] = ()) -> str:
     """The one-page report: the case, the table, the figures, the plans for ``plans_for`` m.
 

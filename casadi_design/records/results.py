@@ -349,6 +349,11 @@ def check_results(record: object) -> None:
         _need(isinstance(c, str) and c in CRITERIA, f"sweep.criteria[{i}]",
               f"one of {', '.join(CRITERIA)}", c)
     _int(sweep["seeded_starts"], "sweep.seeded_starts", 1)
+    per = sweep.get("criterion_starts", {})
+    _need(isinstance(per, dict), "sweep.criterion_starts", "a table of criterion: starts", per)
+    for c, k in per.items():
+        _need(c in CRITERIA, "sweep.criterion_starts", f"criteria among {', '.join(CRITERIA)}", c)
+        _int(k, f"sweep.criterion_starts.{c}", 1)
     _need(isinstance(sweep["warm_start"], bool), "sweep.warm_start", "true or false",
           sweep["warm_start"])
     if sweep["reference"] is not None:

@@ -37,3 +37,24 @@ def test_a_study_checks_its_request(paper):
         Study(paper, ("X",), (1,), Settings(1))
     with pytest.raises(ProblemError, match="--m 0 is too small"):
         Study(paper, ("D",), (0,), Settings(1))
+
+
+def test_a_criterion_runs_its_own_seeded_starts_the_first_of_more(paper):
+    """``[solver.criterion_starts]``: a design of a listed criterion runs its own number of
+    seeded starts, the others the problem's; fewer starts are the first of more (each seeded
+    plan depends on the seed, the criterion and m only), and --starts replaces both."""
+    from dataclasses import replace
+
+    from casadi_design.model.build import build_problem
+
+    problem = build_problem(replace(paper.spec, solver=replace(paper.solver, starts=3, criterion_starts=(("D", 1),))))
+    settings = Settings.of(problem, bound_steps=0)
+    assert (settings.seeded("D"), settings.seeded("test-pose"), settings.starts_text()) == (1, 3, "3 (D: 1)")
+    assert Settings.of(problem, 5, bound_steps=0).seeded("D") == 5  # the command line's --starts
+    study = Study(problem, ("test-pose", "D"), (1,), settings, jobs=1)
+    starts = []
+    done = run_study(study, progress=starts.append)
+    assert [len(done.designs[c, 1].starts) for c in ("test-pose", "D")] == [3, 1]
+    assert sum(starts) == study.starts == 4
+    more = run_study(Study(problem, ("D",), (1,), Settings(3, bound_steps=0), jobs=1))
+    assert done.designs["D", 1].starts[0] == more.designs["D", 1].starts[0]

@@ -73,6 +73,9 @@ def _edit(path: str, value):
         ("experiments.workspace", {"half_spaces": [{"normal": [0, 1, 0], "offset_m": "x"}]}, r"half_spaces\].offset_m: expected float"),
         ("experiments.workspace", {"half_spaces": [{"normal": [0, 1], "offset_m": 0.0}]}, r"half_spaces\].normal: expected finite numbers of shape 3"),
         ("solver.tol", -1.0, r"\[solver\].tol: must be positive"),
+        ("solver.criterion_starts", {"d-opt": 2}, r"\[solver.criterion_starts\]: unknown key 'd-opt'; allowed: .*test-pose"),
+        ("solver.criterion_starts", {"D": 0}, r"\[solver.criterion_starts\].D: must be between 1 and"),
+        ("solver.criterion_starts", 4, r"\[solver\].criterion_starts: expected a table"),
         ("test_poses.joints_rad", [[0.1, 0.2]], r"give exactly one"),
     ],
 )
