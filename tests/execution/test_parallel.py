@@ -311,14 +311,16 @@ def test_a_pool_that_breaks_before_a_task_is_sent_runs_every_task_once():
 def test_the_best_plan_so_far_is_told_as_it_improves(paper, monkeypatch):
     """On workers each design tells its best plan as its starts return: better each time
     (beyond the criterion's same-optimum tolerance), the last one the design's optimum, with
-    the gap once the bound is known and what still runs."""
+    the gap once the bound is known and what still runs. D runs its own number of seeded starts
+    (``criterion_starts``) beside its rounded ones."""
     from casadi_design.execution import campaign
 
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     told = []
+    settings = Settings(2, bound_steps=1, bound_pool=30, criterion_starts=(("D", 1),))
     with ProcessExecutor(2) as ex:
-        done = campaign.run_campaign(paper, ("test-pose", "D"), (5,), Settings(2, bound_steps=1, bound_pool=30),
-                                     executor=ex, on_better=told.append)
+        done = campaign.run_campaign(paper, ("test-pose", "D"), (5,), settings, executor=ex, on_better=told.append)
+    assert [len(done.designs[c, 5].starts) for c in ("test-pose", "D")] == [2 + 4, 1 + 8]  # seeded + rounded
     for c in ("test-pose", "D"):
         ours = [i for i in told if i.criterion == c]
         crit = campaign.CRITERIA[c]

@@ -257,7 +257,8 @@ def _assert_same_design(got: Design, want: Design, nulls: bool, where: str) -> N
 def test_sweep_record_with_nan_in_its_table_reads_back(tmp_path, paper, designs, nulls):
     """A sweep.json whose table has NaN cells reads back cell by cell, and its designs and
     reference design as they were, written by other tools (NaN, Infinity) or by us (null)."""
-    sweep = Sweep((2,), ("D", "test-pose"), {(d.criterion, d.m): d for d in designs}, 1, False, designs[1])
+    sweep = Sweep((2,), ("D", "test-pose"), {(d.criterion, d.m): d for d in designs}, 1, False, designs[1],
+                  criterion_starts=(("test-pose", 3),))
     written = sweep_record(paper, sweep, campaign_key(paper, sweep.criteria, sweep.m_values, Settings(1)))
     rows = written["sweep"]["rows"]
     rows[0]["seeded_best_max_error_mm"] = math.nan  # as when every seeded start failed
@@ -276,8 +277,8 @@ def test_sweep_record_with_nan_in_its_table_reads_back(tmp_path, paper, designs,
         for column, want in want_row.items():
             _assert_cell(got_row[column], want, nulls, f"rows[{i}].{column}")
     back = sweep_from_record(got)
-    assert ((back.m_values, back.criteria, back.seeded_starts, back.warm_start)
-            == (sweep.m_values, sweep.criteria, sweep.seeded_starts, sweep.warm_start))
+    assert ((back.m_values, back.criteria, back.seeded_starts, back.warm_start, back.criterion_starts)
+            == (sweep.m_values, sweep.criteria, sweep.seeded_starts, sweep.warm_start, sweep.criterion_starts))
     assert list(back.designs) == list(sweep.designs)
     for key, want in sweep.designs.items():
         _assert_same_design(back.designs[key], want, nulls, f"designs{key}")
@@ -340,6 +341,9 @@ def _set(path, value):
     (_set(["sweep"], {"m": [2, 3], "criteria": ["D"], "seeded_starts": 1, "warm_start": True,
                       "reference": None}),
      r"designs: no design for criterion D, m = 3 of the sweep"),
+    (_set(["sweep"], {"m": [2], "criteria": ["D"], "seeded_starts": 1, "warm_start": True,
+                      "reference": None, "criterion_starts": {"X": 2}}),
+     r"sweep.criterion_starts: expected criteria among .*test-pose"),
 ])
 def test_damaged_results_record(tmp_path, record, change, match):
     damaged = copy.deepcopy(record)
