@@ -1000,8 +1000,8 @@ def _solver(table: _Reader | None) -> SolverSettings:
             raise ipopt.error(f"expected a number or a string, got {_short(value)}",
                               "see the IPOPT options reference", key)
     per = table.sub("criterion_starts")
-    criterion_starts = tuple((c, per.integer(c, ..., "the seeded starts of that criterion's designs", low=1,
-                                             high=100_000)) for c in per.table) if per else ()
+    criterion_starts = tuple((c, per.integer(c, ..., "give its designs' seeded starts, e.g. test-pose = 4",
+                                             low=1, high=100_000)) for c in per.table) if per else ()
     return SolverSettings(
         starts=table.integer("starts", d.starts, "the number of IPOPT starts", low=1, high=100_000),
         criterion_starts=criterion_starts,
