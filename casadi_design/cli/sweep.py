@@ -52,8 +52,9 @@ def run(args: argparse.Namespace) -> int:
 
         target = answer_from(problem, study.target_m, sweep.designs, max(sweep.m_values))
         print(target.line())
-    common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs ({study.settings.starts_text()} seeded starts "
-                     f"each{', plus one warm start for m after the first' if study.warm_start else ''}) {study.where}")
+    warm = ", plus one warm start for m after the first" if study.warm_start else ""
+    common.say(args, f"total {wall:.2f} s for {len(sweep.designs)} designs "
+                     f"({study.settings.starts_text()} seeded starts each{warm}) {study.where}")
     if out:
         with writing(study):
             files = write_sweep(out, problem, sweep, fig_m, args.log, study.key, sweep.approx, target)

@@ -103,9 +103,10 @@ class Settings:
     criterion_starts: tuple[tuple[str, int], ...] = ()
 
     def __post_init__(self) -> None:
-        if min([self.starts, *dict(self.criterion_starts).values()]) < 1 or self.bound_steps < 0 or self.bound_pool < 1:
+        starts = [self.starts, *dict(self.criterion_starts).values()]
+        if min(starts) < 1 or self.bound_steps < 0 or self.bound_pool < 1:
             raise ValueError(f"campaign settings: starts >= 1, bound_steps >= 0 and bound_pool >= 1, "
-                             f"got {self.starts} {self.criterion_starts}, {self.bound_steps}, {self.bound_pool}")
+                             f"got {starts}, {self.bound_steps}, {self.bound_pool}")
 
     @classmethod
     def of(cls, problem: Problem, starts: int | None = None, **kw) -> Settings:
