@@ -117,8 +117,11 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
 
 
 def _capsule_rows(problem) -> int:
-    """Capsule rows of one experiment (0 without a cell)."""
-    collision = getattr(module("casadi_design.plan.rules").problem.rules.pose, "collision", None)
+    """Capsule rows of one experiment (0 without a cell); a checkout from before
+    ``problem.rules`` (--compare-with) has ``plan.rules.pose_constraints``."""
+    pose = (problem.rules.pose if hasattr(problem, "rules") else
+            module("casadi_design.plan.rules").pose_constraints(problem))
+    collision = getattr(pose, "collision", None)
     return 0 if collision is None else len(collision.inputs)
 
 

@@ -1,5 +1,6 @@
 """scripts/benchmark.py --quality: r of each design on its own criterion, the verdict of the rule
-(geometric mean <= 1, no r above R_MAX, the fixed targets), on copies of the suite's paper run."""
+(geometric mean <= 1, no r above R_MAX, the fixed targets), on copies of the suite's paper run;
+and the figures of one design (``run_one``, what ``--cases`` prints a row of)."""
 
 import json
 import math
@@ -56,3 +57,13 @@ def test_a_plan_off_table_4_is_refused(tmp_path, paper_solve_out, capsys):
 
     assert not benchmark.quality(base, _set(tmp_path / "off", paper_solve_out, off))
     assert "paper E m = 1: 0.2300 mm is not Table 4's 0.24" in capsys.readouterr().out
+
+
+def test_one_design_gives_its_figures():
+    """``run_one`` on the paper's D design at m = 1: two seeded starts, no capsule rows, the
+    Table 4 error (0.170 mm); a failure there prints a row "failed: ..." instead of figures."""
+    from tests.conftest import PAPER
+
+    row = benchmark.run_one(str(PAPER), "D", 1, 2, None)
+    assert len(row["iterations"]) == 2 and row["converged"] >= 1 and row["rows"] == 0
+    assert row["best_max_error_mm"] == pytest.approx(0.1700, abs=5e-5)
