@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from dataclasses import replace
 
@@ -332,17 +333,21 @@ def output_folder(args: argparse.Namespace, command: str, resume_files: tuple[st
 
 
 def design(args: argparse.Namespace, label: str, partial: Path | None = None,
-           sweep: bool = False) -> tuple[Study, Campaign | Sweep, list[int]]:
+           sweep: bool = False, check: Callable[[Problem], object] | None = None,
+           ) -> tuple[Study, Campaign | Sweep, list[int]]:
     """Load the problem of ``args`` and run its study (:func:`casadi_design.execution.study.run_study`)
     with a progress bar; worker processes start while the robot and cell build. With
-    ``partial``, each finished design is saved there at once and ``--resume`` continues from it.
-    Returns the study, its designs and the m of the Fig. 1 panels (``--fig-m``, checked before
-    anything is solved)."""
+    ``partial``, each finished design is saved there at once and ``--resume`` continues from it;
+    ``check(problem)`` refuses what the command would write from the plans before anything is
+    solved. Returns the study, its designs and the m of the Fig. 1 panels (``--fig-m``, checked
+    before anything is solved)."""
     from ..runtime.progress import progress_bar
 
     spec = read_spec(args)  # a malformed file fails before any worker starts
     with executor(args) as ex:
         problem = load(args, spec=spec)
+        if check is not None:
+            check(problem)
         request = study(args, problem, partial, sweep)
         panels = (None if request.searches else
                   fig_m(getattr(args, "fig_m", None), list(request.m_values), problem.m_values))

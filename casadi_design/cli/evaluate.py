@@ -40,16 +40,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..model.cell import clearances
-    from ..records.export import measured_rows, read_plan_csv
+    from ..records.export import read_plan_file, read_plan_table
     from ..records.results import design_from_record, experiment_records
     from ..plan.rules import plan_violations
     from ..optimisation.solve import plan_scores
 
     out = common.output_folder(args, "evaluate")
     problem = common.load(args, check_solver=False)
-    Q, F = read_plan_csv(problem, args.plan)
+    plan = read_plan_file(args.plan)
+    Q, F, _, _ = read_plan_table(problem, plan)
     if problem.m_held:  # a campaign's plan CSV: its measured rows are those of --measured
-        new = ~measured_rows(args.plan)
+        new = ~plan.measured
         Q, F = Q[new], F[new]
     m = len(Q)
     others = []

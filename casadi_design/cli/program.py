@@ -63,15 +63,16 @@ def home_pose(problem, text: str | None) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..records.export import check_joint_limits, measured_rows, read_plan_table
+    from ..records.export import check_joint_limits, read_plan_file, read_plan_table
     from ..program.formats import FILES, check_format, program_text
     from ..program.sequence import make_program
 
     out = common.output_folder(args, "program")
     problem = common.load(args, check_solver=False)
-    Q, F, _, lines = read_plan_table(problem, args.plan)  # a plan of another robot names the plan
-    check_joint_limits(problem, str(args.plan), Q, lines)
-    new = ~measured_rows(args.plan)  # a campaign's measured experiments are not measured again
+    plan = read_plan_file(args.plan)
+    Q, F, _, lines = read_plan_table(problem, plan)  # a plan of another robot names the plan
+    check_joint_limits(problem, plan, Q, lines)
+    new = ~plan.measured  # a campaign's measured experiments are not measured again
     Q, F = Q[new], F[new]
     check_format(problem, args.format)
     home = home_pose(problem, args.home)

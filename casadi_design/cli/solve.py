@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from ..errors import OutputError
 from ..model.build import Problem
 from ..execution.campaign import Campaign
 from ..records.files import write_atomic
@@ -40,14 +41,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = common.output_folder(args, "solve", (PARTIAL_NAME,))
-    if args.program:
-        from ..errors import OutputError
-        from ..program.formats import check_format
+    if args.program and not out:
+        raise OutputError("--program writes into the --out folder; add --out DIR")
 
-        check_format(common.load(args), args.program, "--program")  # before anything is solved
-        if not out:
-            raise OutputError("--program writes into the --out folder; add --out DIR")
-    study, done, fig_m = common.design(args, "solve", out / PARTIAL_NAME if out else None)
+    def check(problem: Problem) -> None:  # the program's format, before anything is solved
+        if args.program:
+            from ..program.formats import check_format
+
+            check_format(problem, args.program, "--program")
+
+    study, done, fig_m = common.design(args, "solve", out / PARTIAL_NAME if out else None, check=check)
     problem = study.problem
     designs = list(done.designs.values())
     wall = time.perf_counter() - t0

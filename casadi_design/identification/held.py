@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import ProblemError
 from ..model.build import Problem
 from ..model.problem import HeldSpec
-from ..records.export import check_joint_limits, plan_header, read_plan_table
+from ..records.export import check_joint_limits, read_plan_file, read_plan_table
 from .measurements import read_measurements
 
 
@@ -29,11 +29,12 @@ def read_measured(problem: Problem, path: str) -> tuple[np.ndarray, np.ndarray]:
         A file that is not a plan of this robot, or a joint value outside the joint limits (one
         line naming the row and column).
     """
-    if any(j in plan_header(path) for j in problem.robot.joints):
-        meas = read_measurements(problem, path)
+    plan = read_plan_file(path)
+    if any(j in plan.header for j in problem.robot.joints):
+        meas = read_measurements(problem, plan)
         return meas.Q, meas.F
-    Q, F, _, lines = read_plan_table(problem, path, ignore_unknown=True)
-    check_joint_limits(problem, path, Q, lines)
+    Q, F, _, lines = read_plan_table(problem, plan, ignore_unknown=True)
+    check_joint_limits(problem, plan, Q, lines)
     return Q, F
 
 

@@ -25,7 +25,7 @@ import pinocchio as pin
 
 from ..model.build import Problem
 from ..errors import ProblemError
-from ..records.export import check_joint_limits, is_prismatic, joint_units, plan_header, read_plan_table
+from ..records.export import PlanFile, check_joint_limits, is_prismatic, joint_units, read_plan_file, read_plan_table
 
 #: The position components a tracker measures, in the order of the columns.
 AXES = ("x", "y", "z")
@@ -271,8 +271,10 @@ def pose_rotations(convention: str, values: np.ndarray) -> np.ndarray:
     return np.array([pin.rpy.rpyToMatrix(*(float(v) for v in row)) for row in values])
 
 
-def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat()) -> Measurements:
-    """Read a measurement CSV of ``problem`` in the format ``fmt`` (module docstring).
+def read_measurements(problem: Problem, path: PlanFile | str, fmt: FileFormat = FileFormat()) -> Measurements:
+    """Read a measurement CSV of ``problem`` (its path, or the
+    :class:`~casadi_design.records.export.PlanFile` already read) in the format ``fmt`` (module
+    docstring).
 
     Raises
     ------
@@ -284,13 +286,13 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
         values beyond ``fmt.limit_tolerance`` outside the joint limits (one line each, naming
         the file, row and column as the file spells it).
     """
-    path = str(path)
     components = problem.spec.measurement.components
     if any(c not in AXES for c in components):
         raise ProblemError(
             f"{problem.path}: [measurement].components has {list(components)}; identify reads "
             "measured positions (x, y, z) only; measure positions, e.g. three markers for the pose")
-    header = plan_header(path)
+    plan = path if isinstance(path, PlanFile) else read_plan_file(path)
+    path, header = plan.path, plan.header
     convention = _orientation(problem, header, fmt, path)
     columns = measurement_columns(problem) if convention is None else [[f"meas_{a}" for a in AXES]]
     names = tuple(f"{c}_mm" for point in columns for c in point)
@@ -298,7 +300,7 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
         n + ("_rad" if convention == "rpy" else "") for n in ORIENTATIONS[convention])
     hint = ", ".join(names) + " (measured coordinates, mm; _m for metres)"
     rename, scales, notes = _reading(problem, header, fmt, path, columns)
-    Q, F, values, lines = read_plan_table(problem, path, names + angles, hint, rename, ignore_unknown=True)
+    Q, F, values, lines = read_plan_table(problem, plan, names + angles, hint, rename, ignore_unknown=True)
     spelled = {ours: theirs for theirs, ours in rename.items()}
     missing = [c for c in names if c not in values]
     if missing:
@@ -340,7 +342,7 @@ def read_measurements(problem: Problem, path: str, fmt: FileFormat = FileFormat(
     if blind.size:
         raise ProblemError(f"{path}: row {lines[int(blind[0])]}: no measured coordinate in "
                            f"{', '.join(spelled.get(n, n) for n in names)}; fill them in or delete the row")
-    notes += check_joint_limits(problem, path, Q, lines, fmt.limit_tolerance, header, rename)
+    notes += check_joint_limits(problem, plan, Q, lines, fmt.limit_tolerance, rename)
     return Measurements(path, tuple(lines), Q, F, P, tuple(notes))
 
 

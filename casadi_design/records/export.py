@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -190,46 +191,63 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
     return Q, F
 
 
-def measured_rows(path: Path | str) -> np.ndarray:
-    """Which rows of a plan file are marked measured (its ``measured`` column says ``yes``:
-    the experiments of a campaign measured before its plan); none without the column."""
-    (_, head), *body = _plan_lines(str(path))
-    header = _csv_cells(head)
-    if MEASURED_COLUMN not in header:
-        return np.zeros(len(body), dtype=bool)
-    c = header.index(MEASURED_COLUMN)
-    return np.array([len(cells) > c and cells[c].lower() in ("yes", "true", "1")
-                     for cells in (_csv_cells(ln) for _, ln in body)], dtype=bool)
+@dataclass(frozen=True)
+class PlanFile:
+    """A plan or measurement CSV read once (:func:`read_plan_file`): its path and the (line
+    number, text) of its header and rows, empty lines and ``#`` comments dropped. Every reader
+    of its columns takes it, so a file is read and checked once however many parts of it are
+    asked for."""
+
+    path: str
+    lines: tuple[tuple[int, str], ...]
+
+    @property
+    def header(self) -> list[str]:
+        """The column names as the file spells them (trailing empty names dropped)."""
+        header = _csv_cells(self.lines[0][1])
+        while header and not header[-1]:
+            header.pop()
+        return header
+
+    @property
+    def measured(self) -> np.ndarray:
+        """Which rows are marked measured (the ``measured`` column says ``yes``: the
+        experiments of a campaign measured before its plan); none without the column."""
+        header, body = _csv_cells(self.lines[0][1]), self.lines[1:]
+        if MEASURED_COLUMN not in header:
+            return np.zeros(len(body), dtype=bool)
+        c = header.index(MEASURED_COLUMN)
+        return np.array([len(cells) > c and cells[c].lower() in ("yes", "true", "1")
+                         for cells in (_csv_cells(ln) for _, ln in body)], dtype=bool)
 
 
-def _plan_lines(path: str) -> list[tuple[int, str]]:
-    """The (line number, text) of a plan file's header and rows: empty lines and ``#``
-    comments dropped."""
-    lines = [(i, ln) for i, ln in enumerate(_plan_text(path).splitlines(), start=1)
-             if ln.strip(" \t,") and not ln.lstrip().startswith("#")]
+def read_plan_file(path: Path | str) -> PlanFile:
+    """The :class:`PlanFile` of ``path``: UTF-8 text checked as :func:`read_plan_table` says,
+    with at least a header.
+
+    Raises
+    ------
+    ProblemError
+        A file that cannot be read as a plan's text, or an empty one.
+    """
+    path = str(path)
+    lines = tuple((i, ln) for i, ln in enumerate(_plan_text(path).splitlines(), start=1)
+                  if ln.strip(" \t,") and not ln.lstrip().startswith("#"))
     if not lines:
         raise ProblemError(f"{path}: empty plan file; give a header row and one row per experiment")
-    return lines
+    return PlanFile(path, lines)
 
 
-def plan_header(path: Path | str) -> list[str]:
-    """The column names of a plan file as it spells them (trailing empty names dropped)."""
-    header = _csv_cells(_plan_lines(str(path))[0][1])
-    while header and not header[-1]:
-        header.pop()
-    return header
-
-
-def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] = (),
+def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[str, ...] = (),
                     extra_hint: str = "", rename: dict[str, str] | None = None,
                     ignore_unknown: bool = False,
                     ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[int]]:
-    """A plan from a CSV file: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m);
-    the ``extra`` columns that are present (e.g. measured coordinates), as floats with NaN for
+    """A plan from a CSV file (its path, or the :class:`PlanFile` already read): ``Q`` shape
+    (m, n), rad (m); ``F`` shape (m, nF), N (N m); the ``extra`` columns that are present (e.g. measured coordinates), as floats with NaN for
     empty cells; and the line of the file of each row (1-based). ``extra_hint`` names the extra
     columns in the message on an unknown column. ``rename`` maps a column as the file spells it
     to the name read here (messages keep the file's spelling); with ``ignore_unknown`` other
-    columns are skipped instead of refused (:func:`plan_header` tells which).
+    columns are skipped instead of refused (:attr:`PlanFile.header` tells which).
 
     UTF-8 text, with or without a byte-order mark. Trailing empty cells (as Excel writes
     them) are dropped, and so are lines of empty cells and lines starting with ``#``. Row
@@ -242,9 +260,8 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
         length than the header, missing or unknown columns, non-numbers or non-finite numbers,
         disagreeing unit columns (one line each).
     """
-    path = str(path)
-    lines = _plan_lines(path)
-    (_, head), body = lines[0], lines[1:]
+    plan = plan if isinstance(plan, PlanFile) else read_plan_file(plan)
+    path, ((_, head), *body) = plan.path, plan.lines
     if ";" in head:
         decimal = " and ',' as decimal point" if any("," in ln for _, ln in body) else ""
         raise ProblemError(f"{path}: uses ';' to separate columns{decimal} (Excel in a "
@@ -253,9 +270,7 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
     if len(body) > _MAX_PLAN_ROWS:
         raise ProblemError(f"{path}: has {len(body)} rows; a plan has at most {_MAX_PLAN_ROWS} "
                            "experiments; give a smaller plan")
-    spelled = _csv_cells(head)
-    while spelled and not spelled[-1]:
-        spelled.pop()
+    spelled = plan.header
     rename = rename or {}
     header = [rename.get(h, h) for h in spelled]
     rows = [(i, _csv_cells(ln)) for i, ln in body]
@@ -350,21 +365,19 @@ def read_plan_table(problem: Problem, path: Path | str, extra: tuple[str, ...] =
 
 
 
-def check_joint_limits(problem: Problem, path: str, Q: np.ndarray, lines: list[int],
-                       tolerance: float = LIMIT_TOL, header: list[str] | None = None,
-                       rename: dict[str, str] | None = None) -> list[str]:
-    """Notes on the joint values of a plan file ``path`` past a limit by at most ``tolerance``
+def check_joint_limits(problem: Problem, plan: PlanFile, Q: np.ndarray, lines: list[int],
+                       tolerance: float = LIMIT_TOL, rename: dict[str, str] | None = None) -> list[str]:
+    """Notes on the joint values ``Q`` of a plan file past a limit by at most ``tolerance``
     (rad or m; a real encoder reads past the URDF's limit), and one error beyond: the row as
-    ``lines`` numbers it and the column as the file spells it (``header``, ``rename`` as for
-    :func:`read_plan_table`; by default the file's own header).
+    ``lines`` numbers it and the column as the file spells it (``rename`` as for
+    :func:`read_plan_table`).
 
     Raises
     ------
     ProblemError
         A joint value outside its limits by more than ``tolerance``.
     """
-    robot = problem.robot
-    header = plan_header(path) if header is None else header
+    robot, path, header = problem.robot, plan.path, plan.header
     rename = rename or {}
     past = np.maximum(robot.q_min - Q, Q - robot.q_max)
     allowed = (f"by more than --limit-tolerance {tolerance:g} (rad or m)" if tolerance > LIMIT_TOL

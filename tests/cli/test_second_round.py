@@ -93,3 +93,31 @@ def test_bad_second_round_files_get_one_line(paper, tmp_path, capsys):
         assert main(["solve", str(PAPER), "--m", "1", *TINY, *extra]) == 2
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
+
+
+def test_a_solve_reads_each_measured_file_once_and_builds_its_problem_once(paper, tmp_path, capsys, monkeypatch):
+    """``solve --measured A --measured B --program json``: each file's text is read once (its
+    header, rows and joint limits from that one reading; B in FIGAROH's measurement layout,
+    whose header decides how it is read) and the problem is built twice, without and then with
+    what is held, not once more for the program's format."""
+    import casadi_design.model.build as build
+    import casadi_design.records.export as export
+
+    geometric = build_problem(read_problem(GEOMETRIC))
+    Q, F = random_plan(geometric, 2, np.random.default_rng(1))
+    first = plan_file(tmp_path / "first.csv", geometric, Q, F)
+    nominal = TrueRobot(geometric.robot.model, geometric.robot.frame_id, np.zeros(geometric.robot.n), pin.SE3.Identity())
+    P = measured(geometric, nominal, Q, F, np.random.default_rng(0), sigma=0.0)[:, 0]  # m
+    figaroh = [[*q, *p] for q, p in zip(Q, P)]  # bare joint names (rad), x1, y1, z1 (m)
+    (tmp_path / "meas.csv").write_text(csv_text([*geometric.robot.joints, "x1", "y1", "z1"], figaroh))
+    read, built = [], []
+    text, problem_of = export._plan_text, build.build_problem
+    monkeypatch.setattr(export, "_plan_text", lambda path: read.append(path) or text(path))
+    monkeypatch.setattr(build, "build_problem", lambda spec: built.append(spec.held) or problem_of(spec))
+    out = tmp_path / "second"
+    assert main(["solve", str(GEOMETRIC), "--m", "1", "--criteria", "D", "--measured", str(first),
+                 "--measured", str(tmp_path / "meas.csv"), "--program", "json", "--out", str(out), *TINY]) == 0
+    capsys.readouterr()
+    assert read == [str(first), str(tmp_path / "meas.csv")]
+    assert [held is None for held in built] == [True, False] and len(built[1].q) == 4
+    assert (out / "programs" / "D_m1.json").exists()
