@@ -305,9 +305,12 @@ def run_campaign(
     designs: dict[tuple[str, int], Design] = dict(done or {})
     if executor is not None and hasattr(executor, "run"):
         approx = dict(approx or {})
-        spread = _to_spread(problem, criteria, ms, settings, designs, executor, approx)
-        pipeline = _Pipeline(problem, criteria, ms, settings, designs, approx, extra_starts,
-                             on_design, progress, on_better, later=spread)
+        kept, missing = computed(problem, [a for a in aims(problem, criteria, ms) if a not in approx],
+                                 settings.bound_steps, settings.bound_pool)
+        spread = _to_spread(missing, criteria, ms, settings, designs, executor.slots)
+        pipeline = _Pipeline(problem, criteria, ms, settings, designs, {**kept, **approx},
+                             [a for a in missing if a not in spread], extra_starts, on_design, progress,
+                             on_better, later=spread)
         for task, result in executor.run(pipeline):  # with ``spread``: the seeded starts alone
             pipeline.returned(task, result)
         if spread:  # then the approximate designs, each step's searches over every worker
@@ -388,20 +391,18 @@ def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
     return design if a is None else replace(design, bound=bound(problem, design.m, a))
 
 
-def _to_spread(problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
-               designs: dict, executor, given: dict) -> list[Aim]:
-    """The approximate designs to compute after the seeded starts, one after the other, each
-    exchange step's IPOPT searches split over the workers
-    (:meth:`casadi_design.execution.parallel._Workers.maximise`), when the campaign has too little
-    else to keep the workers busy meanwhile: fewer approximate designs to compute than workers,
-    and no more seeded starts than workers (a one-start solve, whose seeded plan is then told
-    before the approximate design). Otherwise none: the pipeline runs each on one worker beside
-    the starts. The same designs either way (each search and each start is a pure function of
-    its inputs)."""
-    wanted = [a for a in aims(problem, criteria, ms) if a not in given]
-    missing = computed(problem, wanted, settings.bound_steps, settings.bound_pool)[1]
+def _to_spread(missing: list[Aim], criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
+               designs: dict, slots: int) -> list[Aim]:
+    """Of the approximate designs ``missing`` (to compute), those to compute after the seeded
+    starts, one after the other, each exchange step's IPOPT searches split over the ``slots``
+    workers (:meth:`casadi_design.execution.parallel._Workers.maximise`), when the campaign has
+    too little else to keep the workers busy meanwhile: fewer approximate designs to compute
+    than workers, and no more seeded starts than workers (a one-start solve, whose seeded plan
+    is then told before the approximate design). Otherwise none: the pipeline runs each on one
+    worker beside the starts. The same designs either way (each search and each start is a pure
+    function of its inputs)."""
     seeded = sum(settings.seeded(c) for m in ms for c in criteria if (c, m) not in designs)
-    if not missing or len(missing) >= executor.slots or seeded > executor.slots:
+    if not missing or len(missing) >= slots or seeded > slots:
         return []
     return missing
 
@@ -447,7 +448,7 @@ class _Pipeline:
     before it is judged: the same error, and the same designs kept, as serially."""
 
     def __init__(self, problem: Problem, criteria: tuple[str, ...], ms: tuple[int, ...],
-                 settings: Settings, designs: dict, approx: dict | None,
+                 settings: Settings, designs: dict, approx: dict, missing: Sequence[Aim],
                  extra_starts: ExtraStarts | None, on_design: Callable | None, progress: Callable | None,
                  on_better: Callable | None = None, later: Sequence[Aim] = ()):
         self.problem, self.settings, self.designs = problem, settings, designs
@@ -456,10 +457,7 @@ class _Pipeline:
         self.on_better = on_better
         self.ref = parallel.ProblemRef.of(problem)
         steps, pool = settings.bound_steps, settings.bound_pool
-        self.approx, missing = computed(problem, [a for a in aims(problem, criteria, ms) if a not in approx],
-                                        steps, pool)
-        self.approx.update(approx)
-        missing = [a for a in missing if a not in self.later]
+        self.approx = dict(approx)  # made already; ``missing``: computed on the workers
         self.todo = [_Starts(c, m, plans, [SEEDED] * len(plans))
                      for m in ms for c in criteria if (c, m) not in designs
                      for plans in [seeded_plans(problem, c, m, settings.seeded(c))]]

@@ -89,8 +89,9 @@ def test_a_one_start_solve_spreads_the_searches_over_the_workers_to_the_same_des
     monkeypatch.setattr(campaign, "APPROXIMATE", campaign.APPROXIMATE.empty())
     told = []
     with ProcessExecutor(2) as ex:
-        assert campaign._to_spread(paper, ("test-pose",), (1,), settings, {}, ex, {}) == [("test-pose", 0)]
-        assert campaign._to_spread(paper, ("test-pose", "D"), (1,), settings, {}, ex, {}) == []
+        one, two = [("test-pose", 0)], [("test-pose", 0), ("D", 0)]
+        assert campaign._to_spread(one, ("test-pose",), (1,), settings, {}, ex.slots) == one
+        assert campaign._to_spread(two, ("test-pose", "D"), (1,), settings, {}, ex.slots) == []
         spread = campaign.run_campaign(paper, ["test-pose"], [1], settings, executor=ex, on_better=told.append)
     first = told[0]
     assert (first.returned, first.total, first.bound, first.running) == (1, None, None, ())
