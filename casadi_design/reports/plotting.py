@@ -69,40 +69,94 @@ class Band:
         return cls(crit.legend, crit.style, design.scores.rms_error_m)
 
 
+#: Font size of the labels of the maxima (pt).
+PEAK_FONTSIZE = 8.5
+
+
+def label_maxima(ax: Axes, peaks: list[tuple[float, float, str]],
+                 bars: list[tuple[float, float, float]] | None = None) -> None:
+    """Label each series' maximum ``(x, y, colour)`` (data units) with its value, the highest
+    first, just above it (lines: to its right, or left at the right edge) and above the
+    ``bars`` ``(left, right, top)`` under it; a label that
+    would cover one placed before goes below its point (lines, when it stays above ``y = 0``,
+    the target line; in a bar it would be unreadable) or else up, until it is clear. Sizes are
+    estimated from the axes' size and limits when called (set the limits first), so the
+    labels of nearly equal maxima do not print over each other."""
+    fig = ax.get_figure()
+    box = ax.get_position()
+    size = np.array([box.width * fig.get_figwidth(), box.height * fig.get_figheight()]) * 72  # pt
+    low, span = np.array([ax.get_xlim()[0], ax.get_ylim()[0]]), np.array([np.ptp(ax.get_xlim()), np.ptp(ax.get_ylim())])
+    h, gap = 1.25 * PEAK_FONTSIZE, 3.0
+    zero = -low[1] / span[1] * size[1]  # y = 0 (pt)
+    placed: list[tuple[float, float, float, float]] = []  # left, bottom, right, top (pt)
+
+    def covered(left: float, bottom: float, w: float) -> list[float]:
+        """The tops of the labels placed that the box (left, bottom, w, h) would cover."""
+        return [t for l, b, r, t in placed if left < r and l < left + w and bottom < t and b < bottom + h]
+
+    def free(left: float, bottom: float, w: float) -> bool:
+        return not covered(left, bottom, w)
+
+    for x, y, colour in sorted(peaks, key=lambda p: -p[1]):
+        text = f"{y:.3f}"
+        px, py = (np.array([x, y]) - low) / span * size
+        w = 0.6 * PEAK_FONTSIZE * len(text)
+        left = px - w / 2 if bars is not None else px + gap if px + gap + w <= size[0] else px - gap - w
+        under = [(top - low[1]) / span[1] * size[1] for x0, x1, top in bars or ()
+                 if left < (x1 - low[0]) / span[0] * size[0] and (x0 - low[0]) / span[0] * size[0] < left + w]
+        above, below = max([py, *under]) - py + gap, -gap - h
+        if free(left, py + above, w):
+            dy = above
+        elif bars is None and py + below >= zero + gap and free(left, py + below, w):
+            dy = below
+        else:
+            dy = above
+            while not free(left, py + dy, w):
+                dy = max(covered(left, py + dy, w)) - py + 1
+        placed.append((left, py + dy, left + w, py + dy + h))
+        ax.annotate(text, (x, y), textcoords="offset points", xytext=(left + w / 2 - px, dy), ha="center",
+                    va="bottom", color=colour, fontsize=PEAK_FONTSIZE)
+
+
 def draw_errors_per_pose(ax: Axes, bars: list[tuple[str, dict, np.ndarray]], ylabel: str,
-                         labels: list[str] | None = None) -> None:
+                         labels: list[str] | None = None, top: float | None = None, legend: bool = True) -> None:
     """One group per test pose (a drilling hole), one bar per series ``(label, style, values in
-    mm)``, each series' maximum labelled."""
+    mm)``, each series' maximum labelled (:func:`label_maxima`); ``top``: the upper limit of the
+    axis (mm; None: the largest value with room for the labels); ``legend`` below the axes."""
     s = len(bars[0][2])
     width = 0.8 / len(bars)
     x = np.arange(1, s + 1)
+    peaks, tops = [], []
     for i, (label, style, e) in enumerate(bars):
         at = x - 0.4 + width * (i + 0.5)
         ax.bar(at, e, width, label=label, color=style.get("color"), alpha=0.85)
         j = int(np.nanargmax(e))
-        ax.annotate(f"{e[j]:.3f}", (at[j], e[j]), textcoords="offset points", xytext=(0, 3),
-                    ha="center", color=style.get("color"), fontsize=8)
+        peaks.append((at[j], e[j], style.get("color")))
+        tops += [(a - width / 2, a + width / 2, v) for a, v in zip(at, e) if np.isfinite(v)]
     every = max(1, s // 20)  # at most ~20 tick labels
     ax.set_xticks(x[::every], (labels or [str(v) for v in x])[::every], fontsize=8)
     ax.set_xlabel("test pose (one group per pose, in file order)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3, axis="y")
-    # below the axes, in rows: the groups fill the width, so no corner is free of bars
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=min(3, len(bars)))
+    ax.set_ylim(0, 1.25 * (max(p[1] for p in peaks) if top is None else top))
+    label_maxima(ax, peaks, tops)
+    if legend:  # below the axes, in rows: the groups fill the width, so no corner is free of bars
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=min(3, len(bars)))
 
 
-def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], xlabel: str,
+def draw_error_bands(ax: Axes, x_mm: np.ndarray, bands: list[Band], xlabel: str, top: float,
                      labels: list[str] | None = None) -> None:
-    """``+/- sqrt(rho)`` (mm) around the target trajectory for each design, maxima labelled;
-    test poses off a path (``labels`` of the poses given): ``sqrt(rho)`` per pose, one group
-    per pose."""
-    bands = [d if isinstance(d, Band) else Band.of(d) for d in designs]
+    """``+/- sqrt(rho)`` (mm) around the target trajectory for each band, maxima labelled
+    (:func:`label_maxima`), the axis to ``+/- 1.25 top`` (mm); test poses off a path
+    (``labels`` of the poses given): ``sqrt(rho)`` per pose, one group per pose. No legend:
+    the figure has one for all its panels (:func:`error_bands_figure`)."""
     if labels is not None:
         draw_errors_per_pose(ax, [(b.label, b.style, b.rms_error_m * 1e3) for b in bands],
-                             r"$\sqrt{\rho}$ (mm)", labels)
+                             r"$\sqrt{\rho}$ (mm)", labels, top, legend=False)
         ax.set_xlabel("test pose: x over y (mm), in file order")
         return
     ax.axhline(0.0, color="k", lw=1.0, label="Target trajectory")
+    peaks = []
     for d in bands:
         e = d.rms_error_m * 1e3
         style = d.style
@@ -110,40 +164,42 @@ def draw_error_bands(ax: Axes, x_mm: np.ndarray, designs: list[Design | Band], x
         ax.plot(x_mm, -e, **style)
         j = int(np.argmax(e))
         ax.plot([x_mm[j]], [e[j]], "o", color=style["color"], ms=4)
-        ax.annotate(f"{e[j]:.3f}", (x_mm[j], e[j]), textcoords="offset points", xytext=(4, 4),
-                    color=style["color"], fontsize=9)
+        peaks.append((x_mm[j], e[j], style["color"]))
     ax.set_xlabel(xlabel)
     ax.set_ylabel(r"$\pm\sqrt{\rho}$ (mm)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.set_ylim(-1.25 * top, 1.25 * top)
+    label_maxima(ax, peaks)
+
+
+def error_bands_figure(position_m: np.ndarray, panels: list[tuple[str, list[Design | Band]]]) -> Figure:
+    """Panels ``(title, bands)`` of error bands (:func:`draw_error_bands`) on one scale, the
+    largest error of them all, with one legend below them."""
+    x, xlabel = path_coordinate(position_m)
+    panels = [(title, [b if isinstance(b, Band) else Band.of(b) for b in bands]) for title, bands in panels]
+    fig = Figure(figsize=(5.5 * len(panels) if len(panels) > 1 else 6.5, 5.0), layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    top = max(float(np.max(b.rms_error_m)) for _, bands in panels for b in bands) * 1e3
+    labels = None if is_path(position_m) else pose_labels(position_m)
+    for ax, (title, bands) in zip(axes, panels):
+        draw_error_bands(ax, x, bands, xlabel, top, labels)
+        ax.set_title(title)
+    handles, names = axes[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="outside lower center", ncol=min(len(names), 3 if len(panels) == 1 else 4),
+               fontsize=8)
+    return fig
 
 
 def fig1(position_m: np.ndarray, designs: list[Design], m_values: list[int]) -> Figure:
     """The paper's Fig. 1: one panel per m, the error bands of every criterion's plan."""
-    x, xlabel = path_coordinate(position_m)
-    fig = Figure(figsize=(5.5 * len(m_values), 4.5), layout="constrained")
-    axes = fig.subplots(1, len(m_values), squeeze=False)[0]
-    top = max(d.scores.max_rms_error_m for d in designs if d.m in m_values) * 1e3
-    on_path = is_path(position_m)
-    labels = None if on_path else pose_labels(position_m)
-    for ax, m, letter in zip(axes, m_values, "abcdefghij"):
-        draw_error_bands(ax, x, [d for d in designs if d.m == m], xlabel, labels)
-        ax.set_ylim(-1.25 * top if on_path else 0, 1.25 * top)
-        ax.set_title(f"({letter}) {m} calibration experiment{'s' if m > 1 else ''}")
-    return fig
+    return error_bands_figure(position_m, [
+        (f"({letter}) {m} calibration experiment{'s' if m > 1 else ''}", [d for d in designs if d.m == m])
+        for m, letter in zip(m_values, "abcdefghij")])
 
 
 def bands_figure(position_m: np.ndarray, bands: list[Design | Band], title: str) -> Figure:
     """One panel of error bands, e.g. a user's plan against the optimal plans of the same m."""
-    x, xlabel = path_coordinate(position_m)
-    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
-    ax = fig.subplots()
-    on_path = is_path(position_m)
-    draw_error_bands(ax, x, bands, xlabel, None if on_path else pose_labels(position_m))
-    top = max(float(np.max((b if isinstance(b, Band) else Band.of(b)).rms_error_m)) for b in bands) * 1e3
-    ax.set_ylim(-1.25 * top if on_path else 0, 1.25 * top)
-    ax.set_title(title)
-    return fig
+    return error_bands_figure(position_m, [(title, bands)])
 
 
 def draw_max_error_vs_m(ax: Axes, sweep: Sweep, log: bool = False) -> None:
