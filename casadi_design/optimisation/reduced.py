@@ -48,7 +48,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf, dtrtri
 
 from ..model.build import Problem, per_model
-from ..model.compiled import compiled
+from ..model.compiled import compiled_group
 from ..measures.criteria import CRITERIA
 from ..measures.objectives import EpigraphRows, Local, Objective
 from ..model.rules import CollisionRows
@@ -281,8 +281,8 @@ class ReducedNLP:
         """The functions of :class:`ExperimentFunctions`, compiled (:mod:`casadi_design.model.compiled`),
         mapped over the experiments (pairs)."""
         f, P = self.fns, len(self.pairs)
-        out = {"values": compiled(f.values).map(self.m), "first": compiled(f.first).map(self.m),
-               "second": compiled(f.second).map(self.m)}
+        values, first, second = compiled_group([f.values, f.first, f.second])  # built side by side
+        out = {"values": values.map(self.m), "first": first.map(self.m), "second": second.map(self.m)}
         if P:
             out.update(pair=f.pair.map(P), pair_first=f.pair_first.map(P),
                        pair_second=f.pair_second.map(P))
