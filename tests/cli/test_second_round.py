@@ -116,7 +116,8 @@ def test_a_solve_reads_each_measured_file_once_and_builds_its_problem_once(paper
     monkeypatch.setattr(build, "build_problem", lambda spec: built.append(spec.held) or problem_of(spec))
     out = tmp_path / "second"
     assert main(["solve", str(GEOMETRIC), "--m", "1", "--criteria", "D", "--measured", str(first),
-                 "--measured", str(tmp_path / "meas.csv"), "--program", "json", "--out", str(out), *TINY]) == 0
+                 "--measured", str(tmp_path / "meas.csv"), "--program", "json", "--out", str(out), *TINY,
+                 "--starts", "1", "--bound-steps", "0"]) == 0
     capsys.readouterr()
     assert read == [str(first), str(tmp_path / "meas.csv")]
     assert [held is None for held in built] == [True, False] and len(built[1].q) == 4
