@@ -295,7 +295,7 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     to the largest of the file), where the starts run, where the designs are kept
     (``partial``) and whether to resume."""
     from ..execution.target import TARGET_CRITERION, default_limit
-    from ..identification.held import read_measured
+    from ..identification.measurements import read_experiments
 
     target = getattr(args, "target_mm", None)
     criteria = tuple(args.criteria or ((TARGET_CRITERION,) if target and not sweep else problem.criteria))
@@ -304,7 +304,7 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     settings = Settings.of(problem, args.starts, bound_steps=args.bound_steps, bound_pool=args.bound_pool,
                            verbose=args.verbose)
     candidates = getattr(args, "candidates", None)
-    pool = None if candidates is None else read_measured(problem, candidates)
+    pool = None if candidates is None else read_experiments(problem, candidates, ignore_unknown=True)[:2]
     return Study(problem, criteria, tuple(args.m or default_m), settings, sweep,
                  not getattr(args, "no_warm_start", False), args.jobs, args.dask_scheduler, partial,
                  getattr(args, "resume", False), None if target is None else target * 1e-3, pool)

@@ -22,7 +22,8 @@ DESCRIPTION = ("Score a plan given as CSV (one row per experiment) with every me
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help=HELP, description=DESCRIPTION)
     p.add_argument("problem", help="problem file (TOML) the plan is for")
-    p.add_argument("--plan", required=True, metavar="CSV", help="the plan, one row per experiment")
+    p.add_argument("--plan", required=True, metavar="CSV", help="the plan, one row per experiment: a plan CSV, or a measurement CSV (its joint and "
+                        "load columns; FIGAROH's layout as identify reads it)")
     p.add_argument("--compare", metavar="RESULTS",
                    help="results.json or sweep.json (or its folder): add the optimal plans with the "
                         "same m as columns")
@@ -40,15 +41,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..model.cell import clearances
-    from ..records.export import read_plan_file, read_plan_table
+    from ..identification.measurements import read_experiments
     from ..records.results import design_from_record, experiment_records
     from ..plan.rules import plan_violations
     from ..optimisation.solve import plan_scores
 
     out = common.output_folder(args, "evaluate")
     problem = common.load(args, check_solver=False)
-    plan = read_plan_file(args.plan)
-    Q, F, _, _ = read_plan_table(problem, plan)
+    Q, F, plan = read_experiments(problem, args.plan, limits=False)  # outside the limits: told below
     if problem.m_held:  # a campaign's plan CSV: its measured rows are those of --measured
         new = ~plan.measured
         Q, F = Q[new], F[new]

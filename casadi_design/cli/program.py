@@ -63,15 +63,13 @@ def home_pose(problem, text: str | None) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..records.export import check_joint_limits, read_plan_file, read_plan_table
+    from ..identification.measurements import read_experiments
     from ..program.formats import FILES, check_format, program_text
     from ..program.sequence import make_program
 
     out = common.output_folder(args, "program")
     problem = common.load(args, check_solver=False)
-    plan = read_plan_file(args.plan)
-    Q, F, _, lines = read_plan_table(problem, plan)  # a plan of another robot names the plan
-    check_joint_limits(problem, plan, Q, lines)
+    Q, F, plan = read_experiments(problem, args.plan)  # a plan of another robot names the plan
     new = ~plan.measured  # a campaign's measured experiments are not measured again
     Q, F = Q[new], F[new]
     check_format(problem, args.format)

@@ -13,29 +13,7 @@ import numpy as np
 from ..errors import ProblemError
 from ..model.build import Problem
 from ..model.problem import HeldSpec
-from ..records.export import check_joint_limits, read_plan_file, read_plan_table
-from .measurements import read_measurements
-
-
-def read_measured(problem: Problem, path: str) -> tuple[np.ndarray, np.ndarray]:
-    """The experiments of a plan or measurement CSV: ``Q`` (k, n), rad (m), and ``F`` (k, nF),
-    N (N m); the joint and load columns are read, the others ignored. A file whose joints are
-    named without a unit (FIGAROH's layout) is read as ``identify`` reads it
-    (:func:`~.measurements.read_measurements`: rad and m, coordinates required).
-
-    Raises
-    ------
-    ProblemError
-        A file that is not a plan of this robot, or a joint value outside the joint limits (one
-        line naming the row and column).
-    """
-    plan = read_plan_file(path)
-    if any(j in plan.header for j in problem.robot.joints):
-        meas = read_measurements(problem, plan)
-        return meas.Q, meas.F
-    Q, F, _, lines = read_plan_table(problem, plan, ignore_unknown=True)
-    check_joint_limits(problem, plan, Q, lines)
-    return Q, F
+from .measurements import read_experiments
 
 
 def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray]:
@@ -80,7 +58,7 @@ def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -
         return None
     Q, F = np.zeros((0, problem.robot.n)), np.zeros((0, problem.model.nF))
     for path in measured or []:
-        q, f = read_measured(problem, path)
+        q, f, _ = read_experiments(problem, path, ignore_unknown=True)
         Q, F = np.vstack([Q, q]), np.vstack([F, f])
     names, C = ((), None) if prior is None else read_prior(problem, prior)
     return HeldSpec(tuple(map(tuple, Q.tolist())), tuple(map(tuple, F.tolist())), names,

@@ -346,6 +346,33 @@ def read_measurements(problem: Problem, path: PlanFile | str, fmt: FileFormat = 
     return Measurements(path, tuple(lines), Q, F, P, tuple(notes))
 
 
+def read_experiments(problem: Problem, path: PlanFile | str, *, limits: bool = True,
+                     ignore_unknown: bool = False) -> tuple[np.ndarray, np.ndarray, PlanFile]:
+    """The experiments of a plan or a measurement CSV (its path, or the file already read):
+    ``Q`` (k, n), rad (m), ``F`` (k, nF), N (N m), and the file as read (its ``measured``
+    column). A file whose joints are named without a unit (FIGAROH's layout, real data) is read
+    as ``identify`` reads it (:func:`read_measurements`: rad and m, the measured coordinates
+    required, readings up to :data:`LIMIT_TOLERANCE` past a joint limit accepted); a plan's
+    joint values outside the joint limits are refused with ``limits``
+    (:func:`~casadi_design.records.export.check_joint_limits`), and its unknown columns unless
+    ``ignore_unknown``.
+
+    Raises
+    ------
+    ProblemError
+        The errors of :func:`~casadi_design.records.export.read_plan_table` and
+        :func:`read_measurements` (one line naming the file, row and column).
+    """
+    plan = path if isinstance(path, PlanFile) else read_plan_file(path)
+    if any(j in plan.header for j in problem.robot.joints):
+        meas = read_measurements(problem, plan)
+        return meas.Q, meas.F, plan
+    Q, F, _, lines = read_plan_table(problem, plan, ignore_unknown=ignore_unknown)
+    if limits:
+        check_joint_limits(problem, plan, Q, lines)
+    return Q, F, plan
+
+
 def _plan_columns(problem: Problem) -> set[str]:
     """The names of a plan's own columns (joints in every unit, loads, bookkeeping)."""
     from ..records.export import CLEARANCE_COLUMNS, POSITION_COLUMNS, force_columns

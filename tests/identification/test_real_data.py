@@ -135,3 +135,25 @@ def test_a_guess_too_far_names_the_key_and_the_located_point(tmp_path, capsys):
                  "--out", str(tmp_path / "out"), "--limit-tolerance", "10"]) == 2
     err = capsys.readouterr().err
     assert "cannot be registered" in err and "[robot].tool_xyz_m = [" in err and err.count("\n") == 1
+
+
+def test_evaluate_and_program_take_the_measured_postures_as_their_plan(tiago, tmp_path, capsys):
+    """The postures of the training file (FIGAROH's layout: bare joint names) are a plan for
+    evaluate and program, read as identify reads them (the same Q, to the bit): evaluate lists
+    the torso reading 0.18 mm past its limit among the broken constraints; program visits every
+    posture of the file's first rows."""
+    import json
+
+    problem, training, _ = tiago
+    assert main(["evaluate", str(PROBLEM), "--plan", str(TRAINING)]) == 0
+    out = capsys.readouterr().out
+    assert f"plan {TRAINING}: 37 experiments" in out
+    assert "experiment 3: torso_lift_joint = 0.350181 outside [0, 0.35]" in out
+    first = tmp_path / "first.csv"  # the header and 4 postures (a program's time grows with its moves)
+    first.write_text("\n".join(TRAINING.read_text().splitlines()[:5]) + "\n")
+    assert main(["program", str(PROBLEM), "--plan", str(first), "--format", "json", "--out",
+                 str(tmp_path / "program"), "--quiet"]) == 0
+    record = json.loads((tmp_path / "program" / "program.json").read_text())
+    visits = {p["experiment"]: p["positions"] for p in record["points"] if p["experiment"]}
+    assert sorted(visits) == [1, 2, 3, 4]
+    np.testing.assert_array_equal([visits[k] for k in range(1, 5)], training.Q[:4])
