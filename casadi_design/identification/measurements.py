@@ -25,7 +25,8 @@ import pinocchio as pin
 
 from ..model.build import Problem
 from ..errors import ProblemError
-from ..records.export import PlanFile, check_joint_limits, is_prismatic, joint_units, read_plan_file, read_plan_table
+from ..records.export import (LIMIT_TOL, PlanFile, check_joint_limits, is_prismatic, joint_units, read_plan_file,
+                              read_plan_table)
 
 #: The position components a tracker measures, in the order of the columns.
 AXES = ("x", "y", "z")
@@ -350,10 +351,11 @@ def read_experiments(problem: Problem, path: PlanFile | str, *, limits: bool = T
                      ignore_unknown: bool = False) -> tuple[np.ndarray, np.ndarray, PlanFile]:
     """The experiments of a plan or a measurement CSV (its path, or the file already read):
     ``Q`` (k, n), rad (m), ``F`` (k, nF), N (N m), and the file as read (its ``measured``
-    column). A file whose joints are named without a unit (FIGAROH's layout, real data) is read
-    as ``identify`` reads it (:func:`read_measurements`: rad and m, the measured coordinates
-    required, readings up to :data:`LIMIT_TOLERANCE` past a joint limit accepted); a plan's
-    joint values outside the joint limits are refused with ``limits``
+    column). A file whose joints are named without a unit (real data) is read in rad and m:
+    with measured coordinates (FIGAROH's layout, ``meas...`` columns) as ``identify`` reads it
+    (:func:`read_measurements`), without them as a list of postures (a controller's log), its
+    other columns ignored; there readings up to :data:`LIMIT_TOLERANCE` past a joint limit are
+    accepted. A plan's joint values outside the joint limits are refused with ``limits``
     (:func:`~casadi_design.records.export.check_joint_limits`), and its unknown columns unless
     ``ignore_unknown``.
 
@@ -364,12 +366,15 @@ def read_experiments(problem: Problem, path: PlanFile | str, *, limits: bool = T
         :func:`read_measurements` (one line naming the file, row and column).
     """
     plan = path if isinstance(path, PlanFile) else read_plan_file(path)
-    if any(j in plan.header for j in problem.robot.joints):
+    header, joints = plan.header, problem.robot.joints
+    bare = any(j in header for j in joints)
+    if bare and (_figaroh(header) or any(h.startswith("meas") for h in header)):
         meas = read_measurements(problem, plan)
         return meas.Q, meas.F, plan
-    Q, F, _, lines = read_plan_table(problem, plan, ignore_unknown=ignore_unknown)
-    if limits:
-        check_joint_limits(problem, plan, Q, lines)
+    rename = {j: f"{j}_{joint_units(problem, k)[0]}" for k, j in enumerate(joints) if bare}
+    Q, F, _, lines = read_plan_table(problem, plan, rename=rename, ignore_unknown=ignore_unknown or bare)
+    if limits or bare:
+        check_joint_limits(problem, plan, Q, lines, LIMIT_TOLERANCE if bare else LIMIT_TOL, rename)
     return Q, F, plan
 
 

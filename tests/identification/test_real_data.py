@@ -15,7 +15,7 @@ from casadi_design.cli.identify import load_without_cell
 from casadi_design.errors import ProblemError
 from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.lsq import LOSSES
-from casadi_design.identification.measurements import FileFormat, read_measurements
+from casadi_design.identification.measurements import FileFormat, read_experiments, read_measurements
 
 DATA = Path(__file__).parents[1] / "data" / "tiago_mocap"
 PROBLEM = DATA / "tiago_mocap.toml"
@@ -141,7 +141,8 @@ def test_evaluate_and_program_take_the_measured_postures_as_their_plan(tiago, tm
     """The postures of the training file (FIGAROH's layout: bare joint names) are a plan for
     evaluate and program, read as identify reads them (the same Q, to the bit): evaluate lists
     the torso reading 0.18 mm past its limit among the broken constraints; program visits every
-    posture of the file's first rows."""
+    posture of the file's first rows. Its joint columns alone (a controller's log of the
+    postures, without coordinates) are the same plan."""
     import json
 
     problem, training, _ = tiago
@@ -157,3 +158,12 @@ def test_evaluate_and_program_take_the_measured_postures_as_their_plan(tiago, tm
     visits = {p["experiment"]: p["positions"] for p in record["points"] if p["experiment"]}
     assert sorted(visits) == [1, 2, 3, 4]
     np.testing.assert_array_equal([visits[k] for k in range(1, 5)], training.Q[:4])
+    rows = [line.split(",") for line in TRAINING.read_text().splitlines()]
+    joints = [rows[0].index(j) for j in problem.robot.joints]
+    log = tmp_path / "log.csv"
+    log.write_text("\n".join(",".join(r[c] for c in joints) for r in rows) + "\n")
+    Q, F, _ = read_experiments(problem, str(log), limits=False)
+    np.testing.assert_array_equal(Q, training.Q)
+    capsys.readouterr()
+    assert main(["evaluate", str(PROBLEM), "--plan", str(log)]) == 0
+    assert "experiment 3: torso_lift_joint = 0.350181 outside [0, 0.35]" in capsys.readouterr().out
