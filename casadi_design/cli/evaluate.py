@@ -22,7 +22,8 @@ DESCRIPTION = ("Score a plan given as CSV (one row per experiment) with every me
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help=HELP, description=DESCRIPTION)
     p.add_argument("problem", help="problem file (TOML) the plan is for")
-    p.add_argument("--plan", required=True, metavar="CSV", help="the plan, one row per experiment: a plan CSV, a measurement CSV (its joint and "
+    p.add_argument("--plan", required=True, metavar="CSV",
+                   help="the plan, one row per experiment: a plan CSV, a measurement CSV (its joint and "
                         "load columns; FIGAROH's layout as identify reads it) or bare joint columns "
                         "in rad and m (a controller's log)")
     p.add_argument("--compare", metavar="RESULTS",

@@ -213,7 +213,7 @@ class PlanFile:
     def measured(self) -> np.ndarray:
         """Which rows are marked measured (the ``measured`` column says ``yes``: the
         experiments of a campaign measured before its plan); none without the column."""
-        header, body = _csv_cells(self.lines[0][1]), self.lines[1:]
+        header, body = self.header, self.lines[1:]
         if MEASURED_COLUMN not in header:
             return np.zeros(len(body), dtype=bool)
         c = header.index(MEASURED_COLUMN)
@@ -243,8 +243,9 @@ def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[
                     ignore_unknown: bool = False,
                     ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[int]]:
     """A plan from a CSV file (its path, or the :class:`PlanFile` already read): ``Q`` shape
-    (m, n), rad (m); ``F`` shape (m, nF), N (N m); the ``extra`` columns that are present (e.g. measured coordinates), as floats with NaN for
-    empty cells; and the line of the file of each row (1-based). ``extra_hint`` names the extra
+    (m, n), rad (m); ``F`` shape (m, nF), N (N m); the ``extra`` columns that are present (e.g.
+    measured coordinates), as floats with NaN for empty cells; and the line of the file of each
+    row (1-based). ``extra_hint`` names the extra
     columns in the message on an unknown column. ``rename`` maps a column as the file spells it
     to the name read here (messages keep the file's spelling); with ``ignore_unknown`` other
     columns are skipped instead of refused (:attr:`PlanFile.header` tells which).

@@ -85,7 +85,8 @@ def label_maxima(ax: Axes, peaks: list[tuple[float, float, str]],
     fig = ax.get_figure()
     box = ax.get_position()
     size = np.array([box.width * fig.get_figwidth(), box.height * fig.get_figheight()]) * 72  # pt
-    low, span = np.array([ax.get_xlim()[0], ax.get_ylim()[0]]), np.array([np.ptp(ax.get_xlim()), np.ptp(ax.get_ylim())])
+    limits = np.array([ax.get_xlim(), ax.get_ylim()])  # [[x0, x1], [y0, y1]]
+    low, span = limits[:, 0], limits[:, 1] - limits[:, 0]
     h, gap = 1.25 * PEAK_FONTSIZE, 3.0
     zero = -low[1] / span[1] * size[1]  # y = 0 (pt)
     placed: list[tuple[float, float, float, float]] = []  # left, bottom, right, top (pt)
