@@ -49,7 +49,7 @@ class Program:
     ``points`` in program order (from home, back home); ``paths[i]`` leads to the i-th
     experiment of ``order`` (the last one back home); ``measure_s`` the measuring time per
     experiment; ``time_s`` / ``file_time_s``: the time of the program and of the plan's
-    file order with its own safe moves (inf: one cannot be made safe), s; ``file_straight_s``: the file order as straight
+    file order with its own safe moves, s; ``file_straight_s``: the file order as straight
     moves, ``file_blocked`` of which break the clearance; ``load_changes`` /
     ``file_load_changes`` likewise.
     """
@@ -92,16 +92,19 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
                  measure_s: float) -> Program:
     """The program of the plan ``Q`` (m, n), rad, ``F`` (m, nF), N, from and back to ``home``
     (n,), rad, measuring ``measure_s`` seconds per experiment; each experiment in the
-    configuration of its pose (:func:`turns`) that home reaches first by a clear move.
+    configuration of its pose (:func:`turns`) that home reaches first by a clear move, else by
+    a detour; a move between two experiments that no detour of its own makes safe goes
+    through home.
 
     Raises
     ------
     ProblemError
         ``home`` outside the joint limits or in collision.
     DesignError
-        A move for which no collision-free detour is found (the message names it).
+        An experiment that no collision-free way from home reaches (the message names it), or a
+        move whose meshes touch.
     """
-    Q, home = np.asarray(Q, dtype=float), np.asarray(home, dtype=float)
+    Q, home = np.array(Q, dtype=float), np.asarray(home, dtype=float)  # (Q a copy: its turns are set below)
     m = len(Q)
     why = home_problems(problem, home)
     if why:
@@ -109,26 +112,31 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     times = time_model(problem)
     search = MoveSearch(problem, times, np.vstack([home, Q]))
     # each experiment as the configuration of its pose that home reaches by the fastest clear move
-    # (a wrist turned the long way round may sweep past the forearm): home is then a way between any two
-    Q = np.array([next((c for c in turns(problem, q, home) if not search.blocked(home, c)), q) for q in Q])
+    # (a wrist turned the long way round may sweep past the forearm), else the first that a
+    # detour from home reaches: home is then a way between any two
+    paths: dict[tuple[int, int], Route] = {}
+    for k, q in enumerate(Q, start=1):
+        options = turns(problem, q, home)
+        clear = next((c for c in options if not search.blocked(home, c)), None)
+        if clear is None:
+            paths[0, k] = _reached(search, home, options, k)
+            paths[k, 0] = paths[0, k].reversed()
+        Q[k - 1] = paths[0, k].points[-1] if clear is None else clear
     nodes = np.vstack([home, Q])
     search.anchors = nodes
     straight = times.time_matrix(nodes)
     T = straight.copy()
+    for (i, j), path in paths.items():
+        T[i, j] = path.time_s
     tol = LOAD_RTOL * (problem.force.magnitude_N if problem.force is not None else 1.0)
     changes = load_changes(np.asarray(F, dtype=float).reshape(m, -1), tol)
-    paths: dict[tuple[int, int], Route] = {}
-
-    def name(i: int) -> str:
-        return "home" if i == 0 else f"experiment {i}"
 
     def safe(i: int, j: int) -> Route:
         if (i, j) not in paths:
             try:
                 path = search.path(nodes[i], nodes[j])
-            except NoSafePath as exc:
-                raise DesignError(f"the move from {name(i)} to {name(j)} cannot be made safe ({exc}); "
-                                  "move that experiment or give another --home") from None
+            except NoSafePath:  # (between two experiments: the way through home is safe)
+                path = _joined(safe(i, 0), safe(0, j))
             paths[i, j] = path
             paths[j, i] = path.reversed()
             T[i, j] = T[j, i] = path.time_s
@@ -149,21 +157,36 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     final = [replace(paths[e], moves=tuple(on_meshes(problem, mv) for mv in paths[e].moves)) for e in edges(order)]
     touching = next((e for e, path in zip(edges(order), final) if any(mv.touching for mv in path.moves)), None)
     if touching is not None:
-        raise DesignError(f"the move from {name(touching[0])} to {name(touching[1])} keeps the capsules "
+        name = ["home", *(f"experiment {k}" for k in range(1, m + 1))]
+        raise DesignError(f"the move from {name[touching[0]]} to {name[touching[1]]} keeps the capsules "
                           "apart but its meshes touch; move that experiment or give another --home")
     # the file order with its own safe moves (detours only raise T off the tour: the order stays optimal)
     file_order = tuple(range(1, m + 1))
     file_blocked = sum(search.blocked(nodes[i], nodes[j]) for i, j in edges(file_order))
-    try:
-        for i, j in edges(file_order):
-            safe(i, j)
-        file_safe = tour_cost(T, file_order) + m * measure_s
-    except DesignError:  # a move of the file order that no detour makes safe: it cannot run
-        file_safe = np.inf
-    file_time = (file_safe, tour_cost(straight, file_order) + m * measure_s)
+    for i, j in edges(file_order):
+        safe(i, j)
+    file_time = (tour_cost(T, file_order) + m * measure_s, tour_cost(straight, file_order) + m * measure_s)
     return _assemble(problem, Q, np.asarray(F, dtype=float).reshape(m, -1), nodes, order,
                      final, changes, times, measure_s, file_time,
                      int(sum(changes[i, j] for i, j in edges(file_order))), file_blocked)
+
+
+def _reached(search: MoveSearch, home: np.ndarray, options: list[np.ndarray], k: int) -> Route:
+    """The detour from ``home`` to the first of ``options`` (the configurations of experiment
+    ``k``'s pose, :func:`turns`) that one reaches. Raises :class:`DesignError` when none does."""
+    for c in options:
+        try:
+            return search.path(home, c)
+        except NoSafePath as exc:
+            why = exc
+    raise DesignError(f"experiment {k} cannot be reached from home: no collision-free way to any of the "
+                      f"{len(options)} configurations of its pose (its periodic joints' whole turns; the last: {why}); "
+                      "move that experiment or give another --home")
+
+
+def _joined(a: Route, b: Route) -> Route:
+    """The route ``a`` then ``b`` (``b`` starts where ``a`` ends)."""
+    return Route(a.points + b.points[1:], a.moves + b.moves, a.time_s + b.time_s)
 
 
 def _assemble(problem, Q, F, nodes, order, paths, changes, times, measure_s, file_time, file_changes,

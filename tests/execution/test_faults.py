@@ -78,6 +78,7 @@ def test_a_killed_worker_is_replaced_and_its_starts_give_the_same_design(paper, 
     _same(again, serial)
 
 
+@pytest.mark.slow  # 3 s: a worker killed again after its replacement; one kill, replaced, runs by default
 def test_a_worker_killed_twice_names_the_design_the_signal_and_what_is_kept(tmp_path, kill_at_m, capsys):
     kill_at_m(2)
     out = tmp_path / "sweep"

@@ -284,15 +284,27 @@ def test_plan_of_another_robot_and_bad_controller_are_refused(abb, tmp_path, cap
     assert "--format urscript: the controller drives 6 joints, the robot has 2" in capsys.readouterr().err
 
 
-def test_move_that_cannot_be_made_safe_is_named(abb, tmp_path, capsys, monkeypatch):
+def test_a_move_without_a_detour_goes_through_home_and_an_experiment_home_cannot_reach_is_named(abb, tmp_path,
+                                                                                               capsys, monkeypatch):
+    """No detour may be tried: the move between the two experiments beside the table (the
+    straight one crosses it) goes through home, whose straight moves to both are clear; with
+    the first as home, the second cannot be reached (any turn of its wrist): one line naming
+    it, nothing written."""
     qa, qb = _mirrored(ABB_BESIDE_TABLE_DEG)
-    monkeypatch.setattr(detours, "MAX_CHECKS", 0)  # no detour may be tried
+    monkeypatch.setattr(detours, "MAX_CHECKS", 0)
     monkeypatch.setattr(detours, "RRT_ITERATIONS", 0)
-    plan = _plan_csv(tmp_path / "plan.csv", abb, np.vstack([qa, qb]))
+    home = np.array(abb.spec.test_poses.seed_q_rad)
+    program = make_program(abb, np.vstack([qa, qb]), np.zeros((2, 3)), home, 1.0)
+    (between,) = [path for path in program.paths if path.vias]
+    assert len(between.points) == 3 and np.array_equal(between.points[1], home)
+    assert all(not mv.blocked for path in program.paths for mv in path.moves)
+    plan = _plan_csv(tmp_path / "plan.csv", abb, qb[None])
     out = tmp_path / "out"
-    assert main(["program", str(ABB), "--plan", plan, "--format", "krl", "--out", str(out), "--quiet"]) == 2
+    at = ",".join(f"{v:g}" for v in ABB_BESIDE_TABLE_DEG)
+    assert main(["program", str(ABB), "--plan", plan, f"--home={at}", "--format", "krl", "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert re.search(r"error: the move from experiment [12] to experiment [12] cannot be made safe", err)
+    assert re.fullmatch(r"error: experiment 1 cannot be reached from home: no collision-free way to any of the \d+ "
+                        r"configurations of its pose .*; move that experiment or give another --home\n", err)
     assert not out.exists()
 
 
