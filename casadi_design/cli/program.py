@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import DesignError
 from ..records.files import write_atomic
 from . import common
 
@@ -118,7 +119,12 @@ def write_programs(out: Path, problem, designs, fmt: str) -> list[str]:
     names = []
     for d in designs:
         name = f"programs/{d.criterion}_m{d.m}{Path(FILES[fmt]).suffix}"
-        program = make_program(problem, d.Q, d.F, home_pose(problem, None), MEASURE_S)
+        try:
+            program = make_program(problem, d.Q, d.F, home_pose(problem, None), MEASURE_S)
+        except DesignError as exc:
+            raise DesignError(f"{exc} (the {d.criterion} plan of m = {d.m}); the results and plans are written "
+                              f"in {out}: casadi-design program takes plans/{d.criterion}_m{d.m}.csv with another "
+                              "--home") from None
         write_atomic(out / name, program_text(problem, program, fmt, f"plans/{d.criterion}_m{d.m}.csv").encode())
         names.append(name)
     return names

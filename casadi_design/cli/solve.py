@@ -63,10 +63,10 @@ def run(args: argparse.Namespace) -> int:
     if out:
         with writing(study):
             files = write_solve(out, problem, done, fig_m)
-            if args.program:
-                from .program import write_programs
+        if args.program:  # (the results are written: a plan that cannot be programmed says so)
+            from .program import write_programs
 
-                files += write_programs(out, problem, designs, args.program)
+            files += write_programs(out, problem, designs, args.program)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {len(designs)} plans in {out / 'plans'}")
     return 0

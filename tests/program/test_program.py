@@ -16,6 +16,7 @@ import yaml
 
 from casadi_design.model.build import load_problem
 from casadi_design.cli import main
+from casadi_design.errors import DesignError
 from casadi_design.program import detours
 from casadi_design.program.formats import FILES, controller, program_text
 from casadi_design.program.moves import check_move, move_rules
@@ -388,3 +389,23 @@ def test_solve_refuses_a_program_format_before_it_solves(tmp_path, capsys, fmt, 
     captured = capsys.readouterr()
     assert re.search(match, captured.err) and captured.err.count("\n") == 1
     assert "max over test poses" not in captured.out and not (out / "results.json").exists()
+
+
+def test_a_plan_that_cannot_be_programmed_leaves_the_results_written_and_says_so(tmp_path, capsys, monkeypatch):
+    """solve --program: the results, figures and plans are written (no partial file left)
+    before the programs; a plan that cannot be programmed (here every move refused) is one line
+    naming it, the folder, and the command that tries another home."""
+    from casadi_design.program import sequence
+
+    def refused(problem, Q, F, home, measure_s):
+        raise DesignError("experiment 1 cannot be reached from home: refused here")
+
+    monkeypatch.setattr(sequence, "make_program", refused)
+    out = tmp_path / "out"
+    assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--criteria", "D",
+                 "--quiet", "--program", "json", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: experiment 1 cannot be reached from home: refused here (the D plan of m = 1); the results "
+                   f"and plans are written in {out}: casadi-design program takes plans/D_m1.csv with another --home\n")
+    assert json.loads((out / "results.json").read_text())["designs"][0]["m"] == 1
+    assert (out / "plans" / "D_m1.csv").exists() and not (out / "solve.partial.json").exists()
