@@ -195,18 +195,27 @@ class MoveSearch:
 
     def path(self, qa: np.ndarray, qb: np.ndarray) -> Route:
         """The straight move when it keeps the clearance, else the fastest detour found
-        (lazy shortest path: the fastest path through the candidates is checked move by move,
-        a blocked move removed, until a path is clear). Raises :class:`NoSafePath`."""
+        (:meth:`path_to`). Raises :class:`NoSafePath`."""
         qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
         if not self.blocked(qa, qb):
             return Route((qa, qb), (self.move(qa, qb),), self.times.move_time(qa, qb))
-        nodes = np.vstack([qa, qb, self.lifted(qa, qb), self.mixed(qa, qb), self.toward_home(qa, qb), self.anchors,
-                           self.global_vias, self.local_vias(qa, qb)])
+        return self.path_to(qa, [qb])
+
+    def path_to(self, qa: np.ndarray, goals: list[np.ndarray]) -> Route:
+        """The fastest detour found from ``qa`` to any of ``goals`` (the configurations of one
+        pose, the first preferred: its candidates are offered; their straight moves from
+        ``qa`` are not tried): a lazy shortest path through the via candidates (the fastest path
+        is checked move by move, a blocked move removed, until a path is clear), else
+        RRT-Connect towards every goal at once. Raises :class:`NoSafePath`."""
+        qa, goals = np.asarray(qa, dtype=float), [np.asarray(g, dtype=float) for g in goals]
+        qb, G = goals[0], len(goals)
+        nodes = np.vstack([qa, *goals, self.lifted(qa, qb), self.mixed(qa, qb), self.toward_home(qa, qb),
+                           self.anchors, self.global_vias, self.local_vias(qa, qb)])
         T = self.times.time_matrix(nodes)
         blocked = np.zeros(T.shape, dtype=bool)
-        blocked[0, 1] = blocked[1, 0] = True
+        blocked[0, 1:1 + G] = blocked[1:1 + G, 0] = True
         for _ in range(MAX_CHECKS):
-            route = _shortest(np.where(blocked, np.inf, T), 0, 1)
+            route = _shortest(np.where(blocked, np.inf, T), 0, range(1, 1 + G))
             if route is None:
                 break
             legs = list(itertools.pairwise(route))
@@ -215,22 +224,24 @@ class MoveSearch:
                 return Route(tuple(nodes[route]), tuple(self.move(nodes[i], nodes[j]) for i, j in legs),
                             float(sum(T[i, j] for i, j in legs)))
             blocked[bad] = blocked[bad[::-1]] = True
-        route = self.rrt_connect(qa, qb)
+        route = self.rrt_connect(qa, goals)
         if route is None:
-            raise NoSafePath(f"no collision-free detour among {len(nodes) - 2} via candidates nor by "
+            raise NoSafePath(f"no collision-free detour among {len(nodes) - 1 - G} via candidates nor by "
                              f"{RRT_ITERATIONS} RRT-Connect steps")
         route = self.shortcut(route)
         legs = list(itertools.pairwise(route))
         return Route(tuple(route), tuple(self.move(a, b) for a, b in legs),
                     float(sum(self.times.move_time(a, b) for a, b in legs)))
 
-    def rrt_connect(self, qa: np.ndarray, qb: np.ndarray) -> list[np.ndarray] | None:
-        """A collision-free path by RRT-Connect (Kuffner and LaValle 2000): two trees grown from
-        ``qa`` and ``qb`` towards seeded random configurations (half of them in the box of both
-        ends widened by ``RRT_BOX_RAD``, half within the joint limits) by steps
-        of at most ``RRT_STEP_RAD``, each step a checked move, until they meet."""
+    def rrt_connect(self, qa: np.ndarray, goals: list[np.ndarray]) -> list[np.ndarray] | None:
+        """A collision-free path by RRT-Connect (Kuffner and LaValle 2000) from ``qa`` to one of
+        ``goals``: two trees, one grown from ``qa``, one from every goal, towards seeded random
+        configurations (half of them in the box of ``qa`` and the first goal widened by
+        ``RRT_BOX_RAD``, half within the joint limits) by steps of at most ``RRT_STEP_RAD``,
+        each step a checked move, until they meet."""
         limits, rng = self.problem.rules.limits, np.random.default_rng(VIA_SEED)
-        trees = [([qa], [-1]), ([qb], [-1])]
+        qb = goals[0]
+        trees = [([qa], [-1]), (list(goals), [-1] * len(goals))]
 
         def extend(tree, target):
             nodes, parents = tree
@@ -279,8 +290,9 @@ class MoveSearch:
         return out
 
 
-def _shortest(W: np.ndarray, source: int, target: int) -> list[int] | None:
-    """Dijkstra on the complete graph of edge weights ``W`` (inf: no edge); the node list."""
+def _shortest(W: np.ndarray, source: int, targets: range) -> list[int] | None:
+    """Dijkstra on the complete graph of edge weights ``W`` (inf: no edge): the node list to
+    the nearest of ``targets``."""
     n = len(W)
     dist, prev, done = np.full(n, np.inf), np.full(n, -1), np.zeros(n, dtype=bool)
     dist[source] = 0.0
@@ -288,12 +300,12 @@ def _shortest(W: np.ndarray, source: int, target: int) -> list[int] | None:
         u = int(np.argmin(np.where(done, np.inf, dist)))
         if done[u] or not np.isfinite(dist[u]):
             return None
-        if u == target:
+        if u in targets:
             break
         done[u] = True
         better = ~done & (dist[u] + W[u] < dist)
         dist[better], prev[better] = dist[u] + W[u][better], u
-    route = [target]
+    route = [u]
     while route[-1] != source:
         route.append(int(prev[route[-1]]))
     return route[::-1]

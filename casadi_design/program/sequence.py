@@ -172,16 +172,15 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
 
 
 def _reached(search: MoveSearch, home: np.ndarray, options: list[np.ndarray], k: int) -> Route:
-    """The detour from ``home`` to the first of ``options`` (the configurations of experiment
-    ``k``'s pose, :func:`turns`) that one reaches. Raises :class:`DesignError` when none does."""
-    for c in options:
-        try:
-            return search.path(home, c)
-        except NoSafePath as exc:
-            why = exc
-    raise DesignError(f"experiment {k} cannot be reached from home: no collision-free way to any of the "
-                      f"{len(options)} configurations of its pose (its periodic joints' whole turns; the last: {why}); "
-                      "move that experiment or give another --home")
+    """The detour from ``home`` to one of ``options`` (the configurations of experiment ``k``'s
+    pose, :func:`turns`, none reached by a straight move). Raises :class:`DesignError` when no
+    detour reaches any of them."""
+    try:
+        return search.path_to(home, options)
+    except NoSafePath as exc:
+        raise DesignError(f"experiment {k} cannot be reached from home: no collision-free way to any of the "
+                          f"{len(options)} configurations of its pose (its periodic joints' whole turns: {exc}); "
+                          "move that experiment or give another --home") from None
 
 
 def _joined(a: Route, b: Route) -> Route:

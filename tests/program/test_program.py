@@ -155,6 +155,29 @@ def test_move_across_the_table_gets_a_via_point_and_every_move_is_safe(abb):
     assert all(mv.clearance_m >= c - 1e-6 for path in program.paths for mv in path.moves)
 
 
+def test_a_detour_to_several_goals_ends_at_one_and_rrt_connect_grows_from_them_all(abb, monkeypatch):
+    """path_to: the fastest detour found to any goal (each a configuration the caller accepts);
+    RRT-Connect (no via candidate tried here) grows its second tree from every goal, so a goal
+    in a closed pocket (here the robot's own start, whose every straight move is declared
+    blocked) does not stop it from reaching another."""
+    qa, qb = _mirrored(ABB_BESIDE_TABLE_DEG)
+    home = np.array(abb.spec.test_poses.seed_q_rad)
+    search = detours.MoveSearch(abb, time_model(abb), np.vstack([home, qa, qb]))
+    route = search.path_to(qa, [qb])
+    assert np.array_equal(route.points[-1], qb) and route.vias >= 1 and not any(mv.blocked for mv in route.moves)
+    monkeypatch.setattr(detours, "MAX_CHECKS", 0)
+    monkeypatch.setattr(detours, "RRT_ITERATIONS", 200)
+    pocket = qb + 0.01  # a goal none of whose moves is clear
+    blocked = search.blocked
+    monkeypatch.setattr(search, "blocked", lambda a, b: True if pocket.tobytes() in (a.tobytes(), b.tobytes())
+                        else blocked(a, b))
+    route = search.path_to(qa, [pocket, qb])
+    assert np.array_equal(route.points[0], qa) and np.array_equal(route.points[-1], qb)
+    assert not any(search.blocked(a, b) for a, b in itertools.pairwise(route.points))
+    with pytest.raises(detours.NoSafePath, match="RRT-Connect"):
+        search.path_to(qa, [pocket])
+
+
 def test_random_plan_program_is_safe_ordered_and_minimises_load_changes(abb):
     Q, F = random_plan(abb, 6, np.random.default_rng(1))
     F[3] = F[0]  # two experiments with the same weight: hung once
