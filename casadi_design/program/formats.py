@@ -96,7 +96,8 @@ def _vias(program: Program) -> dict[int, int]:
 
 def _header(problem: Problem, program: Program, comment: str, plan: str) -> list[str]:
     return [f"{comment} casadi-design program of {problem.name} ({problem.path}), plan {plan}",
-            (f"{comment} {len(program.order)} experiments in the order {', '.join(map(str, program.order))}: "
+            (f"{comment} {len(program.order)} experiment{'s' if len(program.order) != 1 else ''} in the order "
+             f"{', '.join(map(str, program.order))}: "
             f"{program.time_s:.1f} s with {program.measure_s:g} s per measurement (file order "
             f"{program.file_time_s:.1f} s); {program.load_changes} load change(s)"),
             f"{comment} joint speeds: {program.times.source}"]
