@@ -12,11 +12,10 @@ measured data (:mod:`casadi_design.identification`) and of every simulated calib
 
 from __future__ import annotations
 
-import functools
-
 import casadi as ca
 import numpy as np
 
+from ..runtime.cache import memoised
 from ..model.mapped import evaluate
 from ..model.models import CalibrationModel
 
@@ -30,7 +29,7 @@ COMPENSATION_MAX_ITERATIONS = 20
 CHORD_RATE = 0.1
 
 
-@functools.lru_cache(maxsize=8)
+@memoised(8)
 def accuracy_jacobian(model: CalibrationModel) -> ca.Function:
     """``(q, F, X, ref) -> (e, de/dq)`` of ``model.accuracy`` (shapes r and r x n), derived once
     per model."""

@@ -28,12 +28,12 @@ residuals are always the exact model's. The Jacobian is
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
+from ..runtime.cache import memoised
 from ..errors import ProblemError
 from ..model.mapped import EXACT, Stacked, evaluate
 from ..model.models import CalibrationModel
@@ -74,7 +74,7 @@ class Identification:
                 "non_converged": self.non_converged}
 
 
-@functools.lru_cache(maxsize=8)
+@memoised(8)
 def measurement_jacobian(model: CalibrationModel) -> ca.Function:
     """``(q, F, X, ref) -> (y, J)``: ``model.measurement`` and ``J = dy/dX`` (d x L, physical
     X), derived once per model."""
@@ -85,7 +85,7 @@ def measurement_jacobian(model: CalibrationModel) -> ca.Function:
                        ["q", "F", "X", "ref"], ["y", "J"])
 
 
-@functools.lru_cache(maxsize=8)
+@memoised(8)
 def measurement_slopes(model: CalibrationModel) -> ca.Function:
     """``(q, F, X, ref, u) -> (J, dJ u)``: ``J = dy/dX`` of ``model.measurement`` (d x L,
     physical X) and its derivative in the direction u (d x L), derived once per model."""

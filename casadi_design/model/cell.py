@@ -34,7 +34,6 @@ Built once per problem from ``[cell]`` (:func:`build_cell`), it gives
 
 from __future__ import annotations
 
-import functools
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +42,7 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 
-from ..runtime.cache import code_digest, digest, stored
+from ..runtime.cache import code_digest, digest, memoised, stored
 from .capsules import capsule_names, capsules_from_geometry, carrier, load_collision_geometry
 from .collision import LineOfSight, PointRows, capsule_point_rows, obstacle_pairs
 from .pairs import PairSelection, self_collision_pairs
@@ -181,7 +180,7 @@ def _pairs(robot: Robot, capsules: tuple[Capsule, ...], obstacles: tuple[Obstacl
     return stored("cell-pairs", key, select)
 
 
-@functools.lru_cache(maxsize=8)
+@memoised(8)
 def _fitted(urdf: str, per_link: int) -> tuple[Capsule, ...]:
     """The capsules fitted around the collision meshes of ``urdf`` (by frame name: they do
     not depend on frames added later), once per process: a fit takes a few seconds."""
@@ -306,7 +305,7 @@ def clearances(cell: Cell, Q: np.ndarray) -> list[Clearance]:
     return list(_clearances(cell, Q.tobytes(), Q.shape[-1]))
 
 
-@functools.lru_cache(maxsize=256)
+@memoised(256)
 def _clearances(cell: Cell, Q_bytes: bytes, n: int) -> tuple[Clearance, ...]:
     Q = np.frombuffer(Q_bytes).reshape(-1, n)
     check = cell.check

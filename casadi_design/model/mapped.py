@@ -8,11 +8,10 @@ robot move (each sample's step depends on the rows at the last) through :class:`
 
 from __future__ import annotations
 
-import functools
-
 import casadi as ca
 import numpy as np
 
+from ..runtime.cache import memoised
 from ..runtime.threads import cpu_count
 
 #: Largest number of cases one mapped CasADi call evaluates: longer stacks run in chunks of
@@ -81,7 +80,7 @@ class Stacked:
         return [r.reshape(len(r), c, n).transpose(0, 2, 1).copy() for r, (n, c) in zip(self.res, self.shapes)]
 
 
-@functools.lru_cache(maxsize=128)
+@memoised(128)
 def _mapped(fn: ca.Function, N: int, threads: int) -> ca.Function:
     return fn.map(N, "thread", threads) if threads > 1 else fn.map(N)
 

@@ -8,11 +8,11 @@ status, Ctrl-C stops the command, and BLAS runs on one thread.
 from __future__ import annotations
 
 import contextlib
-import functools
 from collections.abc import Iterator
 
 from threadpoolctl import ThreadpoolController
 
+from ..runtime.cache import memoised
 from ..runtime import interrupt
 
 #: nlpsol options of a silent IPOPT whose failures are statuses, not exceptions.
@@ -22,7 +22,7 @@ QUIET = {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False, "error_
 WARM_START = {"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-6}
 
 
-@functools.cache
+@memoised(1)
 def _blas() -> ThreadpoolController:
     """The BLAS libraries loaded in this process (found once: a search costs ~2 ms)."""
     return ThreadpoolController()

@@ -1,5 +1,6 @@
 """What the package keeps: in this process, the values used last (:class:`Memo`: built problems,
-cells, functions per model, approximate designs); on disk between runs, per machine, the compiled CasADi functions
+cells, functions per model, approximate designs; :func:`memoised` functions: the fitted capsules
+of a URDF, mesh clearances, mapped CasADi functions, the identification's Jacobians); on disk between runs, per machine, the compiled CasADi functions
 (:mod:`casadi_design.model.compiled`), the capsules fitted around a robot's meshes
 (:func:`casadi_design.model.collision.capsules_from_geometry`), the cell's pairs, the approximate
 designs behind the bounds (:func:`casadi_design.execution.campaign.approximate_designs`) and the designs'
@@ -24,6 +25,7 @@ import hashlib
 import os
 import pickle
 import tempfile
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from pathlib import Path
@@ -133,12 +135,14 @@ class Memo(Generic[T]):
     recently used dropped), and with ``kind`` also on disk as ``<kind>-<key>.pickle``
     (:func:`read`, :func:`write`) while ``disk()`` is true. A disk key is a :func:`digest` of all
     the value is computed from, so the value read back is the value that would be computed, to
-    the bit; ``on_read`` marks a value read from the disk (e.g. to count what was kept)."""
+    the bit; ``on_read`` marks a value read from the disk (e.g. to count what was kept). Threads
+    may share a memo (a value may then be computed twice, never mixed up)."""
 
     def __init__(self, size: int, kind: str | None = None, disk: Callable[[], bool] = keeping_designs,
                  on_read: Callable[[T], T] | None = None):
         self.size, self.kind, self.disk, self.on_read = size, kind, disk, on_read
         self._values: OrderedDict[Hashable, T] = OrderedDict()
+        self._lock = threading.Lock()
 
     def lookup(self, key: Hashable) -> T | None:
         """The value of ``key`` in this process or on disk, or None."""
@@ -147,9 +151,10 @@ class Memo(Generic[T]):
 
     def _find(self, key: Hashable) -> object:
         """The value of ``key`` (None too, as a value), or ``_MISSING``."""
-        if key in self._values:
-            self._values.move_to_end(key)
-            return self._values[key]
+        with self._lock:
+            if key in self._values:
+                self._values.move_to_end(key)
+                return self._values[key]
         if self.kind is not None and self.disk():
             value = read(self.kind, str(key))
             if value is not None:
@@ -174,7 +179,8 @@ class Memo(Generic[T]):
 
     def clear(self) -> None:
         """Forget what this process keeps (the disk layer stays)."""
-        self._values.clear()
+        with self._lock:
+            self._values.clear()
 
     def empty(self) -> Memo[T]:
         """A memo like this one that keeps nothing yet (a test's fresh process)."""
@@ -186,7 +192,25 @@ class Memo(Generic[T]):
     def _remember(self, key: Hashable, value: T) -> None:
         if self.size <= 0:
             return
-        self._values[key] = value
-        self._values.move_to_end(key)
-        while len(self._values) > self.size:
-            self._values.popitem(last=False)
+        with self._lock:
+            self._values[key] = value
+            self._values.move_to_end(key)
+            while len(self._values) > self.size:
+                self._values.popitem(last=False)
+
+
+def memoised(size: int) -> Callable[[Callable[..., T]], Callable[..., T]]:
+    """A decorator: the function's values by its (hashable, positional) arguments, the ``size``
+    used last kept in this process (a :class:`Memo` without a disk layer, ``f.memo``)."""
+
+    def decorate(f: Callable[..., T]) -> Callable[..., T]:
+        memo: Memo[T] = Memo(size)
+
+        @functools.wraps(f)
+        def cached(*args: Hashable) -> T:
+            return memo.get(args, lambda: f(*args))
+
+        cached.memo = memo  # type: ignore[attr-defined]
+        return cached
+
+    return decorate

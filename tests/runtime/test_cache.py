@@ -5,6 +5,7 @@ around a URDF's meshes read back as the fit gives them."""
 from __future__ import annotations
 
 import pickle
+import sys
 import threading
 import time
 
@@ -285,3 +286,48 @@ def test_a_memo_keeps_the_values_used_last_and_reads_its_disk_layer(tmp_path, mo
     nothing = cache.Memo(2)  # None is a value (a problem without a cell): made once
     assert [nothing.get("k", lambda: made.append("none")) for _ in range(3)] == [None] * 3
     assert made.count("none") == 1
+
+
+def test_a_memoised_function_keeps_its_values_by_argument_and_threads_share_it():
+    """``memoised(size)``: the function's values by its arguments, computed once while kept,
+    the least recently used dropped past ``size``; threads that share it get the values of
+    their own arguments."""
+    import threading
+
+    made = []
+
+    @cache.memoised(2)
+    def square(x, y=0):
+        made.append((x, y))
+        return x * x + y
+
+    assert [square(k) for k in (1, 2, 1, 3, 1, 2)] == [1, 4, 1, 9, 1, 4]
+    assert made == [(1, 0), (2, 0), (3, 0), (2, 0)] and len(square.memo) == 2
+    assert square(1, 5) == 6 and square.__name__ == "square"
+
+    @cache.memoised(64)
+    def echo(x):
+        return (x, threading.get_ident())
+
+    wrong, failed = [], []
+
+    def ask(offset):
+        try:
+            for k in range(5000):
+                key = (k * 7 + offset) % 100
+                if echo(key)[0] != key:
+                    wrong.append(key)
+        except Exception as exc:  # (a lookup that lost its key to another thread)
+            failed.append(repr(exc))
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # threads switch between any two steps of a lookup
+    try:
+        threads = [threading.Thread(target=ask, args=(i,)) for i in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(interval)
+    assert wrong == [] and failed == [] and len(echo.memo) == 64
