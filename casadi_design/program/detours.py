@@ -202,20 +202,20 @@ class MoveSearch:
         return self.path_to(qa, [qb])
 
     def path_to(self, qa: np.ndarray, goals: list[np.ndarray]) -> Route:
-        """The fastest detour found from ``qa`` to any of ``goals`` (the configurations of one
-        pose, the first preferred: its candidates are offered; their straight moves from
-        ``qa`` are not tried): a lazy shortest path through the via candidates (the fastest path
-        is checked move by move, a blocked move removed, until a path is clear), else
-        RRT-Connect towards every goal at once. Raises :class:`NoSafePath`."""
+        """A detour from ``qa`` to one of ``goals`` (the configurations of one pose; their
+        straight moves from ``qa`` are not tried): the fastest found through the via candidates
+        to the first goal (a lazy shortest path: the fastest path is checked move by move, a
+        blocked move removed, until a path is clear), else RRT-Connect towards every goal at
+        once. Raises :class:`NoSafePath`."""
         qa, goals = np.asarray(qa, dtype=float), [np.asarray(g, dtype=float) for g in goals]
-        qb, G = goals[0], len(goals)
-        nodes = np.vstack([qa, *goals, self.lifted(qa, qb), self.mixed(qa, qb), self.toward_home(qa, qb),
+        qb = goals[0]
+        nodes = np.vstack([qa, qb, self.lifted(qa, qb), self.mixed(qa, qb), self.toward_home(qa, qb),
                            self.anchors, self.global_vias, self.local_vias(qa, qb)])
         T = self.times.time_matrix(nodes)
         blocked = np.zeros(T.shape, dtype=bool)
-        blocked[0, 1:1 + G] = blocked[1:1 + G, 0] = True
+        blocked[0, 1] = blocked[1, 0] = True
         for _ in range(MAX_CHECKS):
-            route = _shortest(np.where(blocked, np.inf, T), 0, range(1, 1 + G))
+            route = _shortest(np.where(blocked, np.inf, T), 0, 1)
             if route is None:
                 break
             legs = list(itertools.pairwise(route))
@@ -226,7 +226,7 @@ class MoveSearch:
             blocked[bad] = blocked[bad[::-1]] = True
         route = self.rrt_connect(qa, goals)
         if route is None:
-            raise NoSafePath(f"no collision-free detour among {len(nodes) - 1 - G} via candidates nor by "
+            raise NoSafePath(f"no collision-free detour among {len(nodes) - 2} via candidates nor by "
                              f"{RRT_ITERATIONS} RRT-Connect steps")
         route = self.shortcut(route)
         legs = list(itertools.pairwise(route))
@@ -290,9 +290,8 @@ class MoveSearch:
         return out
 
 
-def _shortest(W: np.ndarray, source: int, targets: range) -> list[int] | None:
-    """Dijkstra on the complete graph of edge weights ``W`` (inf: no edge): the node list to
-    the nearest of ``targets``."""
+def _shortest(W: np.ndarray, source: int, target: int) -> list[int] | None:
+    """Dijkstra on the complete graph of edge weights ``W`` (inf: no edge); the node list."""
     n = len(W)
     dist, prev, done = np.full(n, np.inf), np.full(n, -1), np.zeros(n, dtype=bool)
     dist[source] = 0.0
@@ -300,7 +299,7 @@ def _shortest(W: np.ndarray, source: int, targets: range) -> list[int] | None:
         u = int(np.argmin(np.where(done, np.inf, dist)))
         if done[u] or not np.isfinite(dist[u]):
             return None
-        if u in targets:
+        if u == target:
             break
         done[u] = True
         better = ~done & (dist[u] + W[u] < dist)

@@ -118,8 +118,8 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     for k, q in enumerate(Q, start=1):
         options = turns(problem, q, home)
         clear = next((c for c in options if not search.blocked(home, c)), None)
-        if clear is None:
-            paths[0, k] = _reached(search, home, options, k)
+        if clear is None:  # (the plan's own configuration first)
+            paths[0, k] = _reached(search, home, [q.copy(), *(c for c in options if not np.array_equal(c, q))], k)
             paths[k, 0] = paths[0, k].reversed()
         Q[k - 1] = paths[0, k].points[-1] if clear is None else clear
     nodes = np.vstack([home, Q])
@@ -173,7 +173,8 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
 
 def _reached(search: MoveSearch, home: np.ndarray, options: list[np.ndarray], k: int) -> Route:
     """The detour from ``home`` to one of ``options`` (the configurations of experiment ``k``'s
-    pose, :func:`turns`, none reached by a straight move). Raises :class:`DesignError` when no
+    pose, :func:`turns`, none reached by a straight move; the via candidates of the first,
+    RRT-Connect towards all: :meth:`MoveSearch.path_to`). Raises :class:`DesignError` when no
     detour reaches any of them."""
     try:
         return search.path_to(home, options)

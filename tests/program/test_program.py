@@ -156,10 +156,10 @@ def test_move_across_the_table_gets_a_via_point_and_every_move_is_safe(abb):
 
 
 def test_a_detour_to_several_goals_ends_at_one_and_rrt_connect_grows_from_them_all(abb, monkeypatch):
-    """path_to: the fastest detour found to any goal (each a configuration the caller accepts);
-    RRT-Connect (no via candidate tried here) grows its second tree from every goal, so a goal
-    in a closed pocket (here the robot's own start, whose every straight move is declared
-    blocked) does not stop it from reaching another."""
+    """path_to: a detour to one of the goals (each a configuration the caller accepts): through
+    the via candidates to the first, else RRT-Connect (no via candidate tried here) growing its
+    second tree from every goal, so that a first goal in a closed pocket (every move to it
+    declared blocked) does not stop it from reaching another."""
     qa, qb = _mirrored(ABB_BESIDE_TABLE_DEG)
     home = np.array(abb.spec.test_poses.seed_q_rad)
     search = detours.MoveSearch(abb, time_model(abb), np.vstack([home, qa, qb]))
