@@ -135,7 +135,7 @@ def test_urdf_problems_are_one_line(tmp_path, capsys):
     f = tmp_path / "case.toml"
     import tomli_w
     f.write_text(tomli_w.dumps(raw))
-    assert main(["solve", str(f), "--quiet"]) == 2
+    assert main(["solve", str(f), "--jobs", "1", "--quiet"]) == 2
     _, err = capsys.readouterr()
     assert err.count("\n") == 1 and err.startswith("error: ")  # no C++ parser lines before ours
 

@@ -239,7 +239,7 @@ def test_bad_m_values(text, match):
 
 def test_too_few_experiments_for_the_parameters_is_one_line(capsys):
     geometric = ROOT / "problems" / "planar_2r_geometric.toml"
-    assert main(["sweep", str(geometric), "--m", "1:3"]) == 2
+    assert main(["sweep", str(geometric), "--m", "1:3", "--jobs", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--m 1 is too small: 4 parameters need m >= 2 experiments; start the range at 2" in err[0]
     with pytest.raises(ProblemError, match="--criteria has 'F'; allowed: test-pose, D"):

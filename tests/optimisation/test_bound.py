@@ -211,7 +211,7 @@ def test_too_small_a_pool_is_refused(capsys):
     a clear error, not a bound computed from a singular W."""
     from casadi_design.cli import main
 
-    assert main(["bound", str(ROOT / "problems" / "planar_2r_geometric.toml"), "--bound-pool", "1", "--m", "9"]) == 2
+    assert main(["bound", str(ROOT / "problems" / "planar_2r_geometric.toml"), "--bound-pool", "1", "--m", "9", "--jobs", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0] == ("error: approximate design: the first pool of 1 random experiments (--bound-pool) "
                        "identifies 2 of the 4 parameters; use a larger pool (default 300)")

@@ -407,7 +407,7 @@ def test_programs_of_the_case_studies_test_pose_plans_are_safe_on_the_meshes(pat
 ])
 def test_solve_refuses_a_program_format_before_it_solves(tmp_path, capsys, fmt, match):
     out = tmp_path / "out"
-    assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--quiet",
+    assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--jobs", "1", "--quiet",
                  "--program", fmt, "--out", str(out)]) == 2
     captured = capsys.readouterr()
     assert re.search(match, captured.err) and captured.err.count("\n") == 1
@@ -425,7 +425,7 @@ def test_a_plan_that_cannot_be_programmed_leaves_the_results_written_and_says_so
 
     monkeypatch.setattr(sequence, "make_program", refused)
     out = tmp_path / "out"
-    assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--criteria", "D",
+    assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--jobs", "1", "--criteria", "D",
                  "--quiet", "--program", "json", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err == (f"error: experiment 1 cannot be reached from home: refused here (the D plan of m = 1); the results "

@@ -286,7 +286,7 @@ def test_rms_interval_covers_the_true_rms_95_percent_of_the_time():
     assert 0.93 <= covered <= 0.97
 
 
-@pytest.mark.slow  # 10 s: 2000 trials of six plans; the default suite keeps the geometric case and the two-round campaign
+@pytest.mark.slow  # 10 s: 2000 trials of six plans; the default suite keeps the ABB, correlated noise and two rounds
 def test_paper_example_agrees_within_5_percent_at_every_node(paper, paper_designs):
     """Table 4's six plans, 2000 virtual calibrations each on the nonlinear compliant arm.
 
@@ -310,6 +310,7 @@ def test_paper_example_agrees_within_5_percent_at_every_node(paper, paper_design
         assert r["by_simulation"] == r["by_measure"] == ["test-pose", "D", "E"], m
 
 
+@pytest.mark.slow  # 4.5 s: 1000 trials of six plans; the default suite keeps the ABB, correlated noise and two rounds
 def test_geometric_case_agrees_within_10_percent_at_every_node(geometric, geometric_plans):
     """1000 trials: relative standard error of a simulated RMS ~1 / sqrt(2 N nu) <= 2.2 % (nu
     >= 1), so 10 % is a 4.5-sigma bound (the linearisation bias is ~1.6 % at these spreads)."""
