@@ -3,8 +3,6 @@ check on the real geometry, periodic joints and the joint-limit margin."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import casadi as ca
 import numpy as np
 import pinocchio as pin
@@ -15,7 +13,7 @@ from casadi_design.model.build import build_problem, load_problem
 from casadi_design.model.cell import clearances, touching
 from casadi_design.model.capsules import capsule_names
 from casadi_design.errors import ProblemError
-from casadi_design.records.export import plan_table, read_plan_csv
+from casadi_design.records.export import plan_table
 from casadi_design.model.problem import parse_problem, read_problem
 from casadi_design.optimisation.nlp import build_nlp
 from casadi_design.optimisation.reduced import reduced_nlp
@@ -42,37 +40,6 @@ def _raw(path=UR10):
     return tomllib.loads(path.read_text())
 
 
-def test_old_plan_through_the_floor_is_rejected(ur10):
-    """The D-optimal plan at m = 12 of the UR10 case without its cell (solved before the cell
-    existed) drives links through the floor and the table: every rule set says so."""
-    Q, F = read_plan_csv(ur10, ROOT / "tests" / "data" / "ur10_D_m12_without_cell.csv")
-    bare = build_problem(dataclasses.replace(ur10.spec, cell=None,
-                                             workspace=dataclasses.replace(ur10.workspace, joint_limit_margin_rad=0.0)))
-    assert plan_violations(bare, Q, F) == []  # the old rules: frame origins above the floor only
-    lines = plan_violations(ur10, Q, F)
-    assert any("closer than 20 mm to the floor" in ln for ln in lines)
-    assert any("closer than 20 mm to table" in ln for ln in lines)
-    assert any("acceptance angle" in ln for ln in lines)
-    near = clearances(ur10.cell, Q)
-    assert sum(c.touching is not None for c in near) >= 6  # meshes cross the floor or the table
-    hit = [i for i, c in enumerate(near) if c.touching is not None]
-    for i in hit:  # every experiment the meshes reject, the rows reject too (capsules are conservative)
-        assert any(ln.startswith(f"experiment {i + 1}: ") and "closer than" in ln for ln in lines)
-
-
-def test_random_plans_satisfy_every_row_and_the_mesh_check(ur10):
-    Q, F = random_plan(ur10, 3, np.random.default_rng(4))
-    rules = ur10.rules.pose
-    assert all(np.all(rules.violation(q) == 0) for q in Q)
-    # capsules are conservative: rows satisfied means the meshes keep the clearance on every
-    # pair the rows constrain; the forearm and the second wrist link, some of whose capsules
-    # always overlap, are 18 to 20 mm apart by construction: only checked for touching
-    assert ur10.cell.check.partial.any()
-    for c in clearances(ur10.cell, Q):
-        assert c.distance_m >= ur10.cell.spec.clearance_m - 1e-9 and c.touching is None
-    assert plan_violations(ur10, Q, F) == []
-
-
 @pytest.mark.parametrize("case", ["ur10_drilling", "abb_irb6640_machining"])
 def test_the_collision_query_finds_the_pairs_the_distances_find(case):
     """``touching`` (coal's collision query, stopping at the first pair in contact) names the
@@ -84,30 +51,6 @@ def test_the_collision_query_finds_the_pairs_the_distances_find(case):
     by_distance = [c.touching for c in clearances(problem.cell, Q)]
     assert touching(problem.cell, Q) == by_distance
     assert 5 < sum(t is not None for t in by_distance) < len(Q)  # both answers occur
-
-
-@pytest.mark.parametrize("case", ["ur10_drilling", "abb_irb6640_machining", "paper_planar_2r"])
-def test_random_plans_follow_the_one_then_growing_batches_rule(case):
-    """``random_plan``'s configurations are judged in blocks ahead of the rule, but they are
-    what the rule gives drawn batch by batch (one configuration, then 16, 32, ... up to 1024;
-    the first feasible one of the first batch that has one), and the generator is left there
-    (the loads, drawn after, come from the same stream)."""
-    from casadi_design.plan import sampling
-
-    problem = load_problem(ROOT / "problems" / f"{case}.toml")
-    rules, limits = problem.rules.pose, problem.rules.limits
-    mine, rule = np.random.default_rng(8), np.random.default_rng(8)
-    Q = sampling._configurations(problem, 12, mine)
-    for q in Q:
-        batch = 1
-        while True:
-            candidates = limits.sample(rule, batch)
-            ok = np.flatnonzero(rules.feasible(candidates))
-            if ok.size:
-                np.testing.assert_array_equal(q, candidates[ok[0]])
-                break
-            batch = sampling.SAMPLING_BATCH if batch == 1 else min(2 * batch, sampling.SAMPLING_BATCH_MAX)
-    assert mine.uniform() == rule.uniform()  # the same place in the stream
 
 
 def test_only_rows_linear_in_the_points_are_left_out_of_the_curvature(ur10):
@@ -191,13 +134,6 @@ def test_periodic_joints_are_free_and_wrapped(ur10):
     qs = ca.SX.sym("q", robot.n)
     f = ca.Function("d", [qs], [joint_distance_sq(limits, qs, ca.DM(qa))])
     assert float(f(qa + d)) == pytest.approx(joint_distance_sq(limits, qa + d, qa), rel=1e-12)
-
-
-def test_margin_keeps_plans_off_the_limits(ur10):
-    Q, F = random_plan(ur10, 2, np.random.default_rng(8))
-    Q[0, 2] = -np.pi + 0.01  # the elbow 10 mrad from its limit, inside the 50 mrad margin
-    lines = plan_violations(ur10, Q, F)
-    assert any(ln.startswith("experiment 1: elbow_joint") and "margin" in ln for ln in lines)
 
 
 @pytest.mark.parametrize("edit, message", [
