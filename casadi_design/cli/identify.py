@@ -8,7 +8,7 @@ import time
 
 from ..errors import ProblemError
 from ..records.files import prepare_out, write_atomic, write_json
-from .common import number
+from .common import number, say
 
 HELP = "identify the robot from tracker measurements, export the calibrated model (casadi-design identify --help)"
 DESCRIPTION = (
@@ -86,6 +86,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the files (created if missing)")
     p.add_argument("--force", action="store_true",
                    help="write into --out even if it exists and is not empty (overwrites our files)")
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no time and no list of the files written; the notes, tables and errors still print")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -122,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     cal = calibrate(problem, meas, args.frame, valid, args.outlier_sigma, args.loss, args.model)
     problem = cal.problem  # with the measured points located when they were far off
     print("\n".join(summary_lines(cal)))
-    print(f"identification time {time.perf_counter() - t0:.2f} s")
+    say(args, f"identification time {time.perf_counter() - t0:.2f} s")
 
     from ..reports.plotting import identification_figure, write_figures
 
@@ -163,5 +165,5 @@ def run(args: argparse.Namespace) -> int:
     for name, text in texts.items():
         write_atomic(out / name, text.encode())
     write_json(out / "identification.json", record_text)
-    print(f"wrote {', '.join(names)} in {out}")
+    say(args, f"wrote {', '.join(names)} in {out}")
     return 0

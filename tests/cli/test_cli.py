@@ -95,6 +95,15 @@ def test_every_subcommand_explains_its_options(command, words, capsys):
         assert w in text, w
 
 
+@pytest.mark.parametrize("command", ["solve", "sweep", "evaluate", "plot", "bound", "validate", "identify", "program"])
+def test_every_subcommand_takes_quiet(command, capsys):
+    """A script can pass -q to any command (identify refused it)."""
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    assert "--quiet, -q" in capsys.readouterr().out
+
+
 def test_console_script_is_declared_and_scripts_stay_thin():
     import tomllib
 
