@@ -13,6 +13,7 @@ from tests.conftest import PAPER
 SETTINGS = Settings(2, bound_steps=10, bound_pool=50)
 
 
+@pytest.mark.slow  # 3 s: the command test below runs the same search (test-pose alone) and checks the same figures
 def test_the_search_finds_the_smallest_m_and_excludes_fewer_by_the_bound(paper):
     """On the paper's arm the test-pose optimum falls as about 1 / sqrt(m) (0.121 mm at m = 1):
     the target 0.05 mm is first reached at m = 6, and m = 5 is excluded by its bound; every m
@@ -50,6 +51,9 @@ def test_solve_and_sweep_write_the_answer(tmp_path, capsys):
     assert "target 0.05 mm: m = 6" in capsys.readouterr().out
     target = json.loads((tmp_path / "s" / "results.json").read_text())["target"]
     assert target["m"] == 6 and target["fewer_excluded_by_bound"] is True
+    errors, bounds = ({int(m): v for m, v in target[k].items()} for k in ("max_rms_error_m", "bound_m"))
+    assert bounds[5] > 0.05e-3 >= errors[6] >= bounds[6]  # m = 5 excluded by its bound, m = 6 reaches it
+    assert all(e > 0.05e-3 for m, e in errors.items() if m < 6)  # every m designed on the way falls short
     assert target["answer"] in (tmp_path / "s" / "report.md").read_text()
     assert main(["sweep", str(PAPER), "--m", "5:6", "--criteria", "test-pose", "--target-mm", "0.05",
                  "--out", str(tmp_path / "w"), *tiny]) == 0
