@@ -97,7 +97,7 @@ def test_every_subcommand_explains_its_options(command, words, capsys):
 
 @pytest.mark.parametrize("command", ["solve", "sweep", "evaluate", "plot", "bound", "validate", "identify", "program"])
 def test_every_subcommand_takes_quiet(command, capsys):
-    """A script can pass -q to any command (identify refused it)."""
+    """A script can pass -q to any command."""
     with pytest.raises(SystemExit) as exc:
         main([command, "--help"])
     assert exc.value.code == 0
