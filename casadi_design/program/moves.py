@@ -189,16 +189,16 @@ def scan(rules: MoveRules, qa: np.ndarray, qb: np.ndarray, stop: bool = False) -
     qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
     delta = rules.reach_m[rules.collision] @ np.abs(qb - qa)  # each row's largest change over the move
     moving = delta > 0
+    rows, delta = rules.collision[moving], delta[moving]  # the rows that move, and by how much
     slack = 2 * rules.step_m  # c / 2
     s, S, G = 0.0, [], []
     while True:
         g = rules.at(qa + s * (qb - qa))
         S.append(s)
         G.append(g)
-        col = g[rules.collision]
-        if s >= 1.0 or not moving.any() or stop and col.min() < -FEASIBILITY_TOL:
+        if s >= 1.0 or not rows.size or stop and g[rules.collision].min() < -FEASIBILITY_TOL:
             return np.array(S), np.array(G)
-        s = min(1.0, s + float(np.min((np.maximum(col[moving], 0.0) + slack) / delta[moving])))
+        s = min(1.0, s + float(np.min((np.maximum(g[rows], 0.0) + slack) / delta)))
 
 
 def check_move(problem: Problem, qa: np.ndarray, qb: np.ndarray, meshes: bool = True) -> Move:
