@@ -151,9 +151,10 @@ def add_bound_steps(p: argparse.ArgumentParser, minimum: int = 0) -> None:
                         "certificate): fewer is faster and looser")
 
 
-def add_campaign(p: argparse.ArgumentParser, m_help: str) -> None:
+def add_campaign(p: argparse.ArgumentParser, m_help: str, candidates: bool = True) -> None:
     """The options of the commands that design plans: what is solved and how (the same
-    options give the same plans in every command)."""
+    options give the same plans in every command); ``candidates``: ``--candidates`` too (a
+    sweep designs freely)."""
     p.add_argument("problem", help="problem file (TOML), e.g. problems/paper_planar_2r.toml")
     p.add_argument("--m", type=m_values, metavar="LIST", help=m_help)
     p.add_argument("--ipopt", type=ipopt_option, action="append", metavar="KEY=VALUE",
@@ -164,10 +165,11 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str) -> None:
                         "(default: [design].criteria of the problem)")
     p.add_argument("--starts", type=integer("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
-    p.add_argument("--candidates", metavar="CSV",
-                   help="choose each plan's experiments from these postures (a plan or measurement CSV: its "
-                        "joint and load columns), by exchange from a greedy plan, the pool's approximate "
-                        "design and --starts random choices; the bound is the pool's (solve only)")
+    if candidates:
+        p.add_argument("--candidates", metavar="CSV",
+                       help="choose each plan's experiments from these postures (a plan or measurement CSV: its "
+                            "joint and load columns), by exchange from a greedy plan, the pool's approximate "
+                            "design and --starts random choices; the bound is the pool's")
     add_held(p)
     add_workers(p)
     add_bound_steps(p)

@@ -26,7 +26,8 @@ DESCRIPTION = ("Solve every (criterion, m) of a range of m with the seeded start
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sweep", help=HELP, description=DESCRIPTION)
     common.add_campaign(p, "numbers of experiments: a range first:last[:step], e.g. 1:10, or a list "
-                           "1,2,5 (default: the smallest identifiable m to the largest [experiments].m)")
+                           "1,2,5 (default: the smallest identifiable m to the largest [experiments].m)",
+                        candidates=False)
     common.add_target(p, sweep=True)
     common.add_output(p, "folder for sweep.csv/json, figures, plans/*.csv, report.md (created if missing)")
     p.add_argument("--log", action="store_true",
