@@ -21,7 +21,7 @@ from typing import TypeVar
 import numpy as np
 import pinocchio as pin
 
-from ..runtime.cache import Memo, code_digest, digest
+from ..runtime.cache import Memo, code_digest, digest, memoised
 from .cell import Cell, build_cell
 from .held import prior_information
 from ..measures.measures import information_matrix
@@ -264,13 +264,8 @@ def _build_named(spec: ProblemSpec) -> Problem:
 def per_model(f: Callable[[Problem], T]) -> Callable[[Problem], T]:
     """Cache ``f(problem)`` by the built parts it depends on (model, cell, workspace, load):
     problems that differ only in their solver settings share them."""
-    memo: Memo[T] = Memo(KEEP_BUILT)
-
-    @functools.wraps(f)
-    def cached(problem: Problem) -> T:
-        return memo.get((problem.model, problem.cell, problem.workspace, problem.force), lambda: f(problem))
-
-    return cached
+    return memoised(KEEP_BUILT, key=lambda problem: (problem.model, problem.cell, problem.workspace,
+                                                     problem.force))(f)
 
 
 def _build(spec: ProblemSpec) -> Problem:

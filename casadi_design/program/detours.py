@@ -304,7 +304,7 @@ def _shortest(W: np.ndarray, source: int, target: int) -> list[int] | None:
         done[u] = True
         better = ~done & (dist[u] + W[u] < dist)
         dist[better], prev[better] = dist[u] + W[u][better], u
-    route = [u]
+    route = [target]
     while route[-1] != source:
         route.append(int(prev[route[-1]]))
     return route[::-1]

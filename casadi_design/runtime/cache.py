@@ -199,16 +199,17 @@ class Memo(Generic[T]):
                 self._values.popitem(last=False)
 
 
-def memoised(size: int) -> Callable[[Callable[..., T]], Callable[..., T]]:
-    """A decorator: the function's values by its (hashable, positional) arguments, the ``size``
-    used last kept in this process (a :class:`Memo` without a disk layer, ``f.memo``)."""
+def memoised(size: int, key: Callable[..., Hashable] | None = None) -> Callable[[Callable[..., T]], Callable[..., T]]:
+    """A decorator: the function's values by its (hashable, positional) arguments, or by
+    ``key(*args)`` (what the value depends on), the ``size`` used last kept in this process (a
+    :class:`Memo` without a disk layer, ``f.memo``)."""
 
     def decorate(f: Callable[..., T]) -> Callable[..., T]:
         memo: Memo[T] = Memo(size)
 
         @functools.wraps(f)
         def cached(*args: Hashable) -> T:
-            return memo.get(args, lambda: f(*args))
+            return memo.get(args if key is None else key(*args), lambda: f(*args))
 
         cached.memo = memo  # type: ignore[attr-defined]
         return cached

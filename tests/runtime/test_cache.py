@@ -305,6 +305,13 @@ def test_a_memoised_function_keeps_its_values_by_argument_and_threads_share_it()
     assert made == [(1, 0), (2, 0), (3, 0), (2, 0)] and len(square.memo) == 2
     assert square(1, 5) == 6 and square.__name__ == "square"
 
+    @cache.memoised(4, key=lambda x, tag: x)  # the value depends on x alone
+    def double(x, tag):
+        made.append(tag)
+        return 2 * x
+
+    assert [double(3, "a"), double(3, "b"), double(4, "c")] == [6, 6, 8] and made[-2:] == ["a", "c"]
+
     @cache.memoised(64)
     def echo(x):
         return (x, threading.get_ident())
