@@ -151,10 +151,12 @@ def add_bound_steps(p: argparse.ArgumentParser, minimum: int = 0) -> None:
                         "certificate): fewer is faster and looser")
 
 
-def add_campaign(p: argparse.ArgumentParser, m_help: str, candidates: bool = True) -> None:
+def add_campaign(p: argparse.ArgumentParser, m_help: str, candidates: bool = True):
     """The options of the commands that design plans: what is solved and how (the same
     options give the same plans in every command); ``candidates``: ``--candidates`` too (a
-    sweep designs freely)."""
+    sweep designs freely). Returns where an option that excludes ``--candidates`` goes (its
+    mutually exclusive group; ``p`` without it)."""
+    choice = p.add_mutually_exclusive_group() if candidates else p
     p.add_argument("problem", help="problem file (TOML), e.g. problems/paper_planar_2r.toml")
     p.add_argument("--m", type=m_values, metavar="LIST", help=m_help)
     p.add_argument("--ipopt", type=ipopt_option, action="append", metavar="KEY=VALUE",
@@ -166,7 +168,7 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str, candidates: bool = Tru
     p.add_argument("--starts", type=integer("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
     if candidates:
-        p.add_argument("--candidates", metavar="CSV",
+        choice.add_argument("--candidates", metavar="CSV",
                        help="choose each plan's experiments from these postures (a plan or measurement CSV: its "
                             "joint and load columns), by exchange from a greedy plan, the pool's approximate "
                             "design and --starts random choices; the bound is the pool's")
@@ -174,10 +176,12 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str, candidates: bool = Tru
     add_workers(p)
     add_bound_steps(p)
     add_common(p)
+    return choice
 
 
 def add_target(p: argparse.ArgumentParser, sweep: bool = False) -> None:
-    """``--target-mm``: the tolerance whose smallest m is searched (solve) or read (sweep)."""
+    """``--target-mm``: the tolerance whose smallest m is searched (solve; ``p``: the group of
+    :func:`add_campaign`, as it excludes ``--candidates``) or read (sweep)."""
     from ..execution.target import LIMIT_FACTOR
 
     p.add_argument("--target-mm", type=number("--target-mm", "a positive number of mm"), metavar="T",

@@ -26,8 +26,7 @@ DESCRIPTION = ("Design the optimal plans of a problem file for each criterion an
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("solve", help=HELP, description=DESCRIPTION)
-    common.add_campaign(p, "numbers of experiments: 1,5 or a range 1:10 (default: [experiments].m)")
-    common.add_target(p)
+    common.add_target(common.add_campaign(p, "numbers of experiments: 1,5 or a range 1:10 (default: [experiments].m)"))
     common.add_output(p, "folder for results.json, fig1.png/pdf, plans/*.csv, report.md (created if missing)")
     p.add_argument("--program", metavar="FORMAT",
                    help="also write each plan as a robot program, programs/<criterion>_m<m>.<ext> (as "

@@ -64,6 +64,9 @@ def test_solve_candidates_from_the_command_line(paper, tmp_path, capsys):
     assert "test-pose" in capsys.readouterr().out
     assert main(["sweep", str(PAPER), "--m", "1:2", "--candidates", str(pool), "--quiet"]) == 2  # no worker started
     assert "unrecognized arguments: --candidates" in capsys.readouterr().err
+    # a target is met by designing the plans: refused with the pool before anything starts
+    assert main(["solve", str(PAPER), "--candidates", str(pool), "--target-mm", "0.1", "--quiet"]) == 2
+    assert "argument --target-mm: not allowed with argument --candidates" in capsys.readouterr().err
     # a measurement file in FIGAROH's layout (bare joint names) is a pool too
     tiago = PAPER.parents[1] / "tests" / "data" / "tiago_mocap"
     assert main(["solve", str(tiago / "tiago_mocap.toml"), "--candidates", str(tiago / "qualisys_2021-11-30_static_postures.csv"),
