@@ -71,6 +71,8 @@ class Band:
 
 #: Font size of the labels of the maxima (pt).
 PEAK_FONTSIZE = 8.5
+#: A label raised more than this many label heights above its point gets a leader line to it.
+LEADER_AFTER = 1.0
 
 
 def label_maxima(ax: Axes, peaks: list[tuple[float, float, str]],
@@ -79,7 +81,8 @@ def label_maxima(ax: Axes, peaks: list[tuple[float, float, str]],
     first, just above it (lines: to its right, or left at the right edge) and above the
     ``bars`` ``(left, right, top)`` under it; a label that
     would cover one placed before goes below its point (lines, when it stays above ``y = 0``,
-    the target line; in a bar it would be unreadable) or else up, until it is clear. Sizes are
+    the target line; in a bar it would be unreadable) or else up, until it is clear, with a
+    line down to its point when raised more than :data:`LEADER_AFTER` label heights. Sizes are
     estimated from the axes' size and limits when called (set the limits first), so the
     labels of nearly equal maxima do not print over each other."""
     fig = ax.get_figure()
@@ -115,8 +118,10 @@ def label_maxima(ax: Axes, peaks: list[tuple[float, float, str]],
             while not free(left, py + dy, w):
                 dy = max(covered(left, py + dy, w)) - py + 1
         placed.append((left, py + dy, left + w, py + dy + h))
+        leader = {"arrowprops": {"arrowstyle": "-", "color": colour, "lw": 0.6, "shrinkA": 0, "shrinkB": 1}
+                  } if dy > gap + LEADER_AFTER * h else {}  # far from its point: a line tells whose it is
         ax.annotate(text, (x, y), textcoords="offset points", xytext=(left + w / 2 - px, dy), ha="center",
-                    va="bottom", color=colour, fontsize=PEAK_FONTSIZE)
+                    va="bottom", color=colour, fontsize=PEAK_FONTSIZE, **leader)
 
 
 def draw_errors_per_pose(ax: Axes, bars: list[tuple[str, dict, np.ndarray]], ylabel: str,

@@ -4,8 +4,9 @@ panels (drawn with matplotlib's layout, measured in the renderer's pixels)."""
 
 import numpy as np
 import pytest
+from matplotlib.text import Text
 
-from casadi_design.reports.plotting import Band, bands_figure, error_bands_figure
+from casadi_design.reports.plotting import LEADER_AFTER, PEAK_FONTSIZE, Band, bands_figure, error_bands_figure
 
 STYLES = [{"color": c, "ls": "-", "lw": 1.5} for c in ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:gray")]
 #: Maxima (mm) of the ABB's Fig. 1 at m = 8: two pairs that differ by 4 and 19 um, at the two
@@ -27,7 +28,8 @@ def _drawn(fig):
 
     renderer = FigureCanvasAgg(fig).get_renderer()
     fig.draw(renderer)  # the layout of a saved figure
-    return [(ax, [(t.get_text(), t.get_window_extent(renderer)) for t in ax.texts]) for ax in fig.axes], renderer
+    # the text's own box (an annotation's window extent also holds its leader line)
+    return [(ax, [(t.get_text(), Text.get_window_extent(t, renderer)) for t in ax.texts]) for ax in fig.axes], renderer
 
 
 def _overlapping(boxes) -> list[tuple[str, str]]:
@@ -65,3 +67,9 @@ def test_labels_of_poses_off_a_path_stand_above_every_bar_they_cross():
     for text, box in texts:
         crossed = [b for b in bars if b.x0 < box.x1 and box.x0 < b.x1]
         assert crossed and box.y0 >= max(b.y1 for b in crossed) - 0.5, text
+    # a label raised above other bars has a line down to its own bar's top; one just above it, none
+    pt = fig.dpi / 72
+    for t, (_, box) in zip(ax.texts, texts):
+        raised = box.y0 - ax.transData.transform(t.xy)[1] > (3.0 + (LEADER_AFTER + 0.5) * 1.25 * PEAK_FONTSIZE) * pt
+        assert (t.arrow_patch is not None) == raised, t.get_text()
+    assert sum(t.arrow_patch is not None for t in ax.texts) == 4  # all but the highest, in one group
