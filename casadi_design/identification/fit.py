@@ -48,6 +48,8 @@ FRAME_PARAMETERS = tuple(f"base.{e}" for e in PLACEMENT_ERRORS)
 REGISTRATION_TOL_M = 0.02
 #: Why a robot parameter is left out of the fit in the tracker frame.
 ABSORBED = "absorbed by the tracker frame (acts as a combination of its placement and the parameters kept)"
+#: The same in the robot's base frame (``--frame base``): nothing absorbs, a parameter depends.
+DEPENDENT = "acts as a combination of the parameters kept"
 #: Seed of the random poses that decide what the frame absorbs (a property of the model).
 ABSORB_SEED = 0
 
@@ -105,20 +107,23 @@ def _fit_model(problem: Problem, frame: str, names: tuple[str, ...], gravity: bo
     model = problem.model
     kin = model.kinematics
     compliant = tuple(p for p in names if p.startswith("k."))
-    case = "both" if compliant else "geometric"
 
     def build(names: tuple[str, ...]) -> CalibrationModel:
-        """The model of the parameters ``names`` (geometric errors and ``k.<joint>``)."""
-        args = model_arguments(problem.spec, tuple(p for p in names if not p.startswith("k.")))
+        """The model of the parameters ``names`` (geometric errors and ``k.<joint>``; its case
+        from what they hold)."""
+        geometric = tuple(p for p in names if not p.startswith("k."))
+        args = model_arguments(problem.spec, geometric)
         args["compliant"] = tuple(p[2:] for p in names if p.startswith("k.")) or None
+        case = "geometric" if args["compliant"] is None else "both" if geometric else "elastostatic"
         return calibration_model(kin, case, **args, gravity=gravity)
 
-    if frame == "base":
-        return FitModel(model if names == model.parameter_names and not gravity else build(names),
-                        frame, (), names, ())
-    geometric = tuple(p for p in names if p not in compliant and p not in FRAME_PARAMETERS)
-    absorbed = [(p, "the tracker frame's placement") for p in names if p in FRAME_PARAMETERS]
-    candidates = build(FRAME_PARAMETERS + geometric + compliant)
+    if frame == "base" and names == model.parameter_names and not gravity:
+        return FitModel(model, frame, (), names, ())  # the problem's own: identifiable as it is
+    frame_parameters = () if frame == "base" else FRAME_PARAMETERS
+    dependent = DEPENDENT if frame == "base" else ABSORBED
+    geometric = tuple(p for p in names if p not in compliant and p not in frame_parameters)
+    absorbed = [(p, "the tracker frame's placement") for p in names if p in frame_parameters]
+    candidates = build(frame_parameters + geometric + compliant)
     S = stacked_jacobian(candidates, np.random.default_rng(ABSORB_SEED))
     norms = np.linalg.norm(S, axis=0)
     live = norms > RANK_RTOL * norms.max()
@@ -126,16 +131,16 @@ def _fit_model(problem: Problem, frame: str, names: tuple[str, ...], gravity: bo
     kept: list[int] = []
     for i, name in enumerate(candidates.parameter_names):
         if not live[i]:
-            if name not in FRAME_PARAMETERS:
+            if name not in frame_parameters:
                 absorbed.append((name, "no effect on the measured values"))
             continue
         sv = np.linalg.svd(Sn[:, kept + [i]], compute_uv=False)
         if sv[-1] > RANK_RTOL * sv[0]:
             kept.append(i)
-        elif name not in FRAME_PARAMETERS:
-            absorbed.append((name, ABSORBED))
+        elif name not in frame_parameters:
+            absorbed.append((name, dependent))
     names = tuple(candidates.parameter_names[i] for i in kept)
-    frame_names = tuple(p for p in names if p in FRAME_PARAMETERS)
+    frame_names = tuple(p for p in names if p in frame_parameters)
     return FitModel(build(names), frame, frame_names, names[len(frame_names):], tuple(absorbed))
 
 
