@@ -410,8 +410,11 @@ def check_identifiable(spec: ProblemSpec, model: CalibrationModel) -> tuple[np.n
     generic = model.B_stack(np.array(Q), np.array(F_any))
     S = rows.reshape(-1, L)
     # columns scaled by their norm under generic loads, so that a parameter the actual
-    # loads cannot excite stays a (near) zero column
-    Sn = S / np.maximum(np.linalg.norm(generic.reshape(-1, L), axis=0), np.finfo(float).tiny)
+    # loads cannot excite stays a (near) zero column; a column of round-off under any load
+    # (a compliance whose joint axis runs through the measured point) stays unscaled, near zero
+    norms = np.linalg.norm(generic.reshape(-1, L), axis=0)
+    live = norms > IDENTIFIABILITY_RTOL * norms.max()
+    Sn = S / np.where(live, norms, 1.0)
     _, sv, Vt = np.linalg.svd(Sn, full_matrices=False)
     null = ~(sv > IDENTIFIABILITY_RTOL * sv[0]) if sv[0] > 0 else np.ones(L, dtype=bool)
     where = f"{spec.path}: [calibration]"

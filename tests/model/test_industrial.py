@@ -351,3 +351,20 @@ def test_seeded_starts_of_many_experiments_end_on_plans_that_keep_every_row(monk
         assert rec.feasible and not plan_violations(p, Q, F), rec
         runs.append(rec.runs)
     assert max(runs) > 12, runs
+
+
+def test_a_compliance_whose_axis_runs_through_the_measured_point_has_no_effect():
+    """The UR10 with every joint compliant and the measured point on the flange axis: joint 6's
+    compliance moves the point by round-off only (a column 1e-23 of the others), refused by
+    name before anything is designed (column scaling made it a unit column of noise)."""
+    raw = _raw("ur10_drilling.toml")
+    raw["robot"]["tool_xyz_m"] = [0.0, 0.0, 0.1]
+    raw["calibration"] = {"case": "elastostatic", "wrench_components": ["fx", "fy", "fz"],
+                          "compliant_joints": ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint",
+                                               "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]}
+    raw["experiments"]["force"] = {"mode": "bound", "magnitude_N": 50.0}
+    raw["test_poses"]["force_N"] = [0.0, 20.0, -30.0]
+    with pytest.raises(ProblemError, match=r"compliant_joints: .*k.wrist_3_joint has no effect on them .*remove it"):
+        build(raw, "ur10.toml")
+    raw["calibration"]["compliant_joints"].pop()  # without it: identifiable
+    assert "k.wrist_3_joint" not in build(raw, "ur10.toml").model.parameter_names
