@@ -244,9 +244,7 @@ def _symbolic_joint_placement(robot: Robot, q: ca.SX, jid: int, memo: dict) -> t
             axis, kind = joint_axis(model.joints[jid])
             qk = q[robot.joint_ids.index(jid)]
             R, p = (R @ rotation_about(axis, qk), p) if kind == "R" else (R, p + R @ (ca.SX(axis) * qk))
-        elif model.joints[jid].nq:
-            raise ProblemError(f"capsules on joint '{model.names[jid]}' off the chain to '{robot.frame}' "
-                               "are not supported; attach them to links of the chain")
+        # a joint off the chain (a gripper's finger) stands at its neutral value: no motion
         memo[jid] = (R, p)
     return memo[jid]
 

@@ -272,3 +272,25 @@ def test_several_capsules_are_conservative_and_pass_more_configurations(ur10, ur
         for k, caps, pairs in ((1, one, pairs1), (3, three, pairs3)):
             passed[k] += bool(np.all(C.capsule_clearances(robot, caps, q, pairs=pairs.kept)[0] > 0))
     assert passed[3] > passed[1]
+
+
+def test_a_capsule_on_a_finger_off_the_chain_moves_with_the_hand():
+    """The Panda's fingers hang on prismatic joints off the chain to its flange: their
+    capsules stand at the fingers' neutral opening (as the mesh check's full configuration
+    does), symbolic and numeric ends alike; they were refused, so the stock Panda URDF could
+    not be put in a cell."""
+    from casadi_design.model.obstacles import Capsule
+    from casadi_design.model.robots import load_urdf
+
+    robot = make_robot(load_urdf("example-robot-data:panda_description/urdf/panda.urdf"), "panda_link8")
+    finger = Capsule("panda_leftfinger", (0.0, 0.0, 0.0), (0.0, 0.02, 0.05), 0.01)
+    q = ca.SX.sym("q", robot.n)
+    ends = ca.Function("ends", [q], list(K.capsule_ends_symbolic(robot, [finger], q)(finger)))
+    data = robot.model.createData()
+    for qk in np.random.default_rng(0).uniform(robot.q_min, robot.q_max, (5, robot.n)):
+        a, b = K.capsule_ends(robot, qk)(finger)
+        np.testing.assert_allclose(np.asarray(ends(qk)[0]).ravel(), a, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(ends(qk)[1]).ravel(), b, atol=1e-12)
+        pin.framesForwardKinematics(robot.model, data, robot.full_q(qk))  # the finger on the hand
+        hand = data.oMf[robot.model.getFrameId("panda_hand")]
+        assert np.linalg.norm(hand.actInv(a)) < 0.1
