@@ -117,11 +117,11 @@ def checked_moves(args: argparse.Namespace, problem, Q) -> list[dict]:
         return []
     import numpy as np
 
-    from ..program.moves import check_move, home_problems
+    from ..program.moves import check_move, pose_problems
     from .program import home_pose
 
     home = home_pose(problem, args.home)
-    why = home_problems(problem, home)
+    why = pose_problems(problem, home)
     if why:
         raise ProblemError(f"--home: {why}; give a home pose inside the limits and clear of the cell")
     names = ["home", *(f"experiment {k}" for k in range(1, len(Q) + 1)), "home"]

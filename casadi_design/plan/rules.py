@@ -67,6 +67,26 @@ def mesh_contacts(problem: Problem, Q: np.ndarray) -> list[str]:
             for i, pair in enumerate(touching(problem.cell, Q)) if pair is not None]
 
 
+def load_violations(problem: Problem, F: np.ndarray) -> list[str]:
+    """The loads ``F`` (m, nF), N (N m), that break ``[experiments.force]`` (its magnitude,
+    fixed vector or direction, to :data:`LOAD_RTOL`), one line each."""
+    force, out = problem.force, []
+    for i, f in enumerate(np.asarray(F, dtype=float).reshape(-1, problem.model.nF) if force is not None else ()):
+        norm = float(np.linalg.norm(f))
+        ratio = norm / force.magnitude_N
+        if force.mode == "fixed" and not np.allclose(f, force.vector_N, rtol=LOAD_RTOL, atol=0):
+            out.append(f"experiment {i + 1}: load {f.tolist()} is not the fixed {list(force.vector_N)}")
+        elif force.mode != "fixed" and ratio > 1 + LOAD_RTOL:
+            out.append(f"experiment {i + 1}: |F| = {norm:.6g} above {force.magnitude_N:g}")
+        elif force.mode == "equal" and ratio < 1 - LOAD_RTOL:
+            out.append(f"experiment {i + 1}: |F| = {norm:.6g}, the problem applies {force.magnitude_N:g}")
+        elif force.mode == "direction":
+            u = np.array(force.direction)
+            if np.linalg.norm(f - u * (u @ f)) > LOAD_RTOL * force.magnitude_N or u @ f < -LOAD_RTOL * force.magnitude_N:
+                out.append(f"experiment {i + 1}: load {f.tolist()} is not along the direction {list(u)}")
+    return out
+
+
 def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray, meshes: bool = True) -> list[str]:
     """Every rule the plan breaks, one line each (empty: the plan is feasible).
 
@@ -77,7 +97,7 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray, meshes: bool
     meshes : False leaves out the check on the cell's real geometry (:func:`mesh_contacts`,
         about 0.6 ms per configuration on the UR10's meshes), for a caller that runs it later on the plans it keeps.
     """
-    robot, force, ws = problem.robot, problem.force, problem.workspace
+    robot, ws = problem.robot, problem.workspace
     Q = np.asarray(Q, dtype=float)
     F = np.asarray(F, dtype=float).reshape(len(Q), problem.model.nF)
     out, rules, limits = [], problem.rules.pose, problem.rules.limits
@@ -97,20 +117,7 @@ def plan_violations(problem: Problem, Q: np.ndarray, F: np.ndarray, meshes: bool
                 for label, k in worst.items()]
     if meshes:
         out += mesh_contacts(problem, Q)
-    if force is not None and F.size:
-        for i, f in enumerate(F):
-            norm = float(np.linalg.norm(f))
-            ratio = norm / force.magnitude_N
-            if force.mode == "fixed" and not np.allclose(f, force.vector_N, rtol=LOAD_RTOL, atol=0):
-                out.append(f"experiment {i + 1}: load {f.tolist()} is not the fixed {list(force.vector_N)}")
-            elif force.mode != "fixed" and ratio > 1 + LOAD_RTOL:
-                out.append(f"experiment {i + 1}: |F| = {norm:.6g} above {force.magnitude_N:g}")
-            elif force.mode == "equal" and ratio < 1 - LOAD_RTOL:
-                out.append(f"experiment {i + 1}: |F| = {norm:.6g}, the problem applies {force.magnitude_N:g}")
-            elif force.mode == "direction":
-                u = np.array(force.direction)
-                if np.linalg.norm(f - u * (u @ f)) > LOAD_RTOL * force.magnitude_N or u @ f < -LOAD_RTOL * force.magnitude_N:
-                    out.append(f"experiment {i + 1}: load {f.tolist()} is not along the direction {list(u)}")
+    out += load_violations(problem, F)
     dmin = ws.min_joint_distance_rad
     m = len(Q)
     for i in range(m):

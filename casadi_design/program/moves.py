@@ -241,23 +241,25 @@ def on_meshes(problem: Problem, move: Move) -> Move:
     return replace(move, mesh_m=min(c.distance_m for c in near), touching=touching)
 
 
-def home_problems(problem: Problem, home: np.ndarray) -> str | None:
-    """Why ``home`` (n,), rad, cannot start a program (outside the joint limits, breaking the
-    clearance or touching on the meshes), None when it can."""
-    limits = problem.rules.limits
-    for k, j in enumerate(problem.robot.joints):
-        if not limits.lower[k] - FEASIBILITY_TOL <= home[k] <= limits.upper[k] + FEASIBILITY_TOL:
-            return (f"{j} = {np.rad2deg(home[k]):.6g} deg is outside [{np.rad2deg(limits.lower[k]):.6g}, "
-                    f"{np.rad2deg(limits.upper[k]):.6g}] deg")
+def pose_problems(problem: Problem, q: np.ndarray, limits: bool = True) -> str | None:
+    """Why the configuration ``q`` (n,), rad, cannot stand in a program (outside the joint
+    limits, with ``limits``; breaking the clearance, the floor included; touching on the
+    meshes), None when it can: a home, or an experiment of a plan (whose joints were checked
+    against the robot's limits when it was read)."""
+    bounds = problem.rules.limits
+    for k, j in enumerate(problem.robot.joints if limits else ()):
+        if not bounds.lower[k] - FEASIBILITY_TOL <= q[k] <= bounds.upper[k] + FEASIBILITY_TOL:
+            return (f"{j} = {np.rad2deg(q[k]):.6g} deg is outside [{np.rad2deg(bounds.lower[k]):.6g}, "
+                    f"{np.rad2deg(bounds.upper[k]):.6g}] deg")
     rules = move_rules(problem)
     if rules is None:
         return None
-    g = rules.rows(home[None])[0]
+    g = rules.rows(q[None])[0]
     bad = [k for k in rules.collision if g[k] < -FEASIBILITY_TOL]
     if bad:
         k = min(bad, key=lambda k: g[k])
         return f"{rules.labels[k]} (by {-g[k] * 1e3:.3g} mm)"
-    near = clearances(problem.cell, home[None])[0]
+    near = clearances(problem.cell, q[None])[0]
     if near.touching is not None:
         return f"{near.touching[0]} and {near.touching[1]} touch on the {problem.cell.check.source}"
     return None

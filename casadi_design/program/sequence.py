@@ -18,9 +18,9 @@ import numpy as np
 
 from ..model.build import Problem
 from ..errors import DesignError, ProblemError
-from ..plan.rules import LOAD_RTOL
+from ..plan.rules import LOAD_RTOL, load_violations
 from .detours import MoveSearch, NoSafePath, Route
-from .moves import home_problems, on_meshes
+from .moves import on_meshes, pose_problems
 from .order import TimeModel, best_order, load_changes, order_cost, time_model, tour_cost
 
 #: Standard gravity (m/s^2): the mass of a hung weight, for people.
@@ -99,16 +99,24 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     Raises
     ------
     ProblemError
-        ``home`` outside the joint limits or in collision.
+        ``home`` outside the joint limits or in collision; an experiment whose pose breaks the
+        clearance or touches (its joints are checked when the plan is read), a load beyond
+        ``[experiments.force]``.
     DesignError
         An experiment that no collision-free way from home reaches (the message names it), or a
         move whose meshes touch.
     """
     Q, home = np.array(Q, dtype=float), np.asarray(home, dtype=float)  # (Q a copy: its turns are set below)
     m = len(Q)
-    why = home_problems(problem, home)
+    why = pose_problems(problem, home)
     if why:
         raise ProblemError(f"--home: {why}; give a home pose inside the limits and clear of the cell")
+    # the plan's poses and loads as they are: what the robot is asked to do keeps the cell and the rig
+    broken = [f"experiment {k}: {why}" for k, q in enumerate(Q, start=1)
+              for why in [pose_problems(problem, q, limits=False)] if why] + load_violations(problem, F)
+    if broken:
+        raise ProblemError(f"{broken[0]}{f' (and {len(broken) - 1} more)' if len(broken) > 1 else ''}; a program "
+                           "runs the plan as it is: correct it (casadi-design evaluate --plan lists what it breaks)")
     times = time_model(problem)
     search = MoveSearch(problem, times, np.vstack([home, Q]))
     # each experiment as the configuration of its pose that home reaches by the fastest clear move

@@ -287,6 +287,23 @@ def test_bad_program_input_is_one_line_and_writes_nothing(abb, tmp_path, capsys,
     assert not out.exists()
 
 
+def test_a_plan_that_breaks_its_rules_is_not_programmed(abb, tmp_path, capsys):
+    """A robot program runs a plan's poses and loads as they are: a pose in the table's
+    clearance (it was refused as unreachable from home) or a load beyond the rig's is one
+    line naming the experiment and the rule, and nothing is written."""
+    Q, F = random_plan(abb, 2, np.random.default_rng(5))
+    u = np.array(abb.force.direction)
+    for q, f, match in ((np.deg2rad([0, 50, 0, 0, 60, 0]), F[0], r"experiment 1: link .* closer than 20 mm to "
+                         r"machine table \(by .* mm\); a program runs the plan as it is: correct it"),
+                        (Q[0], 2 * abb.force.magnitude_N * u, r"experiment 1: \|F\| = 3924 above 1962; a program")):
+        plan = _plan_csv(tmp_path / "plan.csv", abb, np.vstack([q, Q[1]]), np.vstack([f, F[1]]))
+        out = tmp_path / "out"
+        assert main(["program", str(ABB), "--plan", plan, "--format", "json", "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert re.search(match, err) and err.count("\n") == 1, err
+        assert not out.exists()
+
+
 def test_plan_of_another_robot_and_bad_controller_are_refused(abb, tmp_path, capsys):
     paper = load_problem(PAPER)
     plan = _plan_csv(tmp_path / "plan.csv", paper, np.zeros((2, 2)), np.tile([100.0, 0.0], (2, 1)))
