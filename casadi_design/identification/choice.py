@@ -212,9 +212,12 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
     base = found[0]
     if (chosen is not base and not math.isnan(base.cv_rms_m)
             and not chosen.cv_rms_m <= base.cv_rms_m * (1 + TIE_RTOL)):
-        got = "could not be cross-validated" if math.isnan(chosen.cv_rms_m) else \
-            f"predicts new poses worse ({chosen.cv_rms_m * 1e3:.3f} mm cross-validated)"
-        warnings.append(f"the {chosen.name} model {got} than registration only "
-                        f"({base.cv_rms_m * 1e3:.3f} mm): it fits what the model misses; "
-                        "--model auto chooses by cross-validation")
+        if math.isnan(chosen.cv_rms_m):
+            warnings.append(f"the {chosen.name} model could not be cross-validated ({chosen.why}), registration "
+                            f"only could ({base.cv_rms_m * 1e3:.3f} mm): whether it predicts new poses "
+                            "better is not known; --model auto chooses by cross-validation")
+        else:
+            warnings.append(f"the {chosen.name} model predicts new poses worse ({chosen.cv_rms_m * 1e3:.3f} mm "
+                            f"cross-validated) than registration only ({base.cv_rms_m * 1e3:.3f} mm): it fits "
+                            "what the model misses; --model auto chooses by cross-validation")
     return chosen, warnings
