@@ -60,10 +60,13 @@ def sample_path(kind: str, points: np.ndarray, nodes: int) -> tuple[np.ndarray, 
     return center + r * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2), np.zeros(nodes, int)
 
 
-def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool = False) -> tuple[np.ndarray, float]:
-    """Configuration reaching ``target`` with the tool frame, from ``q0``; and the residual |e|."""
+def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool = False,
+             limits: bool = True) -> tuple[np.ndarray, float]:
+    """Configuration reaching ``target`` with the tool frame, from ``q0``, within the joint
+    limits (``limits``; else anywhere); and the residual |e|."""
     model, data = robot.model, robot.model.createData()
-    q = np.clip(np.asarray(q0, dtype=float), robot.q_min, robot.q_max)
+    low, high = (robot.q_min, robot.q_max) if limits else (-np.inf, np.inf)
+    q = np.clip(np.asarray(q0, dtype=float), low, high)
     rows = slice(0, 3) if position_only else slice(0, 6)
     err = np.inf
     for _ in range(IK_MAX_ITER):
@@ -75,7 +78,7 @@ def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool 
             break
         J = frame_jacobian(robot, q)[rows]
         lam2 = LAMBDA0**2 + err**2
-        q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + lam2 * np.eye(J.shape[0]), e), robot.q_min, robot.q_max)
+        q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + lam2 * np.eye(J.shape[0]), e), low, high)
     return q, err
 
 
@@ -88,14 +91,24 @@ def path_ik(robot: Robot, positions_m: np.ndarray, rotation: np.ndarray, q_seed:
     ProblemError
         For the first node the IK cannot reach within ``IK_ACCEPT``.
     """
-    q, out = np.asarray(q_seed, dtype=float), []
+    q, out, s = np.asarray(q_seed, dtype=float), [], len(positions_m)
     for j, p in enumerate(positions_m):
-        q, err = solve_ik(robot, pin.SE3(rotation, p), q, position_only)
+        q_from = q
+        q, err = solve_ik(robot, pin.SE3(rotation, p), q_from, position_only)
         if not err <= IK_ACCEPT:  # also catches NaN
+            where = f"[test_poses].path: node {j + 1} of {s} at ({', '.join(f'{v * 1e3:.1f}' for v in p)}) mm"
+            q_free, err_free = solve_ik(robot, pin.SE3(rotation, p), q_from, position_only, limits=False)
+            out_of = [k for k in range(robot.n) if not robot.q_min[k] <= q_free[k] <= robot.q_max[k]]
+            if err_free <= IK_ACCEPT and out_of:  # reached, but only past a joint limit
+                k = out_of[0]
+                raise ProblemError(
+                    f"{where} is reached with the given tool orientation only with {robot.joints[k]} at "
+                    f"{np.rad2deg(q_free[k]):.1f} deg, outside its limits [{np.rad2deg(robot.q_min[k]):.1f}, "
+                    f"{np.rad2deg(robot.q_max[k]):.1f}] deg; move the path, or widen [robot.joint_limits_rad] "
+                    "if the robot allows it")
             raise ProblemError(
-                f"[test_poses].path: node {j} at ({', '.join(f'{v * 1e3:.1f}' for v in p)}) mm is "
-                f"unreachable with the given tool orientation (residual {err * 1e3:.3g} mm/mrad after "
-                f"{IK_MAX_ITER} iterations from the previous node); move the path, change tool_rpy_deg "
+                f"{where} is unreachable with the given tool orientation (residual {err * 1e3:.3g} mm/mrad "
+                f"after {IK_MAX_ITER} iterations from the previous node); move the path, change tool_rpy_deg "
                 "or give seed_q_deg closer to it"
             )
         out.append(q)

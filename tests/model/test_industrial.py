@@ -200,7 +200,11 @@ def test_segment_forces_follow_the_polyline(abb_dh):
 
 @pytest.mark.parametrize("edit, match", [
     (lambda r: r["test_poses"].update(path={"kind": "line", "points_m": [[0.6, 0, 0.1], [2.5, 0, 0.1]], "nodes": 5}),
-     r"\[test_poses\].path: node \d at \(.*\) mm is unreachable"),
+     r"\[test_poses\].path: node \d of 5 at \(.*\) mm is unreachable"),
+    (lambda r: r["robot"].update(joint_limits_rad={"elbow_joint": [-1.0, 1.0]}),
+     r"\[test_poses\].path: node 1 of 9 at \(600.0, -300.0, 100.0\) mm is reached with the given tool orientation "
+     r"only with elbow_joint at \d+.\d deg, outside its limits \[-57.3, 57.3\] deg; move the path, or widen "
+     r"\[robot.joint_limits_rad\]"),
     (lambda r: r["robot"].update(frame="flange0"), r"unknown frame 'flange0'"),
     (lambda r: r["calibration"].update(parameters=["elbow.offset"]), r"unknown parameter 'elbow.offset'"),
     (lambda r: r["experiments"]["workspace"].update(floor_z_m=2.0), None),
