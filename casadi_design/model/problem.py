@@ -835,6 +835,11 @@ def _test_poses(tp: _Reader, meas: MeasurementSpec, nF: int) -> TestPoseSpec:
         spec["force_N"] = _vec(tp.array("force_N", (nF,), hint=f"{nF} wrench components"))
     elif nF:
         raise tp.error("missing force_N", f"give the machining wrench, {nF} components in N (N m)", "force_N")
+    for key in loads:
+        largest = float(np.max(np.abs(np.asarray(spec[key], dtype=float))))
+        if largest > MAX_LOAD_N:
+            raise tp.error(f"has {largest:g}, above {MAX_LOAD_N:g} N (N m)",
+                           "give the machining wrench in N and N m", key)
     return TestPoseSpec(components=components, **spec)
 
 

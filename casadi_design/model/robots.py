@@ -34,6 +34,10 @@ SUPPORTED_JOINTS = (
     "JointModelPrismaticUnaligned",
 )
 
+#: Largest joint limit taken as given (rad for a revolute joint, m for a prismatic one): a
+#: revolute limit past two turns is a value in degrees, a prismatic one past 100 m in mm.
+MAX_LIMIT = {"R": 4 * np.pi, "P": 100.0}
+
 
 @dataclass(frozen=True, eq=False)
 class Robot:
@@ -342,6 +346,12 @@ def make_robot(
             raise ProblemError(f"[robot.joint_limits_rad].{jname}: lower {lo} must be below upper {hi}; "
                                "give [lower, upper]")
         k = joints.index(jname)
+        revolute = model.joints[chain[k]].shortname()[len("JointModel")] == "R"  # RZ, RevoluteUnaligned
+        if max(abs(lo), abs(hi)) > MAX_LIMIT["R" if revolute else "P"]:
+            raise ProblemError(
+                f"[robot.joint_limits_rad].{jname}: [{lo:g}, {hi:g}] is past "
+                + (f"two turns: give rad, e.g. [{np.deg2rad(lo):.4g}, {np.deg2rad(hi):.4g}] for [{lo:g}, {hi:g}] deg"
+                   if revolute else f"100 m: give m, e.g. [{lo / 1e3:.4g}, {hi / 1e3:.4g}] for [{lo:g}, {hi:g}] mm"))
         q_min[k], q_max[k] = lo, hi
     bad = [j for j, lo, hi in zip(joints, q_min, q_max) if not (np.isfinite(lo) and np.isfinite(hi))]
     if bad:

@@ -201,6 +201,8 @@ def test_segment_forces_follow_the_polyline(abb_dh):
 @pytest.mark.parametrize("edit, match", [
     (lambda r: r["test_poses"].update(path={"kind": "line", "points_m": [[0.6, 0, 0.1], [2.5, 0, 0.1]], "nodes": 5}),
      r"\[test_poses\].path: node \d of 5 at \(.*\) mm is unreachable"),
+    (lambda r: r["robot"].update(joint_limits_rad={"elbow_joint": [-170.0, 170.0]}),
+     r"\[robot.joint_limits_rad\].elbow_joint: \[-170, 170\] is past two turns: give rad, e.g. \[-2.967, 2.967\]"),
     (lambda r: r["robot"].update(joint_limits_rad={"elbow_joint": [-1.0, 1.0]}),
      r"\[test_poses\].path: node 1 of 9 at \(600.0, -300.0, 100.0\) mm is reached with the given tool orientation "
      r"only with elbow_joint at \d+.\d deg, outside its limits \[-57.3, 57.3\] deg; move the path, or widen "
@@ -237,6 +239,15 @@ def test_dh_table_errors(edit, match):
     raw = _raw("abb_irb6640_machining.toml")
     edit(raw["robot"]["dh"])
     with pytest.raises(ProblemError, match=match):
+        build(raw, "abb.toml")
+
+
+def test_a_machining_wrench_beyond_a_million_newtons_is_refused():
+    """As the calibration load is: a wrench of 3e7 N is a unit mistake, not a milling force."""
+    raw = _raw("abb_irb6640_machining.toml")
+    raw["test_poses"]["segment_forces_N"][0][2] = -3e7
+    with pytest.raises(ProblemError, match=r"\[test_poses\].segment_forces_N: has 3e\+07, above 1e\+06 N \(N m\); "
+                                           r"give the machining wrench in N and N m"):
         build(raw, "abb.toml")
 
 
