@@ -294,6 +294,10 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     if f is None:
         f, outliers, refused = fit_without_outliers(problem, fm, meas, T0, threshold, loss)
     notes += refused + warnings
+    if frame == "tracker" and problem.model.case == "elastostatic" and np.all(np.any(meas.F != 0, axis=1)):
+        notes.append("an elasto-static plan is designed for points measured in the robot's base frame (the "
+                     "deflections); here the tracker frame is fitted from the same rows, which costs accuracy: "
+                     "measure the poses unloaded too, or give points registered in the base frame with --frame base")
     sigma, L = problem.sigma_m, fm.model.L
     Minv = np.linalg.inv(f.information)
     C = sigma**2 * Minv

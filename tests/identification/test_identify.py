@@ -162,6 +162,8 @@ def test_paper_elastostatic_compliances_within_3_sigma(tmp_path):
     cal = calibrate(problem, read_measurements(problem, str(tmp_path / "meas.csv")), model="identifiable")
     assert cal.fit.fit.frame_names == ("base.tx", "base.ty", "base.rz")  # a planar tracker frame
     compliances_within_sigmas(cal, problem, true)
+    assert any(n.startswith("an elasto-static plan is designed for points measured in the robot's base frame")
+               for n in cal.notes)
 
 
 @pytest.mark.slow  # 4 s: building the ABB's model and its Taylor Jacobian (41 parameters); the
