@@ -474,18 +474,19 @@ def check_identifiable(problem: Problem, fm: FitModel, meas: Measurements, used:
         Naming the numbers of rows, values and parameters.
     """
     L, values, rows = fm.model.L + (meas.frames - 1) * len(fm.frame_names), int(mask[used].sum()), int(used.sum())
-    names = ", ".join(fm.model.parameter_names)
     frame = (f" ({L - fm.model.L + len(fm.frame_names)} of them the tracker frames')" if fm.frame_names else "")
     per_row = max(1, values // max(rows, 1))
+    which = f"{rows} rows" if rows == meas.m else f"{rows} of the {meas.m} rows (the others left out as outliers)"
     if values < L:
         raise ProblemError(
-            f"{meas.path}: {rows} rows give {values} measured values, fewer than the {L} parameters "
-            f"to identify{frame}: {names}; measure at least {math.ceil(L / per_row)} rows")
+            f"{meas.path}: {which} give {values} measured values, fewer than the {L} parameters "
+            f"to identify{frame}; measure at least {math.ceil(L / per_row)} rows"
+            + ("" if rows == meas.m else " that fit the model"))
     B = fm.model.B_stack(meas.Q[used], meas.F[used]) * mask[used][:, :, None]
     lam = np.linalg.eigvalsh(information_matrix(B))
     if not lam[0] > SINGULAR_RTOL * max(lam[-1], np.finfo(float).tiny):
         raise ProblemError(
-            f"{meas.path}: the {rows} rows do not identify the {L} parameters{frame} (their "
+            f"{meas.path}: {'the ' * (rows == meas.m)}{which} do not identify the {L} parameters{frame} (their "
             f"information matrix is singular: rank {int(np.sum(lam > SINGULAR_RTOL * lam[-1]))} of "
             f"{L}); measure more, and more varied, poses (a plan of casadi-design solve)")
 
