@@ -94,8 +94,9 @@ def report(problem, program, plan: str | Path) -> str:
     lines = [f"plan {plan}: {m} experiments; joint speeds: {program.times.source}",
              f"order: {', '.join(map(str, program.order))}",
              (f"time {program.time_s:.1f} s ({moving:.1f} s of moves, {m} x {program.measure_s:g} s measuring); "
-             f"file order {program.file_time_s:.1f} s (as straight moves {program.file_straight_s:.1f} s, but "
-             f"{program.file_blocked} of its {m + 1} moves break the clearance)"),
+             f"file order {program.file_time_s:.1f} s (as straight moves {program.file_straight_s:.1f} s"
+             + (f", but {program.file_blocked} of its {m + 1} moves break the clearance)" if program.file_blocked
+                else ", all clear)")),
              f"load changes: {program.load_changes} (file order {program.file_load_changes})"]
     if problem.cell is None:
         return "\n".join(lines + ["no [cell]: the moves are not checked for collisions"])

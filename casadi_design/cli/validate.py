@@ -62,13 +62,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", metavar="DIR",
                    help="folder for validation.json and validation.png/.pdf (created, if "
                         "missing, once the simulation has succeeded)")
-    p.add_argument("--length-mm", type=float, default=d.length_m * 1e3, metavar="MM",
+    p.add_argument("--length-mm", type=common.number("--length-mm", "a length in mm >= 0", strict=False), default=d.length_m * 1e3, metavar="MM",
                    help=f"std of the translation errors, mm (default {d.length_m * 1e3:g})")
-    p.add_argument("--angle-deg", type=float, default=math.degrees(d.angle_rad), metavar="DEG",
+    p.add_argument("--angle-deg", type=common.number("--angle-deg", "an angle in deg >= 0", strict=False), default=math.degrees(d.angle_rad), metavar="DEG",
                    help=f"std of the rotation errors, deg (default {math.degrees(d.angle_rad):g})")
-    p.add_argument("--k", type=float, default=d.k_nominal, metavar="K",
+    p.add_argument("--k", type=common.number("--k", "a compliance >= 0", strict=False), default=d.k_nominal, metavar="K",
                    help=f"median true compliance, rad/(N m) or m/N (default {d.k_nominal:g})")
-    p.add_argument("--k-log-spread", type=float, default=d.k_log_spread, metavar="S",
+    p.add_argument("--k-log-spread", type=common.number("--k-log-spread", "a number >= 0", strict=False), default=d.k_log_spread, metavar="S",
                    help=f"std of log k (default {d.k_log_spread:g})")
     p.add_argument("--scales", type=_positive_list, metavar="LIST",
                    help="also validate with every spread times each scale, e.g. 1,10,100, "

@@ -187,8 +187,9 @@ def _reached(search: MoveSearch, home: np.ndarray, options: list[np.ndarray], k:
     try:
         return search.path_to(home, options)
     except NoSafePath as exc:
-        raise DesignError(f"experiment {k} cannot be reached from home: no collision-free way to any of the "
-                          f"{len(options)} configurations of its pose (its periodic joints' whole turns: {exc}); "
+        where = (f"to its pose ({exc})" if len(options) == 1 else f"to any of the {len(options)} configurations "
+                 f"of its pose (its periodic joints' whole turns: {exc})")
+        raise DesignError(f"experiment {k} cannot be reached from home: no collision-free way {where}; "
                           "move that experiment or give another --home") from None
 
 

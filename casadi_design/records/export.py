@@ -447,7 +447,7 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
     model, tp = problem.model, problem.test_poses
     force = problem.force
     load = ("none (geometric case)" if force is None else
-            f"{force.mode}, |F| = {force.magnitude_N:g} N" if force.mode != "fixed" else
+            f"{force.mode}, |F| {'<=' if force.mode == 'bound' else '='} {force.magnitude_N:g} N" if force.mode != "fixed" else
             f"fixed F = {list(force.vector_N)} N")
     x = tp.position_m * 1e3
     notes = [*notes, *bound_notes(designs)]
@@ -462,8 +462,8 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
                        f"({', '.join(problem.robot.joints)}), measured frame `{problem.robot.frame}`")],
             ["identified", f"{model.case}: {', '.join(model.parameter_names)}"],
             ["measured", f"{', '.join(problem.spec.measurement.components)}, sigma = {problem.sigma_m * 1e3:g} mm"],
-            ["test poses", (f"{tp.s} poses, from ({', '.join(f'{v:.0f}' for v in x[0])}) to "
-                            f"({', '.join(f'{v:.0f}' for v in x[-1])}) mm")],
+            ["test poses", (f"{tp.s} poses, from ({', '.join(str(round(float(v))) for v in x[0])}) to "
+                            f"({', '.join(str(round(float(v))) for v in x[-1])}) mm")],  # (an int: no -0)
             ["calibration load", load],
             ["solver", f"IPOPT, {starts} seeded starts per design, seed {problem.solver.seed}"],
         ]),

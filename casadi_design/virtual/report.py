@@ -78,10 +78,13 @@ def format_report(validation: Validation, study: list[tuple[float, Validation]] 
     """Per plan: max predicted and simulated RMS error (mm) with the interval, node agreement;
     the rankings; the wall time; and the linearisation study when given."""
     v, sp = validation, validation.spreads
+    names = v.problem.model.parameter_names
+    errors = ([f"length {sp.length_m * 1e3:g} mm, angle {math.degrees(sp.angle_rad):g} deg"]
+              if any(not n.startswith("k.") for n in names) else [])
+    errors += [f"k {sp.k_nominal:g} (log-std {sp.k_log_spread:g})"] if any(n.startswith("k.") for n in names) else []
     lines = [
         (f"virtual calibration of {v.problem.name} ({v.problem.model.case}): {v.trials} trials, "
-         f"seed {v.seed}, {v.problem.test_poses.s} test poses; errors: length {sp.length_m * 1e3:g} mm, "
-         f"angle {math.degrees(sp.angle_rad):g} deg, k {sp.k_nominal:g} (log-std {sp.k_log_spread:g})"),
+         f"seed {v.seed}, {v.problem.test_poses.s} test poses; errors: {', '.join(errors)}"),
         (f"{'criterion':<10} {'m':>3} {'max sqrt(rho)':>14} {'max simulated':>14} "
          f"{f'{round(100 * CONFIDENCE)}% interval':>18} {'worst node':>11} {'covered':>8}  identification"),
     ]

@@ -396,7 +396,7 @@ def test_cli_writes_validation_json_and_figure(tmp_path, paper, paper_designs, c
     assert again.empirical_rms_m.tolist() == first["empirical_rms_m"]
 
 
-def test_cli_rejects_bad_input_before_writing(tmp_path, paper, paper_designs):
+def test_cli_rejects_bad_input_before_writing(tmp_path, paper, paper_designs, capsys):
     results = tmp_path / "results.json"
     write_results(results, paper, paper_designs)
     with pytest.raises(ProblemError, match="--results.*calibration.parameters"):
@@ -408,8 +408,11 @@ def test_cli_rejects_bad_input_before_writing(tmp_path, paper, paper_designs):
         cli([str(GEOMETRIC), "--results", str(tmp_path / "broken.json")])
     with pytest.raises(ProblemError, match="trials = 1"):  # before solving anything
         cli([str(GEOMETRIC), "--trials", "1"])
-    with pytest.raises(ProblemError, match="length_m = -1"):
+    with pytest.raises(SystemExit):  # the option named, by the argument parser
         cli([str(GEOMETRIC), "--length-mm", "-1000"])
+    assert "argument --length-mm: --length-mm takes a length in mm >= 0, got '-1000'" in capsys.readouterr().err
+    with pytest.raises(ProblemError, match=r"error spread length_m = -1.0; give a finite value >= 0"):  # in Python
+        ErrorSpreads(length_m=-1.0)
     (tmp_path / "file").write_text("")
     with pytest.raises(OutputError, match="not a folder"):
         cli([PAPER_FILE, "--results", str(results), "--out", str(tmp_path / "file")])
