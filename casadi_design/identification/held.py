@@ -16,8 +16,9 @@ from ..model.problem import HeldSpec
 from .measurements import read_experiments
 
 
-def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray]:
-    """The robot parameters of an ``identification.json`` and their covariance (SI units).
+def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray, tuple[str, ...]]:
+    """The robot parameters of an ``identification.json``, their covariance (SI units) and
+    the measurement files it was identified from.
 
     Raises
     ------
@@ -48,7 +49,18 @@ def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray
         raise ProblemError(f"{where}: 'covariance' is not a finite {L} x {L} matrix of its {L} parameters; "
                            "give the identification.json written by casadi-design identify")
     keep = np.flatnonzero(robot)  # the tracker frame of that round is not this one's
-    return tuple(names[i] for i in keep), C[np.ix_(keep, keep)]
+    sources = [r.get("file") for r in record.get("rounds") or [] if isinstance(r, dict)] or [record.get("measurements")]
+    return tuple(names[i] for i in keep), C[np.ix_(keep, keep)], tuple(str(f) for f in sources if f)
+
+
+def _same_file(a: str, b: str) -> bool:
+    """Whether the files ``a`` and ``b`` are one (a path) or hold the same bytes."""
+    try:
+        pa, pb = Path(a), Path(b)
+        return pa.resolve() == pb.resolve() or (pa.stat().st_size == pb.stat().st_size
+                                                and pa.read_bytes() == pb.read_bytes())
+    except OSError:
+        return False
 
 
 def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -> HeldSpec | None:
@@ -60,6 +72,10 @@ def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -
     for path in measured or []:
         q, f, _ = read_experiments(problem, path, ignore_unknown=True)
         Q, F = np.vstack([Q, q]), np.vstack([F, f])
-    names, C = ((), None) if prior is None else read_prior(problem, prior)
+    names, C, sources = ((), None, ()) if prior is None else read_prior(problem, prior)
+    twice = [(m, f) for m in measured or [] for f in sources if _same_file(m, f)]
+    if twice:  # its information is in the prior already
+        raise ProblemError(f"--measured {twice[0][0]}: --prior {prior} was identified from it ({twice[0][1]}), so "
+                           "its information is in the prior already; give it as --measured or as the --prior, not both")
     return HeldSpec(tuple(map(tuple, Q.tolist())), tuple(map(tuple, F.tolist())), names,
                     None if C is None else tuple(map(tuple, C.tolist())), tuple(measured or []), prior)

@@ -1,6 +1,7 @@
 """The second round from the command line: --measured, --prior, and their bad files."""
 
 import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -8,6 +9,7 @@ import pinocchio as pin
 import pytest
 
 from casadi_design.cli import main
+from casadi_design.errors import ProblemError
 from casadi_design.model.build import build_problem
 from casadi_design.model.problem import read_problem
 from casadi_design.plan.sampling import random_plan
@@ -75,6 +77,13 @@ def test_a_prior_from_an_identification_of_rows_is_the_information_of_those_rows
     assert prior.prior_names == problem.model.parameter_names
     by_prior = build_problem(replace(problem.spec, held=prior)).M_held
     np.testing.assert_allclose(by_prior, by_rows, rtol=0, atol=1e-9 * np.abs(by_rows).max())
+    # so both at once count the rows twice: refused, whether by the same path or a copy
+    identification = str(tmp_path / "id" / "identification.json")
+    (tmp_path / "copy.csv").write_bytes((tmp_path / "meas.csv").read_bytes())
+    for given in (tmp_path / "meas.csv", tmp_path / "copy.csv"):
+        with pytest.raises(ProblemError, match=rf"--measured {re.escape(str(given))}: --prior .* was identified from "
+                                               r"it \(.*meas.csv\), so its information is in the prior already"):
+            read_held(problem, [str(given)], identification)
 
 
 def test_bad_second_round_files_get_one_line(paper, tmp_path, capsys):
