@@ -147,9 +147,10 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
         if unknown:
             raise ProblemError(f"{where}.disabled_pairs: '{unknown[0]}' carries no capsule; the capsules "
                                f"are on: {', '.join(sorted(links))}")
+    disabled = spec.disabled_pairs + tuple((a, b) for a, b in srdf_pairs(spec.srdf) if a in links and b in links)
     obstacles = spec.obstacles + ((HalfSpace((0.0, 0.0, 1.0), workspace.floor_z_m, "the floor"),)
                                   if workspace.floor_z_m is not None and capsules else ())
-    pairs, (near, near_skipped) = _pairs(robot, capsules, obstacles, spec.clearance_m, spec.disabled_pairs)
+    pairs, (near, near_skipped) = _pairs(robot, capsules, obstacles, spec.clearance_m, disabled)
     markers = np.asarray(markers_m, dtype=float)
     centroid = markers.mean(axis=0)
     sights = ((LineOfSight(spec.tracker.position_m, robot.model.frames[robot.frame_id].name, tuple(centroid),
@@ -157,6 +158,21 @@ def build_cell(spec: CellSpec | None, robot: Robot, workspace: Workspace, urdf: 
               if spec.tracker is not None and capsules else ())
     check = _check_geometry(robot, capsules, fitted, geometry, bodies, pairs, obstacles, near)
     return Cell(spec, capsules, pairs, obstacles, near, near_skipped, sights, check)
+
+
+def srdf_pairs(path: str) -> tuple[tuple[str, str], ...]:
+    """The ``<disable_collisions link1="..." link2="..."/>`` pairs of a MoveIt SRDF (``path``:
+    a file or ``example-robot-data:<relative path>``; "" none), in file order."""
+    if not path:
+        return ()
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(urdf_file(path)).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise ProblemError(f"[cell].srdf: cannot read {path} ({exc}); give the robot's SRDF (MoveIt), e.g. "
+                           "example-robot-data:panda_description/srdf/panda.srdf") from None
+    return tuple((e.get("link1", ""), e.get("link2", "")) for e in root.iter("disable_collisions"))
 
 
 def _pairs(robot: Robot, capsules: tuple[Capsule, ...], obstacles: tuple[Obstacle, ...], clearance_m: float,

@@ -72,7 +72,7 @@ SECTIONS: dict[str, set[str] | None] = {
                               "joint_limit_margin_rad"},
     "experiments.workspace.half_spaces": {"normal", "offset_m"},
     "design": {"criteria", "parameter_scaling"},
-    "cell": {"clearance_m", "capsules_per_link", "capsules", "disabled_pairs", "obstacles", "tracker",
+    "cell": {"clearance_m", "capsules_per_link", "capsules", "disabled_pairs", "srdf", "obstacles", "tracker",
              "collision_urdf"},
     "cell.capsules": {"frame", "a_m", "b_m", "radius_m"},
     "cell.obstacles": {"name", "kind"}.union(*(kind.KEYS for kind in OBSTACLE_KINDS.values())),
@@ -258,8 +258,9 @@ class CellSpec:
     ``capsules_per_link``: capsules fitted around each link's URDF collision meshes (0: none);
     ``capsules``: capsules given as numbers (added to the fitted ones; the only ones of a DH
     robot); ``disabled_pairs``: pairs of link frames never checked against each other;
-    ``collision_urdf``: for a DH robot, a URDF of the same robot (same joint names) whose
-    collision geometry checks the plans.
+    ``srdf``: a MoveIt SRDF of the robot whose ``disable_collisions`` pairs are disabled too
+    (those of two links with capsules); ``collision_urdf``: for a DH robot, a URDF of the same
+    robot (same joint names) whose collision geometry checks the plans.
     """
 
     clearance_m: float = 0.0
@@ -269,6 +270,7 @@ class CellSpec:
     obstacles: tuple[Obstacle, ...] = ()
     tracker: TrackerSpec | None = None
     collision_urdf: str = ""
+    srdf: str = ""
 
 
 @dataclass(frozen=True)
@@ -988,10 +990,17 @@ def _cell(c: _Reader | None, robot: RobotSpec) -> CellSpec | None:
     urdf = c.get("collision_urdf", str, "")
     if urdf and robot.source != "dh":
         raise c.error("is only used with a DH robot", "remove it: the robot's own URDF meshes are used", "collision_urdf")
-    if urdf and not urdf.startswith("example-robot-data:") and not Path(urdf).is_absolute():
-        urdf = str(Path(c.path).parent / urdf)
+    urdf, srdf = (_file_of(c, name) for name in (urdf, c.get("srdf", str, "")))
     return CellSpec(c.number("clearance_m", 0.0, hint="the smallest distance kept between bodies, m", nonnegative=True),
-                    per_link, capsules, tuple(pairs), tuple(obstacles), tracker, urdf)
+                    per_link, capsules, tuple(pairs), tuple(obstacles), tracker, urdf, srdf)
+
+
+def _file_of(c: _Reader, path: str) -> str:
+    """A file named in the problem file: ``example-robot-data:...``, absolute, or relative to
+    the problem file's folder ("" stays "")."""
+    if path and not path.startswith("example-robot-data:") and not Path(path).is_absolute():
+        return str(Path(c.path).parent / path)
+    return path
 
 
 def _solver(table: _Reader | None) -> SolverSettings:

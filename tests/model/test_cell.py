@@ -320,3 +320,51 @@ def test_a_run_stops_as_stalled_only_after_its_iterates_stop_making_progress(ur1
     climb = [(k, 1.0 / (k + 1)) for k in range(n)]  # infeasible, the violation falling
     assert run(climb) == ([], False)
     assert run(climb[:10] + [(20.0, 0.5)] * n)[0] == [10 + STALL_ITERATIONS]
+
+
+PANDA_CELL = """
+name = "panda_srdf"
+[robot]
+urdf = "example-robot-data:panda_description/urdf/panda.urdf"
+frame = "panda_link8"
+tool_xyz_m = [0.07, 0.0, 0.03]
+[calibration]
+case = "geometric"
+parameters = "identifiable"
+[measurement]
+components = ["x", "y", "z"]
+sigma_m = 2.5e-5
+[test_poses]
+components = ["x", "y", "z"]
+tool_rpy_deg = [180.0, 0.0, 0.0]
+seed_q_deg = [0.0, -45.0, 0.0, -135.0, 0.0, 90.0, 45.0]
+path = { kind = "points", points_m = [[0.45, 0.0, 0.25]] }
+[experiments]
+m = [11]
+[design]
+criteria = ["D"]
+[cell]
+clearance_m = 0.02
+capsules_per_link = 0
+capsules = [
+  { frame = "panda_link3", a_m = [0.0, 0.0, -0.1], b_m = [0.0, 0.0, 0.0], radius_m = 0.06 },
+  { frame = "panda_link5", a_m = [0.0, 0.0, -0.2], b_m = [0.0, 0.0, 0.0], radius_m = 0.06 },
+  { frame = "panda_hand", a_m = [0.0, -0.1, 0.05], b_m = [0.0, 0.1, 0.05], radius_m = 0.04 },
+]
+"""
+
+
+@pytest.mark.parametrize("srdf, kept", [("", 3), ("example-robot-data:panda_description/srdf/panda.srdf", 0)])
+def test_the_pairs_an_srdf_disables_are_not_checked(tmp_path, srdf, kept):
+    """MoveIt's SRDF of the Panda disables hand / link 5 ("Default"), hand / link 3 and link 3 /
+    link 5 ("Never"): with ``[cell].srdf`` none of the three capsule pairs is a row (the fitted
+    capsules of hand and link 5 met for a band of joint 7 where the meshes are 33 mm apart, and
+    split the reachable space); without it all three are."""
+    path = tmp_path / "panda.toml"
+    path.write_text(PANDA_CELL + (f'srdf = "{srdf}"\n' if srdf else ""))
+    cell = load_problem(path).cell
+    assert len(cell.pairs.kept) == kept, cell.pairs.skipped
+    path.write_text(PANDA_CELL + 'srdf = "missing.srdf"\n')
+    with pytest.raises(ProblemError, match=r"panda.toml: \[cell\].srdf: cannot read .*missing.srdf .*give the robot's "
+                                           r"SRDF \(MoveIt\)"):
+        load_problem(path)
