@@ -179,7 +179,7 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str, candidates: bool = Tru
     return choice
 
 
-def add_target(p: argparse.ArgumentParser, sweep: bool = False) -> None:
+def add_target(p: argparse.ArgumentParser | argparse._MutuallyExclusiveGroup, sweep: bool = False) -> None:
     """``--target-mm``: the tolerance whose smallest m is searched (solve; ``p``: the group of
     :func:`add_campaign`, as it excludes ``--candidates``) or read (sweep)."""
     from ..execution.target import LIMIT_FACTOR

@@ -138,7 +138,8 @@ def checked_moves(args: argparse.Namespace, problem, Q) -> list[dict]:
     print(f"moves in file order from and back to home: {len(blocked)} of {len(out)} break the "
           f"{problem.cell.spec.clearance_m * 1e3:g} mm clearance")
     for m in out:
-        print(f"  {m['from'] + ' -> ' + m['to']:<30} clearance {m['clearance_m'] * 1e3:8.2f} mm"
-              + (f" BLOCKED ({m['closest']})" if m["blocked"] else "")
+        short = (problem.cell.spec.clearance_m - m["clearance_m"]) * 1e3
+        print(f"  {m['from'] + ' -> ' + m['to']:<30} clearance {m['clearance_m'] * 1e3:7.1f} mm"
+              + (f" BLOCKED by {short:.3g} mm ({m['closest']})" if m["blocked"] else "")
               + (f"; beam broken: {m['beam_broken']}" if m["beam_broken"] else ""))
     return out

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DesignError
+from ..errors import DesignError, ProblemError
 from ..records.files import write_atomic
 from . import common
 
@@ -45,7 +45,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def home_pose(problem, text: str | None) -> np.ndarray:
     """The home pose (n,), rad: ``--home`` (deg, mm) or the default of ``--help``."""
-    from ..errors import ProblemError
     from ..records.export import joint_scales
 
     n = problem.robot.n
@@ -95,8 +94,8 @@ def report(problem, program, plan: str | Path) -> str:
              f"order: {', '.join(map(str, program.order))}",
              (f"time {program.time_s:.1f} s ({moving:.1f} s of moves, {m} x {program.measure_s:g} s measuring); "
              f"file order {program.file_time_s:.1f} s (as straight moves {program.file_straight_s:.1f} s"
-             + (f", but {program.file_blocked} of its {m + 1} moves break the clearance)" if program.file_blocked
-                else ", all clear)")),
+             + ("" if problem.cell is None else f", but {program.file_blocked} of its {m + 1} moves break the clearance"
+                if program.file_blocked else ", all clear") + ")"),
              f"load changes: {program.load_changes} (file order {program.file_load_changes})"]
     if problem.cell is None:
         return "\n".join(lines + ["no [cell]: the moves are not checked for collisions"])
@@ -122,7 +121,7 @@ def write_programs(out: Path, problem, designs, fmt: str) -> list[str]:
         name = f"programs/{d.criterion}_m{d.m}{Path(FILES[fmt]).suffix}"
         try:
             program = make_program(problem, d.Q, d.F, home_pose(problem, None), MEASURE_S)
-        except DesignError as exc:
+        except (ProblemError, DesignError) as exc:  # a pose or load it cannot run, a pose it cannot reach
             raise DesignError(f"{exc} (the {d.criterion} plan of m = {d.m}); the results and plans are written "
                               f"in {out}: casadi-design program takes plans/{d.criterion}_m{d.m}.csv with another "
                               "--home") from None

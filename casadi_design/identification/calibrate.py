@@ -61,6 +61,12 @@ SAME_POSE_RAD = 1e-6
 CONFIDENCE = 0.95
 #: A validation RMS beyond this times its prediction is reported as what the model misses.
 PREDICTION_RATIO = 1.5
+#: A calibrated robot whose validation RMS is beyond this times the nominal robot's (or
+#: registration only's) is reported as not to be used (a few percent: the rows' spread).
+WORSE_RATIO = 1.05
+#: A compliance below minus this many standard deviations is reported as negative (a stiff
+#: joint's estimate falls below 0 half the time within its noise).
+NEGATIVE_STD = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,13 +314,12 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     ssr = float(np.sum(f.r[f.used] ** 2))
     interval = ((float(chi2.ppf((1 - CONFIDENCE) / 2, dof)), float(chi2.ppf((1 + CONFIDENCE) / 2, dof)))
                 if dof > 0 else (0.0, float("inf")))
-    negative = [(n, x, s) for n, x, s in zip(fm.model.parameter_names, f.X, std) if n.startswith("k.") and x < 0]
-    if negative:  # a joint that yields towards its load: what the model misses, or noise
-        notes.append(f"negative compliance: {', '.join(f'{n} = {x:.3g} (std {s:.2g})' for n, x, s in negative)}; no "
-                     "joint yields against its load: " + (
-                         "beyond 3 std, the model misses what moves the robot (geometric errors, the load point)"
-                         if any(-x > 3 * s for _, x, s in negative) else
-                         "within 3 std of 0, the rows identify it poorly (measure more loaded poses)"))
+    negative = [(n, x, s) for n, x, s in zip(fm.model.parameter_names, f.X, std)
+                if n.startswith("k.") and x < -NEGATIVE_STD * s]
+    if negative:  # a joint that yields against its load: what the model misses
+        notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std: "
+                     f"{', '.join(f'{n} = {x:.3g} (std {s:.2g})' for n, x, s in negative)}; no joint yields against "
+                     "its load: the model misses what moves the robot (geometric errors, the load point)")
     model_P = f.tracker_points(meas.Q, meas.F, meas.frame_of)
     e = point_errors(problem, meas.P_m, model_P)
     axes_m = meas.P_m - model_P
@@ -339,7 +344,7 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
                          "does (compliance, backlash, the tracker), or sigma is too small")
         name, before = min((("the nominal robot", valid.rms("nominal")),
                             ("registration only", valid.rms("registration"))), key=lambda b: b[1])
-        if valid.rms("calibrated") > before:
+        if valid.rms("calibrated") > WORSE_RATIO * before:
             notes.append(f"the calibrated robot is farther from the validation rows than {name} "
                          f"({valid.rms('calibrated') * 1e3:.3f} against {before * 1e3:.3f} mm RMS): do not use its "
                          "files; measure more rows, or choose a model that holds what the robot does")

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..model.build import Problem, model_arguments
 from ..errors import DesignError, ProblemError
-from ..model.identifiability import RANK_RTOL, stacked_jacobian
+from ..model.identifiability import RANK_RTOL, stacked_jacobian, unit_columns
 from ..model.held import prior_std
 from ..model.mapped import evaluate
 from ..measures.measures import SINGULAR_RTOL, information_matrix
@@ -124,10 +124,7 @@ def _fit_model(problem: Problem, frame: str, names: tuple[str, ...], gravity: bo
     geometric = tuple(p for p in names if p not in compliant and p not in frame_parameters)
     absorbed = [(p, "the tracker frame's placement") for p in names if p in frame_parameters]
     candidates = build(frame_parameters + geometric + compliant)
-    S = stacked_jacobian(candidates, np.random.default_rng(ABSORB_SEED))
-    norms = np.linalg.norm(S, axis=0)
-    live = norms > RANK_RTOL * norms.max()
-    Sn = S / np.where(live, norms, 1.0)
+    Sn, live = unit_columns(stacked_jacobian(candidates, np.random.default_rng(ABSORB_SEED)), RANK_RTOL)
     kept: list[int] = []
     for i, name in enumerate(candidates.parameter_names):
         if not live[i]:

@@ -113,7 +113,16 @@ def calibrated_problem(problem: Problem, urdf: Path) -> dict:
         if source != "urdf":
             cell.pop("collision_urdf", None)
             cell["capsules_per_link"] = 0
+        _files_from(cell, problem, Path(urdf).parent)
     return record
+
+
+def _files_from(cell: dict, problem: Problem, out: Path) -> None:
+    """The files the ``[cell]`` table names (``collision_urdf``, ``srdf``) relative to ``out``,
+    where the calibrated problem file is written."""
+    for key in ("collision_urdf", "srdf"):
+        if cell.get(key):
+            cell[key] = _relative(cell[key], problem, out)
 
 
 def _degrees(values) -> list[float]:
@@ -133,8 +142,5 @@ def calibrated_dh_problem(problem: Problem, robot: RobotSpec, out: Path) -> dict
                     "d_m": r.d_m, "a_m": r.a_m, "alpha_deg": math.degrees(r.alpha_rad),
                     "beta_deg": math.degrees(r.beta_rad), "limits_deg": raw["limits_deg"]}
                    for raw, r in zip(raw_rows, robot.dh_rows)]}
-    cell = record.get("cell", {})
-    urdf = cell.get("collision_urdf", "")
-    if urdf:
-        cell["collision_urdf"] = _relative(urdf, problem, out)
+    _files_from(record.get("cell", {}), problem, out)
     return record

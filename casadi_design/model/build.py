@@ -26,7 +26,7 @@ from .cell import Cell, build_cell
 from .held import prior_information
 from ..measures.measures import information_matrix
 from ..errors import ProblemError
-from .identifiability import BaseSet, base_set
+from .identifiability import BaseSet, base_set, unit_columns
 from .ik import path_ik, sample_path
 from .models import CalibrationModel, calibration_model
 from .problem import (
@@ -412,9 +412,7 @@ def check_identifiable(spec: ProblemSpec, model: CalibrationModel) -> tuple[np.n
     # columns scaled by their norm under generic loads, so that a parameter the actual
     # loads cannot excite stays a (near) zero column; a column of round-off under any load
     # (a compliance whose joint axis runs through the measured point) stays unscaled, near zero
-    norms = np.linalg.norm(generic.reshape(-1, L), axis=0)
-    live = norms > IDENTIFIABILITY_RTOL * norms.max()
-    Sn = S / np.where(live, norms, 1.0)
+    Sn, _ = unit_columns(S, IDENTIFIABILITY_RTOL, np.linalg.norm(generic.reshape(-1, L), axis=0))
     _, sv, Vt = np.linalg.svd(Sn, full_matrices=False)
     null = ~(sv > IDENTIFIABILITY_RTOL * sv[0]) if sv[0] > 0 else np.ones(L, dtype=bool)
     where = f"{spec.path}: [calibration]"

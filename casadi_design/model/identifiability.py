@@ -49,6 +49,15 @@ class BaseSet:
         return "\n".join(lines)
 
 
+def unit_columns(S: np.ndarray, rtol: float, norms: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``S`` with each column divided by its norm (``norms``: those to divide by, default
+    ``S``'s own), and which columns are live: a norm above ``rtol`` times the largest. A dead
+    column (no effect, or round-off under any load) stays as it is, near zero."""
+    norms = np.linalg.norm(S, axis=0) if norms is None else norms
+    live = norms > rtol * norms.max()
+    return S / np.where(live, norms, 1.0), live
+
+
 def stacked_jacobian(model: CalibrationModel, rng: np.random.Generator, samples: int = SAMPLES) -> np.ndarray:
     """``S``: B stacked over random configurations within the joint limits (random loads)."""
     robot = model.kinematics.robot
@@ -86,9 +95,7 @@ def base_set(model: CalibrationModel, seed: int = 0, samples: int = SAMPLES) -> 
     """Select an identifiable base set among ``model.parameter_names`` (see module docstring)."""
     S = stacked_jacobian(model, np.random.default_rng(seed), samples)
     norms = np.linalg.norm(S, axis=0)
-    scale = norms.max()
-    live = norms > RANK_RTOL * scale
-    Sn = S / np.where(live, norms, 1.0)
+    Sn, live = unit_columns(S, RANK_RTOL, norms)
     piv, diag = pivoted_columns(Sn[:, live])
     cols = np.flatnonzero(live)[piv]
     rank = int(np.sum(diag > RANK_RTOL * diag[0]))

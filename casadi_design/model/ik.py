@@ -98,13 +98,16 @@ def path_ik(robot: Robot, positions_m: np.ndarray, rotation: np.ndarray, q_seed:
         if not err <= IK_ACCEPT:  # also catches NaN
             where = f"[test_poses].path: node {j + 1} of {s} at ({', '.join(f'{v * 1e3:.1f}' for v in p)}) mm"
             q_free, err_free = solve_ik(robot, pin.SE3(rotation, p), q_from, position_only, limits=False)
-            out_of = [k for k in range(robot.n) if not robot.q_min[k] <= q_free[k] <= robot.q_max[k]]
-            if err_free <= IK_ACCEPT and out_of:  # reached, but only past a joint limit
+            out_of = [k for k in range(robot.n) if not any(  # (a revolute joint in any whole turn)
+                robot.q_min[k] <= q_free[k] + 2 * np.pi * t <= robot.q_max[k] for t in
+                ((0,) if robot.is_prismatic(k) else (0, -1, 1, -2, 2)))]
+            if err_free <= IK_ACCEPT and out_of:  # reached, past a joint limit
                 k = out_of[0]
                 raise ProblemError(
-                    f"{where} is reached with the given tool orientation only with {robot.joints[k]} at "
-                    f"{np.rad2deg(q_free[k]):.1f} deg, outside its limits [{np.rad2deg(robot.q_min[k]):.1f}, "
-                    f"{np.rad2deg(robot.q_max[k]):.1f}] deg; move the path, or widen [robot.joint_limits_rad] "
+                    f"{where} is reached from the previous node with the given tool orientation with "
+                    f"{robot.joints[k]} at {np.rad2deg(q_free[k]):.1f} deg, outside its limits "
+                    f"[{np.rad2deg(robot.q_min[k]):.1f}, {np.rad2deg(robot.q_max[k]):.1f}] deg, and not within "
+                    "them; move the path, give seed_q_deg for another branch, or widen [robot.joint_limits_rad] "
                     "if the robot allows it")
             raise ProblemError(
                 f"{where} is unreachable with the given tool orientation (residual {err * 1e3:.3g} mm/mrad "

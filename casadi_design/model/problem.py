@@ -838,11 +838,15 @@ def _test_poses(tp: _Reader, meas: MeasurementSpec, nF: int) -> TestPoseSpec:
     elif nF:
         raise tp.error("missing force_N", f"give the machining wrench, {nF} components in N (N m)", "force_N")
     for key in loads:
-        largest = float(np.max(np.abs(np.asarray(spec[key], dtype=float))))
-        if largest > MAX_LOAD_N:
-            raise tp.error(f"has {largest:g}, above {MAX_LOAD_N:g} N (N m)",
-                           "give the machining wrench in N and N m", key)
+        _check_load(tp, key, spec[key], "give the machining wrench in N and N m")
     return TestPoseSpec(components=components, **spec)
+
+
+def _check_load(r: _Reader, key: str, values, fix: str) -> None:
+    """A wrench's components (N, N m) of the field ``key`` at most :data:`MAX_LOAD_N` in size."""
+    largest = float(np.max(np.abs(np.asarray(values, dtype=float))))
+    if largest > MAX_LOAD_N:
+        raise r.error(f"has {largest:g}, above {MAX_LOAD_N:g} N (N m)", fix, key)
 
 
 def _path(tp: _Reader) -> dict:
@@ -879,9 +883,7 @@ def _force(f: _Reader, nF: int) -> ForceSpec:
         vec = f.array("vector_N", (nF,), hint=f"{nF} wrench components, N (N m)")
         if not np.any(vec):
             raise f.error("is zero: a zero load identifies no compliance", "give the applied load", "vector_N")
-        if np.max(np.abs(vec)) > MAX_LOAD_N:
-            raise f.error(f"has {np.max(np.abs(vec)):g}, above {MAX_LOAD_N:g} N (N m)",
-                          "give the applied load in N and N m", "vector_N")
+        _check_load(f, "vector_N", vec, "give the applied load in N and N m")
         if "magnitude_N" in f.table:
             raise f.error("is not used with mode = \"fixed\"", "remove it", "magnitude_N")
         return ForceSpec(mode, float(np.linalg.norm(vec)), _vec(vec), (), load_point)

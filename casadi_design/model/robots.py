@@ -39,6 +39,11 @@ SUPPORTED_JOINTS = (
 MAX_LIMIT = {"R": 4 * np.pi, "P": 100.0}
 
 
+def prismatic(joint: pin.JointModel) -> bool:
+    """Whether a joint of :data:`SUPPORTED_JOINTS` is prismatic (PX, PY, PZ, PrismaticUnaligned)."""
+    return joint.shortname().startswith("JointModelP")
+
+
 @dataclass(frozen=True, eq=False)
 class Robot:
     """A serial chain to calibrate.
@@ -77,7 +82,7 @@ class Robot:
 
     def is_prismatic(self, k: int) -> bool:
         """Whether joint ``k`` of the chain is prismatic (its value in m, not rad)."""
-        return self.model.joints[self.joint_ids[k]].shortname().startswith("JointModelP")
+        return prismatic(self.model.joints[self.joint_ids[k]])
 
     def full_q(self, q: np.ndarray) -> np.ndarray:
         """Pinocchio configuration of the whole model with the chain at ``q`` (others neutral)."""
@@ -346,7 +351,7 @@ def make_robot(
             raise ProblemError(f"[robot.joint_limits_rad].{jname}: lower {lo} must be below upper {hi}; "
                                "give [lower, upper]")
         k = joints.index(jname)
-        revolute = model.joints[chain[k]].shortname()[len("JointModel")] == "R"  # RZ, RevoluteUnaligned
+        revolute = not prismatic(model.joints[chain[k]])
         if max(abs(lo), abs(hi)) > MAX_LIMIT["R" if revolute else "P"]:
             raise ProblemError(
                 f"[robot.joint_limits_rad].{jname}: [{lo:g}, {hi:g}] is past "

@@ -77,9 +77,9 @@ def load_violations(problem: Problem, F: np.ndarray) -> list[str]:
         if force.mode == "fixed" and not np.allclose(f, force.vector_N, rtol=LOAD_RTOL, atol=0):
             out.append(f"experiment {i + 1}: load {f.tolist()} is not the fixed {list(force.vector_N)}")
         elif force.mode != "fixed" and ratio > 1 + LOAD_RTOL:
-            out.append(f"experiment {i + 1}: |F| = {norm:.6g} above {force.magnitude_N:g}")
+            out.append(f"experiment {i + 1}: |F| = {norm:.6g} N above {force.magnitude_N:g} N")
         elif force.mode == "equal" and ratio < 1 - LOAD_RTOL:
-            out.append(f"experiment {i + 1}: |F| = {norm:.6g}, the problem applies {force.magnitude_N:g}")
+            out.append(f"experiment {i + 1}: |F| = {norm:.6g} N, the problem applies {force.magnitude_N:g} N")
         elif force.mode == "direction":
             u = np.array(force.direction)
             if np.linalg.norm(f - u * (u @ f)) > LOAD_RTOL * force.magnitude_N or u @ f < -LOAD_RTOL * force.magnitude_N:

@@ -37,7 +37,7 @@ import casadi as ca
 import numpy as np
 
 from ..model.build import Problem, per_model
-from ..model.cell import clearances
+from ..model.cell import clearances, touching
 from ..model.capsules import capsule_names, carrier
 from ..model.compiled import compiled
 from ..records.export import is_prismatic
@@ -259,7 +259,7 @@ def pose_problems(problem: Problem, q: np.ndarray, limits: bool = True) -> str |
     if bad:
         k = min(bad, key=lambda k: g[k])
         return f"{rules.labels[k]} (by {-g[k] * 1e3:.3g} mm)"
-    near = clearances(problem.cell, q[None])[0]
-    if near.touching is not None:
-        return f"{near.touching[0]} and {near.touching[1]} touch on the {problem.cell.check.source}"
+    pair = touching(problem.cell, q[None])[0]  # (the plan check's query: plan.rules.mesh_contacts)
+    if pair is not None:
+        return f"{pair[0]} and {pair[1]} touch on the {problem.cell.check.source}"
     return None

@@ -447,7 +447,7 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
     model, tp = problem.model, problem.test_poses
     force = problem.force
     load = ("none (geometric case)" if force is None else
-            f"{force.mode}, |F| {'<=' if force.mode == 'bound' else '='} {force.magnitude_N:g} N" if force.mode != "fixed" else
+            f"{force.mode}, |F| {'=' if force.mode == 'equal' else '<='} {force.magnitude_N:g} N" if force.mode != "fixed" else
             f"fixed F = {list(force.vector_N)} N")
     x = tp.position_m * 1e3
     notes = [*notes, *bound_notes(designs)]

@@ -178,11 +178,11 @@ def test_compliances_that_absorb_geometric_errors_are_flagged(tmp_path):
                     validation=read_measurements(problem, str(tmp_path / "valid.csv")))
     i = cal.fit.fit.model.parameter_names.index("k.joint2")
     assert cal.fit.X[i] < -3 * cal.std[i]
-    assert any(re.fullmatch(r"negative compliance: k.joint2 = -\S+ \(std \S+\); no joint yields against its load: "
-                            r"beyond 3 std, the model misses what moves the robot \(geometric errors, the load point\)",
+    assert any(re.fullmatch(r"negative compliance beyond 2 std: k.joint2 = -\S+ \(std \S+\); no joint yields against "
+                            r"its load: the model misses what moves the robot \(geometric errors, the load point\)",
                             n) for n in cal.notes), cal.notes
     worse = f"({cal.validation.rms('calibrated') * 1e3:.3f} against {cal.validation.rms('nominal') * 1e3:.3f} mm RMS)"
-    assert cal.validation.rms("calibrated") > cal.validation.rms("nominal")
+    assert cal.validation.rms("calibrated") > 1.05 * cal.validation.rms("nominal")
     assert f"the calibrated robot is farther from the validation rows than the nominal robot {worse}: do not use " \
            "its files" in " ".join(cal.notes)
 

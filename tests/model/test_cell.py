@@ -368,3 +368,21 @@ def test_the_pairs_an_srdf_disables_are_not_checked(tmp_path, srdf, kept):
     with pytest.raises(ProblemError, match=r"panda.toml: \[cell\].srdf: cannot read .*missing.srdf .*give the robot's "
                                            r"SRDF \(MoveIt\)"):
         load_problem(path)
+
+
+def test_a_calibrated_problem_file_names_the_srdf_from_where_it_is_written(tmp_path):
+    """identify's calibrated.toml is written in its output folder: a relative ``srdf`` of the
+    problem file is rewritten relative to that folder (it was copied as written, and the
+    calibrated file could not be read)."""
+    from casadi_design.identification.problem_file import calibrated_problem
+    from casadi_design.model.robots import urdf_file
+
+    (tmp_path / "robot").mkdir()
+    (tmp_path / "robot" / "panda.srdf").write_bytes(urdf_file("example-robot-data:panda_description/srdf/panda.srdf")
+                                                   .read_bytes())
+    path = tmp_path / "panda.toml"
+    path.write_text(PANDA_CELL + 'srdf = "robot/panda.srdf"\n')
+    out = tmp_path / "out" / "identify"
+    record = calibrated_problem(load_problem(path), out / "calibrated.urdf")
+    assert record["cell"]["srdf"] == "../../robot/panda.srdf"
+    assert (out / record["cell"]["srdf"]).resolve() == (tmp_path / "robot" / "panda.srdf").resolve()

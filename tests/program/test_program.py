@@ -16,7 +16,7 @@ import yaml
 
 from casadi_design.model.build import load_problem
 from casadi_design.cli import main
-from casadi_design.errors import DesignError
+from casadi_design.errors import DesignError, ProblemError
 from casadi_design.program import detours
 from casadi_design.program.formats import FILES, controller, program_text
 from casadi_design.program.moves import check_move, move_rules
@@ -295,7 +295,7 @@ def test_a_plan_that_breaks_its_rules_is_not_programmed(abb, tmp_path, capsys):
     u = np.array(abb.force.direction)
     for q, f, match in ((np.deg2rad([0, 50, 0, 0, 60, 0]), F[0], r"experiment 1: link .* closer than 20 mm to "
                          r"machine table \(by .* mm\); a program runs the plan as it is: correct it"),
-                        (Q[0], 2 * abb.force.magnitude_N * u, r"experiment 1: \|F\| = 3924 above 1962; a program")):
+                        (Q[0], 2 * abb.force.magnitude_N * u, r"experiment 1: \|F\| = 3924 N above 1962 N; a program")):
         plan = _plan_csv(tmp_path / "plan.csv", abb, np.vstack([q, Q[1]]), np.vstack([f, F[1]]))
         out = tmp_path / "out"
         assert main(["program", str(ABB), "--plan", plan, "--format", "json", "--out", str(out), "--quiet"]) == 2
@@ -438,15 +438,18 @@ def test_a_plan_that_cannot_be_programmed_leaves_the_results_written_and_says_so
     naming it, the folder, and the command that tries another home."""
     from casadi_design.program import sequence
 
-    def refused(problem, Q, F, home, measure_s):
-        raise DesignError("experiment 1 cannot be reached from home: refused here")
+    for error in (DesignError("experiment 1 cannot be reached from home: refused here"),
+                  ProblemError("--home: joint2 = 0 deg is in the table here")):  # the default home refused
 
-    monkeypatch.setattr(sequence, "make_program", refused)
-    out = tmp_path / "out"
-    assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--jobs", "1", "--criteria", "D",
-                 "--quiet", "--program", "json", "--out", str(out)]) == 2
-    err = capsys.readouterr().err
-    assert err == (f"error: experiment 1 cannot be reached from home: refused here (the D plan of m = 1); the results "
-                   f"and plans are written in {out}: casadi-design program takes plans/D_m1.csv with another --home\n")
-    assert json.loads((out / "results.json").read_text())["designs"][0]["m"] == 1
-    assert (out / "plans" / "D_m1.csv").exists() and not (out / "solve.partial.json").exists()
+        def refused(problem, Q, F, home, measure_s):
+            raise error
+
+        monkeypatch.setattr(sequence, "make_program", refused)
+        out = tmp_path / type(error).__name__
+        assert main(["solve", str(PAPER), "--m", "1", "--starts", "1", "--bound-steps", "0", "--jobs", "1", "--criteria",
+                     "D", "--quiet", "--program", "json", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err == (f"error: {error} (the D plan of m = 1); the results and plans are written in {out}: "
+                       "casadi-design program takes plans/D_m1.csv with another --home\n")
+        assert json.loads((out / "results.json").read_text())["designs"][0]["m"] == 1
+        assert (out / "plans" / "D_m1.csv").exists() and not (out / "solve.partial.json").exists()

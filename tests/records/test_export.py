@@ -133,7 +133,7 @@ def test_evaluate_reports_broken_constraints(paper, tmp_path, capsys):
     assert main(["evaluate", str(PAPER), "--plan", str(plan)]) == 0
     out = capsys.readouterr().out
     assert "breaks 2 constraint(s)" in out
-    assert "experiment 1: |F| = 150 above 100" in out
+    assert "experiment 1: |F| = 150 N above 100 N" in out
     assert "experiment 2: joint1 = 3.49066 outside [-3.14159, 3.14159]" in out
 
 
