@@ -5,6 +5,7 @@ measurement CSV, ``--measured``) and an earlier identification (``identification
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -16,9 +17,9 @@ from ..model.problem import HeldSpec
 from .measurements import read_experiments
 
 
-def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray, tuple[str, ...]]:
+def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray, tuple[tuple[str, str | None], ...]]:
     """The robot parameters of an ``identification.json``, their covariance (SI units) and
-    the measurement files it was identified from.
+    the measurement files it was identified from (path, SHA-256 or None).
 
     Raises
     ------
@@ -49,16 +50,19 @@ def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray
         raise ProblemError(f"{where}: 'covariance' is not a finite {L} x {L} matrix of its {L} parameters; "
                            "give the identification.json written by casadi-design identify")
     keep = np.flatnonzero(robot)  # the tracker frame of that round is not this one's
-    sources = [r.get("file") for r in record.get("rounds") or [] if isinstance(r, dict)] or [record.get("measurements")]
-    return tuple(names[i] for i in keep), C[np.ix_(keep, keep)], tuple(str(f) for f in sources if f)
+    files = [r.get("file") for r in record.get("rounds") or [] if isinstance(r, dict)] or [record.get("measurements")]
+    digests = record.get("measurements_sha256") or []
+    return (tuple(names[i] for i in keep), C[np.ix_(keep, keep)],
+            tuple((str(f), d if isinstance(d, str) else None) for f, d in zip(files, [*digests, *[None] * len(files)])))
 
 
-def _same_file(a: str, b: str) -> bool:
-    """Whether the files ``a`` and ``b`` are one (a path) or hold the same bytes."""
+def _same_file(path: str, source: tuple[str, str | None]) -> bool:
+    """Whether the file ``path`` is the ``source`` an identification was made from: the same
+    bytes (its SHA-256), or the same path where the identification names none."""
     try:
-        pa, pb = Path(a), Path(b)
-        return pa.resolve() == pb.resolve() or (pa.stat().st_size == pb.stat().st_size
-                                                and pa.read_bytes() == pb.read_bytes())
+        if source[1] is not None:
+            return hashlib.sha256(Path(path).read_bytes()).hexdigest() == source[1]
+        return Path(path).resolve() == Path(source[0]).resolve()
     except OSError:
         return False
 
@@ -73,7 +77,7 @@ def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -
         q, f, _ = read_experiments(problem, path, ignore_unknown=True)
         Q, F = np.vstack([Q, q]), np.vstack([F, f])
     names, C, sources = ((), None, ()) if prior is None else read_prior(problem, prior)
-    twice = [(m, f) for m in measured or [] for f in sources if _same_file(m, f)]
+    twice = [(m, f) for m in measured or [] for f, _ in [s for s in sources if _same_file(m, s)]]
     if twice:  # its information is in the prior already
         raise ProblemError(f"--measured {twice[0][0]}: --prior {prior} was identified from it ({twice[0][1]}), so "
                            "its information is in the prior already; give it as --measured or as the --prior, not both")

@@ -59,7 +59,7 @@ def test_a_campaign_is_its_measured_experiments_then_the_new_ones(paper, tmp_pat
     assert ": 2 experiments;" in capsys.readouterr().out
 
 
-def test_a_prior_from_an_identification_of_rows_is_the_information_of_those_rows(tmp_path, capsys):
+def test_a_prior_from_an_identification_of_rows_is_the_information_of_those_rows(tmp_path, capsys, monkeypatch):
     """identify of rows R (noise-free, in the base frame, the problem's own parameters) writes
     a covariance whose prior holds the same M as --measured R, to 1e-9: the design from an
     identification and the design around its rows are the same design."""
@@ -69,15 +69,17 @@ def test_a_prior_from_an_identification_of_rows_is_the_information_of_those_rows
     nominal = TrueRobot(problem.robot.model, problem.robot.frame_id, np.zeros(problem.robot.n), pin.SE3.Identity())
     P = measured(problem, nominal, Q, F, np.random.default_rng(0), sigma=0.0)
     (tmp_path / "meas.csv").write_text(measurement_csv(problem, Q, F, P))
-    assert main(["identify", str(GEOMETRIC), "--measurements", str(tmp_path / "meas.csv"), "--frame", "base",
+    monkeypatch.chdir(tmp_path)  # the identification names its file as given: relative to here
+    assert main(["identify", str(GEOMETRIC), "--measurements", "meas.csv", "--frame", "base",
                  "--model", "identifiable", "--out", str(tmp_path / "id")]) == 0
+    monkeypatch.chdir(ROOT)
     capsys.readouterr()
     by_rows = build_problem(replace(problem.spec, held=read_held(problem, [str(rows)], None))).M_held
     prior = read_held(problem, None, str(tmp_path / "id" / "identification.json"))
     assert prior.prior_names == problem.model.parameter_names
     by_prior = build_problem(replace(problem.spec, held=prior)).M_held
     np.testing.assert_allclose(by_prior, by_rows, rtol=0, atol=1e-9 * np.abs(by_rows).max())
-    # so both at once count the rows twice: refused, whether by the same path or a copy
+    # so both at once count the rows twice: refused, whether by the same path or a copy, from any folder
     identification = str(tmp_path / "id" / "identification.json")
     (tmp_path / "copy.csv").write_bytes((tmp_path / "meas.csv").read_bytes())
     for given in (tmp_path / "meas.csv", tmp_path / "copy.csv"):
