@@ -41,11 +41,12 @@ def prepare_out(out: Path | str, force: bool = False, resume: bool = False,
                 resume_files: tuple[str, ...] = ()) -> Path:
     """Check, before anything is solved, that the output folder ``out`` may be written.
 
-    ``out`` may be missing (its parent folder must exist: it is not created), empty, or hold
-    files when ``force`` (overwrite them) or ``resume`` is given; ``resume`` needs one of
-    ``resume_files`` (e.g. the ``sweep.partial.json`` of an interrupted sweep) in it. A missing
-    folder is created and removed again (a parent that takes no folder, as ``/proc``, fails
-    here, not after the work), so an error later leaves no folder behind.
+    ``out`` may be missing (with missing parents: they are created when the files are
+    written), empty, or hold files when ``force`` (overwrite them) or ``resume`` is given;
+    ``resume`` needs one of ``resume_files`` (e.g. the ``sweep.partial.json`` of an interrupted
+    sweep) in it. A missing folder is created and removed again, its missing parents too (a
+    place that takes no folder, as ``/proc``, fails here, not after the work), so an error
+    later leaves no folder behind.
 
     Raises
     ------
@@ -59,11 +60,9 @@ def prepare_out(out: Path | str, force: bool = False, resume: bool = False,
     try:
         if out.exists() and not out.is_dir():
             raise OutputError(f"{out}: exists and is not a folder; choose another --out")
-        if not out.exists() and not out.parent.is_dir():
-            what = "is not a folder" if out.parent.exists() else "does not exist"
-            raise OutputError(f"{out}: its parent folder {out.parent} {what}; create it first or "
-                              "choose another --out")
-        folder = out if out.exists() else out.parent
+        folder = next(p for p in (out, *out.parents) if p.exists())  # out, or its nearest existing parent
+        if not folder.is_dir():
+            raise OutputError(f"{out}: {folder} is not a folder; choose another --out")
         if not os.access(folder, os.W_OK | os.X_OK | (os.R_OK if folder == out else 0)):
             raise OutputError(f"{out}: no permission to write in {folder}; choose another --out "
                               "or change the folder's permissions")
@@ -77,9 +76,11 @@ def prepare_out(out: Path | str, force: bool = False, resume: bool = False,
         raise OutputError(f"{out}: cannot be checked ({exc.strerror}); choose another "
                           "--out") from None
     if not out.exists():
+        missing = [p for p in (out, *out.parents) if not p.exists()]  # the deepest first
         try:
-            out.mkdir()
-            out.rmdir()
+            out.mkdir(parents=True)
+            for p in missing:
+                p.rmdir()
         except OSError as exc:
             raise OutputError(f"{out}: the folder cannot be created ({exc.strerror}); choose "
                               "another --out") from None

@@ -399,17 +399,18 @@ def test_out_accepts_a_string_and_creates_nothing(tmp_path):
     assert not (tmp_path / "new").exists()
 
 
-def test_out_whose_parent_does_not_exist(tmp_path):
-    out = tmp_path / "missing" / "out"
-    with pytest.raises(OutputError, match=f"^{out}: its parent folder {out.parent} does not exist; "
-                                          "create it first or choose another --out$"):
-        prepare_out(out)
-    assert not out.parent.exists()
+def test_out_whose_parents_do_not_exist_is_checked_and_left_uncreated(tmp_path):
+    """`--out out/tiago` in a fresh folder (docs/identify.md): the missing parents are fine,
+    created with the folder when the files are written, and the check leaves none behind."""
+    out = tmp_path / "missing" / "deeper" / "out"
+    assert prepare_out(out) == out
+    assert not (tmp_path / "missing").exists()
 
 
 def test_out_whose_parent_is_a_file(tmp_path):
     _write(tmp_path / "file", "x")
-    with pytest.raises(OutputError, match="its parent folder .* is not a folder; create it first"):
+    with pytest.raises(OutputError, match=f"^{tmp_path / 'file' / 'out'}: {tmp_path / 'file'} is not a folder; "
+                                          "choose another --out$"):
         prepare_out(tmp_path / "file" / "out")
 
 
