@@ -125,6 +125,6 @@ def write_programs(out: Path, problem, designs, fmt: str) -> list[str]:
             raise DesignError(f"{exc} (the {d.criterion} plan of m = {d.m}); the results and plans are written "
                               f"in {out}: casadi-design program takes plans/{d.criterion}_m{d.m}.csv with another "
                               "--home") from None
-        write_atomic(out / name, program_text(problem, program, fmt, f"plans/{d.criterion}_m{d.m}.csv").encode())
+        write_atomic(out / name, program_text(problem, program, fmt, f"plans/{d.criterion}_m{d.m}.csv", name).encode())
         names.append(name)
     return names

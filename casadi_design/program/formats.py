@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -161,10 +162,11 @@ def rapid(problem: Problem, program: Program, plan: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def krl(problem: Problem, program: Program, plan: str) -> str:
+def krl(problem: Problem, program: Program, plan: str, file: str = FILES["krl"]) -> str:
+    """KRL: its ``DEF`` names the file (``file``'s stem), as a KUKA controller requires."""
     ctrl, vias = controller(problem), _vias(program)
     people = joint_scales(problem)
-    name = _identifier(problem.name)[:24]
+    name = _identifier(Path(file).stem)[:24]
     lines = [f"DEF {name}()"] + ["  " + h for h in _header(problem, program, ";", plan)]
     lines += ["  ; axis values in deg (controller convention); PTP at the axis speeds BAS(#INITMOV) sets",
               "  BAS(#INITMOV, 0)"]
@@ -217,7 +219,11 @@ def _identifier(name: str) -> str:
     return out if out[:1].isalpha() else f"p_{out}"
 
 
-def program_text(problem: Problem, program: Program, fmt: str, plan: str) -> str:
-    """The program in format ``fmt`` (:data:`FILES`); ``plan`` names the plan file in its header."""
+def program_text(problem: Problem, program: Program, fmt: str, plan: str, file: str | None = None) -> str:
+    """The program in format ``fmt`` (:data:`FILES`); ``plan`` names the plan file in its
+    header; ``file``: the file it is written to (None: ``FILES[fmt]``), whose name KRL's
+    ``DEF`` repeats."""
     check_format(problem, fmt)
+    if fmt == "krl":
+        return krl(problem, program, plan, file or FILES[fmt])
     return WRITERS[fmt](problem, program, plan)

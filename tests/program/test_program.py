@@ -239,6 +239,16 @@ def _read_back(problem, program, fmt, Q):
         assert np.degrees(np.max(np.abs(got - want - 2 * np.pi * turns))) < READ_BACK_TOL_DEG
 
 
+def test_a_krl_program_is_named_after_its_file(abb):
+    """A KUKA controller loads ``X.src`` only when it defines ``DEF X()``: the command's file
+    ``program.src`` and solve's ``programs/test-pose_m6.src``."""
+    Q, F = random_plan(abb, 2, np.random.default_rng(5))
+    program = make_program(abb, Q, F, np.array(abb.spec.test_poses.seed_q_rad), 1.0)
+    assert program_text(abb, program, "krl", "plan.csv").startswith("DEF program()\n")
+    assert program_text(abb, program, "krl", "plans/test-pose_m6.csv",
+                        "programs/test-pose_m6.src").startswith("DEF test_pose_m6()\n")
+
+
 def test_every_format_reads_back_the_plan_in_program_order(abb):
     Q, F = random_plan(abb, 4, np.random.default_rng(2))
     program = make_program(abb, Q, F, np.array(abb.spec.test_poses.seed_q_rad), 1.0)
