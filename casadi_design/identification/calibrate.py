@@ -34,7 +34,7 @@ Statistics of a fit with N measured values and L parameters (whitened residuals 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import math
 
@@ -322,6 +322,14 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
                      "its load: the model misses what moves the robot (geometric errors, the load point)")
     model_P = f.tracker_points(meas.Q, meas.F, meas.frame_of)
     e = point_errors(problem, meas.P_m, model_P)
+    if fm.model.gravity:  # the robot files hold the kinematics: without the sag they are off
+        rigid = replace(f, X=np.where([n.startswith("k.") for n in fm.model.parameter_names], 0.0, f.X))
+        off = pose_rms(point_errors(problem, meas.P_m, rigid.tracker_points(meas.Q, meas.F, meas.frame_of)))[f.used]
+        notes.append(f"the {chosen.name} model holds the joints' compliance under the robot's own weight; "
+                     "calibrated.urdf and calibrated.toml hold its kinematics only, "
+                     f"{np.sqrt(np.mean(off**2)) * 1e3:.3f} mm RMS off the training rows without the sag "
+                     f"({np.sqrt(np.mean(pose_rms(e)[f.used] ** 2)) * 1e3:.3f} mm with it): use them with the "
+                     "compliances of identification.json, or choose a model without gravity (--model)")
     axes_m = meas.P_m - model_P
     axes_m[:, :, [a for a in range(3) if a not in measured_axes(problem)]] = np.nan
 

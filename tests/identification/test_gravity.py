@@ -3,6 +3,7 @@ Pinocchio's, and a UR10 that sags under its weight (simulated with Pinocchio) id
 gravity candidate of identify, its compliances within 3 standard deviations."""
 
 import math
+import re
 
 import numpy as np
 import pinocchio as pin
@@ -71,6 +72,11 @@ def test_auto_prefers_the_gravity_model_for_a_sagging_arm(sagging_ur10):
     names = [c.name for c in cal.candidates]
     assert any(n.endswith("+ gravity") for n in names)
     assert cal.model.endswith("+ gravity"), [(c.name, c.cv_rms_m) for c in cal.candidates]
+    # its robot files hold the kinematics only: the note says how far they are without the sag
+    (note,) = [n for n in cal.notes if "under the robot's own weight" in n]
+    without, with_sag = (float(v) for v in re.findall(r"([\d.]+) mm", note))
+    assert with_sag == pytest.approx(np.sqrt(np.mean(cal.residual_rms_m[cal.fit.used] ** 2)) * 1e3, abs=1e-3)
+    assert without > 3 * with_sag  # the UR10 sags by millimetres under its weight
 
 
 #: An elasto-static case of a robot whose URDF gives the links' masses: the UR5's joints 1 to 5
