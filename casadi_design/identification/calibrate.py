@@ -46,7 +46,7 @@ from ..measures.measures import information_matrix, rho_at_test_poses
 from .choice import MODELS, Candidate, candidates, choose, has_weight
 from .compensate import compensate
 from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, frames_projected, in_tracker, model_points, point_errors, pose_rms,
-                  register, row_errors)
+                  REGISTRATION_TOL_M, register, row_errors)
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
@@ -345,6 +345,12 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
         registered = None if math.isnan(base.training_rms_m) else (
             f if base is chosen else fit(problem, base.fit_model, meas, T0, f.used, loss))
         valid = validate_rows(problem, f, validation, M0, registered, meas)
+        if valid.rms("nominal_reregistered") > REGISTRATION_TOL_M:  # the rows of another robot, or units
+            raise ProblemError(
+                f"--validation {validation.path}: after the best rigid fit the nominal robot is "
+                f"{valid.rms('nominal_reregistered') * 1e3:.1f} mm RMS off its points, more than "
+                f"{REGISTRATION_TOL_M * 1e3:g} mm: not this robot's rows, or not in the measurements' units (--units, "
+                "--joint-units and --columns read every file alike)")
         if valid.rms("calibrated") > PREDICTION_RATIO * valid.rms("predicted"):
             notes.append(f"the validation RMS {valid.rms('calibrated') * 1e3:.3f} mm is "
                          f"{valid.rms('calibrated') / valid.rms('predicted'):.1f}x its prediction "

@@ -264,6 +264,27 @@ def test_bad_input_gives_one_line_and_writes_nothing(good_csv, tmp_path, capsys,
     assert "Traceback" not in err and not out.exists()
 
 
+def test_a_validation_file_in_other_units_is_refused(ur10_files, tmp_path, capsys):
+    """--units reads every file alike: a validation file in m read as mm is 1000x small, so the
+    nominal robot is far off its points even after the best rigid fit; refused in one line
+    naming the file and the units (it was scored as a calibration 'missing what the robot does')."""
+    folder, _ = ur10_files
+    lines = (folder / "valid.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cols = [k for k, h in enumerate(header) if h.startswith("meas_")]
+    rows = [[str(float(v) / 1e3) if k in cols else v for k, v in enumerate(r.split(","))] for r in lines[1:]]
+    small = tmp_path / "valid_m.csv"
+    small.write_text("\n".join(",".join(r) for r in [header, *rows]) + "\n")
+    out = tmp_path / "out"
+    assert main(["identify", str(UR10), "--measurements", str(folder / "meas.csv"), "--validation", str(small),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert re.fullmatch(rf"error: --validation {re.escape(str(small))}: after the best rigid fit the nominal robot is "
+                        r"[\d.]+ mm RMS off its points, more than 20 mm: not this robot's rows, or not in the "
+                        r"measurements' units \(--units, --joint-units and --columns read every file alike\)\n", err), err
+    assert not out.exists()
+
+
 def test_no_validation_set_warns(ur10_files, tmp_path, capsys):
     folder, _ = ur10_files
     assert main(["identify", str(UR10), "--measurements", str(folder / "meas.csv"), "--out", str(tmp_path / "o")]) == 0
