@@ -365,10 +365,10 @@ def register(problem: Problem, frame: str, meas: Measurements) -> tuple[Problem,
     if rms <= REGISTRATION_TOL_M:
         return problem, fm, T0, []
     located = ""
-    if frame == "tracker" and len(measured_axes(problem)) == 3 and meas.frames == 1:
+    if frame == "tracker" and len(measured_axes(problem)) == 3:
         d, left = locate_points(fm, meas)
         where = f"{point_keys(problem)} = {point_values(with_points(problem, d, build=False))} m"
-        if left > REGISTRATION_TOL_M:
+        if not left <= REGISTRATION_TOL_M:  # (NaN: a round whose points fix no frame)
             located = f"; with the measured points located at {where} they are still {left * 1e3:.1f} mm RMS off"
         else:
             try:
@@ -386,7 +386,7 @@ def register(problem: Problem, frame: str, meas: Measurements) -> tuple[Problem,
     how = "after the best rigid fit" if fm.frame == "tracker" else "in the base frame (--frame base)"
     raise ProblemError(
         f"{meas.path}: cannot be registered to the nominal robot of {problem.path}: {how} the "
-        f"measured points are {rms * 1e3:.1f} mm RMS off it (row {meas.lines[worst]} the "
+        f"measured points are {rms * 1e3:.1f} mm RMS off it ({meas.row(worst)} the "
         f"worst){located}; check {point_keys(problem)}, that the file belongs to this case file, "
         "the order and units of the joint and coordinate columns" + ("" if fm.frame == "tracker" else ", and the --frame"))
 
@@ -404,8 +404,9 @@ LOCATE_ITERATIONS = 2000
 
 def locate_points(fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float]:
     """The measured points' offsets from their nominal place, in the measured frame, found
-    with the tracker frame: ``min over T, d_c of sum_ic |T (R_i (m_c + d_c) + p_i) - P_ic|^2``
-    (nominal robot, poses ``(R_i, p_i)`` of the measured frame, nominal points ``m_c``).
+    with the tracker frame (one per round of ``meas``): ``min over T, d_c of sum_ic
+    |T (R_i (m_c + d_c) + p_i) - P_ic|^2`` (nominal robot, poses ``(R_i, p_i)`` of the measured
+    frame, nominal points ``m_c``).
 
     Alternating closed forms: for the frame ``T`` the Kabsch fit (:func:`rigid_fit`); for the
     points ``d_c = mean_i R_i^T (T^-1 P_ic - p_i) - m_c``. Three measured components only.
@@ -418,23 +419,31 @@ def locate_points(fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float]:
     ref = nominal_poses(model, meas.Q, meas.F)
     R, p = ref[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), ref[:, 9:]
     seen, P = meas.seen, meas.P_m
+    rounds = [meas.frame_of == k for k in range(meas.frames)]  # one tracker frame per round
     markers = np.asarray(model.markers_m, float)
     d = np.zeros_like(markers)
-    for _ in range(LOCATE_ITERATIONS):
+
+    def frames(d: np.ndarray) -> tuple[np.ndarray, list | None]:
         points = p[:, None, :] + np.einsum("tij,kj->tki", R, markers + d)
-        found = rigid_fit(points[seen], P[seen], (0, 1, 2))
+        found = [rigid_fit(points[seen & r[:, None]], P[seen & r[:, None]], (0, 1, 2)) for r in rounds]
+        return points, None if any(f is None for f in found) else found
+
+    for _ in range(LOCATE_ITERATIONS):
+        _, found = frames(d)
         if found is None:
             break
-        Rt, t = found
-        local = np.einsum("tji,tkj->tki", R, (P - t) @ Rt - p[:, None, :]) - markers  # R_i^T (T^-1 P - p_i)
+        local = np.empty_like(P)
+        for r, (Rt, t) in zip(rounds, found):  # R_i^T (T^-1 P - p_i)
+            local[r] = np.einsum("tji,tkj->tki", R[r], (P[r] - t) @ Rt - p[r, None, :]) - markers
         new = np.array([np.mean(local[seen[:, c], c], axis=0) for c in range(len(markers))])
         moved = float(np.max(np.abs(new - d)))
         d = new
         if moved < LOCATE_TOL_M:
             break
-    points = p[:, None, :] + np.einsum("tij,kj->tki", R, markers + d)
-    found = rigid_fit(points[seen], P[seen], (0, 1, 2))
-    off = P[seen] - (points[seen] @ found[0].T + found[1]) if found is not None else np.full(3, np.nan)
+    points, found = frames(d)
+    if found is None:
+        return d, math.nan
+    off = np.concatenate([P[seen & r[:, None]] - (points[seen & r[:, None]] @ Rt.T + t) for r, (Rt, t) in zip(rounds, found)])
     return d, float(np.sqrt(np.mean(np.sum(off**2, axis=-1))))
 
 

@@ -357,6 +357,29 @@ def test_base_frame_prediction_is_the_designs_measure(ur10, tmp_path):
     assert cal.names == ur10.model.parameter_names and cal.noise_consistent
 
 
+def test_a_point_far_off_is_located_with_a_tracker_frame_per_round(ur10, tmp_path):
+    """Two rounds, the tracker moved in between, the measured point 70 mm off the file's
+    tool_xyz_m: it is located with one frame per round (it was located only for one round or
+    --same-frame, and FIGAROH's two TIAGo days were refused as 88.5 mm off)."""
+    from casadi_design.identification.fit import register
+    from casadi_design.identification.measurements import rounds_of
+
+    true = perturbed(ur10, np.random.default_rng(5), base_like=False)
+    offset = np.array([0.06, 0.02, -0.03])
+    frame = true.model.frames[true.frame_id]
+    frame.placement = frame.placement * pin.SE3(np.eye(3), offset)
+    true.model.frames[true.frame_id] = frame
+    moved = type(true)(true.model, true.frame_id, true.k,
+                       pin.SE3(pin.exp3(np.array([0.1, 0.2, -0.4])), np.array([0.3, 1.1, -0.2])) * true.tracker)
+    write_measurements(tmp_path / "first.csv", ur10, true, 8, 21)
+    write_measurements(tmp_path / "second.csv", ur10, moved, 8, 22)
+    meas = rounds_of([read_measurements(ur10, str(tmp_path / n)) for n in ("first.csv", "second.csv")])
+    problem, _, T0s, notes = register(ur10, "tracker", meas)
+    assert len(T0s) == 2 and re.match(rf"the measured points of {re.escape(str(ur10.path))} lie 69.\d mm off", notes[0])
+    located = np.array(problem.spec.robot.tool_xyz_m) - np.array(ur10.spec.robot.tool_xyz_m)
+    assert np.abs(located - offset).max() < 3e-3  # (the robot's own errors: millimetres)
+
+
 def test_rounds_in_two_tracker_frames_identify_one_robot(ur10, tmp_path, capsys):
     """Two rounds of 8 rows, the tracker moved in between: fitted with a frame per round, the
     residuals are the noise (chi-square consistent) and each frame is its round's true one;
