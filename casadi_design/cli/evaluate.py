@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import OutputError, ProblemError
+from ..errors import OutputError
 from ..records.files import read_results, write_json
 from ..reports.tables import format_measures
 from . import common
@@ -65,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
         if not others:
             raise OutputError(f"{record['_path']}: no design with m = {m} experiments (the plan's "
                               f"rows); solve or sweep that m first")
+    from .program import home_pose
+
+    home = home_pose(problem, args.home) if args.moves else None  # refused before anything is printed
     scores = plan_scores(problem, Q, F)
     violations = plan_violations(problem, Q, F)
     print(common.case_line(problem))
@@ -79,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("the plan satisfies the problem's joint limits, load"
               + (", workspace and cell" if problem.cell else " and workspace"))
-    moves = checked_moves(args, problem, Q)
+    moves = checked_moves(problem, Q, home)
     near = clearances(problem.cell, Q) if problem.cell else []
     if near:
         print(f"clearance on the {problem.cell.check.source} (mm), per experiment: "
@@ -109,21 +112,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def checked_moves(args: argparse.Namespace, problem, Q) -> list[dict]:
-    """With ``--moves``: each move of the plan in file order, from and back to home, checked as
-    :func:`casadi_design.program.moves.check_move` checks a program's; printed, and returned
-    for evaluation.json (m, SI)."""
-    if not args.moves:
+def checked_moves(problem, Q, home) -> list[dict]:
+    """With ``--moves`` (``home``, rad; None without): each move of the plan in file order,
+    from and back to home, checked as :func:`casadi_design.program.moves.check_move` checks a
+    program's; printed, and returned for evaluation.json (m, SI)."""
+    if home is None:
         return []
     import numpy as np
 
-    from ..program.moves import check_move, pose_problems
-    from .program import home_pose
+    from ..program.moves import check_move
 
-    home = home_pose(problem, args.home)
-    why = pose_problems(problem, home)
-    if why:
-        raise ProblemError(f"--home: {why}; give a home pose inside the limits and clear of the cell")
     names = ["home", *(f"experiment {k}" for k in range(1, len(Q) + 1)), "home"]
     points = np.vstack([home, Q, home])
     out = []

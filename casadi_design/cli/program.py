@@ -44,22 +44,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def home_pose(problem, text: str | None) -> np.ndarray:
-    """The home pose (n,), rad: ``--home`` (deg, mm) or the default of ``--help``."""
+    """The home pose (n,), rad: ``--home`` (deg, mm) or the default of ``--help``, checked
+    (inside the limits, clear of the cell: :func:`~casadi_design.program.moves.pose_problems`)."""
+    from ..program.moves import pose_problems
     from ..records.export import joint_scales
 
     n = problem.robot.n
     if text is None:
         seed = problem.spec.test_poses.seed_q_rad
-        return np.array(seed) if seed is not None else problem.rules.limits.middle
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != n or not all(map(math.isfinite, values)):
-        raise ProblemError(f"--home: '{text}' is not {n} joint values; give one value in deg (mm for prismatic "
-                           f"joints) per joint of the chain ({', '.join(problem.robot.joints)}), e.g. --home "
-                           + ",".join(["0"] * n))
-    return np.array(values) * joint_scales(problem)
+        home = np.array(seed) if seed is not None else problem.rules.limits.middle
+    else:
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != n or not all(map(math.isfinite, values)):
+            raise ProblemError(f"--home: '{text}' is not {n} joint values; give one value in deg (mm for prismatic "
+                               f"joints) per joint of the chain ({', '.join(problem.robot.joints)}), e.g. --home "
+                               + ",".join(["0"] * n))
+        home = np.array(values) * joint_scales(problem)
+    why = pose_problems(problem, home)
+    if why:
+        raise ProblemError(f"--home: {why}; give a home pose inside the limits and clear of the cell" if text else
+                           f"the default home ([test_poses].seed_q_deg, else the middle of the limits): {why}; give "
+                           "a home pose inside the limits and clear of the cell with --home")
+    return home
 
 
 def run(args: argparse.Namespace) -> int:

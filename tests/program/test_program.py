@@ -297,6 +297,26 @@ def test_bad_program_input_is_one_line_and_writes_nothing(abb, tmp_path, capsys,
     assert not out.exists()
 
 
+def test_a_home_that_cannot_start_the_moves_is_refused_first_and_named(abb, tmp_path, capsys):
+    """The default home (the seed of the test poses) in the table is named as the default, with
+    the option that changes it; evaluate --moves refuses a home before it prints the plan's
+    scores (it printed the whole table, then the error)."""
+    from dataclasses import replace
+
+    from casadi_design.cli.program import home_pose
+
+    table = np.deg2rad([0, 50, 0, 0, 60, 0])
+    seeded = replace(abb, spec=replace(abb.spec, test_poses=replace(abb.spec.test_poses, seed_q_rad=tuple(table))))
+    with pytest.raises(ProblemError, match=r"^the default home \(\[test_poses\].seed_q_deg, else the middle of the "
+                                           r"limits\): link .* closer than 20 mm to machine table .*; give a home pose "
+                                           r"inside the limits and clear of the cell with --home$"):
+        home_pose(seeded, None)
+    plan = _plan_csv(tmp_path / "plan.csv", abb, *random_plan(abb, 2, np.random.default_rng(5)))
+    assert main(["evaluate", str(ABB), "--plan", plan, "--moves", "--home", "0,50,0,0,60,0"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("error: --home: link ")
+
+
 def test_a_plan_that_breaks_its_rules_is_not_programmed(abb, tmp_path, capsys):
     """A robot program runs a plan's poses and loads as they are: a pose in the table's
     clearance (it was refused as unreachable from home) or a load beyond the rig's is one
