@@ -97,6 +97,8 @@ def path_ik(robot: Robot, positions_m: np.ndarray, rotation: np.ndarray, q_seed:
         q, err = solve_ik(robot, pin.SE3(rotation, p), q_from, position_only)
         if not err <= IK_ACCEPT:  # also catches NaN
             where = f"[test_poses].path: node {j + 1} of {s} at ({', '.join(f'{v * 1e3:.1f}' for v in p)}) mm"
+            start = "from seed_q_deg" if j == 0 else "from the previous node"
+            tool = "" if position_only else " with the given tool orientation"
             q_free, err_free = solve_ik(robot, pin.SE3(rotation, p), q_from, position_only, limits=False)
             out_of = [k for k in range(robot.n) if not any(  # (a revolute joint in any whole turn)
                 robot.q_min[k] <= q_free[k] + 2 * np.pi * t <= robot.q_max[k] for t in
@@ -104,15 +106,15 @@ def path_ik(robot: Robot, positions_m: np.ndarray, rotation: np.ndarray, q_seed:
             if err_free <= IK_ACCEPT and out_of:  # reached, past a joint limit
                 k = out_of[0]
                 raise ProblemError(
-                    f"{where} is reached from the previous node with the given tool orientation with "
+                    f"{where} is reached {start}{tool} with "
                     f"{robot.joints[k]} at {np.rad2deg(q_free[k]):.1f} deg, outside its limits "
                     f"[{np.rad2deg(robot.q_min[k]):.1f}, {np.rad2deg(robot.q_max[k]):.1f}] deg, and not within "
                     "them; move the path, give seed_q_deg for another branch, or widen [robot.joint_limits_rad] "
                     "if the robot allows it")
             raise ProblemError(
-                f"{where} is unreachable with the given tool orientation (residual {err * 1e3:.3g} mm/mrad "
-                f"after {IK_MAX_ITER} iterations from the previous node); move the path, change tool_rpy_deg "
-                "or give seed_q_deg closer to it"
+                f"{where} is unreachable{tool} (residual {err * 1e3:.3g} {'mm' if position_only else 'mm/mrad'} "
+                f"after {IK_MAX_ITER} iterations {start}); move the path"
+                + ("" if position_only else ", change tool_rpy_deg") + " or give seed_q_deg closer to it"
             )
         out.append(q)
     return np.array(out)

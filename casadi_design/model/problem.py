@@ -385,8 +385,10 @@ def _is_number(v: Any) -> bool:
 class _Reader:
     """Typed access to one TOML table with file/field-qualified errors."""
 
-    def __init__(self, path: str, table: dict, section: str):
-        self.path, self.table, self.section = path, table, section
+    def __init__(self, path: str, table: dict, section: str, label: str | None = None):
+        """``section`` names the keys allowed (:data:`SECTIONS`); ``label`` names the table in
+        messages (default ``section``: e.g. ``robot.dh.joints[3]`` for a row)."""
+        self.path, self.table, self.section = path, table, label or section
         allowed = SECTIONS[section]
         unknown = sorted(set(table) - allowed) if allowed is not None else []
         if unknown:
@@ -661,15 +663,20 @@ def _dh(d: _Reader) -> dict:
     rows = []
     for k, row in enumerate(rows_raw):
         if not isinstance(row, dict):
-            raise d.error(f"row {k} is {_short(row)}", "write each row as an inline table { name = ..., ... }", "joints")
-        j = _Reader(f"{d.path}: [robot.dh].joints row {k}", row, "robot.dh.joints")
+            raise d.error(f"row {k + 1} is {_short(row)}", "write each row as an inline table { name = ..., ... }", "joints")
+        j = _Reader(d.path, row, "robot.dh.joints", f"robot.dh.joints[{k + 1}]")
         missing = sorted(SECTIONS["robot.dh.joints"] - optional - set(row))
         if missing:
             raise j.error(f"misses {', '.join(missing)}", "every row needs name, type (R), theta_offset_deg, d_m, a_m, alpha_deg, limits_deg "
                           "(beta_deg is optional)")
-        lo, hi = np.radians(j.array("limits_deg", (2,), hint="[lower, upper] in deg"))
+        given = j.array("limits_deg", (2,), hint="[lower, upper] in deg")
+        lo, hi = np.radians(given)
         if not lo < hi:
             raise j.error(f"lower {np.degrees(lo):g} must be below upper {np.degrees(hi):g}", "give [lower, upper] in deg", "limits_deg")
+        if given[1] - given[0] <= 2 * math.pi:  # a joint's range of a few degrees: radians typed as degrees
+            raise j.error(f"{given.tolist()} spans {given[1] - given[0]:.3g} deg", "give degrees, e.g. "
+                          f"[{math.degrees(given[0]):.4g}, {math.degrees(given[1]):.4g}] for {given.tolist()} rad",
+                          "limits_deg")
         kind = j.get("type", str)
         if kind != "R":
             raise j.error(f"'{kind}'", "allowed: R (describe prismatic axes in a URDF)", "type")
@@ -941,9 +948,7 @@ def _entries(c: _Reader, key: str, example: str) -> list[_Reader]:
     for k, row in enumerate(c.get(key, list, [])):
         if not isinstance(row, dict):
             raise c.error(f"entry {k + 1} is {_short(row)}", f"write each entry as {example}", key)
-        reader = _Reader(c.path, row, f"{c.section}.{key}")
-        reader.section = f"{c.section}.{key}[{k + 1}]"
-        out.append(reader)
+        out.append(_Reader(c.path, row, f"{c.section}.{key}", f"{c.section}.{key}[{k + 1}]"))
     return out
 
 

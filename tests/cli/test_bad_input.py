@@ -48,7 +48,7 @@ def test_read_refuses_bad_values_with_one_message(edits, match):
 def test_dh_rows_with_nan_or_reversed_limits():
     joints = read_raw(ABB)["robot"]["dh"]["joints"]
     bad = [dict(joints[0], a_m=math.nan)] + joints[1:]
-    with pytest.raises(ProblemError, match=r"joints row 0: \[robot.dh.joints\].a_m: expected a finite number"):
+    with pytest.raises(ProblemError, match=r"\[robot.dh.joints\[1\]\].a_m: expected a finite number"):
         build(_edited(ABB, (("robot", "dh", "joints"), bad)))
     bad = [dict(joints[0], limits_deg=[170.0, -170.0])] + joints[1:]
     with pytest.raises(ProblemError, match=r"limits_deg: lower 170 must be below upper -170"):
@@ -57,9 +57,9 @@ def test_dh_rows_with_nan_or_reversed_limits():
 
 @pytest.mark.parametrize("keys, value, match", [
     (("joints", 1, "beta_deg"), 90.0,
-     r"^test.toml: \[robot.dh\].joints row 1: \[robot.dh.joints\].beta_deg: is 90; give an angle strictly between -90 and 90 deg$"),
-    (("joints", 0, "beta_deg"), "0.1", r"joints row 0: \[robot.dh.joints\].beta_deg: expected float, got '0.1'"),
-    (("joints", 0, "beta"), 0.1, r"joints row 0: \[robot.dh.joints\]: unknown key 'beta'; allowed: .*beta_deg"),
+     r"^test.toml: \[robot.dh.joints\[2\]\].beta_deg: is 90; give an angle strictly between -90 and 90 deg$"),
+    (("joints", 0, "beta_deg"), "0.1", r"\[robot.dh.joints\[1\]\].beta_deg: expected float, got '0.1'"),
+    (("joints", 0, "beta"), 0.1, r"\[robot.dh.joints\[1\]\]: unknown key 'beta'; allowed: .*beta_deg"),
     (("base_xyz_m",), [0.0, 0.1], r"^test.toml: \[robot.dh\].base_xyz_m: expected finite numbers of shape 3, got \[0.0, 0.1\]"),
     (("base_rpy_deg",), [0.0, math.inf, 0.0], r"\[robot.dh\].base_rpy_deg: expected finite numbers of shape 3"),
 ])
@@ -142,12 +142,14 @@ def test_urdf_problems_are_one_line(tmp_path, capsys):
 
 def test_command_line_errors_are_one_line(tmp_path, capsys):
     for argv in (["solve"], ["solve", str(PAPER), "--starts", "x"], ["plot", str(tmp_path), "--format", "jpg"],
-                 ["nonsense"], ["solve", str(PAPER), "--out", ""], ["sweep", str(PAPER), "--out", str(tmp_path / "a" / "b")]):
+                 ["nonsense"], ["solve", str(PAPER), "--out", ""],
+                 ["sweep", str(PAPER), "--out", str(tmp_path / "a" / "b")]):  # a: a file, not a folder
+        (tmp_path / "a").write_text("")
         assert main(argv) == 2, argv
         _, err = capsys.readouterr()
         lines = err.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error: ") and "; " in lines[0], err
-    assert not (tmp_path / "a").exists()
+    assert (tmp_path / "a").is_file()
 
 
 def test_unreachable_dask_scheduler_is_one_line_within_seconds(monkeypatch):

@@ -204,7 +204,7 @@ def test_segment_forces_follow_the_polyline(abb_dh):
     (lambda r: r["robot"].update(joint_limits_rad={"elbow_joint": [-170.0, 170.0]}),
      r"\[robot.joint_limits_rad\].elbow_joint: \[-170, 170\] is past two turns: give rad, e.g. \[-2.967, 2.967\]"),
     (lambda r: r["robot"].update(joint_limits_rad={"elbow_joint": [-1.0, 1.0]}),
-     r"\[test_poses\].path: node 1 of 9 at \(600.0, -300.0, 100.0\) mm is reached from the previous node with the "
+     r"\[test_poses\].path: node 1 of 9 at \(600.0, -300.0, 100.0\) mm is reached from seed_q_deg with the "
      r"given tool orientation with elbow_joint at \d+.\d deg, outside its limits \[-57.3, 57.3\] deg, and not "
      r"within them; move the path, give seed_q_deg for another branch, or widen \[robot.joint_limits_rad\]"),
     (lambda r: r["robot"].update(frame="flange0"), r"unknown frame 'flange0'"),
@@ -229,8 +229,10 @@ def test_industrial_input_errors(edit, match):
 
 
 @pytest.mark.parametrize("edit, match", [
-    (lambda d: d["joints"][0].pop("a_m"), r"row 0: \[robot.dh.joints\]: misses a_m"),
-    (lambda d: d["joints"][1].update(d_m="x"), r"row 1: \[robot.dh.joints\].d_m: expected float"),
+    (lambda d: d["joints"][0].pop("a_m"), r"abb.toml: \[robot.dh.joints\[1\]\]: misses a_m"),
+    (lambda d: d["joints"][1].update(d_m="x"), r"abb.toml: \[robot.dh.joints\[2\]\].d_m: expected float"),
+    (lambda d: d["joints"][1].update(limits_deg=[-1.13, 1.57]),  # radians typed as degrees
+     r"\[robot.dh.joints\[2\]\].limits_deg: \[-1.13, 1.57\] spans 2.7 deg; give degrees, e.g. \[-64.74, 89.95\]"),
     (lambda d: d.update(convention="craig"), r"convention: 'craig'; allowed: standard, modified"),
     (lambda d: d.update(joints=[]), r"\[robot.dh\].joints: is empty"),
     (lambda d: d["joints"][2].update(limits_deg=[1.0]), r"limits_deg: expected finite numbers of shape 2"),
