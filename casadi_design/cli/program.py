@@ -81,6 +81,12 @@ def run(args: argparse.Namespace) -> int:
     Q, F, plan = read_experiments(problem, args.plan)  # a plan of another robot names the plan
     new = ~plan.measured  # a campaign's measured experiments are not measured again
     Q, F = Q[new], F[new]
+    robot = problem.robot
+    past = int(np.sum((Q < robot.q_min) | (Q > robot.q_max)))  # within the reading's tolerance
+    if past:  # a controller refuses a target past a limit, however little
+        Q = np.clip(Q, robot.q_min, robot.q_max)
+        common.say(args, f"note: {past} joint value{'s' if past > 1 else ''} of the plan past {'their' if past > 1 else 'its'} "
+                         "limit (within the reading's tolerance) programmed at the limit")
     check_format(problem, args.format)
     home = home_pose(problem, args.home)
     t0 = time.perf_counter()

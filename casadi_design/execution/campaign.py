@@ -242,9 +242,10 @@ def check_criteria(problem: Problem, criteria: Iterable[str]) -> None:
 def check_m_values(problem: Problem, m_values: Iterable[int]) -> None:
     small = [m for m in m_values if m < problem.m_min]
     if small:
+        held = "" if problem.M_held is None else " with what is held before the plan (--measured, --prior)"
         raise ProblemError(
             f"{problem.path}: --m {small[0]} is too small: {problem.model.L} parameters need "
-            f"m >= {problem.m_min} experiments; start the range at {problem.m_min}")
+            f"m >= {problem.m_min} experiments{held}; start the range at {problem.m_min}")
 
 
 def approximate(problem: Problem, criteria: Iterable[str], m_values: Iterable[int], settings: Settings,

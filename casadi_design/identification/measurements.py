@@ -325,7 +325,8 @@ def read_measurements(problem: Problem, path: PlanFile | str, fmt: FileFormat = 
             raise ProblemError(f"{path}: row {lines[i]}, column '{empty}': empty while the other "
                                f"coordinates of the point are given; give all of "
                                f"{', '.join(spelled.get(n, n) for n in point)} "
-                               "or leave all empty (a marker the tracker did not see)")
+                               + ("or leave all empty (a marker the tracker did not see)" if len(columns) > 1 else
+                                  "or delete the row (its point was not measured)"))
         far = np.flatnonzero(np.nan_to_num(np.abs(block)).max(axis=1) > MAX_COORDINATE_M)
         if far.size:
             i = int(far[0])

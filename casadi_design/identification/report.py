@@ -107,7 +107,7 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
         "tracker_from_base_std": tracker_std(c).tolist(),
         "tracker_from_base_unit": "m (4 x 4 homogeneous: base-frame points to tracker-frame points)",
         **({"rounds": [{"file": path, "rows": int(np.sum(meas.rounds == k))} for k, path in enumerate(meas.paths)],
-            "tracker_frames": "one per round" if meas.frames > 1 else "one for every round",
+            "tracker_frames": "one per round" if meas.frames > 1 else "one, shared by every round (--same-frame)",
             "tracker_from_base_per_round": [f.tracker_from_base.tolist(), *(
                 (f.T0s[k + 1] @ error_placement(frame_delta(f, d))).tolist() for k, d in enumerate(f.frames))]
             if f.frames is not None else [f.tracker_from_base.tolist()]} if meas.paths else {}),

@@ -314,6 +314,8 @@ def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[
     for i, cells in rows:
         if len(cells) > len(header) and not any(cells[len(header):]):
             del cells[len(header):]  # trailing empty cells
+        if [c.strip().lower() for c in cells] == [s.strip().lower() for s in spelled]:
+            raise ProblemError(f"{path}: row {i} repeats the header; delete it (one header line, at the top)")
         if len(cells) != len(header):
             raise ProblemError(f"{path}: row {i} has {len(cells)} cells, the header has "
                                f"{len(header)}; give one value per column in every row (a decimal "

@@ -141,7 +141,7 @@ def draw_errors_per_pose(ax: Axes, bars: list[tuple[str, dict, np.ndarray]], yla
         tops += [(a - width / 2, a + width / 2, v) for a, v in zip(at, e) if np.isfinite(v)]
     every = max(1, s // 20)  # at most ~20 tick labels
     ax.set_xticks(x[::every], (labels or [str(v) for v in x])[::every], fontsize=8)
-    ax.set_xlabel("test pose (one group per pose, in file order)")
+    ax.set_xlabel("test pose: x over y (mm), in file order" if labels else "test pose (one group per pose, in file order)")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3, axis="y")
     ax.set_ylim(0, 1.25 * (max(p[1] for p in peaks) if top is None else top))
@@ -159,7 +159,6 @@ def draw_error_bands(ax: Axes, x_mm: np.ndarray, bands: list[Band], xlabel: str,
     if labels is not None:
         draw_errors_per_pose(ax, [(b.label, b.style, b.rms_error_m * 1e3) for b in bands],
                              r"$\sqrt{\rho}$ (mm)", labels, top, legend=False)
-        ax.set_xlabel("test pose: x over y (mm), in file order")
         return
     ax.axhline(0.0, color="k", lw=1.0, label="Target trajectory")
     peaks = []

@@ -231,6 +231,8 @@ def _mutate(lines, what):
         rows[2][header.index("shoulder_pan_joint_deg")] = "nan"
     elif what == "empty coordinate":
         rows[4][header.index("meas_y_mm")] = ""
+    elif what == "repeated header":
+        rows.insert(3, list(header))
     elif what == "too few rows":
         rows = rows[:5]
     elif what == "joint limit":
@@ -248,7 +250,9 @@ def _mutate(lines, what):
     ("missing column", "missing column 'meas_z_mm'; append the measured coordinates in mm"),
     ("unit", "column 'meas_x' has no unit; name it meas_x_mm or meas_x_m"),
     ("nan", "row 4, column 'shoulder_pan_joint_deg': not a finite number"),
-    ("empty coordinate", "row 6, column 'meas_y_mm': empty while the other coordinates"),
+    ("empty coordinate", "row 6, column 'meas_y_mm': empty while the other coordinates of the point are given; "
+                         "give all of meas_x_mm, meas_y_mm, meas_z_mm or delete the row"),
+    ("repeated header", "row 5 repeats the header; delete it"),
     ("too few rows", "5 rows give 15 measured values, fewer than the 27 parameters"),
     ("joint limit", "row 5, column 'elbow_joint_deg': 400 deg is outside the joint limits"),
     ("not registrable", "cannot be registered to the nominal robot"),

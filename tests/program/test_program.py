@@ -334,6 +334,21 @@ def test_a_plan_that_breaks_its_rules_is_not_programmed(abb, tmp_path, capsys):
         assert not out.exists()
 
 
+def test_a_reading_just_past_a_limit_is_programmed_at_the_limit(tmp_path, capsys):
+    """A measured posture read within --limit-tolerance past a joint limit (FIGAROH's TIAGo
+    torso at 0.350181 m of 0.35) is programmed at the limit, which a controller accepts, and
+    said; it was written as it was read."""
+    paper = load_problem(PAPER)
+    plan = tmp_path / "postures.csv"  # bare joint names in rad, as a controller's log or FIGAROH's files
+    plan.write_text(f"joint1,joint2,fx_N,fy_N\n0.3,{float(paper.robot.q_max[1]) + 5e-4!r},100,0\n0.1,-1.0,100,0\n")
+    assert main(["program", str(PAPER), "--plan", str(plan), "--format", "json", "--out", str(tmp_path / "out")]) == 0
+    assert "note: 1 joint value of the plan past its limit (within the reading's tolerance) programmed at the " \
+           "limit" in capsys.readouterr().out
+    points = json.loads((tmp_path / "out" / "program.json").read_text())["points"]
+    q2 = max(p["positions"][1] for p in points if p["experiment"])
+    assert q2 == pytest.approx(paper.robot.q_max[1], abs=1e-12)
+
+
 def test_plan_of_another_robot_and_bad_controller_are_refused(abb, tmp_path, capsys):
     paper = load_problem(PAPER)
     plan = _plan_csv(tmp_path / "plan.csv", paper, np.zeros((2, 2)), np.tile([100.0, 0.0], (2, 1)))
