@@ -141,7 +141,7 @@ def test_evaluate_and_program_take_the_measured_postures_as_their_plan(tiago, tm
     """The postures of the training file (FIGAROH's layout: bare joint names) are a plan for
     evaluate and program, read as identify reads them (the same Q, to the bit): evaluate lists
     the torso reading 0.18 mm past its limit among the broken constraints; program visits every
-    posture of the file's first rows. Its joint columns alone (a controller's log of the
+    posture of the file's first rows (that torso at its limit). Its joint columns alone (a controller's log of the
     postures, without coordinates) are the same plan."""
     import json
 
@@ -156,8 +156,10 @@ def test_evaluate_and_program_take_the_measured_postures_as_their_plan(tiago, tm
                  str(tmp_path / "program"), "--quiet"]) == 0
     record = json.loads((tmp_path / "program" / "program.json").read_text())
     visits = {p["experiment"]: p["positions"] for p in record["points"] if p["experiment"]}
-    assert sorted(visits) == [1, 2, 3, 4]
-    np.testing.assert_array_equal([visits[k] for k in range(1, 5)], training.Q[:4])
+    assert sorted(visits) == [1, 2, 3, 4]  # (the torso past its limit, read within the tolerance: at the limit)
+    np.testing.assert_array_equal([visits[k] for k in range(1, 5)],
+                                  np.clip(training.Q[:4], problem.robot.q_min, problem.robot.q_max))
+    assert training.Q[2, 0] > problem.robot.q_max[0] and visits[3][0] == problem.robot.q_max[0]
     rows = [line.split(",") for line in TRAINING.read_text().splitlines()]
     joints = [rows[0].index(j) for j in problem.robot.joints]
     log = tmp_path / "log.csv"
