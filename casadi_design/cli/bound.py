@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         check_m_values(problem, ms)
         settings = Settings.of(problem, bound_steps=args.bound_steps, bound_pool=args.bound_pool)
         approx = approximate(problem, ("test-pose", "D"), ms, settings, ex)
-    print(common.case_line(problem))
+    print(common.case_line(problem, args.quiet))
     print(format_bounds([bound(problem, m, approx[aim(problem, "test-pose", m)]) for m in ms],
                         [bound(problem, m, approx[aim(problem, "D", m)]) for m in ms]))
     for a in approx.values():

@@ -272,11 +272,16 @@ def executor(args: argparse.Namespace):
     return make_executor(args.jobs, args.dask_scheduler)
 
 
-def case_line(problem: Problem) -> str:
+def case_line(problem: Problem, quiet: bool = False) -> str:
+    """The case for people: what is calibrated, the test poses, sigma and the seed, the base
+    set (``quiet``: its first line only, not what each parameter left out acts as) and what is
+    held before the plan."""
     line = (f"{problem.name}: {problem.model.case} calibration of "
             f"{', '.join(problem.model.parameter_names)}; {problem.test_poses.s} test poses; "
             f"sigma = {problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
-    line = line if problem.base_set is None else line + "\n" + problem.base_set.report()
+    if problem.base_set is not None:
+        report = problem.base_set.report()
+        line += "\n" + (report.splitlines()[0] if quiet else report)
     return line if problem.M_held is None else line + "\n" + held_line(problem)
 
 

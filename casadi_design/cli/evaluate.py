@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     home = home_pose(problem, args.home) if args.moves else None  # refused before anything is printed
     scores = plan_scores(problem, Q, F)
     violations = plan_violations(problem, Q, F)
-    print(common.case_line(problem))
+    print(common.case_line(problem, args.quiet))
     print(f"plan {args.plan}: {m} experiment{'s' if m > 1 else ''}"
           + ("" if scores.identifiable else "; M is singular: the parameters are NOT identifiable"))
     print(format_measures(["your plan"] + [f"{d.criterion} m={d.m}" for d in others],

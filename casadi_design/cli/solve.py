@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     problem = study.problem
     designs = list(done.designs.values())
     wall = time.perf_counter() - t0
-    print(common.case_line(problem))
+    print(common.case_line(problem, args.quiet))
     print(format_table(designs))
     if done.target is not None:
         print(done.target.line())

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     study, sweep, fig_m = common.design(args, "sweep", out / PARTIAL_NAME if out else None, sweep=True)
     problem = study.problem
     wall = time.perf_counter() - t0
-    print(common.case_line(problem))
+    print(common.case_line(problem, args.quiet))
     print(format_sweep_table(sweep))
     target = None
     if study.target_m is not None:

@@ -139,3 +139,15 @@ def test_validate_subcommand_runs_the_virtual_calibration(tmp_path, paper_solve_
     out = capsys.readouterr().out
     assert "ranking by the measure ['test-pose', 'D', 'E'], by simulation" in out
     assert (tmp_path / "v" / "validation.json").exists()
+
+
+def test_quiet_keeps_the_base_set_to_its_count():
+    """-q prints the case and the base set's count, not what each parameter left out acts as
+    (28 lines on a DH arm of 33 parameters)."""
+    from casadi_design.cli.common import case_line
+    from casadi_design.cli.identify import load_without_cell
+
+    problem = load_without_cell(str(ROOT / "problems" / "ur10_drilling.toml"))
+    full, quiet = case_line(problem).splitlines(), case_line(problem, quiet=True).splitlines()
+    assert quiet == full[:2] and full[1].startswith("identifiable base set: ")
+    assert any(line.startswith("dropped ") for line in full[2:])
