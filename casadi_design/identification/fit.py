@@ -47,7 +47,7 @@ FRAME_PARAMETERS = tuple(f"base.{e}" for e in PLACEMENT_ERRORS)
 #: this robot (or not in mm, or the joint columns are in another order).
 REGISTRATION_TOL_M = 0.02
 #: Why a robot parameter is left out of the fit in the tracker frame.
-ABSORBED = "absorbed by the tracker frame (acts as a combination of its placement and the parameters kept)"
+ABSORBED = "acts as a combination of the tracker frame's placement and the parameters kept"
 #: The same in the robot's base frame (``--frame base``): nothing absorbs, a parameter depends.
 DEPENDENT = "acts as a combination of the parameters kept"
 #: Seed of the random poses that decide what the frame absorbs (a property of the model).

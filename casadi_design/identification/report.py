@@ -166,7 +166,7 @@ def summary_lines(calibration: Calibration) -> list[str]:
     used = f.used
 
     def label(name: str) -> str:
-        return f"tracker frame {name[len('base.'):]}" if name in f.fit.frame_names else name
+        return f"tracker frame correction {name[len('base.'):]}" if name in f.fit.frame_names else name  # to its closed form
 
     lines = [f"note: {n}" for n in (*c.measurements.notes, *c.notes)]
     lines.append("models (leave-one-out cross-validation on the rows without the outliers of the "
