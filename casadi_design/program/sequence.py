@@ -79,13 +79,14 @@ def load_text(problem: Problem, f: np.ndarray) -> str:
 def turns(problem: Problem, q: np.ndarray, home: np.ndarray) -> list[np.ndarray]:
     """The configurations of the pose ``q`` (n,), rad: each periodic joint (a range of more than
     a turn, as the UR10's +/-360 deg: :class:`casadi_design.model.rules.JointLimits`) at its angle
-    plus any whole turns within the limits; the fastest from ``home`` first."""
+    plus any whole turns within the limits; the fastest from ``home`` first, and of equal times
+    (a fast wrist beside a slow arm) the one of least joint travel: no whole turn for nothing."""
     limits = problem.rules.limits
     options = [[q[k] + 2 * np.pi * t for t in range(-2, 3) if limits.lower[k] <= q[k] + 2 * np.pi * t <= limits.upper[k]]
                if limits.periodic[k] else [q[k]] for k in range(len(q))]
     out = [np.array(c) for c in itertools.product(*options)]
     times = time_model(problem)
-    return sorted(out, key=lambda c: times.move_time(home, c))
+    return sorted(out, key=lambda c: (times.move_time(home, c), float(np.abs(c - home).sum())))
 
 
 def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarray,
