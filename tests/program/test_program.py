@@ -498,3 +498,25 @@ def test_a_plan_that_cannot_be_programmed_leaves_the_results_written_and_says_so
                        "casadi-design program takes plans/D_m1.csv with another --home\n")
         assert json.loads((out / "results.json").read_text())["designs"][0]["m"] == 1
         assert (out / "plans" / "D_m1.csv").exists() and not (out / "solve.partial.json").exists()
+
+
+def test_a_turn_is_taken_only_when_it_is_faster(monkeypatch):
+    """Of the turns of a pose with periodic joints (the UR10's +/-360 deg), home first reaches
+    the fastest; of equal times (a fast wrist beside a slow arm: every move takes the arm's
+    time) the one of least joint travel, not a wrist wound a whole turn."""
+    from casadi_design.cli.identify import load_without_cell
+    from casadi_design.program import sequence
+
+    ur10 = load_without_cell(str(ROOT / "problems" / "ur10_drilling.toml"))
+    home, q = np.zeros(6), np.deg2rad([90.0, -60.0, 30.0, -20.0, 40.0, -31.0])
+    assert [round(np.rad2deg(c[5])) for c in sequence.turns(ur10, q, home)[:1]] == [-31]
+
+    class Slow:  # every move the same time: only the travel tells the turns apart
+        def move_time(self, a, b):
+            return 1.0
+
+    monkeypatch.setattr(sequence, "time_model", lambda problem: Slow())
+    options = sequence.turns(ur10, q, home)
+    assert len(options) > 1 and np.array_equal(options[0], q)  # (every UR10 joint: +/-360 deg)
+    travel = [np.abs(c - home).sum() for c in options]
+    assert travel == sorted(travel)
