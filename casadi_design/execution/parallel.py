@@ -383,6 +383,28 @@ def _import_distributed() -> Any:
     return distributed
 
 
+def _connect(distributed, address: str):
+    """``distributed.Client(address)``, given up a second after ``DASK_CONNECT_TIMEOUT_S``: the
+    client's timeout covers the TCP connection, not Dask's handshake (dask/distributed #7698),
+    so a service that is no scheduler and never answers would hold the command for ever."""
+    found: list = []
+
+    def connect() -> None:
+        try:
+            found.append(distributed.Client(address, timeout=DASK_CONNECT_TIMEOUT_S))
+        except BaseException as exc:  # handed to the caller's thread
+            found.append(exc)
+
+    thread = threading.Thread(target=connect, name="dask-connect", daemon=True)
+    thread.start()
+    thread.join(DASK_CONNECT_TIMEOUT_S + 1.0)
+    if not found:
+        raise TimeoutError("connected, but no Dask handshake came back: not a Dask scheduler")
+    if isinstance(found[0], BaseException):
+        raise found[0]
+    return found[0]
+
+
 class DaskExecutor(_Workers):
     """Starts on a Dask cluster: ``address`` of its scheduler (``tcp://host:8786``) or a
     ``distributed.Client`` (left open on close when given)."""
@@ -393,8 +415,9 @@ class DaskExecutor(_Workers):
             self.client, self._own = address, False
         else:
             try:
-                self.client = distributed.Client(address, timeout=DASK_CONNECT_TIMEOUT_S)
-            except (OSError, TimeoutError, ValueError, TypeError) as exc:
+                self.client = _connect(distributed, address)
+            except (OSError, TimeoutError, ValueError, TypeError, MemoryError) as exc:
+                # (MemoryError: another service's bytes read as the length of Dask's handshake)
                 reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 raise DesignError(
                     f"--dask-scheduler {address}: no Dask scheduler answered within "

@@ -2,6 +2,7 @@
 
 import math
 import socket
+import time
 
 import pytest
 
@@ -160,6 +161,15 @@ def test_unreachable_dask_scheduler_is_one_line_within_seconds(monkeypatch):
         port = s.getsockname()[1]
     with pytest.raises(DesignError, match=rf"--dask-scheduler tcp://127.0.0.1:{port}: no Dask scheduler answered"):
         parallel.DaskExecutor(f"tcp://127.0.0.1:{port}")
+    with socket.socket() as silent:  # a port that takes the connection and never answers (no scheduler)
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        port = silent.getsockname()[1]
+        t0 = time.perf_counter()
+        with pytest.raises(DesignError, match=rf"--dask-scheduler tcp://127.0.0.1:{port}: no Dask scheduler answered "
+                                              r"within 0.5 s \(connected, but no Dask handshake came back"):
+            parallel.DaskExecutor(f"tcp://127.0.0.1:{port}")
+        assert time.perf_counter() - t0 < 3  # it waited for ever: Dask's timeout leaves the handshake out
 
 
 def test_plan_check_covers_the_flange_and_tool_frames():
