@@ -54,8 +54,8 @@ class Study:
     partial : the file each finished design is saved to at once (None: not kept).
     resume : continue from the designs saved in ``partial``'s folder by an interrupted run.
     target_m : a tolerance on the max error along the test poses, m: a campaign searches the
-        smallest m of ``m_values`` that reaches it (:mod:`casadi_design.execution.target`);
-        a sweep says which of its m does.
+        smallest m that reaches it from ``problem.m_min`` to the last of ``m_values``
+        (:mod:`casadi_design.execution.target`); a sweep says which of its m does.
     pool : the postures ``(Q, F)`` the plans are chosen from (``--candidates``;
         :func:`~casadi_design.execution.campaign.choose_campaign`), None: designed freely.
     """
@@ -188,7 +188,7 @@ def run_study(study: Study, *, progress: Callable[[int], object] | None = None,
             return choose_campaign(study.problem, study.criteria, study.m_values, study.settings, *study.pool,
                                    done=done, on_design=save, progress=checked)
         if study.searches:
-            return run_target(study.problem, study.criteria, min(study.m_values), max(study.m_values), study.settings,
+            return run_target(study.problem, study.criteria, study.problem.m_min, max(study.m_values), study.settings,
                               study.target_m, executor=ex, done=done, on_design=save, progress=checked)[0]
         return run_campaign(study.problem, study.criteria, study.m_values, study.settings, executor=ex,
                             done=done, on_design=save, progress=checked, on_better=on_better)

@@ -55,6 +55,9 @@ def test_solve_and_sweep_write_the_answer(tmp_path, capsys):
     assert bounds[5] > 0.05e-3 >= errors[6] >= bounds[6]  # m = 5 excluded by its bound, m = 6 reaches it
     assert all(e > 0.05e-3 for m, e in errors.items() if m < 6)  # every m designed on the way falls short
     assert target["answer"] in (tmp_path / "s" / "report.md").read_text()
+    # --m gives the last m to search; the search starts at the smallest identifiable m
+    assert main(["solve", str(PAPER), "--m", "7:8", "--target-mm", "0.05", *tiny]) == 0
+    assert "target 0.05 mm: m = 6" in capsys.readouterr().out
     assert main(["sweep", str(PAPER), "--m", "5:6", "--criteria", "test-pose", "--target-mm", "0.05",
                  "--out", str(tmp_path / "w"), *tiny]) == 0
     assert "target 0.05 mm: m = 6" in capsys.readouterr().out
