@@ -306,7 +306,6 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     to the largest of the file), where the starts run, where the designs are kept
     (``partial``) and whether to resume."""
     from ..execution.target import TARGET_CRITERION, default_limit
-    from ..identification.measurements import read_experiments
 
     target = getattr(args, "target_mm", None)
     criteria = tuple(args.criteria or ((TARGET_CRITERION,) if target and not sweep else problem.criteria))
@@ -315,10 +314,24 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     settings = Settings.of(problem, args.starts, bound_steps=args.bound_steps, bound_pool=args.bound_pool,
                            verbose=args.verbose)
     candidates = getattr(args, "candidates", None)
-    pool = None if candidates is None else read_experiments(problem, candidates, ignore_unknown=True)[:2]
+    pool = None if candidates is None else _kept_pool(args, problem, candidates)
     return Study(problem, criteria, tuple(args.m or default_m), settings, sweep,
                  not getattr(args, "no_warm_start", False), args.jobs, args.dask_scheduler, partial,
                  getattr(args, "resume", False), None if target is None else target * 1e-3, pool)
+
+
+def _kept_pool(args: argparse.Namespace, problem: Problem, path: str) -> tuple:
+    """The postures of ``--candidates`` that keep the problem's rules (a note says how many
+    others are left out, and why the first)."""
+    from ..identification.measurements import read_experiments
+    from ..optimisation.pool import kept_postures
+
+    Q, F, _ = read_experiments(problem, path, ignore_unknown=True)
+    kept, why = kept_postures(problem, Q, F)
+    if why:
+        say(args, f"note: --candidates {path}: {len(why)} of its {len(Q)} postures break the problem's rules and "
+                  f"are left out ({why[0]}{'; ...' if len(why) > 1 else ''})")
+    return Q[kept], F[kept]
 
 
 def say_approximate(args: argparse.Namespace, approx: dict) -> None:

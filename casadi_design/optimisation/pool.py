@@ -30,6 +30,7 @@ from ..measures.measures import Scores, information_matrices, score_plan
 from ..model.cell import clearances
 from ..model.build import Problem
 from ..plan.design import Design, StartRecord
+from ..plan.rules import plan_violations
 from .bound import bound, pool_design
 from .solve import start_rng
 
@@ -96,10 +97,21 @@ def _exchange(problem: Problem, criterion: str, S: list[int], B: np.ndarray) -> 
     return S, current, MAX_PASSES
 
 
+def kept_postures(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Which postures of a pool ``Q`` (k, n), rad, ``F`` (k, nF), N keep every rule of one
+    experiment (:func:`casadi_design.plan.rules.plan_violations`: limits less the margin,
+    workspace, cell and meshes, load), shape (k,) bool, and why each other one does not (its
+    first broken rule, "posture i: ..."): a plan chosen from the pool keeps them all."""
+    why = [plan_violations(problem, q[None], f[None]) for q, f in zip(Q, F)]
+    return (np.array([not w for w in why], dtype=bool).reshape(len(Q)),
+            [w[0].replace("experiment 1", f"posture {i + 1}", 1) for i, w in enumerate(why) if w])
+
+
 def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np.ndarray,
                   starts: int, with_bound: bool = True) -> Design:
     """The plan of m postures of the pool ``Q`` (k, n), rad, ``F`` (k, nF), N that is best by
-    ``criterion`` (module docstring), with the pool's bound when the criterion has one.
+    ``criterion`` (module docstring), with the pool's bound when the criterion has one. The
+    pool's postures keep the problem's rules (:func:`kept_postures`).
 
     Raises
     ------
@@ -109,8 +121,8 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
     t0 = time.perf_counter()
     k = len(Q)
     if m > k:
-        raise ProblemError(f"--candidates: the pool has {k} postures, fewer than m = {m}; give m <= {k} "
-                           "or more postures")
+        raise ProblemError(f"--candidates: the pool has {k} postures that keep the problem's rules, fewer than "
+                           f"m = {m}; give m <= {k} or more postures")
     B = problem.model.B_stack(Q, F)
     A = information_matrices(B)
     approx = pool_design(problem, criterion, Q, F, A, m) if with_bound and criterion in BOUND_CRITERIA else None

@@ -51,7 +51,7 @@ def test_with_measured_rows_the_choice_completes_them(paper):
     assert d.scores.max_rms_error_m == pytest.approx(best_subset(held, "test-pose", 2, Q, F), rel=1e-12)
     whole = plan_scores(paper, np.vstack([Qh, d.Q]), np.vstack([Fh, d.F])).max_rms_error_m
     assert d.scores.max_rms_error_m == pytest.approx(whole, rel=1e-10)
-    with pytest.raises(ProblemError, match="the pool has 8 postures, fewer than m = 9"):
+    with pytest.raises(ProblemError, match="the pool has 8 postures that keep the problem.s rules, fewer than m = 9"):
         choose_design(held, "test-pose", 9, Q, F, starts=1)
 
 
@@ -62,6 +62,17 @@ def test_solve_candidates_from_the_command_line(paper, tmp_path, capsys):
     assert main(["solve", str(PAPER), "--m", "2", "--criteria", "test-pose", "--candidates", str(pool),
                  "--starts", "2", "--jobs", "1", "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert "test-pose" in capsys.readouterr().out
+    # a posture that breaks a rule (a load past the rig's 100 N) is left out, and said
+    F_bad = F.copy()
+    F_bad[0] *= 1.5
+    heavy = tmp_path / "heavy.csv"
+    heavy.write_text(csv_text(*plan_table(paper, Q, F_bad)))
+    assert main(["solve", str(PAPER), "--m", "2", "--criteria", "test-pose", "--candidates", str(heavy),
+                 "--starts", "2", "--jobs", "1", "--bound-steps", "0", "--out", str(tmp_path / "heavy")]) == 0
+    assert (f"note: --candidates {heavy}: 1 of its 6 postures break the problem's rules and are left out (posture 1: "
+            "|F| = 150 N above 100 N)") in capsys.readouterr().out
+    chosen = json.loads((tmp_path / "heavy" / "results.json").read_text())["designs"][0]["experiments"]
+    assert all(abs(np.linalg.norm(e["force"]) - 100.0) < 1e-6 for e in chosen)
     assert main(["sweep", str(PAPER), "--m", "1:2", "--candidates", str(pool), "--quiet"]) == 2  # no worker started
     assert "unrecognized arguments: --candidates" in capsys.readouterr().err
     # a target is met by designing the plans: refused with the pool before anything starts
