@@ -200,9 +200,12 @@ def _keeping(partial: Path | None, finished: Callable[[], int], total: int) -> I
     end it with one line saying how many of ``total`` designs are kept there and how to
     continue; a design no start can make removes ``partial`` (and its folder when empty)."""
     def kept() -> str:
+        n = finished()
+        if not n:
+            return f"none of the {total} designs had finished; nothing is kept"
         where = (f"kept in {partial}; continue with the same command and --resume" if partial
                  else "not kept (no --out)")
-        return f"{finished()} of {total} designs {where}"
+        return f"{n} of {total} design{'s' if total > 1 else ''} {where}"
 
     try:
         yield

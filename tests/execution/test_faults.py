@@ -272,6 +272,10 @@ def test_ctrl_c_turned_into_a_casadi_error_still_keeps_the_designs(tmp_path):
         with pytest.raises(study.Interrupted, match=f"interrupted: 3 of 8 designs kept in {partial}"):
             with study._keeping(partial, lambda: 3, 8):
                 raise RuntimeError("Error in Function::factory for 'nlp' [CallbackInternal]: KeyboardInterrupt")
+        with pytest.raises(study.Interrupted, match=r"^interrupted: none of the 8 designs had finished; nothing is "
+                                                    r"kept$"):  # no --resume to suggest: nothing to resume
+            with study._keeping(partial, lambda: 0, 8):
+                raise KeyboardInterrupt
         interrupt._HIT.clear()
         with pytest.raises(RuntimeError, match="factory"):  # without Ctrl-C: a bug, reported as such
             with study._keeping(partial, lambda: 3, 8):
