@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
                         [bound(problem, m, approx[aim(problem, "D", m)]) for m in ms]))
     for a in approx.values():
         common.say(args, f"{a.criterion}: {len(a.weights)} support points, pool {a.pool_size}, "
-                         f"{len(a.history)} exchange steps, {len(a.checked)} independent checks, "
+                         f"{common.count(len(a.history), 'exchange step')}, {common.count(len(a.checked), 'independent check')}, "
                          f"{a.wall_s:.2f} s" + (" (read back from the cache: the time of the run that "
                                                 "computed it)" if a.kept else ""))
     return 0

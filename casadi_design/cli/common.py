@@ -227,6 +227,11 @@ def add_output(p: argparse.ArgumentParser, out_help: str) -> None:
 
 # --------------------------------------------------------------------------- the problem and its campaign
 
+def count(n: int, word: str, plural: str | None = None) -> str:
+    """``n`` and ``word`` for people: "1 design", "2 designs" (``plural``: an irregular one)."""
+    return f"{n} {word if n == 1 else plural or word + 's'}"
+
+
 def say(args: argparse.Namespace, *lines: str) -> None:
     if not args.quiet:
         print(*lines, sep="\n")
@@ -342,7 +347,7 @@ def say_approximate(args: argparse.Namespace, approx: dict) -> None:
         kept = [names[w] for w, a in approx.items() if a.kept]
         say(args, f"approximate designs of {', '.join(names.values())}: "
                   f"{', '.join(f'{a.wall_s:.1f}' for a in approx.values())} s "
-                  f"({', '.join(f'{len(a.history)} exchange steps' for a in approx.values())})"
+                  f"({', '.join(count(len(a.history), 'exchange step') for a in approx.values())})"
                   + (f"; {', '.join(kept)} read back from the cache (the times are of the run "
                      "that computed them)" if kept else ""))
 
@@ -376,7 +381,7 @@ def design(args: argparse.Namespace, label: str, partial: Path | None = None,
         panels = (None if request.searches else
                   fig_m(getattr(args, "fig_m", None), list(request.m_values), problem.m_values))
         if sweep:
-            say(args, f"sweep of {request.designs} designs ({len(request.criteria)} criteria x "
+            say(args, f"sweep of {count(request.designs, 'design')} ({count(len(request.criteria), 'criterion', 'criteria')} x "
                       f"{len(request.m_values)} values of m, {request.m_values[0]} to {request.m_values[-1]})")
         with progress_bar(request.starts, label, args.quiet) as bar:
             result = run_study(

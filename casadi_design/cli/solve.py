@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     if done.target is not None:
         print(done.target.line())
     common.say(args, "", format_solver_lines(designs),
-               f"total {wall:.2f} s for {len(designs)} designs {study.where} (after imports)")
+               f"total {wall:.2f} s for {common.count(len(designs), 'design')} {study.where} (after imports)")
     if out:
         with writing(study):
             files = write_solve(out, problem, done, fig_m)
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
             files += write_programs(out, problem, designs, args.program)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
-                         f"and {len(designs)} plans in {out / 'plans'}")
+                         f"and {common.count(len(designs), 'plan')} in {out / 'plans'}")
     return 0
 
 

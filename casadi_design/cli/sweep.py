@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         with writing(study):
             files = write_sweep(out, problem, sweep, fig_m, args.log, study.key, sweep.approx, target)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
-                         f"and {sum(f.startswith('plans/') for f in files)} plans in {out / 'plans'}")
+                         f"and {common.count(sum(f.startswith('plans/') for f in files), 'plan')} in {out / 'plans'}")
     return 0
 
 
