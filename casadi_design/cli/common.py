@@ -328,10 +328,17 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
 def _kept_pool(args: argparse.Namespace, problem: Problem, path: str) -> tuple:
     """The postures of ``--candidates`` that keep the problem's rules (a note says how many
     others are left out, and why the first)."""
+    import numpy as np
+
     from ..identification.measurements import read_experiments
     from ..optimisation.pool import kept_postures
 
     Q, F, _ = read_experiments(problem, path, ignore_unknown=True)
+    once = np.sort(np.unique(np.hstack([Q, F]), axis=0, return_index=True)[1])  # each posture at most once
+    if len(once) < len(Q):
+        say(args, f"note: --candidates {path}: {len(Q) - len(once)} repeated posture{'s' if len(Q) - len(once) > 1 else ''} "
+                  "taken once (a plan measures each posture at most once)")
+        Q, F = Q[once], F[once]
     kept, why = kept_postures(problem, Q, F)
     if why:
         say(args, f"note: --candidates {path}: {len(why)} of its {len(Q)} postures break the problem's rules and "
@@ -400,13 +407,14 @@ def design(args: argparse.Namespace, label: str, partial: Path | None = None,
 
 # --------------------------------------------------------------------------- figures
 
-def fig_m(requested: list[int] | None, available: list[int], preferred: tuple[int, ...]) -> list[int]:
-    """m values of the Fig. 1 panels: requested, else the problem's m that were solved, else
-    the first and last m (at most two panels by default)."""
+def fig_m(requested: list[int] | None, available: list[int], preferred: tuple[int, ...],
+          option: str = "--fig-m") -> list[int]:
+    """m values of the Fig. 1 panels: requested (by ``option``), else the problem's m that
+    were solved, else the first and last m (at most two panels by default)."""
     if requested:
         missing = [m for m in requested if m not in available]
         if missing:
-            raise OutputError(f"--fig-m {missing[0]} was not solved; choose among {available}")
+            raise OutputError(f"{option} {missing[0]} was not solved; choose among {available}")
         return requested
     chosen = [m for m in preferred if m in available][:2]
     return chosen or sorted({available[0], available[-1]})

@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     designs = [design_from_record(d) for d in record["designs"]]
     available = sorted({d.m for d in designs})
     figures = {"fig1": fig1(np.array([t["position_m"] for t in record["test_poses"]]), designs,
-                            common.fig_m(args.m, available, ()))}
+                            common.fig_m(args.m, available, (), "--m"))}
     if "sweep" in record:
         figures["sweep_max_error"] = sweep_figure(sweep_from_record(record), args.log)
     targets = [out / f"{stem}.{fmt}" for stem in figures for fmt in args.format]

@@ -147,13 +147,15 @@ def test_sweep_json_reads_back_to_the_same_table(swept):
     assert sweep_rows(sweep_from_record(record)) == record["sweep"]["rows"]
 
 
-def test_plot_redraws_the_sweep_figures_with_log_axes(swept, tmp_path):
+def test_plot_redraws_the_sweep_figures_with_log_axes(swept, tmp_path, capsys):
     out, _, _ = swept
     assert main(["plot", str(out / "sweep.json"), "--out", str(tmp_path), "--log", "--m", "2,5",
                  "--format", "png", "--quiet"]) == 0
     _png_is_a_real_image(tmp_path / "sweep_max_error.png")
     _png_is_a_real_image(tmp_path / "fig1.png")
     assert main(["plot", str(out), "--out", str(tmp_path), "--format", "png"]) == 2  # exists, no --force
+    assert main(["plot", str(out), "--out", str(tmp_path / "more"), "--m", "3"]) == 2  # named by its own option
+    assert "error: --m 3 was not solved; choose among [1, 2, 5]" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------- interrupt and resume

@@ -62,15 +62,17 @@ def test_solve_candidates_from_the_command_line(paper, tmp_path, capsys):
     assert main(["solve", str(PAPER), "--m", "2", "--criteria", "test-pose", "--candidates", str(pool),
                  "--starts", "2", "--jobs", "1", "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert "test-pose" in capsys.readouterr().out
-    # a posture that breaks a rule (a load past the rig's 100 N) is left out, and said
+    # a posture that breaks a rule (a load past the rig's 100 N) is left out, a repeated one taken once, and said
     F_bad = F.copy()
     F_bad[0] *= 1.5
     heavy = tmp_path / "heavy.csv"
-    heavy.write_text(csv_text(*plan_table(paper, Q, F_bad)))
+    heavy.write_text(csv_text(*plan_table(paper, np.vstack([Q, Q[2:3]]), np.vstack([F_bad, F[2:3]]))))
     assert main(["solve", str(PAPER), "--m", "2", "--criteria", "test-pose", "--candidates", str(heavy),
                  "--starts", "2", "--jobs", "1", "--bound-steps", "0", "--out", str(tmp_path / "heavy")]) == 0
+    said = capsys.readouterr().out
+    assert f"note: --candidates {heavy}: 1 repeated posture taken once (a plan measures each posture at most once)" in said
     assert (f"note: --candidates {heavy}: 1 of its 6 postures break the problem's rules and are left out (posture 1: "
-            "|F| = 150 N above 100 N)") in capsys.readouterr().out
+            "|F| = 150 N above 100 N)") in said
     chosen = json.loads((tmp_path / "heavy" / "results.json").read_text())["designs"][0]["experiments"]
     assert all(abs(np.linalg.norm(e["force"]) - 100.0) < 1e-6 for e in chosen)
     assert main(["sweep", str(PAPER), "--m", "1:2", "--candidates", str(pool), "--quiet"]) == 2  # no worker started
