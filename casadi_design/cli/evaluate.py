@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import OutputError
 from ..records.files import read_results, write_json
 from ..reports.tables import format_measures
@@ -61,6 +63,15 @@ def run(args: argparse.Namespace) -> int:
         if record.get("problem") != problem.name:
             raise OutputError(f"{record['_path']}: results of problem '{record.get('problem')}', "
                               f"not '{problem.name}'; compare with results of the same problem")
+        differs = [what for what, same in (
+            ("sigma_m", np.isclose(record.get("sigma_m", np.nan), problem.sigma_m, rtol=1e-12, atol=0)),
+            ("the parameters", record.get("calibration", {}).get("parameters") == list(problem.model.parameter_names)),
+            ("the test poses", np.allclose([t["position_m"] for t in record.get("test_poses", [])],
+                                           problem.test_poses.position_m, rtol=0, atol=1e-9)
+             if len(record.get("test_poses", [])) == problem.test_poses.s else False)) if not same]
+        if differs:  # a copy of the file edited under the same name: its errors are another problem's
+            raise OutputError(f"{record['_path']}: results of '{problem.name}' with other {' and '.join(differs)} than "
+                              f"{problem.path}; compare with results of this problem file")
         others = [design_from_record(d) for d in record["designs"] if d["m"] == m]
         if not others:
             raise OutputError(f"{record['_path']}: no design with m = {m} experiments (the plan's "
@@ -118,8 +129,6 @@ def checked_moves(problem, Q, home) -> list[dict]:
     program's; printed, and returned for evaluation.json (m, SI)."""
     if home is None:
         return []
-    import numpy as np
-
     from ..program.moves import check_move
 
     names = ["home", *(f"experiment {k}" for k in range(1, len(Q) + 1)), "home"]

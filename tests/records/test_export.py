@@ -126,6 +126,13 @@ def test_evaluate_compares_with_the_optimal_plans_of_the_same_m(paper_solve_out,
 
     img = matplotlib.image.imread(tmp_path / "ev" / "evaluation.png")
     assert img.shape[0] > 300 and img[..., :3].std() > 0.05
+    # a copy of the problem file edited under the same name (sigma doubled) is another problem
+    edited = tmp_path / "paper_noisy.toml"
+    edited.write_text(PAPER.read_text().replace("sigma_m = 1.0e-4", "sigma_m = 2.0e-4"))
+    assert edited.read_text() != PAPER.read_text()
+    assert main(["evaluate", str(edited), "--plan", str(plan), "--compare", str(solved)]) == 2
+    assert f"results of 'paper_planar_2r' with other sigma_m than {edited}; compare with results of this problem " \
+           "file" in capsys.readouterr().err
 
 
 def test_evaluate_reports_broken_constraints(paper, tmp_path, capsys):
