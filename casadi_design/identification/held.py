@@ -5,7 +5,6 @@ measurement CSV, ``--measured``) and an earlier identification (``identification
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -14,7 +13,7 @@ import numpy as np
 from ..errors import ProblemError
 from ..model.build import Problem
 from ..model.problem import HeldSpec
-from .measurements import read_experiments
+from .measurements import file_sha256, read_experiments
 
 
 def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray, tuple[tuple[str, str | None], ...]]:
@@ -59,9 +58,9 @@ def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray
 def _same_file(path: str, source: tuple[str, str | None]) -> bool:
     """Whether the file ``path`` is the ``source`` an identification was made from: the same
     bytes (its SHA-256), or the same path where the identification names none."""
+    if source[1] is not None:
+        return file_sha256(path) == source[1]
     try:
-        if source[1] is not None:
-            return hashlib.sha256(Path(path).read_bytes()).hexdigest() == source[1]
         return Path(path).resolve() == Path(source[0]).resolve()
     except OSError:
         return False

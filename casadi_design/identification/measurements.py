@@ -17,7 +17,9 @@ joint readings up to ``limit_tolerance`` past a joint limit are accepted with a 
 
 from __future__ import annotations
 
+import hashlib
 import math
+from pathlib import Path
 from dataclasses import dataclass
 
 import numpy as np
@@ -154,6 +156,16 @@ class Measurements:
 
     def row(self, i: int) -> str:
         return f"{self.paths[self.rounds[i]] if self.paths else self.path}: row {self.lines[i]}"
+
+
+def file_sha256(path: str) -> str | None:
+    """The SHA-256 of a measurement file's bytes (None when it cannot be read): what names it
+    wherever it is copied (``identification.json``'s sources; a later ``--measured`` of the
+    same rows, :mod:`.held`)."""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
 
 
 def rounds_of(files: list[Measurements], same_frame: bool = False) -> Measurements:

@@ -3,15 +3,14 @@ units, field names with their unit), ``compensated_test_poses.csv`` and ``identi
 
 from __future__ import annotations
 
-import hashlib
 import math
-from pathlib import Path
 
 import numpy as np
 
 from ..records.export import csv_text, is_prismatic, joint_scales, joint_units, plan_table
 from .calibrate import CORRELATION_LIMIT, Calibration
 from .fit import ABSORB_SEED, FRAME_PARAMETERS, error_placement
+from .measurements import file_sha256
 
 #: Step (m, rad) of the finite differences of the tracker frame's entries in its parameters.
 FRAME_STEP = 1e-7
@@ -76,15 +75,6 @@ def compensated_csv(calibration: Calibration) -> str:
     return csv_text(*compensated_table(calibration))
 
 
-def _sha256(path: str) -> str | None:
-    """The SHA-256 of a measurement file's bytes (None when it cannot be read): what names it
-    wherever it is copied (a later ``--measured`` of the same rows, :mod:`.held`)."""
-    try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    except OSError:
-        return None
-
-
 def identification_record(calibration: Calibration, files: dict) -> dict:
     """``identification.json`` (module docstring)."""
     c, f = calibration, calibration.fit
@@ -93,7 +83,7 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
     return {
         "problem": problem.path,
         "measurements": meas.path,
-        "measurements_sha256": [_sha256(path) for path in meas.paths or (meas.path,)],
+        "measurements_sha256": [file_sha256(path) for path in meas.paths or (meas.path,)],
         "frame": f.fit.frame,
         "absorb_seed": ABSORB_SEED,
         "sigma_m": problem.sigma_m,
