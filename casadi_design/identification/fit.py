@@ -420,12 +420,13 @@ def locate_points(fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float]:
     R, p = ref[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), ref[:, 9:]
     seen, P = meas.seen, meas.P_m
     rounds = [meas.frame_of == k for k in range(meas.frames)]  # one tracker frame per round
+    seen_in = [seen & r[:, None] for r in rounds]  # each round's seen points
     markers = np.asarray(model.markers_m, float)
     d = np.zeros_like(markers)
 
     def frames(d: np.ndarray) -> tuple[np.ndarray, list | None]:
         points = p[:, None, :] + np.einsum("tij,kj->tki", R, markers + d)
-        found = [rigid_fit(points[seen & r[:, None]], P[seen & r[:, None]], (0, 1, 2)) for r in rounds]
+        found = [rigid_fit(points[s], P[s], (0, 1, 2)) for s in seen_in]
         return points, None if any(f is None for f in found) else found
 
     for _ in range(LOCATE_ITERATIONS):
@@ -443,7 +444,7 @@ def locate_points(fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float]:
     points, found = frames(d)
     if found is None:
         return d, math.nan
-    off = np.concatenate([P[seen & r[:, None]] - (points[seen & r[:, None]] @ Rt.T + t) for r, (Rt, t) in zip(rounds, found)])
+    off = np.concatenate([P[s] - (points[s] @ Rt.T + t) for s, (Rt, t) in zip(seen_in, found)])
     return d, float(np.sqrt(np.mean(np.sum(off**2, axis=-1))))
 
 
