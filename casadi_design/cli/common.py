@@ -326,23 +326,19 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
 
 
 def _kept_pool(args: argparse.Namespace, problem: Problem, path: str) -> tuple:
-    """The postures of ``--candidates`` that keep the problem's rules (a note says how many
-    others are left out, and why the first)."""
-    import numpy as np
-
+    """The postures of ``--candidates`` a plan may use (:func:`casadi_design.optimisation.pool.kept_postures`),
+    with notes on the repeats taken once and the postures left out (why the first)."""
     from ..identification.measurements import read_experiments
     from ..optimisation.pool import kept_postures
 
     Q, F, _ = read_experiments(problem, path, ignore_unknown=True)
-    once = np.sort(np.unique(np.hstack([Q, F]), axis=0, return_index=True)[1])  # each posture at most once
-    if len(once) < len(Q):
-        say(args, f"note: --candidates {path}: {len(Q) - len(once)} repeated posture{'s' if len(Q) - len(once) > 1 else ''} "
-                  "taken once (a plan measures each posture at most once)")
-        Q, F = Q[once], F[once]
-    kept, why = kept_postures(problem, Q, F)
+    kept, repeats, why = kept_postures(problem, Q, F)
+    if repeats:
+        say(args, f"note: --candidates {path}: {count(repeats, 'repeated posture')} taken once (a plan measures "
+                  "each posture at most once)")
     if why:
-        say(args, f"note: --candidates {path}: {len(why)} of its {len(Q)} postures break the problem's rules and "
-                  f"are left out ({why[0]}{'; ...' if len(why) > 1 else ''})")
+        say(args, f"note: --candidates {path}: {len(why)} of its {len(Q) - repeats} postures break the problem's rules "
+                  f"and are left out ({why[0]}{'; ...' if len(why) > 1 else ''})")
     return Q[kept], F[kept]
 
 

@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     past = int(np.sum((Q < robot.q_min) | (Q > robot.q_max)))  # within the reading's tolerance
     if past:  # a controller refuses a target past a limit, however little
         Q = np.clip(Q, robot.q_min, robot.q_max)
-        common.say(args, f"note: {past} joint value{'s' if past > 1 else ''} of the plan past {'their' if past > 1 else 'its'} "
+        common.say(args, f"note: {common.count(past, 'joint value')} of the plan past {'their' if past > 1 else 'its'} "
                          "limit (within the reading's tolerance) programmed at the limit")
     check_format(problem, args.format)
     home = home_pose(problem, args.home)

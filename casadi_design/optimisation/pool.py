@@ -97,13 +97,17 @@ def _exchange(problem: Problem, criterion: str, S: list[int], B: np.ndarray) -> 
     return S, current, MAX_PASSES
 
 
-def kept_postures(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """Which postures of a pool ``Q`` (k, n), rad, ``F`` (k, nF), N keep every rule of one
-    experiment (:func:`casadi_design.plan.rules.plan_violations`: limits less the margin,
-    workspace, cell and meshes, load), shape (k,) bool, and why each other one does not (its
-    first broken rule, "posture i: ..."): a plan chosen from the pool keeps them all."""
-    why = [plan_violations(problem, q[None], f[None]) for q, f in zip(Q, F)]
-    return (np.array([not w for w in why], dtype=bool).reshape(len(Q)),
+def kept_postures(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, int, list[str]]:
+    """Which postures of a pool ``Q`` (k, n), rad, ``F`` (k, nF), N a plan may use, shape (k,)
+    bool: each posture once (the first of its repeats: a plan measures it at most once) and
+    only those that keep every rule of one experiment
+    (:func:`casadi_design.plan.rules.plan_violations`: limits less the margin, workspace, cell
+    and meshes, load). Also the number of repeats left out, and why each posture that breaks
+    a rule does (its first broken rule, "posture i: ...")."""
+    first = np.zeros(len(Q), dtype=bool)
+    first[np.unique(np.hstack([Q, F]), axis=0, return_index=True)[1]] = True
+    why = [plan_violations(problem, q[None], f[None]) if once else [] for q, f, once in zip(Q, F, first)]
+    return (first & np.array([not w for w in why], dtype=bool).reshape(len(Q)), int(np.sum(~first)),
             [w[0].replace("experiment 1", f"posture {i + 1}", 1) for i, w in enumerate(why) if w])
 
 
