@@ -1,35 +1,43 @@
 """The whole identification of measured data: fit, outliers, statistics, validation, compensation.
 
-Statistics of a fit with N measured values and L parameters (whitened residuals ``r``, noise
-``sigma`` per value, ``J = dh/dX`` at the estimate):
+Statistics of a fit with N measured values and L parameters (whitened residuals ``r``, the
+tracker's noise ``sigma`` per value, ``J = dh/dX`` at the estimate):
 
-* ``cov(X) = sigma^2 (J^T J)^-1`` (the problem's sigma), standard deviations its diagonal's
-  roots, correlations ``C_ab / (std_a std_b)`` (pairs beyond ``CORRELATION_LIMIT`` reported);
-* ``sigma_hat = sqrt(|r|^2 / (N - L))``, and ``|r|^2 / sigma^2 ~ chi2(N - L)``: the noise is
-  consistent with sigma when it lies within the central ``CONFIDENCE`` interval;
-* outliers: a row whose largest ``|r| / sigma`` exceeds ``threshold`` (default 4) is excluded,
-  the worst first, and the rest refitted, one at a time;
+* ``sigma_hat = sqrt(|r|^2 / (N - L))``, and ``|r|^2 / sigma^2 ~ chi2(N - L)``: the residuals
+  are the tracker's noise when it lies within the central ``CONFIDENCE`` interval; above it
+  the robot's unmodelled error ``tau`` is estimated from the cross-validated residuals, and
+  the fit's error per value is ``s^2 = sigma^2 + tau^2`` (:mod:`.residuals`; ``s = sigma``
+  when the residuals are the noise). The problem's sigma stays the designs' and the tracker's
+  share;
+* ``cov(X) = s^2 (J^T J)^-1``, standard deviations its diagonal's roots, correlations
+  ``C_ab / (std_a std_b)`` (pairs beyond ``CORRELATION_LIMIT`` reported);
+* outliers (:func:`fit_without_outliers`): a row whose externally studentized residual
+  exceeds ``threshold`` (default 4) times the error of the other rows (at least sigma) is
+  excluded, the worst first, and the rest refitted; at most ``MAX_OUTLIER_SHARE`` of the rows;
 * predicted accuracy at the test poses of the plan that was measured:
-  ``sqrt(rho_j) = sqrt(sigma^2 trace(B0_j M^-1 B0_j^T))`` with ``M`` and ``B0`` at X = 0 (the
-  design's measure, :func:`design_information`), the error of the compensated robot
-  in the frame of the measurements (where the workpiece is registered: the frame's
-  uncertainty included, as the design's base errors are);
+  ``sqrt(rho_j) = sqrt(s^2 trace(B0_j M^-1 B0_j^T) + d tau^2)`` with ``M`` and ``B0`` at X = 0
+  (the design's measure with ``s`` for ``sigma``, :func:`design_information`, plus the
+  unmodelled error at the pose, which compensation cannot remove), the error of the
+  compensated robot in the frame of the measurements (where the workpiece is registered: the
+  frame's uncertainty included, as the design's base errors are);
 * validation rows (not in the fit), judged as the robot is used: every model with the tracker
   frame fitted on the training rows: the nominal robot (the closed-form frame), registration
   only (frame and measured point fitted), the calibrated robot; and, for the shape error alone,
-  nominal and calibrated each re-registered on the validation rows themselves. The error per
-  pose is the RMS over its points of ``|P - T p(X)|`` (mm for people), predicted
-  ``sqrt((sigma^2 trace(B_v M^-1 B_v^T) + d_v sigma^2) / k)`` (model error and the validation
-  measurement's own noise, d_v values of k points); a measured error beyond
-  ``PREDICTION_RATIO`` times the prediction is what the model does not hold (compliance,
-  backlash, the tracker), and is reported. A validation pose with a joint outside the range of
-  the training rows is out of range (extrapolation), marked and summarised apart.
+  each re-registered on the validation rows themselves. Rows in another tracker frame (the
+  tracker moved: ``MOVED_RATIO``) are judged re-registered only. The error per pose is the RMS
+  over its points of ``|P - T p(X)|`` (mm for people), predicted ``sqrt((s^2 trace(B_v M^-1
+  B_v^T) + d_v s^2) / k)`` (the parameters' error and the pose's own unmodelled error and
+  noise, d_v values of k points); a measured error beyond ``PREDICTION_RATIO`` times the
+  prediction, or a calibrated robot worse than the nominal one or registration only, is
+  reported. A validation pose with a joint outside the range of the training rows is out of
+  range (extrapolation), marked and summarised apart.
 * the model (:mod:`.choice`): registration only, + joint offsets, + the most significant of
   the problem's parameters, or all of them, + the joints' compliance under the robot's own
   weight, or a MAP fit under ``[calibration.prior]``, given or chosen by cross-validation on the
   training rows less the outliers of the richest model (the problem's own, with the
   compliances under its weight for a robot with masses: a smaller model would take what it
-  misses for bad shots); the chosen model is fitted on those rows.
+  misses for bad shots); the chosen model is fitted on those rows. A gravity model whose
+  compliances come out negative beyond ``NEGATIVE_STD`` is not chosen.
 """
 
 from __future__ import annotations
@@ -43,16 +51,20 @@ import numpy as np
 from ..model.build import Problem
 from ..errors import DesignError, ProblemError
 from ..measures.measures import information_matrix, rho_at_test_poses
-from .choice import MODELS, Candidate, candidates, choose, has_weight
+from .choice import MODELS, NEGATIVE_STD, Candidate, candidates, choose, has_weight, negative_compliances
 from .compensate import compensate
 from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, frames_projected, in_tracker, model_points, point_errors, pose_rms,
                   REGISTRATION_TOL_M, register, row_errors)
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
+from .residuals import ErrorScale, deleted_scores, error_scale, leverages
 
-#: Residual of a row, in sigma, above which it is an outlier (default of ``--outlier-sigma``).
+#: A row whose externally studentized residual exceeds this many times the other rows' error
+#: (at least sigma) is an outlier (default of ``--outlier-sigma``; :func:`row_scores`).
 OUTLIER_SIGMA = 4.0
+#: At most this share of the rows (at least one) is excluded as outliers: bad shots are rare.
+MAX_OUTLIER_SHARE = 0.05
 #: Parameter pairs correlated beyond this are reported.
 CORRELATION_LIMIT = 0.9
 #: A validation pose is a test pose when their joints agree within this (rad or m).
@@ -61,28 +73,42 @@ SAME_POSE_RAD = 1e-6
 CONFIDENCE = 0.95
 #: A validation RMS beyond this times its prediction is reported as what the model misses.
 PREDICTION_RATIO = 1.5
+#: Validation rows on which the nominal robot, in the training rows' tracker frame, is beyond
+#: this times its error on the training rows and on the rows re-registered are in another
+#: tracker frame (the tracker moved between the series).
+MOVED_RATIO = 3.0
 #: A calibrated robot whose validation RMS is beyond this times the nominal robot's (or
 #: registration only's) is reported as not to be used (a few percent: the rows' spread).
 WORSE_RATIO = 1.05
-#: A compliance below minus this many standard deviations is reported as negative (a stiff
-#: joint's estimate falls below 0 half the time within its noise).
-NEGATIVE_STD = 2.0
 
 
 @dataclass(frozen=True, eq=False)
 class PoseErrors:
     """Errors per validation pose (m): RMS over each pose's points of ``|measured - model|``
-    (module docstring), the predicted RMS of the calibrated model's error (with the noise), and
-    which poses lie outside the training rows' joint ranges."""
+    (module docstring), the predicted RMS of the calibrated model's error (with the noise and
+    the unmodelled error), which poses lie outside the training rows' joint ranges, and
+    whether the rows are in another tracker frame than the training rows (``moved``: the
+    nominal robot beyond ``MOVED_RATIO`` times its error on the training rows and on the
+    validation rows re-registered)."""
 
     lines: tuple[int, ...]
     nominal_m: np.ndarray
     registration_m: np.ndarray
     calibrated_m: np.ndarray
     nominal_reregistered_m: np.ndarray
+    registration_reregistered_m: np.ndarray
     calibrated_reregistered_m: np.ndarray
     predicted_m: np.ndarray
     out_of_range: np.ndarray
+    moved: bool = False
+
+    @property
+    def counted(self) -> tuple[str, str, str]:
+        """The errors that count, nominal, registration only and calibrated: in the training
+        frame, or re-registered when the rows are in another tracker frame (``moved``)."""
+        if self.moved:
+            return "nominal_reregistered", "registration_reregistered", "calibrated_reregistered"
+        return "nominal", "registration", "calibrated"
 
     def rms(self, name: str, where: np.ndarray | None = None) -> float:
         e = getattr(self, f"{name}_m")
@@ -97,27 +123,32 @@ class Calibration:
     Attributes
     ----------
     fit : the final fit (outliers excluded).
-    outliers : tuple of (line, largest |r| / sigma of the row when it was excluded).
-    std : ndarray, shape (L,): standard deviations with the problem's sigma.
+    outliers : tuple of (line, the row's score when it was excluded, the residual scale (m) it
+        was judged against): :func:`row_scores`.
+    std : ndarray, shape (L,): standard deviations with the fit's error per value ``s``
+        (``scale``: the tracker's sigma and the robot's unmodelled error, :mod:`.residuals`).
     correlation : ndarray, shape (L, L).
     sigma_hat_m, chi2, dof, chi2_interval : the noise estimated from the residuals and its test.
     residual_rms_m, residual_max_m : ndarray, shape (m,): per row, over its points (NaN: excluded
         rows get the calibrated model's error too, as the other rows).
     residual_axes_m : ndarray, shape (m, k, 3): per row, point and axis (NaN where not measured).
-    predicted_rms_m : ndarray, shape (s,): ``sqrt(rho_j)`` at the test poses.
+    predicted_rms_m : ndarray, shape (s,): ``sqrt(rho_j)`` at the test poses,
+        ``sqrt(s^2 trace(B0_j M^-1 B0_j^T) + d tau^2)``; ``predicted_parameters_m`` its first
+        term alone (the parameters' error).
     q_compensated : ndarray, shape (s, n): commands that put the calibrated robot's measured
         frame on the nominal targets of the test poses (machining wrench included).
     validation : :class:`PoseErrors` of the validation rows, or None.
     model : the model identified (:data:`~.choice.MODELS`), ``candidates`` every candidate with
         its cross-validated error; ``loss`` the loss of the fit.
     notes : what a person should read (measured points located, a refit refused, a model
-        worse than registration only, a validation beyond its prediction).
+        worse than registration only, a validation beyond its prediction, a tracker that moved).
+    scale : the :class:`~.residuals.ErrorScale` of the fit.
     """
 
     problem: Problem
     measurements: Measurements
     fit: Fit
-    outliers: tuple[tuple[int, float], ...]
+    outliers: tuple[tuple[int, float, float], ...]
     std: np.ndarray
     correlation: np.ndarray
     sigma_hat_m: float
@@ -138,6 +169,8 @@ class Calibration:
     loss: str = "linear"
     notes: tuple[str, ...] = ()
     model_request: str = "auto"
+    scale: ErrorScale | None = None
+    predicted_parameters_m: np.ndarray | None = None
 
     @property
     def model_chosen(self) -> bool:
@@ -155,8 +188,9 @@ class Calibration:
 
     @property
     def test_pose_errors_m(self) -> np.ndarray | None:
-        """The calibrated model's validation error at each test pose that is also a validation
-        pose (joints within ``SAME_POSE_RAD``), NaN at the others; None when there are none."""
+        """The calibrated model's validation error (as counted: re-registered when the tracker
+        moved) at each test pose that is also a validation pose (joints within
+        ``SAME_POSE_RAD``), NaN at the others; None when there are none."""
         if self.validation is None:
             return None
         q0, qv = self.problem.test_poses.q, self.validation_Q
@@ -165,7 +199,7 @@ class Calibration:
             return None
         e = np.full(len(q0), np.nan)
         j, i = np.nonzero(same)
-        e[j] = self.validation.calibrated_m[i]
+        e[j] = getattr(self.validation, f"{self.validation.counted[2]}_m")[i]
         return e
 
     def correlated_pairs(self) -> list[tuple[str, str, float]]:
@@ -177,35 +211,56 @@ class Calibration:
         return out
 
 
-def row_sigmas(f: Fit, sigma: float) -> np.ndarray:
-    """Largest ``|r| / sigma`` of each row, shape (m,)."""
-    return np.max(np.abs(f.r), axis=1) / sigma
+def row_scores(f: Fit, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's outlier score (m,) and the scale (m,), m, it is judged against: its
+    externally studentized residual among the fit's rows used (:func:`~.residuals.deleted_scores`);
+    rows not used score -inf."""
+    used = f.used
+    L = f.fit.model.L + (0 if f.frames is None else f.frames.size)
+    score, s = np.full(len(used), -np.inf), np.full(len(used), np.nan)
+    score[used], s[used] = deleted_scores(f.r[used], f.mask[used], leverages(f.J[used], f.information), sigma,
+                                          int(f.mask[used].sum()) - L)
+    return score, s
 
 
 def fit_without_outliers(problem: Problem, fm: FitModel, meas: Measurements, T0: np.ndarray,
                          threshold: float, loss: str = "linear",
-                         ) -> tuple[Fit, list[tuple[int, float]], list[str]]:
-    """Fit, then exclude the worst row while its ``|r| / sigma`` exceeds ``threshold`` and the
-    remaining rows still identify the parameters; refit after each exclusion. A refit that
-    fails (the rest do not identify X, or it does not converge) keeps the last good fit, and
-    the returned notes say so."""
+                         ) -> tuple[Fit, list[tuple[int, float, float]], list[str]]:
+    """Fit, then exclude the rows whose score (:func:`row_scores`) exceeds ``threshold`` and
+    half the worst row's, the worst first, and refit, while rows exceed the threshold; at most
+    ``MAX_OUTLIER_SHARE`` of the rows (at least one) are excluded. A bad shot stands out
+    against the residual scale; what many rows share is the model's error, not bad shots (a
+    note says so when the cap stops the exclusion). A refit that fails (the rest do not
+    identify X, or it does not converge) keeps the last good fit, and the notes say so.
+
+    Returns the fit, the outliers (line, score, scale m) and the notes."""
     used = np.ones(meas.m, dtype=bool)
     f = fit(problem, fm, meas, T0, used, loss)
-    outliers: list[tuple[int, float]] = []
+    cap = max(1, math.floor(MAX_OUTLIER_SHARE * meas.m))
+    outliers: list[tuple[int, float, float]] = []
     while True:
-        score = np.where(used, row_sigmas(f, problem.sigma_m), -np.inf)
-        worst = int(np.argmax(score))
-        if not score[worst] > threshold:
+        score, scale = row_scores(f, problem.sigma_m)
+        beyond = np.flatnonzero(score > threshold)
+        if not beyond.size:
             return f, outliers, []
+        room = cap - len(outliers)
+        if room <= 0:
+            return f, outliers, [
+                f"{beyond.size} more row{'s' * (beyond.size > 1)} lie beyond {threshold:g} x the other rows' "
+                f"error (about {np.nanmedian(scale) * 1e3:.4g} mm per value); at most {MAX_OUTLIER_SHARE:.0%} of the rows are excluded as bad "
+                "shots: so many far out is the robot's error the model misses, not bad shots (their "
+                "residuals: identification.png)"]
+        worst = beyond[np.argsort(-score[beyond], kind="stable")]
+        batch = worst[score[worst] > score[worst[0]] / 2][:room]
         trial = used.copy()
-        trial[worst] = False
+        trial[batch] = False
         try:
             refit = fit(problem, fm, meas, T0, trial, loss)
-        except (ProblemError, DesignError) as e:  # keep the row and the last good fit
+        except (ProblemError, DesignError) as e:  # keep the rows and the last good fit
             why = str(e).split(": ", 1)[-1]
-            return f, outliers, [f"row {meas.lines[worst]} ({score[worst]:.1f} sigma) kept: the fit "
-                                 f"without it failed ({why}); the fit with it is reported"]
-        outliers.append((meas.lines[worst], float(score[worst])))
+            return f, outliers, [f"row {meas.lines[batch[0]]} ({score[batch[0]]:.1f} x the other rows' error) kept: "
+                                 f"the fit without it failed ({why}); the fit with it is reported"]
+        outliers += [(meas.lines[i], float(score[i]), float(scale[i])) for i in batch]
         used, f = trial, refit
 
 
@@ -222,12 +277,12 @@ def design_information(f: Fit, meas: Measurements) -> np.ndarray:
 
 
 def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
-                  registered: Fit | None, training: Measurements) -> PoseErrors:
+                  registered: Fit | None, training: Measurements, s_m: float) -> PoseErrors:
     """Errors at the validation rows of the nominal, registration-only (``registered``; None:
-    the nominal's) and calibrated models in the training frame, of the nominal and calibrated
-    models re-registered on the rows, and the predicted RMS (module docstring)."""
+    the nominal's) and calibrated models in the training frame and each re-registered on the
+    rows, and the predicted RMS with ``s_m`` the error per value (module docstring)."""
     fm, axes = f.fit, measured_axes(problem)
-    model, sigma = fm.model, problem.sigma_m
+    model = fm.model
     seen = valid.seen
 
     def reregistered(points: np.ndarray) -> np.ndarray:
@@ -237,20 +292,26 @@ def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
 
     nominal = model_points(model, valid.Q, valid.F, np.zeros(model.L))
     calibrated = model_points(model, valid.Q, valid.F, f.robot_X)
+    placed = nominal if registered is None else model_points(registered.fit.model, valid.Q, valid.F, registered.robot_X)
     e_nominal = pose_rms(point_errors(problem, valid.P_m, in_tracker(f.T0, nominal)))
     Bv = model.B_stack(valid.Q, valid.F) * model.column_scale  # for the physical X of the fit
     per = len(axes)
     mask = np.repeat(seen, per, axis=1)
     Bv = Bv * mask[:, :, None]
     k = seen.sum(axis=1)
-    model_var = rho_at_test_poses(M, Bv, sigma)  # sigma^2 trace(B_v M^-1 B_v^T)
-    predicted = np.sqrt((model_var + mask.sum(axis=1) * sigma**2) / k)
+    model_var = rho_at_test_poses(M, Bv, s_m)  # s^2 trace(B_v M^-1 B_v^T)
+    predicted = np.sqrt((model_var + mask.sum(axis=1) * s_m**2) / k)
     Qt = training.Q[f.used]
     outside = np.any((valid.Q < Qt.min(axis=0) - SAME_POSE_RAD) | (valid.Q > Qt.max(axis=0) + SAME_POSE_RAD), axis=1)
+    nominal_training = pose_rms(point_errors(problem, training.P_m, in_tracker(
+        f.T0s[training.frame_of], model_points(model, training.Q, training.F, np.zeros(model.L)))))[f.used]
+    e_nominal_re = reregistered(nominal)
+    moved = bool(fm.frame == "tracker" and np.sqrt(np.mean(e_nominal**2)) > MOVED_RATIO * max(
+        float(np.sqrt(np.mean(nominal_training**2))), float(np.sqrt(np.mean(e_nominal_re**2)))))
     return PoseErrors(valid.lines, e_nominal,
                       e_nominal if registered is None else row_errors(problem, registered, valid),
-                      row_errors(problem, f, valid), reregistered(nominal), reregistered(calibrated),
-                      predicted, outside)
+                      row_errors(problem, f, valid), e_nominal_re, reregistered(placed), reregistered(calibrated),
+                      predicted, outside, moved)
 
 
 def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
@@ -305,17 +366,19 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
                      "deflections); here the tracker frame is fitted from the same rows, which costs accuracy: "
                      "measure the poses unloaded too, or give points registered in the base frame with --frame base")
     sigma, L = problem.sigma_m, fm.model.L
-    Minv = np.linalg.inv(f.information)
-    C = sigma**2 * Minv
-    std = np.sqrt(np.diagonal(C))
-    correlation = C / np.outer(std, std)
     N = int(f.mask[f.used].sum())
     dof = N - L - (0 if f.frames is None else f.frames.size)  # the later rounds' frames too
     ssr = float(np.sum(f.r[f.used] ** 2))
     interval = ((float(chi2.ppf((1 - CONFIDENCE) / 2, dof)), float(chi2.ppf((1 + CONFIDENCE) / 2, dof)))
                 if dof > 0 else (0.0, float("inf")))
-    negative = [(n, x, s) for n, x, s in zip(fm.model.parameter_names, f.X, std)
-                if n.startswith("k.") and x < -NEGATIVE_STD * s]
+    sigma_hat = float(np.sqrt(ssr / dof)) if dof > 0 else float("nan")
+    scale = error_scale(f.r[f.used], leverages(f.J[f.used], f.information), sigma, sigma_hat,
+                        ssr / sigma**2 > interval[1])
+    s_m = scale.s_m
+    C = s_m**2 * np.linalg.inv(f.information)
+    std = np.sqrt(np.diagonal(C))
+    correlation = C / np.outer(std, std)
+    negative = negative_compliances(f, std)
     if negative:  # a joint that yields against its load: what the model misses
         notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std: "
                      f"{', '.join(f'{n} = {x:.3g} (std {s:.2g})' for n, x, s in negative)}; no joint yields against "
@@ -336,7 +399,8 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     tp = problem.test_poses
     B0 = fm.model.B_stack(tp.q, tp.F, accuracy=True) * fm.model.column_scale  # physical X, as M
     M0 = design_information(f, meas)
-    predicted = np.sqrt(rho_at_test_poses(M0, B0, sigma))
+    parameters_var = rho_at_test_poses(M0, B0, s_m)  # s^2 trace(B0 M^-1 B0^T)
+    predicted = np.sqrt(parameters_var + B0.shape[1] * scale.tau_m**2)  # + the pose's own unmodelled error
     target = nominal_poses(fm.model, tp.q, tp.F)
     qc, done, _ = compensate(fm.model, tp.q, tp.F, target, np.tile(f.robot_X, (tp.s, 1)), sigma)
     valid = None
@@ -344,27 +408,43 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
         base = found[0]
         registered = None if math.isnan(base.training_rms_m) else (
             f if base is chosen else fit(problem, base.fit_model, meas, T0, f.used, loss))
-        valid = validate_rows(problem, f, validation, M0, registered, meas)
+        valid = validate_rows(problem, f, validation, M0, registered, meas, s_m)
         if valid.rms("nominal_reregistered") > REGISTRATION_TOL_M:  # the rows of another robot, or units
             raise ProblemError(
                 f"--validation {validation.path}: after the best rigid fit the nominal robot is "
                 f"{valid.rms('nominal_reregistered') * 1e3:.1f} mm RMS off its points, more than "
                 f"{REGISTRATION_TOL_M * 1e3:g} mm: not this robot's rows, or not in the measurements' units (--units, "
                 "--joint-units and --columns read every file alike)")
-        if valid.rms("calibrated") > PREDICTION_RATIO * valid.rms("predicted"):
-            notes.append(f"the validation RMS {valid.rms('calibrated') * 1e3:.3f} mm is "
-                         f"{valid.rms('calibrated') / valid.rms('predicted'):.1f}x its prediction "
-                         f"{valid.rms('predicted') * 1e3:.3f} mm: the model misses what the robot "
-                         "does (compliance, backlash, the tracker), or sigma is too small")
-        name, before = min((("the nominal robot", valid.rms("nominal")),
-                            ("registration only", valid.rms("registration"))), key=lambda b: b[1])
-        if valid.rms("calibrated") > WORSE_RATIO * before:
-            notes.append(f"the calibrated robot is farther from the validation rows than {name} "
-                         f"({valid.rms('calibrated') * 1e3:.3f} against {before * 1e3:.3f} mm RMS): do not use its "
-                         "files; measure more rows, or choose a model that holds what the robot does")
+        notes += validation_notes(valid)
     return Calibration(
-        problem, meas, f, tuple(outliers), std, correlation,
-        float(np.sqrt(ssr / dof)) if dof > 0 else float("nan"), ssr / sigma**2, dof, interval,
+        problem, meas, f, tuple(outliers), std, correlation, sigma_hat, ssr / sigma**2, dof, interval,
         pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done, valid,
         None if validation is None else validation.path, None if validation is None else validation.Q,
-        chosen.name, tuple(found), loss, tuple(notes), model)
+        chosen.name, tuple(found), loss, tuple(notes), model, scale, np.sqrt(parameters_var))
+
+
+def validation_notes(valid: PoseErrors) -> list[str]:
+    """What a person should read about the validation rows: a tracker frame that moved, a
+    measured error beyond ``PREDICTION_RATIO`` times its prediction, a calibrated robot worse
+    than the nominal one or registration only; judged in the frame that counts
+    (:attr:`PoseErrors.counted`)."""
+    nominal, registration, calibrated = valid.counted
+    notes = []
+    if valid.moved:
+        notes.append(
+            f"the validation rows are in another tracker frame than the training rows (the tracker moved): "
+            f"in the training rows' frame the nominal robot is {valid.rms('nominal') * 1e3:.1f} mm RMS off them, "
+            f"after its own rigid fit {valid.rms('nominal_reregistered') * 1e3:.3f} mm; the re-registered "
+            "figures count (each model fitted rigidly to the validation rows)")
+    measured, predicted = valid.rms(calibrated), valid.rms("predicted")
+    if measured > PREDICTION_RATIO * predicted:
+        notes.append(f"the validation RMS {measured * 1e3:.3f} mm{' (re-registered)' * valid.moved} is "
+                     f"{measured / predicted:.1f}x its prediction {predicted * 1e3:.3f} mm: the robot's error "
+                     "differs from the training rows' (other poses, another day or temperature, the tracker)")
+    name, before = min((("the nominal robot", valid.rms(nominal)), ("registration only", valid.rms(registration))),
+                       key=lambda b: b[1])
+    if measured > WORSE_RATIO * before:
+        notes.append(f"the calibrated robot is farther from the validation rows than {name}"
+                     f"{' (re-registered)' * valid.moved} ({measured * 1e3:.3f} against {before * 1e3:.3f} mm RMS): "
+                     "do not use its files; measure more rows, or choose a model that holds what the robot does")
+    return notes

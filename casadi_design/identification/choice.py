@@ -46,11 +46,12 @@ from ..model.symbolic import carried_weights
 from ..errors import DesignError, ProblemError
 from .fit import Fit, FitModel, fit, fit_model, row_errors, whitening
 from .measurements import Measurements, measured_axes
+from .residuals import leverages, press
 
 MODELS = ("auto", "registration", "offsets", "identifiable", "prior")
-#: A row whose leave-one-out matrix ``I - J_i H^-1 J_i^T`` has a smallest singular value below
-#: this is needed to identify the model (its left-out error is not defined).
-LEVERAGE_RTOL = 1e-8
+#: A compliance below minus this many standard deviations is negative (a stiff joint's estimate
+#: falls below 0 half the time within its noise): a gravity candidate with one is not chosen.
+NEGATIVE_STD = 2.0
 #: A model predicts worse than registration only when its cross-validated error is larger by
 #: more than this fraction.
 TIE_RTOL = 1e-3
@@ -59,7 +60,8 @@ TIE_RTOL = 1e-3
 @dataclass(frozen=True, eq=False)
 class Candidate:
     """One candidate model: its fit model, the RMS of its fit to all training rows (m) and
-    its cross-validated error (m; NaN when it could not be cross-validated, ``why``)."""
+    its cross-validated error (m; NaN when it could not be cross-validated, ``why``); a
+    candidate ``auto`` may not choose says why in ``refused`` (:func:`negative_compliances`)."""
 
     name: str
     fit_model: FitModel
@@ -68,6 +70,7 @@ class Candidate:
     cv_se_m: float = math.nan
     why: str = ""
     dof: float = math.nan
+    refused: str = ""
 
     @property
     def L(self) -> int:
@@ -83,7 +86,8 @@ class Candidate:
                 "training_rms_m": self.training_rms_m,
                 "cross_validated_rms_m": None if math.isnan(self.cv_rms_m) else self.cv_rms_m,
                 "cross_validated_se_m": None if math.isnan(self.cv_se_m) else self.cv_se_m,
-                "not_cross_validated_because": self.why or None}
+                "not_cross_validated_because": self.why or None,
+                "not_chosen_because": self.refused or None}
 
 
 def candidate_parameters(problem: Problem, name: str) -> tuple[str, ...]:
@@ -111,19 +115,32 @@ def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float,
     """The leave-one-out RMS error (m) of the fit ``f`` over its rows of ``meas`` and its
     standard error (module docstring), or NaN and why not."""
     used = np.flatnonzero(f.used)
-    J, r = f.J[used], f.r[used]
-    d = J.shape[1]
-    Hinv = np.linalg.inv(f.information)  # with a MAP fit's prior: the PRESS of ridge regression
-    A = np.eye(d) - np.einsum("kai,ij,kbj->kab", J, Hinv, J)
-    smallest = np.linalg.svd(A, compute_uv=False)[:, -1]
-    if np.any(smallest < LEVERAGE_RTOL):
-        i = int(np.argmin(smallest))
-        return math.nan, math.nan, f"row {meas.lines[used[i]]} is needed to identify it"
-    left_out = np.linalg.solve(A, r[:, :, None])[:, :, 0] @ np.linalg.inv(whitening(problem)).T
+    # with a MAP fit's prior in H: the PRESS of ridge regression
+    e, _, needed = press(f.r[used], leverages(f.J[used], f.information))
+    if e is None:
+        return math.nan, math.nan, f"row {meas.lines[used[needed]]} is needed to identify it"
+    left_out = e @ np.linalg.inv(whitening(problem)).T
     points = f.mask[used].sum(axis=1) / len(measured_axes(problem))
     e = np.sqrt(np.sum(left_out**2, axis=1) / points)
     cv = float(np.sqrt(np.mean(e**2)))
     return cv, float(np.std(e**2) / (2 * cv * math.sqrt(len(e)))) if cv > 0 else 0.0, ""
+
+
+def residual_std(problem: Problem, f: Fit) -> np.ndarray:
+    """Standard deviations (L,) of the fit's parameters with the larger of the problem's sigma
+    and the residuals' own ``sqrt(|r|^2 / (N - L))``: what the parameters' noise is when the
+    rows hold more than the tracker's noise."""
+    N, L = int(f.mask[f.used].sum()), f.fit.model.L
+    s = problem.sigma_m if N <= L else max(problem.sigma_m, float(np.sqrt(np.sum(f.r[f.used] ** 2) / (N - L))))
+    return s * np.sqrt(np.diagonal(np.linalg.inv(f.information)))
+
+
+def negative_compliances(f: Fit, std: np.ndarray) -> list[tuple[str, float, float]]:
+    """(name, value, std) of the fit's compliances below ``-NEGATIVE_STD`` standard deviations:
+    a joint that yields against its load, which no joint does (the compliances took up what
+    the model misses)."""
+    return [(n, float(x), float(s)) for n, x, s in zip(f.fit.model.parameter_names, f.X, std)
+            if n.startswith("k.") and x < -NEGATIVE_STD * s]
 
 
 def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
@@ -144,8 +161,11 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
         cv, se, why = cross_validate(problem, f, meas)
         dof = math.nan if f.prior_information is None else float(np.trace(
             np.linalg.solve(f.information, f.information - np.diag(f.prior_information))))
+        negative = negative_compliances(f, residual_std(problem, f)) if gravity else []
+        refused = (f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in negative)}): "
+                   "no joint yields against its weight" if negative else "")
         return Candidate(name, fm, float(np.sqrt(np.mean(row_errors(problem, f, meas, rows) ** 2))),
-                         cv, se, why, dof), f
+                         cv, se, why, dof, refused), f
 
     offsets = candidate_parameters(problem, "offsets")
     found = [candidate("registration", candidate_parameters(problem, "registration"))[0]]
@@ -203,6 +223,7 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
         return own, [f"no model could be cross-validated ({'; '.join(f'{c.name}: {c.why}' for c in found)}): "
                      "the problem's own parameters are fitted; measure more rows to choose"]
     if model == "auto":
+        valid = [c for c in valid if not c.refused] or valid[:1]
         best = min(valid, key=lambda c: c.cv_rms_m)
         chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.size)
     else:

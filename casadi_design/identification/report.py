@@ -109,9 +109,14 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
         "noise": {"sigma_m": problem.sigma_m, "sigma_estimated_m": c.sigma_hat_m, "chi2": c.chi2,
                   "dof": c.dof, "chi2_interval": list(c.chi2_interval), "confidence": 0.95,
                   "consistent": c.noise_consistent},
+        "error_per_value": {**c.scale.as_dict(),
+                            "meaning": "the fit's errors per measured value: the tracker's sigma (the problem's, "
+                                       "kept for designs) and the robot's unmodelled error (cross-validated, 0 when "
+                                       "the residuals are the tracker's noise); std, covariance and predictions use "
+                                       "their sum, outliers are judged against the robust outlier scale"},
         "correlation_limit": CORRELATION_LIMIT,
         "correlated_pairs": [{"a": a, "b": b, "correlation": r} for a, b, r in c.correlated_pairs()],
-        "outliers": [{"row": line, "residual_sigma": s} for line, s in c.outliers],
+        "outliers": [{"row": line, "residual_in_scales": r, "scale_m": scale} for line, r, scale in c.outliers],
         "experiments": [{"row": line, "used": bool(u), "residual_rms_m": float(r), "residual_max_m": float(x),
                          "residual_xyz_m": np.where(np.isfinite(a), a, None).tolist()}
                         for line, u, r, x, a in zip(meas.lines, f.used, c.residual_rms_m, c.residual_max_m,
@@ -119,12 +124,20 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
         "residual_rms_m": float(np.sqrt(np.mean(c.residual_rms_m[f.used] ** 2))),
         "test_poses": {"predicted_rms_m": c.predicted_rms_m.tolist(),
                        "max_predicted_rms_m": float(np.max(c.predicted_rms_m)),
+                       "predicted_parameters_rms_m": c.predicted_parameters_m.tolist(),
+                       "predicted_unmodelled_rms_m": float(np.sqrt(np.max(
+                           c.predicted_rms_m**2 - c.predicted_parameters_m**2, initial=0.0))),
+                       "predicted_is": "sqrt(s^2 trace(B0 M^-1 B0^T) + d tau^2): the parameters' error "
+                                       "(tracker and unmodelled error through the fit) and the pose's own "
+                                       "unmodelled error, which compensation cannot remove",
                        "q_compensated": c.q_compensated.tolist(),
                        "compensation_converged": c.compensation_converged.tolist()},
         "validation": None if valid is None else {
             "file": c.validation_path, "rows": list(valid.lines),
             "frame": "nominal, registration and calibrated: the tracker frame fitted on the training rows; "
                      "*_reregistered: each model's own best rigid fit to the validation rows",
+            "tracker_moved": valid.moved,
+            "counted": list(valid.counted),
             **{f"{k}_m": getattr(valid, f"{k}_m").tolist() for k in VALIDATION_ERRORS},
             "out_of_range": valid.out_of_range.tolist(),
             **{f"{k}_rms_m": valid.rms(k) for k in VALIDATION_ERRORS},
@@ -136,10 +149,13 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
 
 #: The validation errors of :class:`~.calibrate.PoseErrors`, in the order of the tables.
 VALIDATION_ERRORS = ("nominal", "registration", "calibrated", "nominal_reregistered",
-                     "calibrated_reregistered", "predicted")
+                     "registration_reregistered", "calibrated_reregistered", "predicted")
 VALIDATION_LABELS = {"nominal": "nominal", "registration": "registration only",
                      "calibrated": "calibrated", "nominal_reregistered": "nominal, re-registered",
+                     "registration_reregistered": "registration only, re-registered",
                      "calibrated_reregistered": "calibrated, re-registered", "predicted": "predicted"}
+#: The validation errors in the training rows' tracker frame: not counted when the tracker moved.
+TRAINING_FRAME = ("nominal", "registration", "calibrated")
 
 
 def none_if_nan(v: float) -> float | None:
@@ -177,26 +193,37 @@ def summary_lines(calibration: Calibration) -> list[str]:
         (v, unit), (sd, _) = _value_for_people(x, parameter_unit(c, n)), _value_for_people(s, parameter_unit(c, n))
         lines.append(f"{label(n):28s} {v:12.5g} {sd:10.3g}  {unit}")
     lines += [f"absorbed {n}: {why}" for n, why in f.fit.absorbed if not n.startswith("base.")]
+    scale = c.scale
     lines.append(f"residual RMS {np.sqrt(np.mean(c.residual_rms_m[used] ** 2)) * 1e3:.4f} mm, max "
                  f"{np.max(c.residual_max_m[used]) * 1e3:.4f} mm; noise sigma estimated "
                  f"{c.sigma_hat_m * 1e3:.4f} mm vs {c.problem.sigma_m * 1e3:g} mm of the problem (chi2 "
                  f"{c.chi2:.1f}, {c.dof} dof, 95 % interval {c.chi2_interval[0]:.1f}..{c.chi2_interval[1]:.1f}: "
-                 f"{'consistent' if c.noise_consistent else 'NOT consistent: check sigma or the model'})")
+                 + ("consistent)" if c.noise_consistent or not scale.tau_m else "more than the tracker's noise)"))
+    if scale.tau_m:
+        lines.append(f"error per measured value {scale.s_m * 1e3:.4f} mm: the tracker's sigma {scale.sigma_m * 1e3:.4g} mm "
+                     f"({scale.tracker_share:.1%} of the variance) and the robot's unmodelled error "
+                     f"{scale.tau_m * 1e3:.4f} mm (cross-validated); the std, the predictions and the outlier test "
+                     "hold it, the designs keep sigma")
     lines += [f"correlated beyond {CORRELATION_LIMIT}: {label(a)} / {label(b)} ({r:+.3f})"
               for a, b, r in c.correlated_pairs()]
-    lines += [f"outlier excluded: row {line} ({s:.1f} sigma)" for line, s in c.outliers]
+    lines += [f"outlier excluded: row {line} ({r:.1f} x the other rows' error {s * 1e3:.4g} mm per value)" for line, r, s in c.outliers]
     lines.append(f"predicted accuracy at the {len(c.predicted_rms_m)} test poses: max sqrt(rho) "
-                 f"{np.max(c.predicted_rms_m) * 1e3:.4f} mm")
+                 f"{np.max(c.predicted_rms_m) * 1e3:.4f} mm"
+                 + (f" (the parameters' error alone {np.max(c.predicted_parameters_m) * 1e3:.4f} mm; the rest the "
+                    "robot's unmodelled error at the pose)" if scale.tau_m else ""))
     if c.validation is None:
         lines.append("warning: no validation set (--validation): the accuracy of the calibrated model "
                      "is predicted, not checked on poses outside the fit")
     else:
         v = c.validation
         out = int(v.out_of_range.sum())
-        lines.append(f"validation, {len(v.lines)} rows ({out} out of the training range), RMS (max) mm:")
+        lines.append(f"validation, {len(v.lines)} rows ({out} out of the training range), RMS (max) mm"
+                     + (" (the tracker moved: re-registered only)" if v.moved else "") + ":")
         for k in VALIDATION_ERRORS:
+            if v.moved and k in TRAINING_FRAME:
+                continue
             rest = f", out of range {v.rms(k, v.out_of_range) * 1e3:.4f}" if out else ""
-            lines.append(f"  {VALIDATION_LABELS[k]:26s} {v.rms(k) * 1e3:8.4f} ({np.max(getattr(v, f'{k}_m')) * 1e3:.4f}){rest}")
+            lines.append(f"  {VALIDATION_LABELS[k]:34s} {v.rms(k) * 1e3:8.4f} ({np.max(getattr(v, f'{k}_m')) * 1e3:.4f}){rest}")
     if not c.compensation_converged.all():
         lines.append(f"warning: {int((~c.compensation_converged).sum())} test poses could not be "
                      "compensated (the calibrated robot cannot reach their targets)")

@@ -372,8 +372,8 @@ def identification_figure(calibration) -> Figure:
     """The identification of measured data (a :class:`casadi_design.identification.calibrate.
     Calibration`), mm: (a) residuals per experiment and axis (RMS over its points, one marker
     per axis; outliers marked), (b) the validation errors of each model sorted (the curve of
-    their distribution: registration only, nominal and calibrated in the training frame, the
-    prediction; poses outside the training range marked), (c) at the test poses the predicted
+    their distribution: registration only, nominal and calibrated in the training frame, or
+    each re-registered when the tracker moved, the prediction; poses outside the training range marked), (c) at the test poses the predicted
     ``sqrt(rho)``, and the measured error where a validation pose is a test pose."""
     c = calibration
     fig = Figure(figsize=(16, 4.5), layout="constrained")
@@ -402,9 +402,10 @@ def identification_figure(calibration) -> Figure:
     else:
         n = len(v.lines)
         share = np.arange(1, n + 1) / n * 100
-        for label, style, e in (("registration only", REGISTRATION_STYLE, v.registration_m),
-                                ("nominal", NOMINAL_STYLE, v.nominal_m),
-                                ("calibrated", CALIBRATED_STYLE, v.calibrated_m),
+        nominal, registration, calibrated = (getattr(v, f"{k}_m") for k in v.counted)
+        for label, style, e in (("registration only", REGISTRATION_STYLE, registration),
+                                ("nominal", NOMINAL_STYLE, nominal),
+                                ("calibrated", CALIBRATED_STYLE, calibrated),
                                 ("predicted", PREDICTED_STYLE, v.predicted_m)):
             order = np.argsort(e)
             ax_v.plot(share, e[order] * 1e3, "-", label=f"{label}: RMS {np.sqrt(np.mean(e**2)) * 1e3:.3f} mm",
@@ -417,7 +418,8 @@ def identification_figure(calibration) -> Figure:
         ax_v.set_ylabel("error, RMS over the points (mm)")
         ax_v.grid(alpha=0.3)
         ax_v.legend(fontsize=8, loc="upper left")
-        ax_v.set_title(f"(b) the {n} validation poses, errors sorted (training frame)")
+        ax_v.set_title(f"(b) the {n} validation poses, errors sorted "
+                       f"({'each model re-registered: the tracker moved' if v.moved else 'training frame'})")
     bars = [("predicted sqrt(rho)", PREDICTED_STYLE, c.predicted_rms_m * 1e3)]
     measured = c.test_pose_errors_m
     if measured is not None:

@@ -140,8 +140,10 @@ def test_outlier_found_and_excluded(ur10, tmp_path):
     P[6, 0, 1] += 0.5e-3  # a bad shot: 20 sigma
     (tmp_path / "meas.csv").write_text(measurement_csv(ur10, Q, F, P))
     cal = calibrate(ur10, read_measurements(ur10, str(tmp_path / "meas.csv")))
-    assert [line for line, _ in cal.outliers] == [8]  # header is line 1: row 6 is line 8
-    assert cal.outliers[0][1] > 4 and not cal.fit.used[6] and cal.noise_consistent
+    assert [line for line, _, _ in cal.outliers] == [8]  # header is line 1: row 6 is line 8
+    # judged against the other rows' error, which is the tracker's noise here
+    assert cal.outliers[0][1] > 4 and cal.outliers[0][2] == ur10.sigma_m
+    assert not cal.fit.used[6] and cal.noise_consistent and cal.scale.tau_m == 0
 
 
 def compliances_within_sigmas(cal, problem, true):
@@ -168,8 +170,10 @@ def test_paper_elastostatic_compliances_within_3_sigma(tmp_path):
 
 def test_compliances_that_absorb_geometric_errors_are_flagged(tmp_path):
     """The paper's arm with geometric errors the elasto-static model does not hold, five rows:
-    a compliance comes out negative beyond 3 std and the calibrated robot misses the
-    validation rows by more than the nominal one; both are said, with what to do."""
+    the residuals are 7x the tracker's noise, so the compliances' std holds the unmodelled
+    error (joint 2 comes out negative, within its noise, the truth within 1 std), and the
+    calibrated robot misses the validation rows by more than registration only; said, with
+    what to do."""
     problem = load_without_cell(str(PAPER))
     true = perturbed(problem, np.random.default_rng(4), k=np.array([4e-5, 7e-5]))
     write_measurements(tmp_path / "meas.csv", problem, true, 5, 14)
@@ -177,13 +181,13 @@ def test_compliances_that_absorb_geometric_errors_are_flagged(tmp_path):
     cal = calibrate(problem, read_measurements(problem, str(tmp_path / "meas.csv")), model="identifiable",
                     validation=read_measurements(problem, str(tmp_path / "valid.csv")))
     i = cal.fit.fit.model.parameter_names.index("k.joint2")
-    assert cal.fit.X[i] < -3 * cal.std[i]
-    assert any(re.fullmatch(r"negative compliance beyond 2 std: k.joint2 = -\S+ \(std \S+\); no joint yields against "
-                            r"its load: the model misses what moves the robot \(geometric errors, the load point\)",
-                            n) for n in cal.notes), cal.notes
-    worse = f"({cal.validation.rms('calibrated') * 1e3:.3f} against {cal.validation.rms('nominal') * 1e3:.3f} mm RMS)"
-    assert cal.validation.rms("calibrated") > 1.05 * cal.validation.rms("nominal")
-    assert f"the calibrated robot is farther from the validation rows than the nominal robot {worse}: do not use " \
+    assert cal.scale.tau_m > 5 * problem.sigma_m and not cal.noise_consistent
+    assert -2 * cal.std[i] < cal.fit.X[i] < 0 and abs(cal.fit.X[i] - true.k[1]) < cal.std[i]
+    assert not any("negative compliance" in n for n in cal.notes)
+    v = cal.validation
+    worse = f"({v.rms('calibrated') * 1e3:.3f} against {v.rms('registration') * 1e3:.3f} mm RMS)"
+    assert v.rms("calibrated") > 1.05 * v.rms("registration")
+    assert f"the calibrated robot is farther from the validation rows than registration only {worse}: do not use " \
            "its files" in " ".join(cal.notes)
 
 
