@@ -12,13 +12,17 @@ Real files (:class:`FileFormat`): joint columns by their bare names (``torso_lif
 ``joint_units``; coordinate columns without a unit (``meas1_x``) in ``units``; a column map from
 the file's names to these; FIGAROH's layout (``x1, y1, z1, ..., x4, y4, z4`` in m, bare joint
 names in rad and m) recognised by its header. Columns of neither kind are ignored with a note;
-joint readings up to ``limit_tolerance`` past a joint limit are accepted with a note.
+joint readings up to ``limit_tolerance`` past a joint limit are accepted with a note. A file
+separated by ``;`` is read with ``,`` as the decimal point, with a note. Without the measured
+coordinates, the message names the file's columns that look like them (``x``, ``X``,
+``measurement_x``, ``x1``...) and the ``--columns`` that reads them.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
+import re
 from pathlib import Path
 from dataclasses import dataclass
 
@@ -45,6 +49,10 @@ ORIENTATIONS = {"quaternion": ("meas_qw", "meas_qx", "meas_qy", "meas_qz"),
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
 #: A quaternion whose norm is further from 1 is not a rotation (a wrong column).
 QUATERNION_NORM_TOL = 1e-3
+#: A column name that plausibly holds a measured coordinate (lower case): the axis, maybe after a
+#: word such as ``measurement_`` and before a marker number (``x``, ``measurement_x``, ``x1``).
+COORDINATE_GUESS = re.compile(r"(?:(?:meas|measured|measurement|tracker|pos|position)[ _-]?)?"
+                              r"(?P<axis>[xyz])[ _-]?(?P<marker>\d*)")
 #: Units of coordinates (SI per unit) and of bare joint columns.
 COORDINATE_UNITS = {"mm": 1e-3, "m": 1.0}
 REVOLUTE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
@@ -194,9 +202,15 @@ def measurement_columns(problem: Problem) -> list[list[str]]:
     return [[f"meas{c + 1}_{a}" for a in axes] for c in range(len(problem.model.markers_m))]
 
 
+def _has_measured(header: list[str]) -> bool:
+    """Whether ``header`` has a column of ours for a measured point (``meas_x_mm``, ``meas1_x``,
+    ``meas_qw``...; not a file's own ``measurement_x``)."""
+    return any(re.match(r"meas\d*_", h) for h in header)
+
+
 def _figaroh(header: list[str]) -> bool:
     """FIGAROH's layout: x1, y1, z1 (then x2 ...) and no column of ours for the coordinates."""
-    return {"x1", "y1", "z1"} <= set(header) and not any(h.startswith("meas") for h in header)
+    return {"x1", "y1", "z1"} <= set(header) and not _has_measured(header)
 
 
 def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str,
@@ -248,6 +262,47 @@ def _reading(problem: Problem, header: list[str], fmt: FileFormat, path: str,
         elif name != h:
             rename[h] = name
     return rename, scales, notes
+
+
+def _guessed_columns(header: list[str], taken: set[str], points: list[list[str]]) -> dict[str, str]:
+    """The file's columns (not in ``taken``) that plausibly hold our coordinate columns ``points``
+    (:data:`COORDINATE_GUESS`), ours -> theirs; empty unless each has exactly one candidate:
+    for one point a column without a marker number (else with number 1), for several the
+    point's number."""
+    found = {}
+    for c, point in enumerate(points):
+        for ours in point:
+            axis = ours.rpartition("_")[2]
+            candidates = {}
+            for h in header:
+                guess = COORDINATE_GUESS.fullmatch(h.lower())
+                if h not in taken and guess and guess["axis"] == axis:
+                    candidates.setdefault(guess["marker"], []).append(h)
+            numbers = ("", "1") if len(points) == 1 else (str(c + 1),)
+            given = next((candidates[k] for k in numbers if k in candidates), [])
+            if len(given) != 1:
+                return {}
+            found[ours] = given[0]
+    return found
+
+
+def _missing_message(path: str, header: list[str], fmt: FileFormat, rename: dict[str, str],
+                     known: set[str], points: list[list[str]], missing: str) -> str:
+    """The one-line message on a missing coordinate column ``missing``: the ``--columns`` that
+    reads the file's columns that look like the coordinates, when it has them."""
+    names = ", ".join(f"{c}_mm" for point in points for c in point)
+    kept = [(t, o) for t, o in fmt.columns if t in header]  # the user's map of the file's columns
+    taken = {h for h in header if rename.get(h, h) in known} | {t for t, _ in kept}
+    guessed = _guessed_columns(header, taken, [[c for c in point if c not in {o for _, o in kept}]
+                                               for point in points])
+    if not guessed:
+        return (f"{path}: missing column '{missing}'; append the measured coordinates in mm: {names} "
+                "(or name the file's columns with --columns)")
+    pairs = [f"{t}={o}" for t, o in kept] + [f"{t}={o}" for o, t in guessed.items()]
+    units = f"--units {fmt.units}" if fmt.units else "--units mm (or --units m)"
+    return (f"{path}: missing column '{missing}'; its columns {', '.join(guessed.values())} look like the "
+            f"measured coordinates: read them with --columns {','.join(pairs)} {units}, or rename them "
+            f"{', '.join(f'{o}_mm' for o in guessed)} (_m for metres)")
 
 
 def _orientation(problem: Problem, header: list[str], fmt: FileFormat, path: str) -> str | None:
@@ -313,13 +368,13 @@ def read_measurements(problem: Problem, path: PlanFile | str, fmt: FileFormat = 
         n + ("_rad" if convention == "rpy" else "") for n in ORIENTATIONS[convention])
     hint = ", ".join(names) + " (measured coordinates, mm; _m for metres)"
     rename, scales, notes = _reading(problem, header, fmt, path, columns)
+    notes = [*plan.notes, *notes]
     Q, F, values, lines = read_plan_table(problem, plan, names + angles, hint, rename, ignore_unknown=True)
     spelled = {ours: theirs for theirs, ours in rename.items()}
+    known = set(names) | set(angles) | _plan_columns(problem)
     missing = [c for c in names if c not in values]
     if missing:
-        raise ProblemError(f"{path}: missing column '{missing[0]}'; append the measured coordinates "
-                           f"in mm: {', '.join(names)} (or name the file's columns with --columns)")
-    known = set(names) | set(angles) | _plan_columns(problem)
+        raise ProblemError(_missing_message(path, header, fmt, rename, known, columns, missing[0]))
     ignored = [h for h in header if rename.get(h, h) not in known]
     if ignored:
         notes.append(f"ignored column{'s' if len(ignored) > 1 else ''} {', '.join(ignored)} "
@@ -381,7 +436,7 @@ def read_experiments(problem: Problem, path: PlanFile | str, *, limits: bool = T
     plan = path if isinstance(path, PlanFile) else read_plan_file(path)
     header, joints = plan.header, problem.robot.joints
     bare = any(j in header for j in joints)
-    if bare and (_figaroh(header) or any(h.startswith("meas") for h in header)):
+    if bare and (_figaroh(header) or _has_measured(header)):
         meas = read_measurements(problem, plan)
         return meas.Q, meas.F, plan
     rename = {j: f"{j}_{joint_units(problem, k)[0]}" for k, j in enumerate(joints) if bare}

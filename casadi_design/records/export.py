@@ -13,6 +13,8 @@ deflection is not included: it is what the experiment measures.
 (1-based) or by their joint names, each with a unit suffix ``_deg`` / ``_rad`` (``_mm`` /
 ``_m`` for prismatic joints); force columns as above (optional for fixed loads); the columns
 ``experiment``, ``x_mm``, ``y_mm``, ``z_mm`` are ignored. Lines starting with ``#`` are comments.
+A file whose header is separated by ``;`` (Excel in a comma-decimal locale) is read with ``;``
+between cells and ``,`` as the decimal point.
 """
 
 from __future__ import annotations
@@ -179,9 +181,9 @@ def _plan_text(path: str) -> str:
                            f"{exc.start}); save it as 'CSV UTF-8 (comma delimited)'") from None
 
 
-def _csv_cells(line: str) -> list[str]:
-    """The cells of one CSV line, blanks around them stripped."""
-    return [c.strip() for c in next(csv.reader([line]))]
+def _csv_cells(line: str, separator: str = ",") -> list[str]:
+    """The cells of one CSV line separated by ``separator``, blanks around them stripped."""
+    return [c.strip() for c in next(csv.reader([line], delimiter=separator))]
 
 
 def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.ndarray]:
@@ -193,18 +195,33 @@ def read_plan_csv(problem: Problem, path: Path | str) -> tuple[np.ndarray, np.nd
 
 @dataclass(frozen=True)
 class PlanFile:
-    """A plan or measurement CSV read once (:func:`read_plan_file`): its path and the (line
-    number, text) of its header and rows, empty lines and ``#`` comments dropped. Every reader
-    of its columns takes it, so a file is read and checked once however many parts of it are
-    asked for."""
+    """A plan or measurement CSV read once (:func:`read_plan_file`): its path, the (line
+    number, text) of its header and rows, empty lines and ``#`` comments dropped, and the
+    ``separator`` of its cells: ``,`` (numbers with a ``.`` decimal point) or ``;`` (a ``,``
+    decimal point). Every reader of its columns takes it, so a file is read and checked once
+    however many parts of it are asked for."""
 
     path: str
     lines: tuple[tuple[int, str], ...]
+    separator: str = ","
+
+    @property
+    def decimal(self) -> str:
+        """The decimal point of its numbers: ``,`` in a ``;``-separated file, else ``.``."""
+        return "," if self.separator == ";" else "."
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """How the file was read, for people: its separators when they are not ``,``."""
+        if self.separator == ",":
+            return ()
+        return ("read with ';' between columns and ',' as the decimal point (a CSV of Excel in a "
+                "comma-decimal locale)",)
 
     @property
     def header(self) -> list[str]:
         """The column names as the file spells them (trailing empty names dropped)."""
-        header = _csv_cells(self.lines[0][1])
+        header = _csv_cells(self.lines[0][1], self.separator)
         while header and not header[-1]:
             header.pop()
         return header
@@ -218,24 +235,30 @@ class PlanFile:
             return np.zeros(len(body), dtype=bool)
         c = header.index(MEASURED_COLUMN)
         return np.array([len(cells) > c and cells[c].lower() in ("yes", "true", "1")
-                         for cells in (_csv_cells(ln) for _, ln in body)], dtype=bool)
+                         for cells in (_csv_cells(ln, self.separator) for _, ln in body)], dtype=bool)
 
 
 def read_plan_file(path: Path | str) -> PlanFile:
     """The :class:`PlanFile` of ``path``: UTF-8 text checked as :func:`read_plan_table` says,
-    with at least a header.
+    with at least a header; its separator is ``;`` when its header has one, else ``,``.
 
     Raises
     ------
     ProblemError
-        A file that cannot be read as a plan's text, or an empty one.
+        A file that cannot be read as a plan's text, an empty one, or a header with both ``;``
+        and ``,`` between its names.
     """
     path = str(path)
     lines = tuple((i, ln) for i, ln in enumerate(_plan_text(path).splitlines(), start=1)
-                  if ln.strip(" \t,") and not ln.lstrip().startswith("#"))
+                  if ln.strip(" \t,;") and not ln.lstrip().startswith("#"))
     if not lines:
         raise ProblemError(f"{path}: empty plan file; give a header row and one row per experiment")
-    return PlanFile(path, lines)
+    head = lines[0][1]
+    if ";" in head and "," in head:
+        raise ProblemError(f"{path}: its header (line {lines[0][0]}) has both ';' and ',' between names, so "
+                           "its columns cannot be told apart; save it with ',' separators and '.' decimal "
+                           "points (or ';' separators and ',' decimal points)")
+    return PlanFile(path, lines, ";" if ";" in head else ",")
 
 
 def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[str, ...] = (),
@@ -250,31 +273,29 @@ def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[
     to the name read here (messages keep the file's spelling); with ``ignore_unknown`` other
     columns are skipped instead of refused (:attr:`PlanFile.header` tells which).
 
-    UTF-8 text, with or without a byte-order mark. Trailing empty cells (as Excel writes
-    them) are dropped, and so are lines of empty cells and lines starting with ``#``. Row
-    numbers in messages are lines of the file (1-based).
+    UTF-8 text, with or without a byte-order mark; cells separated by ``,`` with ``.`` as the
+    decimal point, or by ``;`` (the header says which) with ``,`` as the decimal point
+    (:attr:`PlanFile.decimal`). Trailing empty cells (as Excel writes them) are dropped, and
+    so are lines of empty cells and lines starting with ``#``. Row numbers in messages are
+    lines of the file (1-based).
 
     Raises
     ------
     ProblemError
-        Not a UTF-8 text file, more than 100000 rows (10 MB), ';' separators, rows of another
-        length than the header, missing or unknown columns, non-numbers or non-finite numbers,
-        disagreeing unit columns (one line each).
+        Not a UTF-8 text file, more than 100000 rows (10 MB), a header with both ';' and ',',
+        rows of another length than the header, missing or unknown columns, non-numbers or
+        non-finite numbers, a '.' in a number of a ';'-separated file, disagreeing unit
+        columns (one line each).
     """
     plan = plan if isinstance(plan, PlanFile) else read_plan_file(plan)
-    path, ((_, head), *body) = plan.path, plan.lines
-    if ";" in head:
-        decimal = " and ',' as decimal point" if any("," in ln for _, ln in body) else ""
-        raise ProblemError(f"{path}: uses ';' to separate columns{decimal} (Excel in a "
-                           "comma-decimal locale); save it with ',' separators and '.' decimal "
-                           "points")
+    path, body, sep, decimal = plan.path, plan.lines[1:], plan.separator, plan.decimal
     if len(body) > _MAX_PLAN_ROWS:
         raise ProblemError(f"{path}: has {len(body)} rows; a plan has at most {_MAX_PLAN_ROWS} "
                            "experiments; give a smaller plan")
     spelled = plan.header
     rename = rename or {}
     header = [rename.get(h, h) for h in spelled]
-    rows = [(i, _csv_cells(ln)) for i, ln in body]
+    rows = [(i, _csv_cells(ln, sep)) for i, ln in body]
     if not rows:
         raise ProblemError(f"{path}: no experiments below the header; give one row per experiment")
     robot = problem.robot
@@ -318,17 +339,22 @@ def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[
             raise ProblemError(f"{path}: row {i} repeats the header; delete it (one header line, at the top)")
         if len(cells) != len(header):
             raise ProblemError(f"{path}: row {i} has {len(cells)} cells, the header has "
-                               f"{len(header)}; give one value per column in every row (a decimal "
-                               "comma splits a number in two: use '.')")
+                               f"{len(header)}; give one value per column in every row "
+                               + ("(a decimal comma splits a number in two: use '.')" if sep == "," else
+                                  "(separated by ';' as in the header)"))
 
     def number(r: int, c: int, empty_allowed: bool = False) -> float:
         line, cell = rows[r][0], rows[r][1][c]
         where = f"{path}: row {line}, column '{spelled[c]}'"
+        if decimal == "," and "." in cell:  # a thousands separator or a '.' decimal point: unclear
+            raise ProblemError(f"{where}: '{cell}' has a '.' in a file separated by ';', where ',' is the "
+                               "decimal point; write it with a decimal comma (or save the file with ',' "
+                               "separators and '.' decimal points)")
         try:
-            v = float(cell) if cell else math.nan
+            v = float(cell.replace(decimal, ".")) if cell else math.nan
         except ValueError:
             raise ProblemError(f"{where}: expected a number, got '{cell}'; give a number with a "
-                               "'.' decimal point in every cell") from None
+                               f"'{decimal}' decimal point in every cell") from None
         if not math.isfinite(v) and not (empty_allowed and not cell):
             got = f"'{cell}'" if cell else "an empty cell"
             raise ProblemError(f"{where}: not a finite number, got {got}; give a finite number in "
@@ -439,6 +465,27 @@ def bound_notes(designs: list[Design]) -> list[str]:
     return out
 
 
+def describe_test_poses(problem: Problem) -> str:
+    """The test poses in a few words: for poses given in joint space (``joints_rad``) or as
+    separate points (a path of kind ``points``) how many and the box their measured points
+    span (mm); for a line, an arc or a polyline where it goes, from the first to the last
+    point (mm)."""
+    spec, tp = problem.spec.test_poses, problem.test_poses
+    x = tp.position_m * 1e3
+
+    def mm(v: float) -> str:
+        return str(round(float(v)))  # an int: no -0
+
+    what = {"joints": "joint-space pose", "path": "point" if spec.path_kind == "points" else ""}.get(spec.kind, "")
+    if what:
+        low, high = x.min(axis=0), x.max(axis=0)
+        return (f"{tp.s} {what}{'s' if tp.s > 1 else ''} ({'joints_rad' if spec.kind == 'joints' else 'points_m'}), "
+                "positions within " + ", ".join(f"{a} {mm(lo)}..{mm(hi)}" for a, lo, hi in zip("xyz", low, high))
+                + " mm")
+    return (f"{tp.s} poses, from ({', '.join(mm(v) for v in x[0])}) to "
+            f"({', '.join(mm(v) for v in x[-1])}) mm")
+
+
 def report_markdown(problem: Problem, designs: list[Design], *, table: str, figures: list[tuple[str, str]],
                     plans_for: list[int], files: list[str], starts: str, title: str = "Calibration plan",
                     notes: list[str] = ()) -> str:
@@ -446,12 +493,11 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
 
     ``table`` is a preformatted text table (mm); ``figures`` are (caption, relative file).
     """
-    model, tp = problem.model, problem.test_poses
+    model = problem.model
     force = problem.force
     load = ("none (geometric case)" if force is None else
             f"{force.mode}, |F| {'=' if force.mode == 'equal' else '<='} {force.magnitude_N:g} N" if force.mode != "fixed" else
             f"fixed F = {list(force.vector_N)} N")
-    x = tp.position_m * 1e3
     notes = [*notes, *bound_notes(designs)]
     lines = [
         f"# {title}: {problem.name}",
@@ -464,8 +510,7 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
                        f"({', '.join(problem.robot.joints)}), measured frame `{problem.robot.frame}`")],
             ["identified", f"{model.case}: {', '.join(model.parameter_names)}"],
             ["measured", f"{', '.join(problem.spec.measurement.components)}, sigma = {problem.sigma_m * 1e3:g} mm"],
-            ["test poses", (f"{tp.s} poses, from ({', '.join(str(round(float(v))) for v in x[0])}) to "
-                            f"({', '.join(str(round(float(v))) for v in x[-1])}) mm")],  # (an int: no -0)
+            ["test poses", describe_test_poses(problem)],
             ["calibration load", load],
             ["solver", f"IPOPT, {starts} seeded starts per design, seed {problem.solver.seed}"],
         ]),

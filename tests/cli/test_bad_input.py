@@ -228,6 +228,30 @@ def test_an_absurd_measured_coordinate_is_one_line_naming_row_and_column(tmp_pat
     assert not (tmp_path / "o").exists()
 
 
+
+def test_coordinates_in_columns_of_another_name_are_named_with_their_columns_option(tmp_path, capsys):
+    rows = _plan_rows()
+    rows = [rows[0] + ["X", "Y", "Z"]] + [r + r[-3:] for r in rows[1:]]  # the plan's nominal x_mm, y_mm, z_mm
+    meas = _write(tmp_path / "meas.csv", rows)
+    assert main(["identify", str(UR10), "--measurements", str(meas), "--units", "mm", "--out", str(tmp_path / "o")]) == 2
+    assert _one_error_line(capsys) == (
+        f"error: {meas}: missing column 'meas_x_mm'; its columns X, Y, Z look like the measured coordinates: read "
+        "them with --columns X=meas_x,Y=meas_y,Z=meas_z --units mm, or rename them meas_x_mm, meas_y_mm, meas_z_mm "
+        "(_m for metres)")
+    assert not (tmp_path / "o").exists()
+
+
+def test_program_reads_a_plan_saved_by_excel_with_semicolons(tmp_path, capsys):
+    rows = [["q1_deg", "q2_deg", "fx_N", "fy_N"], ["0", "90.5", "0", "100"], ["90", "-90", "100", "0"],
+            ["45.25", "-120", "-60", "80"]]
+    comma, excel = _write(tmp_path / "plan.csv", rows), tmp_path / "excel.csv"
+    excel.write_text("\n".join(";".join(cell.replace(".", ",") for cell in r) for r in rows) + "\n")
+    printed = []
+    for plan in (comma, excel):
+        assert main(["program", str(PAPER), "--plan", str(plan), "--format", "yaml", "--quiet"]) == 0
+        printed.append(capsys.readouterr().out.replace(str(plan), "PLAN"))
+    assert printed[0] == printed[1] and "plan PLAN: 3 experiments" in printed[0]
+
 def test_program_refuses_a_plan_joint_beyond_its_limit(tmp_path, capsys):
     rows = _plan_rows()
     rows[1][1], rows[1][7] = repr(math.degrees(9.0)), "9.0"  # shoulder_pan 9 rad, limits +-2 pi

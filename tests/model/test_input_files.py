@@ -105,11 +105,9 @@ def test_plan_with_more_than_100000_rows(paper, tmp_path):
 # --------------------------------------------------------------------------- plan CSV: the table
 
 @pytest.mark.parametrize("text, match", [
-    ("q1_deg;q2_deg;fx_N;fy_N\n0;90;0;100\n",
-     r"uses ';' to separate columns \(Excel in a comma-decimal locale\); save it with ',' "
-     "separators and '.' decimal points"),
-    ("q1_deg;q2_deg;fx_N;fy_N\n0;90,5;0;100\n",
-     "uses ';' to separate columns and ',' as decimal point \\(Excel"),
+    ("q1_deg;q2_deg,fx_N;fy_N\n0;90;0;100\n", "its header \\(line 1\\) has both ';' and ',' between names"),
+    ("q1_deg;q2_deg;fx_N;fy_N\n0;90.5;0;100\n",
+     "row 2, column 'q2_deg': '90.5' has a '.' in a file separated by ';', where ',' is the decimal point"),
 ])
 def test_plan_with_semicolons(paper, tmp_path, text, match):
     with pytest.raises(ProblemError, match=match) as err:

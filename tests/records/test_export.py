@@ -8,10 +8,11 @@ import pytest
 from casadi_design.cli import main
 from casadi_design.measures.criteria import CRITERIA
 from casadi_design.errors import ProblemError
-from casadi_design.records.export import plan_table, read_plan_csv, write_plan_csv
+from casadi_design.model.build import load_problem
+from casadi_design.records.export import plan_table, read_plan_csv, report_markdown, write_plan_csv
 from casadi_design.plan.rules import plan_violations
 from casadi_design.optimisation.solve import plan_scores, solve_design
-from tests.conftest import PAPER, build, paper_raw
+from tests.conftest import PAPER, ROOT, build, paper_raw, read_raw
 
 L1, L2 = 0.6, 0.4  # the paper's arm, m
 #: A plan written by hand: three poses (deg) and loads (N) of 100 N.
@@ -181,3 +182,25 @@ def test_solve_writes_plans_and_a_report_that_links_its_figures(paper_solve_out)
     assert "### D plan, m = 5" in report
     assert sorted(p.name for p in (out / "plans").iterdir()) == [
         "D_m1.csv", "D_m5.csv", "E_m1.csv", "E_m5.csv", "test-pose_m1.csv", "test-pose_m5.csv"]
+
+
+def _test_poses_row(problem) -> str:
+    report = report_markdown(problem, [], table="", figures=[], plans_for=[], files=[], starts="2")
+    return next(line for line in report.splitlines() if line.startswith("| test poses |"))
+
+
+def test_report_describes_joint_space_test_poses_by_the_box_of_their_points():
+    """TIAGo's 12 held-out postures (joints_rad) are no line from the first to the last: the row
+    gives their number and the box of their measured points (mm)."""
+    tiago = load_problem(ROOT / "tests" / "data" / "tiago_mocap" / "tiago_mocap.toml")
+    assert _test_poses_row(tiago) == ("| test poses | 12 joint-space poses (joints_rad), positions within "
+                                      "x 222..898, y -80..372, z 304..1078 mm |")
+
+
+def test_report_describes_separate_points_by_their_box_and_a_path_from_its_first_to_its_last_point():
+    raw = read_raw(ROOT / "problems" / "ur10_drilling.toml")
+    raw.pop("cell", None)
+    assert _test_poses_row(build(raw)) == ("| test poses | 9 points (points_m), positions within x 600..900, "
+                                           "y -300..300, z 100..100 mm |")
+    raw["test_poses"]["path"] = {"kind": "line", "points_m": [[0.6, -0.3, 0.1], [0.9, 0.3, 0.1]], "nodes": 5}
+    assert _test_poses_row(build(raw)) == "| test poses | 5 poses, from (600, -300, 100) to (900, 300, 100) mm |"
