@@ -4,8 +4,9 @@ Statistics of a fit with N measured values and L parameters (whitened residuals 
 tracker's noise ``sigma`` per value, ``J = dh/dX`` at the estimate):
 
 * ``sigma_hat = sqrt(|r|^2 / (N - L))``, and ``|r|^2 / sigma^2 ~ chi2(N - L)``: the residuals
-  are the tracker's noise when it lies within the central ``CONFIDENCE`` interval; above it
-  the robot's unmodelled error ``tau`` is estimated from the cross-validated residuals, and
+  are consistent with the tracker's noise when it lies within the central ``CONFIDENCE``
+  interval; above its ``UNMODELLED_CONFIDENCE`` quantile the robot's unmodelled error ``tau``
+  is estimated from the cross-validated residuals, and
   the fit's error per value is ``s^2 = sigma^2 + tau^2`` (:mod:`.residuals`; ``s = sigma``
   when the residuals are the noise). The problem's sigma stays the designs' and the tracker's
   share;
@@ -71,6 +72,10 @@ CORRELATION_LIMIT = 0.9
 SAME_POSE_RAD = 1e-6
 #: Level of the chi-square test of the noise.
 CONFIDENCE = 0.95
+#: The residuals hold an unmodelled error when ``|r|^2 / sigma^2`` exceeds this quantile of its
+#: chi-square law (one-sided): a robot measured with the tracker's noise alone is taken for one
+#: with an unmodelled error once in a thousand identifications.
+UNMODELLED_CONFIDENCE = 0.999
 #: A validation RMS beyond this times its prediction is reported as what the model misses.
 PREDICTION_RATIO = 1.5
 #: Validation rows on which the nominal robot, in the training rows' tracker frame, is beyond
@@ -372,8 +377,8 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     interval = ((float(chi2.ppf((1 - CONFIDENCE) / 2, dof)), float(chi2.ppf((1 + CONFIDENCE) / 2, dof)))
                 if dof > 0 else (0.0, float("inf")))
     sigma_hat = float(np.sqrt(ssr / dof)) if dof > 0 else float("nan")
-    scale = error_scale(f.r[f.used], leverages(f.J[f.used], f.information), sigma, sigma_hat,
-                        ssr / sigma**2 > interval[1])
+    rejected = dof > 0 and ssr / sigma**2 > float(chi2.ppf(UNMODELLED_CONFIDENCE, dof))
+    scale = error_scale(f.r[f.used], leverages(f.J[f.used], f.information), sigma, sigma_hat, rejected)
     s_m = scale.s_m
     C = s_m**2 * np.linalg.inv(f.information)
     std = np.sqrt(np.diagonal(C))

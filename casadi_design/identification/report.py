@@ -198,7 +198,8 @@ def summary_lines(calibration: Calibration) -> list[str]:
                  f"{np.max(c.residual_max_m[used]) * 1e3:.4f} mm; noise sigma estimated "
                  f"{c.sigma_hat_m * 1e3:.4f} mm vs {c.problem.sigma_m * 1e3:g} mm of the problem (chi2 "
                  f"{c.chi2:.1f}, {c.dof} dof, 95 % interval {c.chi2_interval[0]:.1f}..{c.chi2_interval[1]:.1f}: "
-                 + ("consistent)" if c.noise_consistent or not scale.tau_m else "more than the tracker's noise)"))
+                 + ("consistent)" if c.noise_consistent else "more than the tracker's noise)" if scale.tau_m
+                    else "NOT consistent: check sigma or the model)"))
     if scale.tau_m:
         lines.append(f"error per measured value {scale.s_m * 1e3:.4f} mm: the tracker's sigma {scale.sigma_m * 1e3:.4g} mm "
                      f"({scale.tracker_share:.1%} of the variance) and the robot's unmodelled error "

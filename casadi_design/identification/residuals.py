@@ -23,8 +23,8 @@ value), Jacobian ``J`` (m, d, L) and ``H = J^T J`` (plus a MAP fit's prior):
   ``s_cv^2 = sum_i |e_i|^2 / sum_i tr (I - P_i)^-1`` is the variance per value that explains
   the cross-validated error: the error at a new pose, in the model's units.
 * **The unmodelled error** ``tau^2 = max(0, s_cv^2 - sigma^2)`` when the chi-square test of
-  the residuals rejects the tracker's sigma alone (``|r|^2 / sigma^2`` above its interval),
-  else 0 (the residuals are the tracker's noise: the paper's model, unchanged). The errors of
+  the residuals rejects the tracker's sigma alone (``|r|^2 / sigma^2`` above a high quantile
+  of its law, :data:`~.calibrate.UNMODELLED_CONFIDENCE`), else 0 (the residuals are the tracker's noise: the paper's model, unchanged). The errors of
   the fit are then ``s^2 = sigma^2 + tau^2`` per value: the parameters' covariance is
   ``s^2 H^-1`` and a new pose is off by ``s^2 (tr(B H^-1 B^T) + d)``: the parameters' error
   and the pose's own unmodelled error and noise (Kennedy and O'Hagan's model discrepancy,
