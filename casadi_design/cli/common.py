@@ -287,7 +287,21 @@ def case_line(problem: Problem, quiet: bool = False) -> str:
     if problem.base_set is not None:
         report = problem.base_set.report()
         line += "\n" + (report.splitlines()[0] if quiet else report)
-    return line if problem.M_held is None else line + "\n" + held_line(problem)
+    line = line if problem.M_held is None else line + "\n" + held_line(problem)
+    return line if problem.field is None else line + "\n" + field_line(problem)
+
+
+def field_line(problem: Problem) -> str:
+    """The field of unmodelled error the test-pose and I designs hold, for people."""
+    f, (Qh, _) = problem.field, problem.field_held
+    source = ("[calibration.model_error]" if problem.spec.calibration.model_error is not None
+              else f"the field of {problem.spec.held.prior_file}")
+    return (f"model error: test-pose and I weigh the robot's unmodelled error, {source}: scale "
+            f"{f.scale_m * 1e3:.4g} mm, nugget {f.nugget_m * 1e3:.4g} mm, lengths "
+            + ", ".join(f"{v:.3g}" for v in f.lengths) + " rad"
+            + (f", correlated with the {len(Qh)} poses measured before" if len(Qh) else "")
+            + "; their sqrt(rho) is the error after compensation with the field (kriging), no bound: "
+            "its experiments are not independent")
 
 
 def held_line(problem: Problem) -> str:

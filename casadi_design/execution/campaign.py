@@ -44,6 +44,7 @@ from ..runtime.cache import Memo, digest
 from ..model.build import Problem
 from ..model.problem import seeded_starts, starts_text
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA
+from ..measures.field import field_measure
 from ..plan.design import SEEDED, Bound, Design
 from ..errors import DesignError, ProblemError
 from . import parallel
@@ -389,7 +390,8 @@ def _later_starts(problem: Problem, c: str, m: int, designs: dict, approx: dict,
 def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
     """``design`` with the bound of its criterion for its m, when it has an approximate design."""
     a = approx.get(aim(problem, design.criterion, design.m))
-    return design if a is None else replace(design, bound=bound(problem, design.m, a))
+    return design if a is None or field_measure(problem, design.criterion) else replace(
+        design, bound=bound(problem, design.m, a))
 
 
 def _to_spread(missing: list[Aim], criteria: tuple[str, ...], ms: tuple[int, ...], settings: Settings,
@@ -521,7 +523,8 @@ class _Pipeline:
         a = self.approx.get(aim(self.problem, d.criterion, d.m))
         self.on_better(Interim(d.criterion, d.m, rec.value, scores.max_rms_error_m, len(d.results),
                                len(d.plans) if d.complete else None,
-                               None if a is None else bound(self.problem, d.m, a), _named(self.waiting.values()),
+                               None if a is None or field_measure(self.problem, d.criterion) else bound(self.problem, d.m, a),
+                               _named(self.waiting.values()),
                                time.perf_counter() - d.t0, _named(self.later)))
 
     def returned(self, task, result) -> None:

@@ -51,14 +51,16 @@ import numpy as np
 
 from ..model.build import Problem
 from ..errors import DesignError, ProblemError
+from ..measures.field import axes_of
 from ..measures.measures import information_matrix, rho_at_test_poses
 from .choice import MODELS, NEGATIVE_STD, Candidate, candidates, choose, has_weight, negative_compliances
 from .compensate import compensate
 from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, frames_projected, in_tracker, model_points, point_errors, pose_rms,
-                  REGISTRATION_TOL_M, register, row_errors)
+                  REGISTRATION_TOL_M, register, row_errors, whitening)
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
+from .field_fit import TrainedField, estimate_field
 from .residuals import ErrorScale, deleted_scores, error_scale, leverages
 
 #: A row whose externally studentized residual exceeds this many times the other rows' error
@@ -106,6 +108,9 @@ class PoseErrors:
     predicted_m: np.ndarray
     out_of_range: np.ndarray
     moved: bool = False
+    field_m: np.ndarray | None = None
+    field_reregistered_m: np.ndarray | None = None
+    predicted_field_m: np.ndarray | None = None
 
     @property
     def counted(self) -> tuple[str, str, str]:
@@ -148,6 +153,10 @@ class Calibration:
     notes : what a person should read (measured points located, a refit refused, a model
         worse than registration only, a validation beyond its prediction, a tracker that moved).
     scale : the :class:`~.residuals.ErrorScale` of the fit.
+    field : the unmodelled error's field estimated from the fit's residuals
+        (:class:`~.field_fit.TrainedField`), None when the residuals are the tracker's noise;
+        ``q_compensated`` then corrects with its kriging mean too, and ``predicted_field_m``
+        (s,) is ``sqrt(rho_j)`` after that compensation (the kriging variance).
     """
 
     problem: Problem
@@ -176,6 +185,8 @@ class Calibration:
     model_request: str = "auto"
     scale: ErrorScale | None = None
     predicted_parameters_m: np.ndarray | None = None
+    field: TrainedField | None = None
+    predicted_field_m: np.ndarray | None = None
 
     @property
     def model_chosen(self) -> bool:
@@ -281,11 +292,44 @@ def design_information(f: Fit, meas: Measurements) -> np.ndarray:
     return f.with_prior(information_matrix(B[f.used]))
 
 
+def train_field(problem: Problem, f: Fit, meas: Measurements) -> TrainedField:
+    """The unmodelled error's field of the fit's rows used (:func:`~.field_fit.estimate_field`),
+    with what predicts and corrects it at other poses: their residuals and their rows ``B`` at
+    X = 0 (as :func:`design_information`'s)."""
+    model = f.fit.model
+    used = f.used
+    axes = axes_of(model.measured_rows, len(model.markers_m))
+    Wh = whitening(problem)
+    B = model.B_stack(meas.Q, meas.F) * model.column_scale * f.mask[:, :, None]
+    if f.frames is not None:
+        B = frames_projected(B, f.frame_of, used, len(f.fit.frame_names))
+    estimate = estimate_field(f.r[used], f.J[used], meas.Q[used], axes, Wh, problem.sigma_m)
+    return TrainedField(estimate, meas.Q[used], f.r[used], B[used], axes, Wh, problem.sigma_m)
+
+
+def corrected_commands(model, X: np.ndarray, Q: np.ndarray, F: np.ndarray, sigma: float,
+                       field: TrainedField | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The commands (k, n) that put the identified robot ``X`` (physical, the fit's) on the
+    nominal targets of the poses ``Q`` (k, n), rad, under the wrenches ``F`` (k, nF), N, and
+    which converged (k,): :func:`~.compensate.compensate`; with a ``field`` the target's
+    position is moved against the field's kriging mean at the pose (the robot will be off by
+    it there), so the robot with its unmodelled error lands on the target."""
+    target = nominal_poses(model, Q, F)
+    if field is not None:
+        target = target.copy()
+        target[:, 9:] -= field.shift(Q)
+    qc, done, _ = compensate(model, Q, F, target, np.tile(X, (len(Q), 1)), sigma)
+    return qc, done
+
+
 def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
-                  registered: Fit | None, training: Measurements, s_m: float) -> PoseErrors:
+                  registered: Fit | None, training: Measurements, s_m: float,
+                  field: TrainedField | None = None) -> PoseErrors:
     """Errors at the validation rows of the nominal, registration-only (``registered``; None:
     the nominal's) and calibrated models in the training frame and each re-registered on the
-    rows, and the predicted RMS with ``s_m`` the error per value (module docstring)."""
+    rows, and the predicted RMS with ``s_m`` the error per value (module docstring); with a
+    ``field`` the calibrated model corrected by its kriging mean too, and its prediction (the
+    kriging variance and the validation's own noise)."""
     fm, axes = f.fit, measured_axes(problem)
     model = fm.model
     seen = valid.seen
@@ -313,10 +357,19 @@ def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
     e_nominal_re = reregistered(nominal)
     moved = bool(fm.frame == "tracker" and np.sqrt(np.mean(e_nominal**2)) > MOVED_RATIO * max(
         float(np.sqrt(np.mean(nominal_training**2))), float(np.sqrt(np.mean(e_nominal_re**2)))))
-    return PoseErrors(valid.lines, e_nominal,
-                      e_nominal if registered is None else row_errors(problem, registered, valid),
-                      row_errors(problem, f, valid), e_nominal_re, reregistered(placed), reregistered(calibrated),
-                      predicted, outside, moved)
+    errors = PoseErrors(valid.lines, e_nominal,
+                        e_nominal if registered is None else row_errors(problem, registered, valid),
+                        row_errors(problem, f, valid), e_nominal_re, reregistered(placed), reregistered(calibrated),
+                        predicted, outside, moved)
+    if field is None:
+        return errors
+    corrected = calibrated + field.mean(valid.Q, field.axes).reshape(calibrated.shape[0], len(model.markers_m), -1) \
+        if len(axes) == 3 else calibrated
+    seen_share = mask.sum(axis=1) / mask.shape[1]  # (a marker not seen: its share of the field's error)
+    rho = field.rho(Bv, valid.Q, field.axes) * seen_share
+    return replace(errors, field_m=pose_rms(point_errors(problem, valid.P_m, in_tracker(f.tracker_from_base, corrected))),
+                   field_reregistered_m=reregistered(corrected),
+                   predicted_field_m=np.sqrt((rho + mask.sum(axis=1) * problem.sigma_m**2) / k))
 
 
 def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
@@ -383,6 +436,7 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     C = s_m**2 * np.linalg.inv(f.information)
     std = np.sqrt(np.diagonal(C))
     correlation = C / np.outer(std, std)
+    trained = train_field(problem, f, meas) if scale.tau_m > 0 else None
     negative = negative_compliances(f, std)
     if negative:  # a joint that yields against its load: what the model misses
         notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std: "
@@ -406,14 +460,15 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     M0 = design_information(f, meas)
     parameters_var = rho_at_test_poses(M0, B0, s_m)  # s^2 trace(B0 M^-1 B0^T)
     predicted = np.sqrt(parameters_var + B0.shape[1] * scale.tau_m**2)  # + the pose's own unmodelled error
-    target = nominal_poses(fm.model, tp.q, tp.F)
-    qc, done, _ = compensate(fm.model, tp.q, tp.F, target, np.tile(f.robot_X, (tp.s, 1)), sigma)
+    axes0 = axes_of(fm.model.accuracy_rows)
+    predicted_field = None if trained is None else np.sqrt(trained.rho(B0, tp.q, axes0))
+    qc, done = corrected_commands(fm.model, f.robot_X, tp.q, tp.F, sigma, trained)
     valid = None
     if validation is not None:
         base = found[0]
         registered = None if math.isnan(base.training_rms_m) else (
             f if base is chosen else fit(problem, base.fit_model, meas, T0, f.used, loss))
-        valid = validate_rows(problem, f, validation, M0, registered, meas, s_m)
+        valid = validate_rows(problem, f, validation, M0, registered, meas, s_m, trained)
         if valid.rms("nominal_reregistered") > REGISTRATION_TOL_M:  # the rows of another robot, or units
             raise ProblemError(
                 f"--validation {validation.path}: after the best rigid fit the nominal robot is "
@@ -425,7 +480,7 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
         problem, meas, f, tuple(outliers), std, correlation, sigma_hat, ssr / sigma**2, dof, interval,
         pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done, valid,
         None if validation is None else validation.path, None if validation is None else validation.Q,
-        chosen.name, tuple(found), loss, tuple(notes), model, scale, np.sqrt(parameters_var))
+        chosen.name, tuple(found), loss, tuple(notes), model, scale, np.sqrt(parameters_var), trained, predicted_field)
 
 
 def validation_notes(valid: PoseErrors) -> list[str]:

@@ -1,6 +1,7 @@
 """What a second round starts from, read from files: experiments already measured (a plan or
 measurement CSV, ``--measured``) and an earlier identification (``identification.json``,
-``--prior``), as the :class:`~casadi_design.model.problem.HeldSpec` of a problem
+``--prior``: its covariance, and its field of unmodelled error with the poses it was estimated
+on), as the :class:`~casadi_design.model.problem.HeldSpec` of a problem
 (:mod:`casadi_design.model.held` turns it into information)."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..model.build import Problem
-from ..model.problem import HeldSpec
+from ..model.problem import HeldSpec, ModelErrorSpec
 from .measurements import file_sha256, read_experiments
 
 
@@ -55,6 +56,38 @@ def read_prior(problem: Problem, path: str) -> tuple[tuple[str, ...], np.ndarray
             tuple((str(f), d if isinstance(d, str) else None) for f, d in zip(files, [*digests, *[None] * len(files)])))
 
 
+def read_prior_field(problem: Problem, path: str) -> tuple[ModelErrorSpec | None, np.ndarray, np.ndarray]:
+    """The unmodelled error's field of an ``identification.json`` (its ``model_error``) and the
+    poses it was estimated on, Q (k, n), rad (m), F (k, nF), N; None and no poses when the
+    identification found the residuals to be the tracker's noise.
+
+    Raises
+    ------
+    ProblemError
+        A ``model_error`` that is not one of this robot (its joints, lengths or poses)."""
+    where = f"--prior {path}: model_error"
+    record = json.loads(Path(path).read_bytes().decode("utf-8-sig"))
+    error = record.get("model_error")
+    none = (None, np.zeros((0, problem.robot.n)), np.zeros((0, problem.model.nF)))
+    if error is None:
+        return none
+    try:
+        spec = ModelErrorSpec(float(error["scale_m"]), tuple(float(v) for v in error["lengths"]),
+                              float(error["nugget_m"]))
+        Q = np.array(error["poses"]["q"], dtype=float).reshape(-1, problem.robot.n)
+        F = np.array(error["poses"]["F"], dtype=float)
+    except (TypeError, KeyError, ValueError):
+        raise ProblemError(f"{where}: is not a field of this robot's {problem.robot.n} joints (scale_m, lengths, "
+                           "nugget_m, poses); give the identification.json written by casadi-design identify for "
+                           "this robot") from None
+    if list(error.get("joints") or problem.robot.joints) != list(problem.robot.joints):
+        raise ProblemError(f"{where}: is of the joints {', '.join(error['joints'])}, not those of {problem.path} "
+                           f"({', '.join(problem.robot.joints)}); give the identification of this robot")
+    if F.size != len(Q) * problem.model.nF:
+        F = np.zeros((len(Q), problem.model.nF))  # the loads of another case: its poses unloaded
+    return spec, Q, F.reshape(len(Q), problem.model.nF)
+
+
 def _same_file(path: str, source: tuple[str, str | None]) -> bool:
     """Whether the file ``path`` is the ``source`` an identification was made from: the same
     bytes (its SHA-256), or the same path where the identification names none."""
@@ -76,9 +109,11 @@ def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -
         q, f, _ = read_experiments(problem, path, ignore_unknown=True)
         Q, F = np.vstack([Q, q]), np.vstack([F, f])
     names, C, sources = ((), None, ()) if prior is None else read_prior(problem, prior)
+    field, Qp, Fp = (None, (), ()) if prior is None else read_prior_field(problem, prior)
     twice = [(m, f) for m in measured or [] for f, _ in [s for s in sources if _same_file(m, s)]]
     if twice:  # its information is in the prior already
         raise ProblemError(f"--measured {twice[0][0]}: --prior {prior} was identified from it ({twice[0][1]}), so "
                            "its information is in the prior already; give it as --measured or as the --prior, not both")
     return HeldSpec(tuple(map(tuple, Q.tolist())), tuple(map(tuple, F.tolist())), names,
-                    None if C is None else tuple(map(tuple, C.tolist())), tuple(measured or []), prior)
+                    None if C is None else tuple(map(tuple, C.tolist())), tuple(measured or []), prior,
+                    tuple(map(tuple, np.asarray(Qp).tolist())), tuple(map(tuple, np.asarray(Fp).tolist())), field)

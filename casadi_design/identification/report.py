@@ -114,6 +114,14 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
                                        "kept for designs) and the robot's unmodelled error (cross-validated, 0 when "
                                        "the residuals are the tracker's noise); std, covariance and predictions use "
                                        "their sum, outliers are judged against the robust outlier scale"},
+        "model_error": None if c.field is None else {
+            **c.field.estimate.as_dict(),
+            "lengths_unit": "rad (m for a prismatic joint), per joint in the order of 'joints'",
+            "joints": list(problem.robot.joints),
+            "meaning": "the robot's unmodelled error as a Gaussian process over the joint configurations, per base "
+                       "axis (REML on the residuals of the model identified); --prior designs with it, and with the "
+                       "poses below, which it correlates new poses with",
+            "poses": {"q": c.field.Q.tolist(), "F": meas.F[f.used].tolist(), "unit": "rad (m), N"}},
         "correlation_limit": CORRELATION_LIMIT,
         "correlated_pairs": [{"a": a, "b": b, "correlation": r} for a, b, r in c.correlated_pairs()],
         "outliers": [{"row": line, "residual_in_scales": r, "scale_m": scale} for line, r, scale in c.outliers],
@@ -130,6 +138,9 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
                        "predicted_is": "sqrt(s^2 trace(B0 M^-1 B0^T) + d tau^2): the parameters' error "
                                        "(tracker and unmodelled error through the fit) and the pose's own "
                                        "unmodelled error, which compensation cannot remove",
+                       "predicted_with_field_rms_m": None if c.predicted_field_m is None else c.predicted_field_m.tolist(),
+                       "q_compensated_is": "the calibrated robot on the nominal targets" + (
+                           "" if c.field is None else ", corrected by the field's kriging mean at the pose"),
                        "q_compensated": c.q_compensated.tolist(),
                        "compensation_converged": c.compensation_converged.tolist()},
         "validation": None if valid is None else {
@@ -142,7 +153,11 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
             "out_of_range": valid.out_of_range.tolist(),
             **{f"{k}_rms_m": valid.rms(k) for k in VALIDATION_ERRORS},
             **{f"{k}_out_of_range_rms_m": none_if_nan(valid.rms(k, valid.out_of_range)) for k in VALIDATION_ERRORS},
-            **{f"{k}_max_m": float(np.max(getattr(valid, f"{k}_m"))) for k in VALIDATION_ERRORS}},
+            **{f"{k}_max_m": float(np.max(getattr(valid, f"{k}_m"))) for k in VALIDATION_ERRORS},
+            **({} if valid.field_m is None else {
+                f"{k}_{w}": v for k in FIELD_ERRORS for w, v in (
+                    ("m", getattr(valid, f"{k}_m").tolist()), ("rms_m", valid.rms(k)),
+                    ("out_of_range_rms_m", none_if_nan(valid.rms(k, valid.out_of_range))))})},
         "files": files,
     }
 
@@ -154,6 +169,10 @@ VALIDATION_LABELS = {"nominal": "nominal", "registration": "registration only",
                      "calibrated": "calibrated", "nominal_reregistered": "nominal, re-registered",
                      "registration_reregistered": "registration only, re-registered",
                      "calibrated_reregistered": "calibrated, re-registered", "predicted": "predicted"}
+#: The validation errors with the field's correction (with a field), in the order of the tables.
+FIELD_ERRORS = ("field", "field_reregistered", "predicted_field")
+VALIDATION_LABELS |= {"field": "calibrated + field", "field_reregistered": "calibrated + field, re-registered",
+                      "predicted_field": "predicted with the field"}
 #: The validation errors in the training rows' tracker frame: not counted when the tracker moved.
 TRAINING_FRAME = ("nominal", "registration", "calibrated")
 
@@ -205,13 +224,21 @@ def summary_lines(calibration: Calibration) -> list[str]:
                      f"({scale.tracker_share:.1%} of the variance) and the robot's unmodelled error "
                      f"{scale.tau_m * 1e3:.4f} mm (cross-validated); the std, the predictions and the outlier test "
                      "hold it, the designs keep sigma")
+    if c.field is not None:
+        fld = c.field.field
+        lines.append(f"field of the unmodelled error (REML on {c.field.estimate.rows} rows): scale "
+                     f"{fld.scale_m * 1e3:.4f} mm, nugget {fld.nugget_m * 1e3:.4f} mm, lengths "
+                     + ", ".join(f"{v:.3g}" for v in fld.lengths) + " rad per joint; the compensation adds its "
+                     "kriging mean")
     lines += [f"correlated beyond {CORRELATION_LIMIT}: {label(a)} / {label(b)} ({r:+.3f})"
               for a, b, r in c.correlated_pairs()]
     lines += [f"outlier excluded: row {line} ({r:.1f} x the other rows' error {s * 1e3:.4g} mm per value)" for line, r, s in c.outliers]
     lines.append(f"predicted accuracy at the {len(c.predicted_rms_m)} test poses: max sqrt(rho) "
                  f"{np.max(c.predicted_rms_m) * 1e3:.4f} mm"
                  + (f" (the parameters' error alone {np.max(c.predicted_parameters_m) * 1e3:.4f} mm; the rest the "
-                    "robot's unmodelled error at the pose)" if scale.tau_m else ""))
+                    "robot's unmodelled error at the pose)" if scale.tau_m else "")
+                 + ("" if c.predicted_field_m is None else
+                    f"; compensated with the field {np.max(c.predicted_field_m) * 1e3:.4f} mm"))
     if c.validation is None:
         lines.append("warning: no validation set (--validation): the accuracy of the calibrated model "
                      "is predicted, not checked on poses outside the fit")
@@ -220,8 +247,8 @@ def summary_lines(calibration: Calibration) -> list[str]:
         out = int(v.out_of_range.sum())
         lines.append(f"validation, {len(v.lines)} rows ({out} out of the training range), RMS (max) mm"
                      + (" (the tracker moved: re-registered only)" if v.moved else "") + ":")
-        for k in VALIDATION_ERRORS:
-            if v.moved and k in TRAINING_FRAME:
+        for k in VALIDATION_ERRORS + (() if v.field_m is None else FIELD_ERRORS):
+            if v.moved and k in TRAINING_FRAME + ("field",):
                 continue
             rest = f", out of range {v.rms(k, v.out_of_range) * 1e3:.4f}" if out else ""
             lines.append(f"  {VALIDATION_LABELS[k]:34s} {v.rms(k) * 1e3:8.4f} ({np.max(getattr(v, f'{k}_m')) * 1e3:.4f}){rest}")

@@ -97,7 +97,7 @@ def observability_indices(sv: np.ndarray, m: int) -> dict[str, float]:
 
 
 def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray | None = None,
-               m_held: int = 0) -> Scores:
+               m_held: int = 0, rho: np.ndarray | None = None) -> Scores:
     """All measures of a plan, of the campaign ``M = M_held + sum_i B_i^T B_i`` when
     information is held before it (:mod:`casadi_design.model.held`).
 
@@ -113,6 +113,9 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray |
         Information of the experiments already measured and of the prior.
     m_held : int
         Number of experiments already measured (the observability indices count them).
+    rho : ndarray, shape (s,), m^2, or None
+        ``rho_j`` of a measure other than the paper's (the unmodelled error's field,
+        :mod:`casadi_design.measures.field`); None: ``sigma^2 trace(B0_j M^-1 B0_j^T)``.
     """
     B = np.asarray(B, dtype=float)
     M = information_matrix(B)
@@ -121,7 +124,10 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray |
     lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
     sv = np.sqrt(lam)
     identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
-    rho = rho_at_test_poses(M, B0, sigma) if identifiable else np.full(np.shape(B0)[0], np.inf)
+    if not identifiable:
+        rho = np.full(np.shape(B0)[0], np.inf)
+    elif rho is None:
+        rho = rho_at_test_poses(M, B0, sigma)
     spectrum = PlanSpectrum(lam, sv, rho, float(np.trace(M)), identifiable)
     return Scores(
         rms_error_m=np.sqrt(rho),

@@ -24,6 +24,7 @@ import pinocchio as pin
 from ..runtime.cache import Memo, code_digest, digest, memoised
 from .cell import Cell, build_cell
 from .held import prior_information
+from ..measures.field import Field, axes_of
 from ..measures.measures import information_matrix
 from ..errors import ProblemError
 from .identifiability import BaseSet, base_set, unit_columns
@@ -35,6 +36,7 @@ from .problem import (
     MAX_EXPERIMENTS,
     MAX_TEST_POSES,
     ForceSpec,
+    ModelErrorSpec,
     ProblemSpec,
     RobotSpec,
     SolverSettings,
@@ -167,6 +169,37 @@ class Problem:
         return np.vstack([Qh, Q]), np.vstack([Fh, F]), np.arange(len(Qh) + len(Q)) < len(Qh)
 
     @functools.cached_property
+    def field(self) -> Field | None:
+        """The robot's unmodelled error as a field (:mod:`casadi_design.measures.field`) that the
+        test-pose measure holds: ``[calibration.model_error]``, else the one of the ``--prior``
+        identification; None: the paper's measure (the tracker's noise alone)."""
+        spec = self.spec.calibration.model_error
+        if spec is None and self.spec.held is not None:
+            spec = self.spec.held.prior_model_error
+        return None if spec is None else field_of(spec, self)
+
+    @property
+    def field_held(self) -> tuple[np.ndarray, np.ndarray]:
+        """The poses measured before the plan that the field correlates it with: ``--measured``
+        ones, then those of the ``--prior`` identification. Q (k, n), rad, F (k, nF), N."""
+        Q, F = self.measured
+        held = self.spec.held
+        if held is not None and len(held.prior_q):
+            k = len(held.prior_q)
+            Q = np.vstack([Q, np.asarray(held.prior_q, dtype=float).reshape(k, self.robot.n)])
+            F = np.vstack([F, np.asarray(held.prior_F, dtype=float).reshape(k, self.model.nF)])
+        return Q, F
+
+    @functools.cached_property
+    def field_prior(self) -> np.ndarray | None:
+        """The information on X (L x L, scaled parameters, 1/m^2 units of B) of
+        ``[calibration.prior]`` alone: with a field the earlier rounds enter as poses
+        (:attr:`field_held`), not as a covariance; None without a prior."""
+        spec = self.spec
+        P = prior_information(self.model.parameter_names, spec.calibration.prior, None, self.robot, 1.0, spec.path)
+        return None if P is None else P / np.outer(self.model.column_scale, self.model.column_scale)
+
+    @functools.cached_property
     def B0(self) -> np.ndarray:
         """``B0_j = de_j/dX`` at every test pose j, shape (s, r, L): how the required
         components ``e`` (``[test_poses].components``, under the test pose's wrench) move with
@@ -219,10 +252,33 @@ def build_problem(spec: ProblemSpec) -> Problem:
     """
     bare = dataclasses.replace(spec, solver=SolverSettings(), held=None)
     problem = _BUILT.get(spec_digest_blob(bare), lambda: _build_named(dataclasses.replace(spec, held=None)))
-    if problem.spec == spec:
-        return problem
-    problem = dataclasses.replace(problem, spec=spec)
-    return with_held(problem) if spec.held is not None else problem
+    if problem.spec != spec:
+        problem = dataclasses.replace(problem, spec=spec)
+        problem = with_held(problem) if spec.held is not None else problem
+    problem.field  # its lengths and the measured positions checked here, not at the first design
+    return problem
+
+
+def field_of(spec: ModelErrorSpec, problem: Problem) -> Field:
+    """The :class:`~casadi_design.measures.field.Field` of ``spec`` for the robot of ``problem``:
+    one correlation length for every joint, or one per joint.
+
+    Raises
+    ------
+    ProblemError
+        Lengths of another number than the joints, or a measurement without positions.
+    """
+    n, given = problem.robot.n, spec.length_rad
+    held = problem.spec.calibration.model_error is None
+    where = (f"--prior {problem.spec.held.prior_file}: model_error" if held else
+             f"{problem.path}: [calibration.model_error]")
+    if len(given) not in (1, n):
+        raise ProblemError(f"{where}.length_rad: has {len(given)} lengths for the {n} joints "
+                           f"({', '.join(problem.robot.joints)}); give one for every joint or one per joint")
+    if not np.any(axes_of(problem.model.measured_rows) >= 0):
+        raise ProblemError(f"{where}: the field is an error of positions, and {problem.path} measures none; "
+                           "measure x, y, z ([measurement].components) or remove it")
+    return Field(spec.scale_m, tuple(given) * n if len(given) == 1 else tuple(given), spec.nugget_m)
 
 
 def with_held(problem: Problem) -> Problem:

@@ -58,8 +58,9 @@ SECTIONS: dict[str, set[str] | None] = {
     "robot.dh": {"convention", "joints", "base_xyz_m", "base_rpy_deg", "flange_xyz_m", "flange_rpy_deg"},
     "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "beta_deg", "limits_deg"},
     "robot.joint_limits_rad": None,  # joint names: checked against the model when built
-    "calibration": {"case", "parameters", "compliant_joints", "wrench_components", "prior"},
+    "calibration": {"case", "parameters", "compliant_joints", "wrench_components", "prior", "model_error"},
     "calibration.prior": {"length_m", "angle_rad", "offset_rad", "compliance_rad_per_Nm"},
+    "calibration.model_error": {"scale_m", "length_rad", "nugget_m"},
     "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
     "test_poses": {"components", "joints_rad", "points_m", "line_m", "path", "tool_rpy_deg", "seed_q_deg",
                    "elbow", "force_N", "forces_N", "segment_forces_N"},
@@ -169,6 +170,18 @@ class PriorSpec:
 
 
 @dataclass(frozen=True)
+class ModelErrorSpec:
+    """The robot's unmodelled error as a random field over its configurations
+    (``[calibration.model_error]``, :mod:`casadi_design.measures.field`): ``scale_m`` its std
+    per base axis (m), ``length_rad`` its correlation length per joint (rad; m for a prismatic
+    joint), ``nugget_m`` the part no neighbouring pose tells (m)."""
+
+    scale_m: float
+    length_rad: tuple[float, ...]
+    nugget_m: float = 0.0
+
+
+@dataclass(frozen=True)
 class CalibrationSpec:
     """What is identified. ``parameters`` is a tuple of names or ``"identifiable"``;
     ``compliant_joints`` None means every joint of the chain; ``prior``: ``[calibration.prior]``
@@ -179,6 +192,7 @@ class CalibrationSpec:
     compliant_joints: tuple[str, ...] | None = None
     wrench_components: tuple[str, ...] = ()
     prior: PriorSpec | None = None
+    model_error: ModelErrorSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -335,7 +349,9 @@ class HeldSpec:
     experiments; ``prior_names`` and ``prior_covariance`` (SI units per parameter pair): an
     identification's covariance of the parameters it names (those of this problem's
     parameters it does not name have no prior); ``measured_files`` and ``prior_file``: the files
-    they were read from."""
+    they were read from; ``prior_q``, ``prior_F`` and ``prior_model_error``: the poses that
+    identification used and the unmodelled error's field it estimated (the field correlates
+    new poses with those: :mod:`casadi_design.measures.field`)."""
 
     q: Mat = ()
     F: Mat = ()
@@ -343,6 +359,9 @@ class HeldSpec:
     prior_covariance: Mat | None = None
     measured_files: tuple[str, ...] = ()
     prior_file: str | None = None
+    prior_q: Mat = ()
+    prior_F: Mat = ()
+    prior_model_error: ModelErrorSpec | None = None
 
     @property
     def k(self) -> int:
@@ -721,7 +740,29 @@ def _calibration(cal: _Reader) -> CalibrationSpec:
                   noun="joints") if elastic else None,
         cal.names("wrench_components", WRENCH_ROWS, hint="the wrench components of F, e.g. [\"fx\", \"fy\"]") if elastic else (),
         _prior(cal.sub("prior")),
+        _model_error(cal.sub("model_error")),
     )
+
+
+def _model_error(table: _Reader | None) -> ModelErrorSpec | None:
+    """``[calibration.model_error]``: the field's scale (m), its correlation length (rad, one
+    for every joint or one per joint; checked against the robot's joints when it is built) and
+    its nugget (m)."""
+    if table is None:
+        return None
+    scale = table.number("scale_m", hint="the unmodelled error's std per axis in m, e.g. 2.5e-4", positive=True)
+    value = table.get("length_rad", (int, float, list), hint="a correlation length in rad, e.g. 0.5, or one per joint")
+    try:
+        lengths = np.atleast_1d(np.asarray(value, dtype=float)) if not isinstance(value, bool) else np.array([np.nan])
+    except (TypeError, ValueError):
+        lengths = np.array([np.nan])
+    if lengths.ndim != 1 or not lengths.size or not np.all(np.isfinite(lengths) & (lengths > 0)):
+        raise table.error(f"is {value!r}", "give a positive length in rad, e.g. 0.5, or a list of one per joint",
+                          "length_rad")
+    nugget = table.number("nugget_m", 0.0, hint="the uncorrelated unmodelled error's std in m, e.g. 2e-5")
+    if not nugget >= 0:
+        raise table.error(f"is {nugget:g}", "give a std >= 0 in m", "nugget_m")
+    return ModelErrorSpec(scale, tuple(float(v) for v in lengths), nugget)
 
 
 def _prior(prior: _Reader | None) -> PriorSpec | None:

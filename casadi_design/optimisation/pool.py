@@ -25,14 +25,15 @@ import time
 import numpy as np
 
 from ..errors import ProblemError
-from ..measures.criteria import BOUND_CRITERIA, CRITERIA
-from ..measures.measures import Scores, information_matrices, score_plan
+from ..measures.criteria import BOUND_CRITERIA, CRITERIA, PlanSpectrum
+from ..measures.field import axes_of, field_measure, kriging_rho_added
+from ..measures.measures import Scores, information_matrices
 from ..model.cell import clearances
 from ..model.build import Problem
 from ..plan.design import Design, StartRecord
 from ..plan.rules import plan_violations
 from .bound import bound, pool_design
-from .solve import start_rng
+from .solve import plan_scores, start_rng
 
 #: Status of a start whose exchange ended (no swap improves): a converged start.
 EXCHANGED = "Solve_Succeeded"
@@ -42,11 +43,13 @@ GREEDY_EPS = 1e-9
 MAX_PASSES = 200
 
 
-def _scores(problem: Problem, B: np.ndarray, S: list[int]) -> Scores:
-    """The scores of the postures ``S`` of the pool (their B precomputed, (k, d, L)): the
-    plan's scores (:func:`~casadi_design.measures.measures.score_plan`, as
-    :func:`~casadi_design.optimisation.solve.plan_scores` gives them)."""
-    return score_plan(B[S], problem.B0, problem.sigma_m, problem.M_held, problem.m_held)
+def _scores(problem: Problem, pool: tuple[np.ndarray, np.ndarray, np.ndarray], S: list[int],
+            criterion: str | None = None) -> Scores:
+    """The scores of the postures ``S`` of the pool ``(Q, F, B)`` (their B precomputed, (k, d,
+    L)): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
+    ``criterion`` (None: every score as reported) the field only where it weighs it."""
+    Q, F, B = pool
+    return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion))
 
 
 def _key(criterion: str, value: float) -> float:
@@ -56,7 +59,30 @@ def _key(criterion: str, value: float) -> float:
     return value if CRITERIA[criterion].sense == "min" else -value
 
 
-def _greedy(problem: Problem, criterion: str, m: int, B: np.ndarray, A: np.ndarray) -> list[int]:
+def _added_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], cands: list[int]) -> np.ndarray:
+    """The score key of the plan ``rest`` plus each posture of ``cands`` (indices in the pool):
+    with the problem's field on a criterion that weighs it, every plan at once
+    (:func:`~casadi_design.measures.field.kriging_rho_added`, scored by the criterion's own
+    score of rho); else each plan's scores."""
+    if not field_measure(problem, criterion) or not cands:
+        return np.array([_key(criterion, _scores(problem, pool, rest + [c], criterion).value(criterion))
+                         for c in cands])
+    Q, F, B = pool
+    model = problem.model
+    Qh, Fh = problem.field_held
+    Qr, Br = np.vstack([Qh, Q[rest]]), np.concatenate([model.B_stack(Qh, Fh), B[rest]]) if len(Qh) else B[rest]
+    Wh = np.eye(model.d) if problem.spec.measurement.whitening is None else np.asarray(problem.spec.measurement.whitening)
+    if not len(Qr):  # the first posture of a plan without held poses: each on its own
+        return np.array([_key(criterion, _scores(problem, pool, [c], criterion).value(criterion)) for c in cands])
+    rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Qr, B[cands], Q[cands],
+                            axes_of(model.measured_rows, len(model.markers_m)), Wh, problem.B0,
+                            problem.test_poses.q, axes_of(model.accuracy_rows), problem.field_prior)
+    score = CRITERIA[criterion].score_of
+    return np.array([_key(criterion, score(PlanSpectrum(None, None, r, None, True))) if np.all(np.isfinite(r))
+                     else np.inf for r in rho])
+
+
+def _greedy(problem: Problem, criterion: str, m: int, pool: tuple, A: np.ndarray) -> list[int]:
     """m postures one at a time, each the one that improves the criterion most (while M is
     singular: ``log det(M + eps I)``)."""
     L = problem.model.L
@@ -65,8 +91,8 @@ def _greedy(problem: Problem, criterion: str, m: int, B: np.ndarray, A: np.ndarr
     chosen: list[int] = []
     for _ in range(m):
         free = [i for i in range(len(A)) if i not in chosen]
-        if _scores(problem, B, chosen).identifiable:
-            keys = [_key(criterion, _scores(problem, B, chosen + [i]).value(criterion)) for i in free]
+        if _scores(problem, pool, chosen, criterion).identifiable:
+            keys = _added_keys(problem, criterion, pool, chosen, free)
         else:
             keys = [-np.linalg.slogdet(M + A[i] + eps * np.eye(L))[1] for i in free]
         best = free[int(np.argmin(keys))]
@@ -75,21 +101,19 @@ def _greedy(problem: Problem, criterion: str, m: int, B: np.ndarray, A: np.ndarr
     return chosen
 
 
-def _exchange(problem: Problem, criterion: str, S: list[int], B: np.ndarray) -> tuple[list[int], float, int]:
+def _exchange(problem: Problem, criterion: str, S: list[int], pool: tuple) -> tuple[list[int], float, int]:
     """Fedorov's exchange from the subset ``S``: the subset, its score key and the passes."""
-    k = len(B)
+    k = len(pool[0])
     S = list(S)
-    current = _key(criterion, _scores(problem, B, S).value(criterion))
+    current = _key(criterion, _scores(problem, pool, S, criterion).value(criterion))
     for passes in range(1, MAX_PASSES + 1):
         best = (current, None, None)
+        out = [j for j in range(k) if j not in S]
         for a in range(len(S)):
-            for j in range(k):
-                if j in S:
-                    continue
-                T = S[:a] + [j] + S[a + 1:]
-                v = _key(criterion, _scores(problem, B, T).value(criterion))
-                if v < best[0] - 1e-12 * max(1.0, abs(best[0])):
-                    best = (v, a, j)
+            keys = _added_keys(problem, criterion, pool, S[:a] + S[a + 1:], out)
+            i = int(np.argmin(keys)) if len(keys) else 0
+            if len(keys) and keys[i] < best[0] - 1e-12 * max(1.0, abs(best[0])):
+                best = (keys[i], a, out[i])
         if best[1] is None:
             return S, current, passes
         current = best[0]
@@ -129,16 +153,18 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
                            f"m = {m}; give m <= {k} or more postures")
     B = problem.model.B_stack(Q, F)
     A = information_matrices(B)
-    approx = pool_design(problem, criterion, Q, F, A, m) if with_bound and criterion in BOUND_CRITERIA else None
+    pool = (Q, F, B)
+    approx = (pool_design(problem, criterion, Q, F, A, m)
+              if with_bound and criterion in BOUND_CRITERIA and not field_measure(problem, criterion) else None)
     rng = start_rng(problem.solver.seed, criterion, m)
-    first = [("greedy", _greedy(problem, criterion, m, B, A))]
+    first = [("greedy", _greedy(problem, criterion, m, pool, A))]
     if approx is not None:
         first.append(("heaviest of the pool's approximate design", list(np.argsort(approx.weights)[::-1][:m])))
     first += [("seeded", list(rng.choice(k, size=m, replace=False))) for _ in range(starts)]
     records, best = [], None
     for origin, S in first:
-        S, key, passes = _exchange(problem, criterion, S, B)
-        scores = _scores(problem, B, S)
+        S, key, passes = _exchange(problem, criterion, S, pool)
+        scores = _scores(problem, pool, S)
         records.append(StartRecord(EXCHANGED, passes, scores.value(criterion), scores.max_rms_error_m,
                                    scores.identifiable, origin))
         if scores.identifiable and (best is None or key < best[0]):

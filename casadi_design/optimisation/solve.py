@@ -26,6 +26,7 @@ from ..measures.criteria import CRITERIA
 from ..plan.design import CONVERGED, SEEDED, Design, StartRecord
 from ..errors import DesignError, ProblemError
 from .ipopt import QUIET, WARM_START, ipopt_call
+from ..measures.field import axes_of, kriging_rho
 from ..measures.measures import Scores, score_plan
 from .nlp import DesignNLP, build_nlp
 from ..model.rules import PoseConstraints
@@ -60,9 +61,27 @@ def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
     return np.random.default_rng([seed, m, CRITERIA[criterion].seed_id])
 
 
-def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray) -> Scores:
-    """Scores of a plan given as ``Q`` (m, n), rad, and ``F`` (m, nF), N."""
-    return score_plan(problem.model.B_stack(Q, F), problem.B0, problem.sigma_m, problem.M_held, problem.m_held)
+def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray | None = None,
+                field: bool = True) -> Scores:
+    """Scores of a plan given as ``Q`` (m, n), rad, and ``F`` (m, nF), N (``B`` its rows when
+    they are at hand). With the problem's field of unmodelled error (:attr:`Problem.field`)
+    ``rho`` at the test poses is the kriging variance of the whole campaign (the poses held
+    before it, then the plan's; :func:`~casadi_design.measures.field.kriging_rho`); not
+    ``field``: the paper's, for a search by a criterion that does not weigh rho."""
+    B = problem.model.B_stack(Q, F) if B is None else B
+    return score_plan(B, problem.B0, problem.sigma_m, problem.M_held, problem.m_held,
+                      rho=None if problem.field is None or not field else field_rho(problem, Q, F, B))
+
+
+def field_rho(problem: Problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``rho`` (s,), m^2, at the test poses of the campaign of the held poses and the plan
+    ``Q``, ``F`` (rows ``B``) with the problem's field (:attr:`Problem.field`)."""
+    model, tp = problem.model, problem.test_poses
+    Qh, Fh = problem.field_held
+    Bc = np.concatenate([model.B_stack(Qh, Fh), B]) if len(Qh) else B
+    Wh = np.eye(model.d) if problem.spec.measurement.whitening is None else np.asarray(problem.spec.measurement.whitening)
+    return kriging_rho(problem.field, problem.sigma_m, Bc, np.vstack([Qh, Q]), axes_of(model.measured_rows, len(model.markers_m)),
+                       Wh, problem.B0, tp.q, axes_of(model.accuracy_rows), problem.field_prior)
 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: str = "cold",
