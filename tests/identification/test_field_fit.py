@@ -1,0 +1,129 @@
+"""The unmodelled error's field estimated by identify (identification/field_fit.py): its restricted
+likelihood against scikit-learn's Gaussian process regression and finite differences, a known
+field recovered, and the field of IPA's UR10 (tests/data/ipa_ur10) carried through
+identification.json into the design of a second round."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from casadi_design.cli import main
+from casadi_design.cli.identify import load_without_cell
+from casadi_design.identification.calibrate import calibrate
+from casadi_design.identification.field_fit import estimate_field, restricted_log_likelihood
+from casadi_design.identification.fit import model_points
+from casadi_design.identification.held import read_held
+from casadi_design.identification.lsq import nominal_poses
+from casadi_design.identification.measurements import FileFormat, read_measurements
+from casadi_design.measures.field import Field
+from casadi_design.model.build import build_problem
+from casadi_design.optimisation.solve import plan_scores
+
+DATA = Path(__file__).parents[1] / "data" / "ipa_ur10"
+PROBLEM = DATA / "ipa_ur10.toml"
+SERIES_C = DATA / "measurements_random_poses_xyz.csv"
+FORMAT = FileFormat(units="mm", columns=(("measurement_x", "meas_x"), ("measurement_y", "meas_y"),
+                                         ("measurement_z", "meas_z")))
+THETA = np.log([2e-4, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 3e-5])
+SIGMA = 2e-5
+
+
+def test_without_parameters_it_is_scikit_learn_s_marginal_likelihood():
+    gp = pytest.importorskip("sklearn.gaussian_process")
+    kernels = pytest.importorskip("sklearn.gaussian_process.kernels")
+    rng = np.random.default_rng(0)
+    Q, r = rng.normal(size=(30, 6)), rng.normal(size=(30, 3)) * 1e-4
+    mine, _ = restricted_log_likelihood(THETA, r, np.zeros((30, 3, 0)), Q, np.eye(3), SIGMA)
+    kernel = (kernels.ConstantKernel(np.exp(THETA[0]) ** 2) * kernels.RBF(np.exp(THETA[1:7]))
+              + kernels.WhiteKernel(np.exp(THETA[7]) ** 2))
+    reference = gp.GaussianProcessRegressor(kernel, alpha=SIGMA**2, optimizer=None).fit(Q, r)
+    assert mine == pytest.approx(reference.log_marginal_likelihood_value_, rel=1e-12)
+
+
+def test_the_gradient_is_the_finite_differences_of_the_likelihood():
+    """With parameters, markers coupled by a whitening (``A`` not diagonal)."""
+    rng = np.random.default_rng(1)
+    Q, r, J = rng.normal(size=(25, 6)), rng.normal(size=(25, 3)) * 1e-4, rng.normal(size=(25, 3, 4)) * 1e-2
+    A = np.array([[1.0, 0.2, 0.0], [0.2, 1.0, 0.0], [0.0, 0.0, 0.5]])
+    _, grad = restricted_log_likelihood(THETA, r, J, Q, A, SIGMA)
+    h = 1e-6
+    fd = [(restricted_log_likelihood(THETA + h * e, r, J, Q, A, SIGMA)[0]
+           - restricted_log_likelihood(THETA - h * e, r, J, Q, A, SIGMA)[0]) / (2 * h) for e in np.eye(len(THETA))]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-3)
+
+
+def test_a_known_field_is_recovered():
+    """Residuals drawn from a field (scale 0.25 mm, lengths 0.8 rad, nugget 0.03 mm) and the
+    tracker's noise at 200 random configurations, three axes, with four parameters profiled
+    out: the scale within 25 %, the lengths of the joints within a factor 2."""
+    rng = np.random.default_rng(2)
+    truth = Field(2.5e-4, (0.8,) * 4, 3e-5)
+    Q = rng.uniform(-2, 2, size=(200, 4))
+    K = truth.kernel(Q, Q) + truth.nugget_m**2 * np.eye(200) + SIGMA**2 * np.eye(200)
+    delta = np.linalg.cholesky(K) @ rng.normal(size=(200, 3))
+    J = rng.normal(size=(200, 3, 4)) * 1e-2
+    X = rng.normal(size=4) * 1e-3
+    y = np.einsum("mdl,l->md", J, X) + delta
+    S = J.reshape(600, 4)
+    r = (y.reshape(-1) - S @ np.linalg.lstsq(S, y.reshape(-1), rcond=None)[0]).reshape(200, 3)
+    found = estimate_field(r, J, Q, np.arange(3), np.eye(3), SIGMA).field
+    assert found.scale_m == pytest.approx(truth.scale_m, rel=0.25)
+    assert np.all((np.array(found.lengths) > 0.4) & (np.array(found.lengths) < 1.6)), found.lengths
+
+
+@pytest.fixture(scope="module")
+def ipa():
+    problem = load_without_cell(str(PROBLEM))
+    meas = read_measurements(problem, str(SERIES_C), FORMAT)
+    rows = np.random.default_rng(0).permutation(meas.m)
+    return problem, meas.subset(np.sort(rows[:40])), meas.subset(np.sort(rows[40:]))
+
+
+def test_identify_estimates_the_field_and_compensates_with_it(ipa):
+    """40 rows of IPA's UR10: the field is estimated (its scale about the unmodelled error), the
+    held-out error with its kriging mean is below the calibrated model's alone, and the
+    compensated test poses put the calibrated robot plus the field's mean on the targets."""
+    problem, training, held_out = ipa
+    cal = calibrate(problem, training, validation=held_out)
+    field = cal.field
+    assert field is not None and 0.5 < field.field.scale_m / cal.scale.tau_m < 2
+    v = cal.validation
+    assert v.rms("field") < v.rms("calibrated")
+    assert np.all(cal.predicted_field_m <= cal.predicted_rms_m + 1e-12)
+    # the measured point is the frame's origin (one point, tool_xyz_m): the calibrated robot at the
+    # compensated commands, moved by the field's mean, is on the nominal targets
+    model, tp = cal.fit.fit.model, cal.problem.test_poses
+    reached = model_points(model, cal.q_compensated, tp.F, cal.fit.robot_X)[:, 0] + field.shift(tp.q)
+    assert cal.compensation_converged.all()
+    np.testing.assert_allclose(reached, nominal_poses(model, tp.q, tp.F)[:, 9:], rtol=0, atol=2e-6)
+    assert np.max(np.linalg.norm(field.shift(tp.q), axis=1)) > 1e-5  # a correction, not nothing
+
+
+def test_a_second_round_designs_with_the_first_round_s_field(ipa, tmp_path, capsys):
+    """identification.json carries the field and its poses; --prior reads them: the test-pose
+    measure of a plan is the kriging variance of the first round's poses and the plan's."""
+    problem, training, _ = ipa
+    lines = SERIES_C.read_text().splitlines()
+    rows = [lines[0]] + [lines[i + 1] for i in np.flatnonzero(np.isin(np.arange(len(lines) - 1),
+                                                                       np.array(training.lines) - 2))]
+    (tmp_path / "r1.csv").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "id1"
+    assert main(["identify", str(PROBLEM), "--measurements", str(tmp_path / "r1.csv"), "--units", "mm",
+                 "--columns", "measurement_x=meas_x,measurement_y=meas_y,measurement_z=meas_z",
+                 "--out", str(out), "-q"]) == 0
+    record = json.loads((out / "identification.json").read_text())
+    error = record["model_error"]
+    assert error["scale_m"] > 10 * problem.sigma_m and len(error["lengths"]) == 6
+    assert len(error["poses"]["q"]) == 40
+    held = read_held(problem, None, str(out / "identification.json"))
+    assert held.prior_model_error.scale_m == error["scale_m"] and len(held.prior_q) == 40
+    import dataclasses
+
+    second = build_problem(dataclasses.replace(problem.spec, held=held))
+    assert second.field is not None and len(second.field_held[0]) == 40
+    Q = training.Q[:8]
+    scores = plan_scores(second, Q, training.F[:8])
+    assert math.isfinite(scores.max_rms_error_m) and scores.max_rms_error_m > error["scale_m"] * 0.1
