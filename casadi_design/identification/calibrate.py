@@ -60,7 +60,7 @@ from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, frames_projected,
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
-from .field_fit import TrainedField, estimate_field
+from .field_fit import FIELD_SEED, TrainedField, estimate_field
 from .residuals import ErrorScale, deleted_scores, error_scale, leverages
 
 #: A row whose externally studentized residual exceeds this many times the other rows' error
@@ -80,6 +80,11 @@ CONFIDENCE = 0.95
 UNMODELLED_CONFIDENCE = 0.999
 #: A validation RMS beyond this times its prediction is reported as what the model misses.
 PREDICTION_RATIO = 1.5
+#: The unmodelled error's field compensates only when its leave-one-out error on the training
+#: rows is below this times least squares' alone (its lengths were fitted on the same rows).
+FIELD_GAIN = 0.97
+#: The field's kriging uses at most this many training rows (seeded: FIELD_SEED).
+KRIGING_ROWS = 1000
 #: Validation rows on which the nominal robot, in the training rows' tracker frame, is beyond
 #: this times its error on the training rows and on the rows re-registered are in another
 #: tracker frame (the tracker moved between the series).
@@ -155,8 +160,10 @@ class Calibration:
     scale : the :class:`~.residuals.ErrorScale` of the fit.
     field : the unmodelled error's field estimated from the fit's residuals
         (:class:`~.field_fit.TrainedField`), None when the residuals are the tracker's noise;
-        ``q_compensated`` then corrects with its kriging mean too, and ``predicted_field_m``
-        (s,) is ``sqrt(rho_j)`` after that compensation (the kriging variance).
+        when it predicts the training rows left out better (``field_compensates``,
+        :func:`field_notes`) ``q_compensated`` corrects with its kriging mean too, and
+        ``predicted_field_m`` (s,) is ``sqrt(rho_j)`` after that compensation (the kriging
+        variance). Designs of a second round take it either way (``--prior``).
     """
 
     problem: Problem
@@ -187,6 +194,7 @@ class Calibration:
     predicted_parameters_m: np.ndarray | None = None
     field: TrainedField | None = None
     predicted_field_m: np.ndarray | None = None
+    field_compensates: bool = False
 
     @property
     def model_chosen(self) -> bool:
@@ -304,7 +312,26 @@ def train_field(problem: Problem, f: Fit, meas: Measurements) -> TrainedField:
     if f.frames is not None:
         B = frames_projected(B, f.frame_of, used, len(f.fit.frame_names))
     estimate = estimate_field(f.r[used], f.J[used], meas.Q[used], axes, Wh, problem.sigma_m)
-    return TrainedField(estimate, meas.Q[used], f.r[used], B[used], axes, Wh, problem.sigma_m)
+    rows = np.flatnonzero(used)
+    if len(rows) > KRIGING_ROWS:  # the kriging's cost is cubic in the rows
+        rows = np.sort(np.random.default_rng(FIELD_SEED).choice(rows, KRIGING_ROWS, replace=False))
+    return TrainedField(estimate, meas.Q[rows], f.r[rows], B[rows], axes, Wh, problem.sigma_m)
+
+
+def field_notes(trained: TrainedField, rows: int) -> tuple[bool, list[str]]:
+    """Whether the field is used to compensate: its leave-one-out error on the training rows
+    (kriging with least squares) is below ``FIELD_GAIN`` times least squares' alone; and the
+    notes that say what it does."""
+    with_field, alone = trained.loo_rms(), trained.loo_rms(with_field=False)
+    notes = [] if len(trained.Q) == rows else [
+        f"the field's kriging uses {len(trained.Q)} of the {rows} rows (seeded; its cost is cubic in the rows)"]
+    if with_field < FIELD_GAIN * alone:
+        return True, notes
+    return False, notes + [
+        f"the field of the unmodelled error does not compensate: it does not predict the training rows left out "
+        f"better ({with_field * 1e3:.4f} against {alone * 1e3:.4f} mm per value by least squares alone; the poses "
+        "are too far apart for their errors to tell one another); identification.json keeps it for the design of "
+        "a second round, which can measure nearer"]
 
 
 def corrected_commands(model, X: np.ndarray, Q: np.ndarray, F: np.ndarray, sigma: float,
@@ -320,6 +347,26 @@ def corrected_commands(model, X: np.ndarray, Q: np.ndarray, F: np.ndarray, sigma
         target[:, 9:] -= field.shift(Q)
     qc, done, _ = compensate(model, Q, F, target, np.tile(X, (len(Q), 1)), sigma)
     return qc, done
+
+
+def compensated(calibration: Calibration, Q: np.ndarray, F: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The commands (k, n), rad (m), that put the identified robot on the nominal targets of a
+    user's poses ``Q`` (k, n) under the wrenches ``F`` (k, nF), N (default none): the calibrated
+    model, and its field's kriging mean where the field compensates
+    (:attr:`Calibration.field_compensates`); and which converged (k,). What
+    ``compensated_test_poses.csv`` holds for the test poses (:func:`corrected_commands`)::
+
+        cal = calibrate(problem, read_measurements(problem, "meas.csv"))
+        q_commands, ok = compensated(cal, q_targets)
+    """
+    model = calibration.fit.fit.model
+    Q = np.atleast_2d(np.asarray(Q, dtype=float))
+    F = np.zeros((len(Q), model.nF)) if F is None else np.asarray(F, dtype=float).reshape(len(Q), model.nF)
+    if Q.shape[1] != model.n:
+        raise ProblemError(f"compensated: poses of {Q.shape[1]} joints for a robot of {model.n} "
+                           f"({', '.join(calibration.problem.robot.joints)}); give one value per joint, rad (m)")
+    return corrected_commands(model, calibration.fit.robot_X, Q, F, calibration.problem.sigma_m,
+                              calibration.field if calibration.field_compensates else None)
 
 
 def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
@@ -437,6 +484,11 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     std = np.sqrt(np.diagonal(C))
     correlation = C / np.outer(std, std)
     trained = train_field(problem, f, meas) if scale.tau_m > 0 else None
+    compensating = None
+    if trained is not None:
+        use, said = field_notes(trained, int(f.used.sum()))
+        notes += said
+        compensating = trained if use else None
     negative = negative_compliances(f, std)
     if negative:  # a joint that yields against its load: what the model misses
         notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std: "
@@ -461,14 +513,14 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     parameters_var = rho_at_test_poses(M0, B0, s_m)  # s^2 trace(B0 M^-1 B0^T)
     predicted = np.sqrt(parameters_var + B0.shape[1] * scale.tau_m**2)  # + the pose's own unmodelled error
     axes0 = axes_of(fm.model.accuracy_rows)
-    predicted_field = None if trained is None else np.sqrt(trained.rho(B0, tp.q, axes0))
-    qc, done = corrected_commands(fm.model, f.robot_X, tp.q, tp.F, sigma, trained)
+    predicted_field = None if compensating is None else np.sqrt(compensating.rho(B0, tp.q, axes0))
+    qc, done = corrected_commands(fm.model, f.robot_X, tp.q, tp.F, sigma, compensating)
     valid = None
     if validation is not None:
         base = found[0]
         registered = None if math.isnan(base.training_rms_m) else (
             f if base is chosen else fit(problem, base.fit_model, meas, T0, f.used, loss))
-        valid = validate_rows(problem, f, validation, M0, registered, meas, s_m, trained)
+        valid = validate_rows(problem, f, validation, M0, registered, meas, s_m, compensating)
         if valid.rms("nominal_reregistered") > REGISTRATION_TOL_M:  # the rows of another robot, or units
             raise ProblemError(
                 f"--validation {validation.path}: after the best rigid fit the nominal robot is "
@@ -480,7 +532,8 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
         problem, meas, f, tuple(outliers), std, correlation, sigma_hat, ssr / sigma**2, dof, interval,
         pose_rms(e), np.nanmax(e, axis=1), axes_m, predicted, qc, done, valid,
         None if validation is None else validation.path, None if validation is None else validation.Q,
-        chosen.name, tuple(found), loss, tuple(notes), model, scale, np.sqrt(parameters_var), trained, predicted_field)
+        chosen.name, tuple(found), loss, tuple(notes), model, scale, np.sqrt(parameters_var), trained, predicted_field,
+        compensating is not None)
 
 
 def validation_notes(valid: PoseErrors) -> list[str]:

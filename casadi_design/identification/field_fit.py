@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..measures.field import Field, coupling, kriging_mean, kriging_rho
+from ..measures.field import Field, coupling, kriging_mean, kriging_rho, value_covariance
 
 #: Rows the field is estimated from, at most.
 FIELD_ROWS = 300
@@ -155,3 +155,21 @@ class TrainedField:
         """The error variance (s,), m^2, after compensation with the field at the poses ``Q0``
         of rows ``B0`` (s, r, L): :func:`~casadi_design.measures.field.kriging_rho`."""
         return kriging_rho(self.field, self.sigma, self.B, self.Q, self.axes, self.Wh, B0, Q0, axes0)
+
+    def loo_rms(self, with_field: bool = True) -> float:
+        """The RMS per value (m) of the rows' leave-one-out errors: each row predicted from the
+        others by least squares and, ``with_field``, the field's kriging. For the
+        predictor with projector ``Pi = V^-1 - V^-1 S (S^T V^-1 S)^-1 S^T V^-1`` the row left out
+        is off by ``Pi_ii^-1 (Pi r)_i`` (Dubrule, Cross validation of kriging in a unique
+        neighborhood, 1983); ``V = I`` gives least squares' PRESS residuals."""
+        m, d, L = self.B.shape
+        S = self.B.reshape(m * d, L)
+        V = (value_covariance(self.field, self.Q, self.axes, self.Wh, self.sigma) if with_field
+             else np.eye(m * d))
+        Vi = np.linalg.inv(V)
+        ViS = Vi @ S
+        Pi = Vi - ViS @ np.linalg.solve(S.T @ ViS, ViS.T)
+        a = (Pi @ self.r.reshape(-1)).reshape(m, d)
+        blocks = Pi.reshape(m, d, m, d)[np.arange(m), :, np.arange(m), :]  # (m, d, d)
+        e = np.linalg.solve(blocks, a[:, :, None])[:, :, 0]
+        return float(np.sqrt(np.mean(e**2)))

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from ..records.export import csv_text, is_prismatic, joint_scales, joint_units, plan_table
+from ..records.export import CONVERGED_COLUMN, change_columns, csv_text, is_prismatic, joint_scales, joint_units, plan_table
 from .calibrate import CORRELATION_LIMIT, Calibration
 from .fit import ABSORB_SEED, FRAME_PARAMETERS, error_placement
 from .measurements import file_sha256
@@ -64,10 +64,10 @@ def compensated_table(calibration: Calibration) -> tuple[list[str], list[list]]:
     tp = problem.test_poses
     header, rows = plan_table(problem, calibration.q_compensated, tp.F)
     header = header[: len(rows[0])]  # no clearance columns: the test poses were not checked
-    changes = [f"{j}_change_{joint_units(problem, k)[1]}" for k, j in enumerate(problem.robot.joints)]
+    changes = change_columns(problem)
     scale = joint_scales(problem)
     delta = (calibration.q_compensated - tp.q) / scale
-    return (header + changes + ["converged"],
+    return (header + changes + [CONVERGED_COLUMN],
             [r + list(d) + [bool(c)] for r, d, c in zip(rows, delta, calibration.compensation_converged)])
 
 
@@ -117,6 +117,8 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
         "model_error": None if c.field is None else {
             **c.field.estimate.as_dict(),
             "lengths_unit": "rad (m for a prismatic joint), per joint in the order of 'joints'",
+            "compensates": c.field_compensates,
+            "leave_one_out_rms_m": {"with_the_field": c.field.loo_rms(), "least_squares_alone": c.field.loo_rms(False)},
             "joints": list(problem.robot.joints),
             "meaning": "the robot's unmodelled error as a Gaussian process over the joint configurations, per base "
                        "axis (REML on the residuals of the model identified); --prior designs with it, and with the "
@@ -228,8 +230,8 @@ def summary_lines(calibration: Calibration) -> list[str]:
         fld = c.field.field
         lines.append(f"field of the unmodelled error (REML on {c.field.estimate.rows} rows): scale "
                      f"{fld.scale_m * 1e3:.4f} mm, nugget {fld.nugget_m * 1e3:.4f} mm, lengths "
-                     + ", ".join(f"{v:.3g}" for v in fld.lengths) + " rad per joint; the compensation adds its "
-                     "kriging mean")
+                     + ", ".join(f"{v:.3g}" for v in fld.lengths) + " rad per joint"
+                     + ("; the compensation adds its kriging mean" if c.field_compensates else ""))
     lines += [f"correlated beyond {CORRELATION_LIMIT}: {label(a)} / {label(b)} ({r:+.3f})"
               for a, b, r in c.correlated_pairs()]
     lines += [f"outlier excluded: row {line} ({r:.1f} x the other rows' error {s * 1e3:.4g} mm per value)" for line, r, s in c.outliers]

@@ -44,6 +44,15 @@ MEASURED_COLUMN = "measured"
 #: Columns written for people with a [cell] and ignored when read: the experiment's clearance on
 #: the real geometry (mm) and the two closest bodies.
 CLEARANCE_COLUMNS = ("clearance_mm", "closest_bodies")
+#: Columns of ``identify``'s compensated_test_poses.csv beside a plan's, ignored when read (the
+#: file is a plan: program and evaluate take it): whether the compensation converged, and each
+#: joint's change from the test pose (``<joint>_change_<unit>``, :func:`change_columns`).
+CONVERGED_COLUMN = "converged"
+
+
+def change_columns(problem: Problem) -> list[str]:
+    """The compensated test poses' change of each joint from the test pose, in its unit for people."""
+    return [f"{j}_change_{joint_units(problem, k)[1]}" for k, j in enumerate(problem.robot.joints)]
 
 
 def is_prismatic(problem: Problem, k: int) -> bool:
@@ -306,7 +315,8 @@ def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[
             columns[f"{name}_{si}"] = (k, 1.0)
             columns[f"{name}_{people}"] = (k, scale)
     forces = force_columns(problem)
-    allowed = set(columns) | set(forces) | {"experiment", MEASURED_COLUMN, *POSITION_COLUMNS, *CLEARANCE_COLUMNS, *extra}
+    allowed = set(columns) | set(forces) | {"experiment", MEASURED_COLUMN, *POSITION_COLUMNS, *CLEARANCE_COLUMNS,
+                                            CONVERGED_COLUMN, *change_columns(problem), *extra}
     if "" in header:
         raise ProblemError(f"{path}: column {header.index('') + 1} of the header has no name; "
                            "name it or delete the column")

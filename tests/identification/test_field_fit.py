@@ -115,6 +115,11 @@ def test_a_second_round_designs_with_the_first_round_s_field(ipa, tmp_path, caps
                  "--columns", "measurement_x=meas_x,measurement_y=meas_y,measurement_z=meas_z",
                  "--out", str(out), "-q"]) == 0
     record = json.loads((out / "identification.json").read_text())
+    # the compensated test poses are a plan: program writes them (its robot targets)
+    assert main(["program", str(PROBLEM), "--plan", str(out / "compensated_test_poses.csv"), "--format", "json",
+                 "--out", str(tmp_path / "program"), "-q"]) == 0
+    targets = json.loads((tmp_path / "program" / "program.json").read_text())
+    assert len(targets["order"]) == len(record["test_poses"]["q_compensated"])
     error = record["model_error"]
     assert error["scale_m"] > 10 * problem.sigma_m and len(error["lengths"]) == 6
     assert len(error["poses"]["q"]) == 40
@@ -127,3 +132,22 @@ def test_a_second_round_designs_with_the_first_round_s_field(ipa, tmp_path, caps
     Q = training.Q[:8]
     scores = plan_scores(second, Q, training.F[:8])
     assert math.isfinite(scores.max_rms_error_m) and scores.max_rms_error_m > error["scale_m"] * 0.1
+
+
+def test_a_user_s_poses_are_compensated_as_the_test_poses(ipa):
+    """compensated(cal, Q) on the test poses gives compensated_test_poses.csv's commands, and on
+    other poses puts the calibrated robot plus the field's mean on their nominal targets."""
+    from casadi_design.identification.calibrate import compensated
+
+    problem, training, held_out = ipa
+    cal = calibrate(problem, training)
+    tp = cal.problem.test_poses
+    q, ok = compensated(cal, tp.q)
+    np.testing.assert_allclose(q, cal.q_compensated, rtol=0, atol=1e-12)
+    Q = held_out.Q[:5]
+    q, ok = compensated(cal, Q)
+    model = cal.fit.fit.model
+    shift = cal.field.shift(Q) if cal.field_compensates else 0.0
+    reached = model_points(model, q, np.zeros((5, 0)), cal.fit.robot_X)[:, 0] + shift
+    assert ok.all()
+    np.testing.assert_allclose(reached, nominal_poses(model, Q, np.zeros((5, 0)))[:, 9:], rtol=0, atol=2e-6)
