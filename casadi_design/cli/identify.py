@@ -24,8 +24,8 @@ DESCRIPTION = (
     "outliers are excluded one at a time. Writes to --out: identification.json (SI units), "
     "identification.md and identification.png, compensated_test_poses.csv, calibrated.urdf, "
     "calibrated.toml (a problem file of the calibrated robot), for a DH robot calibrated_dh.toml "
-    "(the same with the corrected DH table, Hayati's beta for nearly parallel axes) and, with "
-    "compliances, identified_compliances.toml.")
+    "(the same with the corrected DH table, Hayati's beta for nearly parallel axes), with "
+    "compliances identified_compliances.toml, and viewer.html (measured and model points, residuals).")
 
 
 def load_without_cell(path: str):
@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         texts["identified_compliances.toml"] = toml_text(
             record, header + "\nidentified joint compliances (a URDF cannot hold them)")
     figure = identification_figure(cal)
-    names = ["identification.json", "identification.md", "identification.png", *texts]
+    names = ["identification.json", "identification.md", "identification.png", *texts, "viewer.html"]
     texts["identification.md"] = report_markdown(cal, ["identification.png"], names)
     files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml",
              "compensated_test_poses": "compensated_test_poses.csv", "report": "identification.md",
@@ -165,5 +165,8 @@ def run(args: argparse.Namespace) -> int:
     for name, text in texts.items():
         write_atomic(out / name, text.encode())
     write_json(out / "identification.json", record_text)
+    from ..reports.viewer import write_identification_viewer
+
+    write_identification_viewer(out, cal)  # the measured points and the model's, in the cell
     say(args, f"wrote {', '.join(names)} in {out}")
     return 0

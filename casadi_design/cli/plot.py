@@ -9,9 +9,10 @@ from ..errors import OutputError
 from ..records.files import read_results
 from . import common
 
-HELP = "redraw the figures from results.json or sweep.json"
+HELP = "redraw the figures and viewer.html from results.json or sweep.json"
 DESCRIPTION = ("Redraw fig1 (error bands along the test poses, mm) and, for a sweep, sweep_max_error "
-               "(max error in mm vs m) from a results file, without solving.")
+               "(max error in mm vs m) from a results file, without solving; and viewer.html (every plan "
+               "in its cell, one pose at a time) from the results' problem file.")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -46,11 +47,18 @@ def run(args: argparse.Namespace) -> int:
                             common.fig_m(args.m, available, (), "--m"))}
     if "sweep" in record:
         figures["sweep_max_error"] = sweep_figure(sweep_from_record(record), args.log)
+    from ..reports.viewer import VIEWER_NAME, results_problem, write_viewer
+
+    problem, why = results_problem(record)  # viewer.html needs the robot and its cell
     targets = [out / f"{stem}.{fmt}" for stem in figures for fmt in args.format]
+    targets += [out / VIEWER_NAME] if problem is not None else []
     existing = [t for t in targets if t.exists()]
     if existing and not args.force:
         raise OutputError(f"{existing[0]}: exists; add --force to overwrite it (or choose another --out)")
     for stem, fig in figures.items():
         save_figures(fig, [out / f"{stem}.{fmt}" for fmt in args.format])
-    common.say(args, "wrote " + ", ".join(str(t) for t in targets))
+    if problem is not None:
+        write_viewer(out, problem, designs)
+    common.say(args, "wrote " + ", ".join(str(t) for t in targets)
+               + ("" if problem is not None else f"; no {VIEWER_NAME}: {why}"))
     return 0

@@ -20,7 +20,7 @@ DESCRIPTION = ("Order the experiments of a plan CSV to save time (load changes f
                "whole path (capsule rows, the meshes where they come closest, the tracker's beam), give "
                "blocked moves via points, and write the program: URScript (program.script), ABB RAPID "
                "(program.mod), KUKA KRL (program.src), the ROS robot_calibration poses YAML (program.yaml) "
-               "or a JSON joint trajectory (program.json).")
+               "or a JSON joint trajectory (program.json), and viewer.html (the route in the cell).")
 #: Measuring time per experiment (s) when not given: the tracker settles and averages.
 MEASURE_S = 3.0
 
@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "poses' seed_q_deg, else the middle of the joint limits")
     p.add_argument("--measure-s", type=common.number("--measure-s", "a time in s >= 0", strict=False), default=MEASURE_S, metavar="S",
                    help=f"measuring time per experiment, s (default {MEASURE_S:g})")
-    p.add_argument("--out", metavar="DIR", help="folder for the program file (created if missing)")
+    p.add_argument("--out", metavar="DIR", help="folder for the program file and viewer.html (created if missing)")
     p.add_argument("--force", action="store_true", help="write into --out even if it is not empty")
     common.add_common(p)
     p.set_defaults(run=run)
@@ -96,8 +96,11 @@ def run(args: argparse.Namespace) -> int:
     print(report(problem, program, args.plan))
     common.say(args, f"ordered, checked and written in {wall:.2f} s")
     if out:
+        from ..reports.viewer import write_program_viewer
+
         write_atomic(out / FILES[args.format], text.encode())
-        common.say(args, f"wrote {out / FILES[args.format]}")
+        shown = write_program_viewer(out, problem, Q, F, program, str(args.plan))  # the route in the cell
+        common.say(args, f"wrote {out / FILES[args.format]}, {out / shown[0]}")
     return 0
 
 
@@ -124,9 +127,10 @@ def report(problem, program, plan: str | Path) -> str:
     return "\n".join(lines)
 
 
-def write_programs(out: Path, problem, designs, fmt: str) -> list[str]:
+def write_programs(out: Path, problem, designs, fmt: str, programs: dict | None = None) -> list[str]:
     """Each design's plan as ``out/programs/<criterion>_m<m>.<ext>`` in format ``fmt``, from
-    the default home with the default measuring time; returns the file names."""
+    the default home with the default measuring time; returns the file names (``programs``:
+    filled with each (criterion, m)'s program, for the viewer)."""
     from ..program.formats import FILES, check_format, program_text
     from ..program.sequence import make_program
 
@@ -142,4 +146,6 @@ def write_programs(out: Path, problem, designs, fmt: str) -> list[str]:
                               "--home") from None
         write_atomic(out / name, program_text(problem, program, fmt, f"plans/{d.criterion}_m{d.m}.csv", name).encode())
         names.append(name)
+        if programs is not None:
+            programs[d.criterion, d.m] = program
     return names

@@ -21,7 +21,7 @@ DESCRIPTION = ("Design the optimal plans of a problem file for each criterion an
                "experiments m; print the max error along the test poses (mm, Table 4) and solve "
                "statistics; with --out write results.json (SI units), fig1.png/pdf, "
                "plans/<criterion>_m<m>.csv (joint values in deg and rad, load in N, measured point "
-               "in mm) and report.md.")
+               "in mm), viewer.html (every plan in its cell, one pose at a time, offline) and report.md.")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -63,19 +63,23 @@ def run(args: argparse.Namespace) -> int:
         with writing(study):
             files = write_solve(out, problem, done, fig_m)
         if args.program:  # (the results are written: a plan that cannot be programmed says so)
+            from ..reports.viewer import write_viewer
             from .program import write_programs
 
-            files += write_programs(out, problem, designs, args.program)
+            programs: dict = {}
+            files += write_programs(out, problem, designs, args.program, programs)
+            write_viewer(out, problem, designs, programs)  # viewer.html again, with the routes
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
                          f"and {common.count(len(designs), 'plan')} in {out / 'plans'}")
     return 0
 
 
 def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -> list[str]:
-    """results.json, fig1, the poses figure (with a [cell]), the plans and report.md."""
+    """results.json, fig1, the poses figure (with a [cell]), the plans, viewer.html and report.md."""
     from ..records.export import report_markdown, write_plans
     from ..records.files import write_results
     from ..reports.plotting import fig1, poses_figure, write_figures
+    from ..reports.viewer import write_viewer
 
     designs, first = list(done.designs.values()), done.criteria[0]
     target = None if done.target is None else done.target.as_dict()
@@ -89,6 +93,7 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
         figures.append((f"The robot in the cell in every experiment ({first} plans), the "
                         "tracker's beams and the test poses", "poses.png"))
     files += write_plans(out, problem, designs)
+    files += write_viewer(out, problem, designs)  # every plan in its cell, one pose at a time
     report = report_markdown(problem, designs, table=format_table(designs), figures=figures,
                              plans_for=fig_m, files=files, starts=done.settings.starts_text(),
                              notes=[] if target is None else [target["answer"]])

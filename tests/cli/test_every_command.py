@@ -99,6 +99,8 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
         assert all(e["clearance_m"] >= problem.cell.spec.clearance_m - FEASIBILITY_TOL for e in design["experiments"])
         assert [e["clearance_m"] for e in evaluation["experiments"]] == [e["clearance_m"] for e in design["experiments"]]
     assert (tmp_path / "figures" / "sweep_max_error.png").stat().st_size > 0
+    for folder in (solved, second, tmp_path / "figures", tmp_path / "program", tmp_path / "identify"):
+        assert (folder / "viewer.html").stat().st_size > 0  # tests/reports/test_viewer.py opens them
     assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == 4
     identified = json.loads((tmp_path / "identify" / "identification.json").read_text())
     assert identified["residual_rms_m"] < 1e-5 and (tmp_path / "identify" / "calibrated.urdf").stat().st_size > 0
