@@ -326,10 +326,10 @@ def run_campaign(
     given = dict(approx or {})
     approx = {**approximate_designs(problem, [a for a in aims(problem, criteria, ms) if a not in given],
                                     settings.bound_steps, settings.bound_pool, executor), **given}
-    _one_by_one(criteria, ms, designs, lambda c, m: _bounded(problem, solve_design(
+    _one_by_one(criteria, ms, designs, lambda c, m: _with_field(problem, _bounded(problem, solve_design(
         problem, c, m, starts=settings.seeded(c), verbose=settings.verbose,
         initial_plans=_later_starts(problem, c, m, designs, approx, extra_starts),
-        executor=executor, progress=progress), approx), on_design, progress)
+        executor=executor, progress=progress), approx), designs, settings), on_design, progress)
     return Campaign(criteria, ms, settings, {(c, m): designs[c, m] for m in ms for c in criteria}, approx)
 
 
@@ -385,6 +385,18 @@ def _later_starts(problem: Problem, c: str, m: int, designs: dict, approx: dict,
     a = approx.get(start_aim(problem, c, m))
     return extra + ([(Q, F, ROUNDED) for Q, F in rounded_plans(problem, a, m, CRITERIA[c].rounded)]
                     if a is not None else [])
+
+
+def _with_field(problem: Problem, design: Design, designs: dict, settings: Settings) -> Design:
+    """``design``, of a criterion that weighs the problem's field, exchanged with the field over
+    its own and the other ``designs``' experiments and sampled ones
+    (:func:`casadi_design.optimisation.pool.field_design`); else itself."""
+    if not field_measure(problem, design.criterion):
+        return design
+    from ..optimisation.pool import field_design
+
+    others = [d for key, d in designs.items() if key != (design.criterion, design.m)]
+    return field_design(problem, design, others, settings.seeded(design.criterion))
 
 
 def _bounded(problem: Problem, design: Design, approx: dict) -> Design:
@@ -549,7 +561,8 @@ class _Pipeline:
             except DesignError as exc:  # raised once every design before it is judged, as serially
                 d.error = exc
                 continue
-            self.designs[d.criterion, d.m] = design = _bounded(self.problem, design, self.approx)
+            self.designs[d.criterion, d.m] = design = _with_field(
+                self.problem, _bounded(self.problem, design, self.approx), self.designs, self.settings)
             if self.on_design is not None:
                 self.on_design(design)
         failed = next((k for k, d in enumerate(self.todo) if d.error is not None), None)

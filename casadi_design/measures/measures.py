@@ -74,13 +74,39 @@ def rho_at_test_poses(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray
 
     Infinite where ``M`` is singular.
     """
+    return rho_of_plans(np.asarray(M, dtype=float)[None], B0, sigma)[0]
+
+
+def rho_of_plans(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
+    """``rho_j`` (k, s), m^2, of k plans' information matrices ``M`` (k, L, L) at once:
+    ``sigma^2 |C^-1 B0_j^T|^2`` with ``M = C C^T``; infinite for a plan whose ``M`` is not
+    positive definite."""
     B0 = np.asarray(B0, dtype=float)
+    rho = np.full((len(M), B0.shape[0]), np.inf)
     try:
         C = np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        return np.full(B0.shape[0], np.inf)
-    Y = np.linalg.solve(C, B0.transpose(0, 2, 1))
-    return sigma**2 * np.einsum("sij,sij->s", Y, Y)
+    except np.linalg.LinAlgError:  # some singular: each on its own
+        for i, Mi in enumerate(M):
+            try:
+                rho[i] = rho_of_plans(Mi[None], B0, sigma)[0]
+            except np.linalg.LinAlgError:
+                pass
+        return rho
+    Y = np.linalg.solve(C[:, None], B0.transpose(0, 2, 1)[None])  # (k, s, L, r)
+    return sigma**2 * np.einsum("ksij,ksij->ks", Y, Y)
+
+
+def plan_spectra(M: np.ndarray, B0: np.ndarray, sigma: float) -> list[PlanSpectrum]:
+    """What the scores of k plans are computed from (:class:`~casadi_design.measures.criteria.PlanSpectrum`),
+    their information matrices ``M`` (k, L, L) at once: the eigenvalues, ``rho`` at the test
+    poses (infinite for a plan that does not identify X), the trace."""
+    lam = np.clip(np.linalg.eigvalsh(M)[:, ::-1], 0.0, None)
+    regular = lam[:, -1] > SINGULAR_RTOL * np.maximum(lam[:, 0], np.finfo(float).tiny)
+    rho = np.full((len(M), np.shape(B0)[0]), np.inf)
+    if regular.any():
+        rho[regular] = rho_of_plans(M[regular], B0, sigma)
+    trace = np.trace(M, axis1=1, axis2=2)
+    return [PlanSpectrum(l, np.sqrt(l), r, float(t), bool(ok)) for l, r, t, ok in zip(lam, rho, trace, regular)]
 
 
 def observability_indices(sv: np.ndarray, m: int) -> dict[str, float]:
@@ -121,17 +147,12 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray |
     M = information_matrix(B)
     if M_held is not None:
         M = M + M_held
-    lam = np.clip(np.linalg.eigvalsh(M)[::-1], 0.0, None)
-    sv = np.sqrt(lam)
-    identifiable = bool(lam[-1] > SINGULAR_RTOL * max(lam[0], np.finfo(float).tiny))
-    if not identifiable:
-        rho = np.full(np.shape(B0)[0], np.inf)
-    elif rho is None:
-        rho = rho_at_test_poses(M, B0, sigma)
-    spectrum = PlanSpectrum(lam, sv, rho, float(np.trace(M)), identifiable)
+    spectrum = plan_spectra(M[None], B0, sigma)[0]
+    if rho is not None and spectrum.identifiable:
+        spectrum = spectrum._replace(rho=np.asarray(rho, dtype=float))
     return Scores(
-        rms_error_m=np.sqrt(rho),
+        rms_error_m=np.sqrt(spectrum.rho),
         values={c.score: c.score_of(spectrum) for c in CRITERIA.values()},
-        observability=observability_indices(sv, B.shape[0] + m_held),
-        identifiable=identifiable,
+        observability=observability_indices(spectrum.sv, B.shape[0] + m_held),
+        identifiable=spectrum.identifiable,
     )

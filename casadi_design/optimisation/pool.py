@@ -21,18 +21,20 @@ not every plan of the robot.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from ..errors import ProblemError
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA, PlanSpectrum
 from ..measures.field import axes_of, field_measure, kriging_rho_added
-from ..measures.measures import Scores, information_matrices
+from ..measures.measures import Scores, information_matrices, plan_spectra
 from ..model.cell import clearances
 from ..model.build import Problem
 from ..plan.design import Design, StartRecord
 from ..plan.rules import plan_violations
 from .bound import bound, pool_design
+from ..plan.sampling import random_plan
 from .solve import plan_scores, start_rng
 
 #: Status of a start whose exchange ended (no swap improves): a converged start.
@@ -64,10 +66,14 @@ def _added_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], 
     with the problem's field on a criterion that weighs it, every plan at once
     (:func:`~casadi_design.measures.field.kriging_rho_added`, scored by the criterion's own
     score of rho); else each plan's scores."""
-    if not field_measure(problem, criterion) or not cands:
-        return np.array([_key(criterion, _scores(problem, pool, rest + [c], criterion).value(criterion))
-                         for c in cands])
+    score = CRITERIA[criterion].score_of
     Q, F, B = pool
+    if not cands:
+        return np.zeros(0)
+    if not field_measure(problem, criterion):  # M of every plan at once, scored by the criterion
+        A = information_matrices(B[rest]).sum(axis=0) if rest else 0.0
+        M = (0.0 if problem.M_held is None else problem.M_held) + A + information_matrices(B[cands])
+        return np.array([_key(criterion, score(sp)) for sp in plan_spectra(M, problem.B0, problem.sigma_m)])
     model = problem.model
     Qh, Fh = problem.field_held
     Qr, Br = np.vstack([Qh, Q[rest]]), np.concatenate([model.B_stack(Qh, Fh), B[rest]]) if len(Qh) else B[rest]
@@ -77,7 +83,6 @@ def _added_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], 
     rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Qr, B[cands], Q[cands],
                             axes_of(model.measured_rows, len(model.markers_m)), Wh, problem.B0,
                             problem.test_poses.q, axes_of(model.accuracy_rows), problem.field_prior)
-    score = CRITERIA[criterion].score_of
     return np.array([_key(criterion, score(PlanSpectrum(None, None, r, None, True))) if np.all(np.isfinite(r))
                      else np.inf for r in rho])
 
@@ -136,10 +141,11 @@ def kept_postures(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[np.nd
 
 
 def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np.ndarray,
-                  starts: int, with_bound: bool = True) -> Design:
+                  starts: int, with_bound: bool = True, initial: tuple[tuple[str, list[int]], ...] = ()) -> Design:
     """The plan of m postures of the pool ``Q`` (k, n), rad, ``F`` (k, nF), N that is best by
     ``criterion`` (module docstring), with the pool's bound when the criterion has one. The
-    pool's postures keep the problem's rules (:func:`kept_postures`).
+    pool's postures keep the problem's rules (:func:`kept_postures`). ``initial``: (origin,
+    indices of m postures) exchanged first, beside the greedy plan and the others.
 
     Raises
     ------
@@ -157,7 +163,7 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
     approx = (pool_design(problem, criterion, Q, F, A, m)
               if with_bound and criterion in BOUND_CRITERIA and not field_measure(problem, criterion) else None)
     rng = start_rng(problem.solver.seed, criterion, m)
-    first = [("greedy", _greedy(problem, criterion, m, pool, A))]
+    first = [*initial, ("greedy", _greedy(problem, criterion, m, pool, A))]
     if approx is not None:
         first.append(("heaviest of the pool's approximate design", list(np.argsort(approx.weights)[::-1][:m])))
     first += [("seeded", list(rng.choice(k, size=m, replace=False))) for _ in range(starts)]
@@ -176,3 +182,36 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
     return Design(criterion, m, Q[S], F[S], scores, rec.status, tuple(records), time.perf_counter() - t0,
                   problem.solver.seed, bound=None if approx is None else bound(problem, m, approx),
                   clearances=tuple(clearances(problem.cell, Q[S])) if problem.cell else None)
+
+
+#: Random feasible experiments of the pool a free design of a criterion that weighs the field is
+#: exchanged over (:func:`field_design`), beside the campaign's plans' experiments.
+FIELD_POOL = 300
+
+
+def field_design(problem: Problem, design: Design, others: list[Design], starts: int) -> Design:
+    """A free (continuous) design of a criterion that weighs the problem's field
+    (:func:`~casadi_design.measures.field.field_measure`): the NLP optimised the criterion
+    without the field (its kriging has no NLP form here); the plan is then exchanged, with
+    the field, over a pool of its own experiments, those of the campaign's ``others`` plans,
+    ``FIELD_POOL`` random feasible experiments (seeded) and, without loads, the test poses that
+    keep the rules (where the field rewards measuring), from the NLP's plan first. The better of
+    the two by the criterion with the field; its starts record both."""
+    rng = start_rng(problem.solver.seed, design.criterion, design.m)
+    Qr, Fr = random_plan(problem, FIELD_POOL, rng)
+    Qs = [design.Q, *(d.Q for d in others), Qr]
+    Fs = [design.F, *(d.F for d in others), Fr]
+    if problem.model.nF == 0:
+        Qs.append(problem.test_poses.q)
+        Fs.append(np.zeros((problem.test_poses.s, 0)))
+    Q, F = np.vstack(Qs), np.vstack(Fs)
+    ok, _, _ = kept_postures(problem, Q, F)
+    ok[:design.m] = True  # the NLP's plan keeps the rules (it was checked)
+    keep = np.flatnonzero(ok)
+    chosen = choose_design(problem, design.criterion, design.m, Q[keep], F[keep], starts, with_bound=False,
+                           initial=(("the NLP's plan", list(range(design.m))),))
+    better = CRITERIA[design.criterion].better(chosen.scores.value(design.criterion), design.scores.value(design.criterion))
+    starts_of = design.starts + tuple(replace(r, origin=f"exchange with the field: {r.origin}") for r in chosen.starts)
+    if not better:
+        return replace(design, starts=starts_of)
+    return replace(chosen, starts=starts_of, wall_s=design.wall_s + chosen.wall_s, status=chosen.status)

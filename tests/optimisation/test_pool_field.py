@@ -80,3 +80,28 @@ def test_the_plan_with_the_field_beats_d_at_the_test_poses(case):
         held_out[name] = float(np.sqrt(np.mean(err)))
     assert held_out["test-pose"] < 0.8 * held_out["D"], held_out
     assert plans["test-pose"].scores.max_rms_error_m < plans["D"].scores.max_rms_error_m
+
+
+def test_a_free_design_with_a_field_is_exchanged_with_it_and_has_no_bound(tmp_path, capsys):
+    """solve without --candidates on the paper's arm with a field: the output says the measure
+    holds it; the test-pose plan is at least as good with the field as the NLP's plan scored
+    with it, D is as without the field, and test-pose has no bound."""
+    import json
+
+    from casadi_design.cli import main
+
+    text = (ROOT / "problems" / "paper_planar_2r.toml").read_text().replace(
+        '[measurement]', '[calibration.model_error]\nscale_m = 5e-4\nlength_rad = 0.5\n\n[measurement]')
+    (tmp_path / "paper_field.toml").write_text(text)
+    assert main(["solve", str(tmp_path / "paper_field.toml"), "--m", "3", "--criteria", "test-pose,D",
+                 "--starts", "2", "--out", str(tmp_path / "out"), "-q"]) == 0
+    printed = capsys.readouterr().out
+    assert "model error: test-pose and I weigh the robot's unmodelled error" in printed
+    record = json.loads((tmp_path / "out" / "results.json").read_text())
+    designs = {d["criterion"]: d for d in record["designs"]}
+    tp = designs["test-pose"]
+    assert tp["bound"] is None and designs["D"]["bound"] is not None
+    starts = tp["solver"]["per_start"]
+    nlp = [s for s in starts if not s["origin"].startswith("exchange with the field")]
+    assert len(nlp) < len(starts) and any(s["origin"] == "exchange with the field: the NLP's plan" for s in starts)
+    assert tp["max_rms_error_m"] <= min(s["max_rms_error_m"] for s in nlp if s["feasible"]) + 1e-15
