@@ -19,10 +19,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from casadi_design.runtime.threads import fixed_blas  # noqa: E402
+
+fixed_blas()  # one BLAS thread, as every command (before numpy loads)
+
+import numpy as np  # noqa: E402
 
 from casadi_design.cli.identify import load_without_cell  # noqa: E402
 from casadi_design.identification.calibrate import calibrate  # noqa: E402

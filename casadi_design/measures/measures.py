@@ -92,8 +92,10 @@ def rho_of_plans(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
             except np.linalg.LinAlgError:
                 pass
         return rho
-    Y = np.linalg.solve(C[:, None], B0.transpose(0, 2, 1)[None])  # (k, s, L, r)
-    return sigma**2 * np.einsum("ksij,ksij->ks", Y, Y)
+    s, r, L = B0.shape
+    rhs = np.broadcast_to(B0.transpose(2, 0, 1).reshape(L, s * r), (len(M), L, s * r))
+    Y = np.linalg.solve(C, rhs).reshape(len(M), L, s, r)  # one solve per plan, every test pose its right-hand side
+    return sigma**2 * np.einsum("kisj,kisj->ks", Y, Y)
 
 
 def plan_spectra(M: np.ndarray, B0: np.ndarray, sigma: float) -> list[PlanSpectrum]:
