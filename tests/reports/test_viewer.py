@@ -356,6 +356,7 @@ def _dh_arm():
     return build_problem(parse_problem(tomllib.loads(CRAIG_TOML), "craig.toml"))
 
 
+@pytest.mark.slow  # 20 s in a browser; the default run opens the UR10's and the paper's
 @browser
 @pytest.mark.parametrize("make, source", [(lambda: load_problem(ABB), "capsules of the cell"),
                                           (_panda, "URDF visual meshes"), (_dh_arm, "sticks")],
