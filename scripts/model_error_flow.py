@@ -6,8 +6,8 @@ A compact test region: the 200 mm cube of the series' measured points that holds
 (the nominal robot's points); 27 of its rows are the test poses, the others are held out near
 it. The pool: ``--pool`` rows outside the cube. Round 1: ``--first`` random rows of the pool,
 identified (``identify``: the field estimated). Round 2, for each m: ``solve --candidates POOL
---prior id1/identification.json`` with test-pose (the field) and D, and ``--random`` random
-subsets of the pool; each plan's rows (their real measurements) identified with round 1's
+--prior id1/identification.json`` with test-pose (the field) and D, test-pose with the same prior
+less its field (the paper's measure), and ``--random`` random subsets of the pool; each plan's rows (their real measurements) identified with round 1's
 (``identify --measurements r1 --measurements r2 --same-frame --validation NEAR``). Printed per
 plan: the held-out RMS near the test region calibrated, and compensated with the field, its
 max over the rows, the predicted max sqrt(rho) at the test poses (with the field), and the floor
@@ -106,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     header = ",".join(f"{j}_rad" for j in base.robot.joints)
     (out / "pool.csv").write_text("\n".join([header, *(",".join(f"{v:.9g}" for v in series.Q[i]) for i in rest)]) + "\n")
     identify(out / "id1", problem, [r1], near_csv)
+    record = json.loads((out / "id1" / "identification.json").read_text())
+    without_field = out / "id1" / "identification_without_field.json"
+    without_field.write_text(json.dumps({**record, "model_error": None}))
     print(f"test region: {len(region)} rows in a 200 mm cube ({TEST_POSES} test poses, {len(near)} held out near "
           f"it); pool {len(rest)} rows outside it; round 1: {len(first)} random rows of the pool", flush=True)
     # the floor of a geometric model: the problem's base set fitted to the held-out rows themselves
@@ -126,6 +129,11 @@ def main(argv: list[str] | None = None) -> int:
              "--out", str(solved), "--force", "-q"], out / "commands.log")
         plans = {c: np.genfromtxt(solved / "plans" / f"{c}_m{m}.csv", delimiter=",", names=True)
                  for c in ("test-pose", "D")}
+        blind = solved.parent / f"solve_nofield_m{m}"  # the same prior without its field: the paper's measure
+        run(["solve", str(problem), "--candidates", str(out / "pool.csv"), "--prior", str(without_field),
+             "--m", str(m), "--criteria", "test-pose", "--out", str(blind), "--force", "-q"], out / "commands.log")
+        plans["test-pose without the field"] = np.genfromtxt(blind / "plans" / f"test-pose_m{m}.csv", delimiter=",",
+                                                             names=True)
         picks = {c: [index[tuple(np.round([row[f"{j}_rad"] for j in base.robot.joints], 9))] for row in np.atleast_1d(t)]
                  for c, t in plans.items()}
         picks |= {f"random {k + 1}": list(rng.choice(rest, m, replace=False)) for k in range(args.random)}

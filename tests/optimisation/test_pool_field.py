@@ -105,3 +105,14 @@ def test_a_free_design_with_a_field_is_exchanged_with_it_and_has_no_bound(tmp_pa
     nlp = [s for s in starts if not s["origin"].startswith("exchange with the field")]
     assert len(nlp) < len(starts) and any(s["origin"] == "exchange with the field: the NLP's plan" for s in starts)
     assert tp["max_rms_error_m"] <= min(s["max_rms_error_m"] for s in nlp if s["feasible"]) + 1e-15
+
+
+def test_the_bound_command_refuses_a_field(tmp_path, capsys):
+    from casadi_design.cli import main
+
+    text = (ROOT / "problems" / "paper_planar_2r.toml").read_text().replace(
+        '[measurement]', '[calibration.model_error]\nscale_m = 5e-4\nlength_rad = 0.5\n\n[measurement]')
+    (tmp_path / "paper_field.toml").write_text(text)
+    assert main(["bound", str(tmp_path / "paper_field.toml"), "--m", "3"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not hold; bound the paper's measure without the field" in err
