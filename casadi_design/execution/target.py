@@ -8,7 +8,8 @@ experiments and falls with m, so no m whose bound exceeds T can reach it: the se
 smallest m whose bound is at most T (one approximate design serves every m; with information
 held, one per m, found by bisection), and designs from there up until a plan reaches T. The
 answer says whether m - 1 is excluded by its bound ("cannot") or was only not reached by its
-design ("might"). Without a bound (``bound_steps`` 0) the designs start at the smallest m.
+design ("might"). Without a bound (``bound_steps`` 0, or a field of unmodelled error, whose
+experiments are correlated) the designs start at the smallest m.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 from ..model.build import Problem
 from ..optimisation.bound import bound
 from ..plan.design import Design
+from ..measures.field import field_measure
 from .campaign import Campaign, Settings, aim, approximate_designs, has_bound, run_campaign
 
 #: The criterion whose plans the target is met with.
@@ -133,7 +135,7 @@ def run_target(problem: Problem, criteria: tuple[str, ...], first: int, limit: i
 
     lo, hi = first, limit
     m = first
-    bounded = has_bound(TARGET_CRITERION, settings)
+    bounded = has_bound(TARGET_CRITERION, settings) and not field_measure(problem, TARGET_CRITERION)  # (a field: none)
     if bounded and bound_at(hi) > target_m:
         m = limit + 1  # no m up to the limit: only the limit is designed, to show how close it comes
     elif bounded and bound_at(lo) > target_m:  # bound(lo) > T >= bound(hi): the smallest m with bound <= T
