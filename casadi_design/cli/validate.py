@@ -99,6 +99,9 @@ def run(args: argparse.Namespace) -> int:
             problem.spec.held is not None and problem.spec.held.prior_covariance is not None)):
         common.say(args, "note: the prior is not simulated: each trial identifies the campaign's experiments "
                          "by least squares alone, and sqrt(rho) is predicted for them alone")
+    if problem.field is not None:
+        common.say(args, "note: the field of unmodelled error is not simulated: each trial's robot differs from its "
+                         "model by the parameters and the tracker's noise alone, and sqrt(rho) is the paper's measure")
     t0 = time.perf_counter()
     validation = validate(problem, plans, args.trials, args.seed, spreads, source)
     study = (linearisation_study(problem, plans, args.scales, args.trials, args.seed, spreads, source)
