@@ -43,6 +43,9 @@ EXCHANGED = "Solve_Succeeded"
 GREEDY_EPS = 1e-9
 #: Exchange passes of one start at most.
 MAX_PASSES = 200
+#: A swap is taken when it improves the criterion's score by more than this fraction of it: the
+#: exchange does not creep through swaps that move a max error by a nanometre.
+EXCHANGE_RTOL = 1e-6
 
 
 def _scores(problem: Problem, pool: tuple[np.ndarray, np.ndarray, np.ndarray], S: list[int],
@@ -117,7 +120,7 @@ def _exchange(problem: Problem, criterion: str, S: list[int], pool: tuple) -> tu
         for a in range(len(S)):
             keys = _added_keys(problem, criterion, pool, S[:a] + S[a + 1:], out)
             i = int(np.argmin(keys)) if len(keys) else 0
-            if len(keys) and keys[i] < best[0] - 1e-12 * max(1.0, abs(best[0])):
+            if len(keys) and keys[i] < best[0] - EXCHANGE_RTOL * abs(current):
                 best = (keys[i], a, out[i])
         if best[1] is None:
             return S, current, passes
