@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from ..records.export import CONVERGED_COLUMN, change_columns, csv_text, is_prismatic, joint_scales, joint_units, plan_table
+from ..records.export import CONVERGED_COLUMN, change_columns, csv_text, is_prismatic, joint_scales, plan_table
 from .calibrate import CORRELATION_LIMIT, Calibration
 from .fit import ABSORB_SEED, FRAME_PARAMETERS, error_placement
 from .measurements import file_sha256
