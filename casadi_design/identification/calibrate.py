@@ -51,12 +51,11 @@ import numpy as np
 
 from ..model.build import Problem
 from ..errors import DesignError, ProblemError
-from ..measures.field import axes_of
 from ..measures.measures import information_matrix, rho_at_test_poses
 from .choice import MODELS, NEGATIVE_STD, Candidate, candidates, choose, has_weight, negative_compliances
 from .compensate import compensate
 from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, frames_projected, in_tracker, model_points, point_errors, pose_rms,
-                  REGISTRATION_TOL_M, register, row_errors, whitening)
+                  REGISTRATION_TOL_M, register, row_errors)
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
@@ -288,29 +287,32 @@ def fit_without_outliers(problem: Problem, fm: FitModel, meas: Measurements, T0:
         used, f = trial, refit
 
 
-def design_information(f: Fit, meas: Measurements) -> np.ndarray:
-    """``M = sum B_i^T B_i`` of the rows and values of ``meas`` the fit used, ``B`` at X = 0
-    for the physical parameters: the information matrix of the design's measure for the plan
-    that was measured (the standard deviations use ``J`` at the estimate), plus a MAP fit's
-    prior ``diag((sigma / std)^2)``."""
+def design_rows(f: Fit, meas: Measurements) -> np.ndarray:
+    """``B`` (m, d, L) at X = 0 of the rows of ``meas`` for the fit's physical parameters, the
+    values not measured zero and, with several tracker frames, the later rounds' frames
+    projected out (unknown): the design's rows of the plan that was measured."""
     model = f.fit.model
     B = model.B_stack(meas.Q, meas.F) * model.column_scale * f.mask[:, :, None]
     if f.frames is not None:  # the later rounds' frames unknown
         B = frames_projected(B, f.frame_of, f.used, len(f.fit.frame_names))
-    return f.with_prior(information_matrix(B[f.used]))
+    return B
+
+
+def design_information(f: Fit, meas: Measurements) -> np.ndarray:
+    """``M = sum B_i^T B_i`` of the rows and values of ``meas`` the fit used
+    (:func:`design_rows`): the information matrix of the design's measure for the plan that
+    was measured (the standard deviations use ``J`` at the estimate), plus a MAP fit's prior
+    ``diag((sigma / std)^2)``."""
+    return f.with_prior(information_matrix(design_rows(f, meas)[f.used]))
 
 
 def train_field(problem: Problem, f: Fit, meas: Measurements) -> TrainedField:
     """The unmodelled error's field of the fit's rows used (:func:`~.field_fit.estimate_field`),
     with what predicts and corrects it at other poses: their residuals and their rows ``B`` at
-    X = 0 (as :func:`design_information`'s)."""
-    model = f.fit.model
+    X = 0 (:func:`design_rows`)."""
     used = f.used
-    axes = axes_of(model.measured_rows, len(model.markers_m))
-    Wh = whitening(problem)
-    B = model.B_stack(meas.Q, meas.F) * model.column_scale * f.mask[:, :, None]
-    if f.frames is not None:
-        B = frames_projected(B, f.frame_of, used, len(f.fit.frame_names))
+    axes, Wh = problem.field_axes[0], problem.whitening
+    B = design_rows(f, meas)
     estimate = estimate_field(f.r[used], f.J[used], meas.Q[used], axes, Wh, problem.sigma_m)
     rows = np.flatnonzero(used)
     if len(rows) > KRIGING_ROWS:  # the kriging's cost is cubic in the rows
@@ -512,8 +514,7 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     M0 = design_information(f, meas)
     parameters_var = rho_at_test_poses(M0, B0, s_m)  # s^2 trace(B0 M^-1 B0^T)
     predicted = np.sqrt(parameters_var + B0.shape[1] * scale.tau_m**2)  # + the pose's own unmodelled error
-    axes0 = axes_of(fm.model.accuracy_rows)
-    predicted_field = None if compensating is None else np.sqrt(compensating.rho(B0, tp.q, axes0))
+    predicted_field = None if compensating is None else np.sqrt(compensating.rho(B0, tp.q, problem.field_axes[1]))
     qc, done = corrected_commands(fm.model, f.robot_X, tp.q, tp.F, sigma, compensating)
     valid = None
     if validation is not None:

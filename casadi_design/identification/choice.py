@@ -44,7 +44,7 @@ import numpy as np
 from ..model.build import Problem
 from ..model.symbolic import carried_weights
 from ..errors import DesignError, ProblemError
-from .fit import Fit, FitModel, fit, fit_model, row_errors, whitening
+from .fit import Fit, FitModel, fit, fit_model, row_errors
 from .measurements import Measurements, measured_axes
 from .residuals import leverages, press
 
@@ -119,7 +119,7 @@ def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float,
     e, _, needed = press(f.r[used], leverages(f.J[used], f.information))
     if e is None:
         return math.nan, math.nan, f"row {meas.lines[used[needed]]} is needed to identify it"
-    left_out = e @ np.linalg.inv(whitening(problem)).T
+    left_out = e @ np.linalg.inv(problem.whitening).T
     points = f.mask[used].sum(axis=1) / len(measured_axes(problem))
     e = np.sqrt(np.sum(left_out**2, axis=1) / points)
     cv = float(np.sqrt(np.mean(e**2)))

@@ -262,12 +262,6 @@ def in_tracker(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.einsum("kij,kqj->kqi", T[:, :3, :3], p) + T[:, None, :3, 3]
 
 
-def whitening(problem: Problem) -> np.ndarray:
-    """``Wh = sigma Sigma^-1/2`` of one experiment's values (identity by default)."""
-    wh = problem.spec.measurement.whitening
-    return np.eye(problem.model.d) if wh is None else np.asarray(wh, dtype=float)
-
-
 def model_points(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Points (m, k, 3), m, of the markers of robot ``X`` (fit parameters; one row per
     experiment, shape (m, L), or one for all) under the loads ``F``, in the base frame (the
@@ -462,7 +456,7 @@ def measured_values(problem: Problem, fm: FitModel, meas: Measurements,
     base = np.einsum("tpj,tji->tpi", P - T0[:, None, :3, 3], T0[:, :3, :3])  # T0^-1 P
     dev = (base - nominal)[:, :, axes].reshape(meas.m, -1)  # the order of model.measurement
     mask = np.isfinite(dev)
-    Wh = whitening(problem)
+    Wh = problem.whitening
     if not mask.all() and np.count_nonzero(Wh - np.diag(np.diagonal(Wh))):
         i = int(np.flatnonzero(~mask.all(axis=1))[0])
         raise ProblemError(f"{meas.row(i)}: a marker is not measured, and the noise model of "

@@ -191,6 +191,32 @@ class Problem:
         return Q, F
 
     @functools.cached_property
+    def _field_held_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """The held poses (:attr:`field_held`), Q (k, n), and their rows B (k, d, L), once."""
+        Qh, Fh = self.field_held
+        return Qh, self.model.B_stack(Qh, Fh) if len(Qh) else np.zeros((0, self.model.d, self.model.L))
+
+    def field_campaign(self, Q: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The poses (k + m, n), rad, and rows (k + m, d, L) the field's kriging holds for a plan
+        of poses ``Q`` (m, n) and rows ``B`` (m, d, L): the held poses (:attr:`field_held`) first."""
+        Qh, Bh = self._field_held_rows
+        return np.vstack([Qh, Q]), np.concatenate([Bh, B])
+
+    @functools.cached_property
+    def field_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The base axis (0, 1, 2; -1: an orientation) of each measured value (d,) and of each
+        required component at a test pose (r,): how the field couples them
+        (:func:`~casadi_design.measures.field.axes_of`)."""
+        model = self.model
+        return axes_of(model.measured_rows, len(model.markers_m)), axes_of(model.accuracy_rows)
+
+    @functools.cached_property
+    def whitening(self) -> np.ndarray:
+        """``Wh = sigma Sigma^-1/2`` (d x d) of one experiment's values (identity by default)."""
+        wh = self.spec.measurement.whitening
+        return np.eye(self.model.d) if wh is None else np.asarray(wh, dtype=float)
+
+    @functools.cached_property
     def field_prior(self) -> np.ndarray | None:
         """The information on X (L x L, scaled parameters, 1/m^2 units of B) of
         ``[calibration.prior]`` alone: with a field the earlier rounds enter as poses
@@ -275,7 +301,7 @@ def field_of(spec: ModelErrorSpec, problem: Problem) -> Field:
     if len(given) not in (1, n):
         raise ProblemError(f"{where}.length_rad: has {len(given)} lengths for the {n} joints "
                            f"({', '.join(problem.robot.joints)}); give one for every joint or one per joint")
-    if not np.any(axes_of(problem.model.measured_rows) >= 0):
+    if not np.any(problem.field_axes[0] >= 0):
         raise ProblemError(f"{where}: the field is an error of positions, and {problem.path} measures none; "
                            "measure x, y, z ([measurement].components) or remove it")
     return Field(spec.scale_m, tuple(given) * n if len(given) == 1 else tuple(given), spec.nugget_m)

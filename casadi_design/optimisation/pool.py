@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA, PlanSpectrum
-from ..measures.field import axes_of, field_measure, kriging_rho_added
+from ..measures.field import field_measure, kriging_rho_added
 from ..measures.measures import Scores, information_matrices, plan_spectra
 from ..model.cell import clearances
 from ..model.build import Problem
@@ -77,15 +77,12 @@ def _added_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], 
         A = information_matrices(B[rest]).sum(axis=0) if rest else 0.0
         M = (0.0 if problem.M_held is None else problem.M_held) + A + information_matrices(B[cands])
         return np.array([_key(criterion, score(sp)) for sp in plan_spectra(M, problem.B0, problem.sigma_m)])
-    model = problem.model
-    Qh, Fh = problem.field_held
-    Qr, Br = np.vstack([Qh, Q[rest]]), np.concatenate([model.B_stack(Qh, Fh), B[rest]]) if len(Qh) else B[rest]
-    Wh = np.eye(model.d) if problem.spec.measurement.whitening is None else np.asarray(problem.spec.measurement.whitening)
+    Qr, Br = problem.field_campaign(Q[rest], B[rest])
     if not len(Qr):  # the first posture of a plan without held poses: each on its own
         return np.array([_key(criterion, _scores(problem, pool, [c], criterion).value(criterion)) for c in cands])
-    rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Qr, B[cands], Q[cands],
-                            axes_of(model.measured_rows, len(model.markers_m)), Wh, problem.B0,
-                            problem.test_poses.q, axes_of(model.accuracy_rows), problem.field_prior)
+    axes, axes0 = problem.field_axes
+    rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Qr, B[cands], Q[cands], axes, problem.whitening,
+                            problem.B0, problem.test_poses.q, axes0, problem.field_prior)
     return np.array([_key(criterion, score(PlanSpectrum(None, None, r, None, True))) if np.all(np.isfinite(r))
                      else np.inf for r in rho])
 

@@ -26,7 +26,7 @@ from ..measures.criteria import CRITERIA
 from ..plan.design import CONVERGED, SEEDED, Design, StartRecord
 from ..errors import DesignError, ProblemError
 from .ipopt import QUIET, WARM_START, ipopt_call
-from ..measures.field import axes_of, kriging_rho
+from ..measures.field import kriging_rho
 from ..measures.measures import Scores, score_plan
 from .nlp import DesignNLP, build_nlp
 from ..model.rules import PoseConstraints
@@ -76,12 +76,9 @@ def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray | 
 def field_rho(problem: Problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``rho`` (s,), m^2, at the test poses of the campaign of the held poses and the plan
     ``Q``, ``F`` (rows ``B``) with the problem's field (:attr:`Problem.field`)."""
-    model, tp = problem.model, problem.test_poses
-    Qh, Fh = problem.field_held
-    Bc = np.concatenate([model.B_stack(Qh, Fh), B]) if len(Qh) else B
-    Wh = np.eye(model.d) if problem.spec.measurement.whitening is None else np.asarray(problem.spec.measurement.whitening)
-    return kriging_rho(problem.field, problem.sigma_m, Bc, np.vstack([Qh, Q]), axes_of(model.measured_rows, len(model.markers_m)),
-                       Wh, problem.B0, tp.q, axes_of(model.accuracy_rows), problem.field_prior)
+    axes, axes0 = problem.field_axes
+    return kriging_rho(problem.field, problem.sigma_m, *problem.field_campaign(Q, B)[::-1], axes, problem.whitening,
+                       problem.B0, problem.test_poses.q, axes0, problem.field_prior)
 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: str = "cold",
