@@ -412,8 +412,7 @@ def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
                         predicted, outside, moved)
     if field is None:
         return errors
-    corrected = calibrated + field.mean(valid.Q, field.axes).reshape(calibrated.shape[0], len(model.markers_m), -1) \
-        if len(axes) == 3 else calibrated
+    corrected = calibrated + field.shift(valid.Q)[:, None, :]  # the markers move together, as compensated
     seen_share = mask.sum(axis=1) / mask.shape[1]  # (a marker not seen: its share of the field's error)
     rho = field.rho(Bv, valid.Q, field.axes) * seen_share
     return replace(errors, field_m=pose_rms(point_errors(problem, valid.P_m, in_tracker(f.tracker_from_base, corrected))),
