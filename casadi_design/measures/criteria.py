@@ -52,13 +52,18 @@ SURROGATE_POWERS = (4.0, 16.0, 64.0, 256.0)
 class PlanSpectrum(NamedTuple):
     """What the scores are computed from: the eigenvalues ``lam`` of M (descending, >= 0),
     the singular values ``sv = sqrt(lam)`` of the stacked B, ``rho`` (s,), m^2 (inf when M
-    is singular), ``trace_M`` and whether M is regular."""
+    is singular), ``trace_M``, whether M is regular, ``log_det = log det M`` and ``trace_inv =
+    tr M^-1`` (for a regular M). A criterion's score reads only the fields its
+    :attr:`Criterion.reads` names: the pool engine (:mod:`casadi_design.optimisation.engine`)
+    fills only those, from low-rank updates, the others None."""
 
-    lam: np.ndarray
-    sv: np.ndarray
-    rho: np.ndarray
-    trace_M: float
+    lam: np.ndarray | None
+    sv: np.ndarray | None
+    rho: np.ndarray | None
+    trace_M: float | None
     identifiable: bool
+    log_det: float | None = None
+    trace_inv: float | None = None
 
 
 @dataclass(frozen=True)
@@ -118,7 +123,8 @@ class Criterion:
     name : the name used in problem files, options and results.
     sense : "min" or "max", the better direction of the score.
     score : the key of its value in :class:`~casadi_design.measures.measures.Scores` and results files.
-    score_of : ``PlanSpectrum -> score`` (SI units of B; errors in m).
+    score_of : ``PlanSpectrum -> score`` (SI units of B; errors in m), of one plan or of many
+        at once (the spectrum's fields with a leading axis of plans: the pool engine's).
     label : description for figures, with units.
     legend : name in figure legends.
     style : matplotlib line style of its curves.
@@ -138,6 +144,8 @@ class Criterion:
         plans end at a condition number 6 % below the best of 16 seeded starts at m = 8, and
         improve E at m = 8 and the UR10's condition number at m = 12; D's do not); None: its
         own approximate design, or none.
+    reads : what of the plan its score reads (a field of :class:`PlanSpectrum`): ``rho``,
+        ``log_det``, ``trace_inv``, ``trace_M`` or ``lam`` (the spectrum: E and condition).
     rounded : starts rounded from that approximate design per design
         (:func:`casadi_design.optimisation.bound.rounded_plans`: the apportioned support, then jittered
         copies; the first four the same whatever the count). Of 12 on the UR10 study, the best
@@ -151,7 +159,7 @@ class Criterion:
     name: str
     sense: str
     score: str
-    score_of: Callable[[PlanSpectrum], float]
+    score_of: Callable[[PlanSpectrum], np.ndarray]
     label: str
     legend: str
     style: dict
@@ -159,6 +167,7 @@ class Criterion:
     objective: Objective
     column: str
     row: str
+    reads: str
     per_mm: float = 1.0
     fmt: str = ".6g"
     polished: bool = False
@@ -188,50 +197,53 @@ class Criterion:
         return max(values) if self.sense == "min" else min(values)
 
 
-def _regular(value: Callable[[PlanSpectrum], float], singular: float) -> Callable[[PlanSpectrum], float]:
+def _regular(value: Callable[[PlanSpectrum], np.ndarray], singular: float) -> Callable[[PlanSpectrum], np.ndarray]:
     """A score defined for a regular M, ``singular`` otherwise."""
-    return lambda sp: value(sp) if sp.identifiable else singular
+    def score(sp: PlanSpectrum) -> np.ndarray:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(sp.identifiable, value(sp), singular)
+    return score
 
 
 CRITERIA: dict[str, Criterion] = {
     c.name: c
     for c in (
-        Criterion("test-pose", "min", "max_rms_error_m", lambda sp: float(np.max(np.sqrt(sp.rho))),
+        Criterion("test-pose", "min", "max_rms_error_m", lambda sp: np.max(np.sqrt(sp.rho), axis=-1),
                   "max over test poses of sqrt(rho) (m)", "Test-pose approach",
                   {"color": "tab:red", "ls": "-", "lw": 2.0}, 0, EpigraphRows(),
-                  "max_error_mm", "max over test poses of sqrt(rho), mm", 1e3, ".4f",
+                  "max_error_mm", "max over test poses of sqrt(rho), mm", "rho", 1e3, ".4f",
                   bound=BoundForm(_outer, _rms_bound,
                                   "lower bound of max_rms_error_m (m) of any plan of m experiments", moves=6)),
-        Criterion("D", "max", "log_det_M", _regular(lambda sp: float(np.sum(np.log(sp.lam))), -np.inf),
+        Criterion("D", "max", "log_det_M", _regular(lambda sp: sp.log_det, -np.inf),
                   "log det M (D-optimality)", "D-optimality",
                   {"color": "tab:blue", "ls": "--", "lw": 1.5}, 1, LogDet(),
-                  "log_det_M", "D: log det M", log_value=True,
+                  "log_det_M", "D: log det M", "log_det", log_value=True,
                   bound=BoundForm(None, lambda c, m, sigma, L: L * np.log(m) + c,
                                   "upper bound of log_det_M of any plan of m experiments"), rounded=8),
-        Criterion("A", "min", "trace_M_inv", _regular(lambda sp: float(np.sum(1.0 / sp.lam)), np.inf),
+        Criterion("A", "min", "trace_M_inv", _regular(lambda sp: sp.trace_inv, np.inf),
                   "trace M^-1 (A-optimality)", "A-optimality",
                   {"color": "tab:green", "ls": "-.", "lw": 1.5}, 2, TraceInverse(),
-                  "trace_M_inv", "A: trace M^-1",
+                  "trace_M_inv", "A: trace M^-1", "trace_inv",
                   bound=BoundForm(lambda B0: _outer(np.eye(B0.shape[2])[None]),
                                   lambda c, m, sigma, L: c / m,
                                   "lower bound of trace_M_inv of any plan of m experiments"), rounded=8),
-        Criterion("E", "max", "s_min", lambda sp: float(sp.sv[-1]),
+        Criterion("E", "max", "s_min", lambda sp: sp.sv[..., -1],
                   "smallest singular value s_L (E-optimality, SVD approach)", "SVD approach (E-optimality)",
                   {"color": "tab:purple", "ls": ":", "lw": 2.0}, 3,
-                  SpectralSurrogate(terms=((-1.0, -1.0),)), "s_min", "E: smallest singular value s_L",
+                  SpectralSurrogate(terms=((-1.0, -1.0),)), "s_min", "E: smallest singular value s_L", "lam",
                   polished=True, powers=SURROGATE_POWERS, rounded_from="A"),
         Criterion("T", "max", "trace_M", lambda sp: sp.trace_M, "trace M (T-optimality)", "T-optimality",
                   {"color": "tab:brown", "ls": (0, (5, 1, 1, 1)), "lw": 1.5}, 4, Trace(),
-                  "trace_M", "T: trace M"),
-        Criterion("condition", "min", "condition", _regular(lambda sp: float(sp.sv[0] / sp.sv[-1]), np.inf),
+                  "trace_M", "T: trace M", "trace_M"),
+        Criterion("condition", "min", "condition", _regular(lambda sp: sp.sv[..., 0] / sp.sv[..., -1], np.inf),
                   "condition number s_1/s_L", "Condition number",
                   {"color": "tab:gray", "ls": (0, (3, 1)), "lw": 1.5}, 5,
                   SpectralSurrogate(terms=((1.0, 1.0), (-1.0, -1.0))), "condition",
-                  "condition number s_1/s_L", polished=True, powers=SURROGATE_POWERS, rounded_from="A"),
-        Criterion("I", "min", "rms_over_test_poses_m", lambda sp: float(np.sqrt(np.mean(sp.rho))),
+                  "condition number s_1/s_L", "lam", polished=True, powers=SURROGATE_POWERS, rounded_from="A"),
+        Criterion("I", "min", "rms_over_test_poses_m", lambda sp: np.sqrt(np.mean(sp.rho, axis=-1)),
                   "RMS over test poses of the error, sqrt(mean rho) (m)", "I-optimality (mean rho)",
                   {"color": "tab:orange", "ls": (0, (1, 1)), "lw": 2.0}, 6, MeanTestPose(),
-                  "rms_over_test_poses_mm", "I: sqrt(mean over test poses of rho), mm", 1e3, ".4f",
+                  "rms_over_test_poses_mm", "I: sqrt(mean over test poses of rho), mm", "rho", 1e3, ".4f",
                   bound=BoundForm(lambda B0: _outer(B0).mean(axis=0)[None], _rms_bound,
                                   "lower bound of rms_over_test_poses_m (m) of any plan of m experiments")),
     )

@@ -40,6 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .criteria import CRITERIA
+
 
 @dataclass(frozen=True)
 class Field:
@@ -63,7 +65,7 @@ class Field:
 
 
 #: The criteria that weigh the test poses' rho, and so hold a field when the problem has one.
-FIELD_CRITERIA = ("test-pose", "I")
+FIELD_CRITERIA = tuple(name for name, c in CRITERIA.items() if c.reads == "rho")
 
 
 def field_measure(problem, criterion: str) -> bool:

@@ -101,14 +101,18 @@ def rho_of_plans(M: np.ndarray, B0: np.ndarray, sigma: float) -> np.ndarray:
 def plan_spectra(M: np.ndarray, B0: np.ndarray, sigma: float) -> list[PlanSpectrum]:
     """What the scores of k plans are computed from (:class:`~casadi_design.measures.criteria.PlanSpectrum`),
     their information matrices ``M`` (k, L, L) at once: the eigenvalues, ``rho`` at the test
-    poses (infinite for a plan that does not identify X), the trace."""
+    poses (infinite for a plan that does not identify X), the trace, ``log det M = sum log
+    lam`` and ``tr M^-1 = sum 1 / lam``."""
     lam = np.clip(np.linalg.eigvalsh(M)[:, ::-1], 0.0, None)
     regular = lam[:, -1] > SINGULAR_RTOL * np.maximum(lam[:, 0], np.finfo(float).tiny)
     rho = np.full((len(M), np.shape(B0)[0]), np.inf)
     if regular.any():
         rho[regular] = rho_of_plans(M[regular], B0, sigma)
     trace = np.trace(M, axis1=1, axis2=2)
-    return [PlanSpectrum(l, np.sqrt(l), r, float(t), bool(ok)) for l, r, t, ok in zip(lam, rho, trace, regular)]
+    with np.errstate(divide="ignore"):
+        log_det, trace_inv = np.sum(np.log(lam), axis=1), np.sum(1.0 / lam, axis=1)
+    return [PlanSpectrum(l, np.sqrt(l), r, float(t), bool(ok), float(ld), float(ti))
+            for l, r, t, ok, ld, ti in zip(lam, rho, trace, regular, log_det, trace_inv)]
 
 
 def observability_indices(sv: np.ndarray, m: int) -> dict[str, float]:
@@ -154,7 +158,7 @@ def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray |
         spectrum = spectrum._replace(rho=np.asarray(rho, dtype=float))
     return Scores(
         rms_error_m=np.sqrt(spectrum.rho),
-        values={c.score: c.score_of(spectrum) for c in CRITERIA.values()},
+        values={c.score: float(c.score_of(spectrum)) for c in CRITERIA.values()},
         observability=observability_indices(spectrum.sv, B.shape[0] + m_held),
         identifiable=spectrum.identifiable,
     )

@@ -211,21 +211,71 @@ def _check_m(problem: Problem, m: int) -> None:
                           "prior), so the design is made for one number of new experiments; give m >= 1")
 
 
+#: Candidates the convex problem of a pool holds at once (:func:`pool_design`): a larger pool
+#: is priced whole by d and its best candidates join (column generation); the dense Hessian of
+#: :func:`pool_optimum` grows as its square.
+POOL_COLUMNS = 400
+#: Candidates of a large pool added per column-generation step, and the steps at most.
+POOL_ADDED = 100
+POOL_STEPS = 30
+
+
+def top_mean(d: np.ndarray, m: int) -> float:
+    """The largest ``sum_k w_k d_k`` over the weights of the simplex with each ``w_k <= 1 / m``
+    (a plan of m distinct postures): the mean of the m largest ``d_k``; the largest d for m =
+    0 (repeats allowed)."""
+    return float(np.max(d)) if m == 0 else float(np.mean(np.partition(d, len(d) - m)[len(d) - m:]))
+
+
 def pool_design(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, A: np.ndarray,
                 m: int = 0) -> ApproximateDesign:
     """The approximate design of a finite pool of experiments ``Q`` (k, n), ``F`` (k, nF) of
-    information ``A`` (k, L, L): the convex problem on the pool (:func:`pool_optimum`) and its
-    certificate, exact, since max_x d is taken over the pool itself. It bounds any choice of
-    m of them (repeats allowed), not every plan of the robot; ``weights`` holds every point's."""
+    information ``A`` (k, L, L) for plans of ``m`` distinct postures (each weight at most 1 / m;
+    0: repeats allowed): the convex problem on the pool (:func:`pool_optimum`) and its
+    certificate, exact, since d is priced over the whole pool; the certificate's largest d is
+    the mean of the m largest (:func:`top_mean`: the tangent's minimum over the box). It bounds
+    any choice of m distinct postures of the pool, not every plan of the robot; ``weights``
+    holds every point's. A pool of more than :data:`POOL_COLUMNS` is solved by column
+    generation: the convex problem on the candidates of the largest d at the pool's mean
+    information, then on those and the :data:`POOL_ADDED` of the largest d outside them, until
+    no candidate outside has d above the support's or the certificate meets the relaxation
+    within :data:`EXCHANGE_RTOL`."""
     t0 = time.perf_counter()
     s = _scaled(problem, criterion, A, m)
-    w, mu = pool_optimum(s.A, s.Hj, np.full(len(A), 1.0 / len(A)), s.F0)
-    W = np.einsum("k,kij->ij", w, s.A)
-    lin = linearised(W, mu, s.Hj, s.F0)
-    d_max = float(np.max(np.einsum("kij,ij->k", s.A, lin.G)))
-    value, certified = _unscaled(s.Hj, s.c, len(W), lin.value, certificate(s.Hj, lin, d_max))
-    return ApproximateDesign(criterion, Q, F, w, W / s.c, mu, value, certified, d_max, (), (), len(A),
-                             time.perf_counter() - t0, m=0 if s.F0 is None else m)
+    k, L = A.shape[:2]
+    w_max = 1.0 / m if m else 1.0
+    first = linearised(np.mean(s.A, axis=0), np.full(1 if s.Hj is None else len(s.Hj), 1.0), s.Hj, s.F0)
+    d = np.einsum("kij,ij->k", s.A, first.G)
+    active = np.sort(np.argsort(d)[::-1][:max(POOL_COLUMNS, 2 * m)])
+    w_all, best, steps = np.zeros(k), None, 0
+    for steps in range(1, POOL_STEPS + 1):
+        w0 = np.maximum(w_all[active], 0.1 / len(active))
+        w, mu = pool_optimum(s.A[active], s.Hj, np.minimum(w0 / w0.sum(), w_max), s.F0, w_max)
+        W = np.einsum("k,kij->ij", w, s.A[active])
+        lin = linearised(W, mu, s.Hj, s.F0)
+        d = np.einsum("kij,ij->k", s.A, lin.G)
+        value, certified = _unscaled(s.Hj, s.c, L, lin.value, certificate(s.Hj, lin, top_mean(d, m)))
+        w_all = np.zeros(k)
+        w_all[active] = w
+        if best is None or _better(s.Hj, certified, best[1]):
+            best = (value, certified, w_all, mu, W, float(np.max(d)))
+        outside = np.setdiff1d(np.arange(k), active)
+        threshold = np.min(d[active][w > WEIGHT_RTOL * w.max()])
+        new = outside[d[outside] > threshold]
+        if not len(new) or abs(best[0] - best[1]) <= EXCHANGE_RTOL * abs(best[0]):
+            break
+        new = new[np.argsort(d[new])[::-1][:POOL_ADDED]]
+        kept = active[w > WEIGHT_RTOL * w.max()] if len(active) + len(new) > 2 * POOL_COLUMNS else active
+        active = np.union1d(kept, new)
+    value, certified, w_all, mu, W, d_max = best
+    return ApproximateDesign(criterion, Q, F, w_all, W / s.c, mu, value, certified, d_max, (), (), k,
+                             time.perf_counter() - t0, m=m)
+
+
+def _better(Hj: np.ndarray | None, certified: float, than: float) -> bool:
+    """Whether a certificate is tighter: larger for the lower bounds (test-pose, A, I), smaller
+    for D's upper bound (``Hj`` None)."""
+    return certified < than if Hj is None else certified > than
 
 
 def _unscaled(Hj: np.ndarray | None, c: float, L: int, *values: float) -> list[float]:
@@ -240,8 +290,9 @@ def _sample(problem: Problem, size: int, rng: np.random.Generator) -> tuple[np.n
 
 
 def pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray,
-                  F0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The convex problem on a pool ``A`` (k, L, L), ``W = sum_k w_k A_k`` with w in the simplex,
+                  F0: np.ndarray | None = None, w_max: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The convex problem on a pool ``A`` (k, L, L), ``W = sum_k w_k A_k`` with w in the simplex
+    (and each ``w_k <= w_max``: 1 / m for plans of m distinct postures),
     solved by IPOPT with exact derivatives from ``w0`` (k,), ``N = (F0 + W)^-1`` with the
     fixed part ``F0`` (L x L; None: 0):
 
@@ -315,7 +366,8 @@ def pool_optimum(A: np.ndarray, Hj: np.ndarray | None, w0: np.ndarray,
     solver = ca.nlpsol("pool_optimum", "ipopt", oracle, opts)
     x0 = w0 if s == 0 else np.concatenate([w0, [1.01 * f_g(np.concatenate([w0, [0.0]]))[1][:s].max()]])
     with ipopt_call():
-        sol = solver(x0=x0, lbx=np.concatenate([np.zeros(k), np.full(nx - k, -np.inf)]), ubx=np.inf,
+        sol = solver(x0=x0, lbx=np.concatenate([np.zeros(k), np.full(nx - k, -np.inf)]),
+                     ubx=np.concatenate([np.full(k, w_max if w_max < 1.0 else np.inf), np.full(nx - k, np.inf)]),
                      lbg=np.concatenate([np.full(s, -np.inf), [1.0]]), ubg=np.concatenate([np.zeros(s), [1.0]]))
     w = np.maximum(np.asarray(sol["x"]).ravel()[:k], 0.0)
     mu = np.maximum(np.asarray(sol["lam_g"]).ravel()[:s], 0.0) if s else np.ones(1)

@@ -28,17 +28,16 @@ import numpy as np
 from ..errors import ProblemError
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA, PlanSpectrum
 from ..measures.field import field_measure, kriging_rho_added
-from ..measures.measures import Scores, information_matrices, plan_spectra
+from ..measures.measures import Scores
 from ..model.cell import clearances
 from ..model.build import Problem
-from ..plan.design import Design, StartRecord
+from ..plan.design import EXCHANGE_ENDED, Design, StartRecord
 from ..plan.rules import plan_violations
 from .bound import bound, pool_design
+from .engine import PlanState, PoolEngine, key
 from ..plan.sampling import random_plan
 from .solve import plan_scores, start_rng
 
-#: Status of a start whose exchange ended (no swap improves): a converged start.
-EXCHANGED = "Solve_Succeeded"
 #: Regularisation of the greedy steps while M is singular, relative to the pool's mean trace.
 GREEDY_EPS = 1e-9
 #: Exchange passes of one start at most.
@@ -57,73 +56,106 @@ def _scores(problem: Problem, pool: tuple[np.ndarray, np.ndarray, np.ndarray], S
     return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion))
 
 
-def _key(criterion: str, value: float) -> float:
-    """The score as a quantity to minimise (NaN and a singular plan last)."""
-    if not np.isfinite(value):
-        return np.inf
-    return value if CRITERIA[criterion].sense == "min" else -value
-
-
-def _added_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], cands: list[int]) -> np.ndarray:
-    """The score key of the plan ``rest`` plus each posture of ``cands`` (indices in the pool):
-    with the problem's field on a criterion that weighs it, every plan at once
-    (:func:`~casadi_design.measures.field.kriging_rho_added`, scored by the criterion's own
-    score of rho); else each plan's scores."""
-    score = CRITERIA[criterion].score_of
+def _field_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], cands: np.ndarray) -> np.ndarray:
+    """The score key of the plan ``rest`` plus each posture of ``cands`` (pool indices) for a
+    criterion that weighs the problem's field: every plan at once by bordering the kriging
+    system (:func:`~casadi_design.measures.field.kriging_rho_added`), scored by the criterion's
+    own score of rho."""
     Q, F, B = pool
-    if not cands:
-        return np.zeros(0)
-    if not field_measure(problem, criterion):  # M of every plan at once, scored by the criterion
-        A = information_matrices(B[rest]).sum(axis=0) if rest else 0.0
-        M = (0.0 if problem.M_held is None else problem.M_held) + A + information_matrices(B[cands])
-        return np.array([_key(criterion, score(sp)) for sp in plan_spectra(M, problem.B0, problem.sigma_m)])
     Qr, Br = problem.field_campaign(Q[rest], B[rest])
     if not len(Qr):  # the first posture of a plan without held poses: each on its own
-        return np.array([_key(criterion, _scores(problem, pool, [c], criterion).value(criterion)) for c in cands])
+        return np.array([key(criterion, _scores(problem, pool, [c], criterion).value(criterion)) for c in cands])
     axes, axes0 = problem.field_axes
     rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Qr, B[cands], Q[cands], axes, problem.whitening,
                             problem.B0, problem.test_poses.q, axes0, problem.field_prior)
-    return np.array([_key(criterion, score(PlanSpectrum(None, None, r, None, True))) if np.all(np.isfinite(r))
-                     else np.inf for r in rho])
+    finite = np.all(np.isfinite(rho), axis=1)
+    spectrum = PlanSpectrum(None, None, np.where(finite[:, None], rho, 1.0), None, finite)
+    return np.where(finite, key(criterion, CRITERIA[criterion].score_of(spectrum)), np.inf)
 
 
-def _greedy(problem: Problem, criterion: str, m: int, pool: tuple, A: np.ndarray) -> list[int]:
+def _eps(engine: PoolEngine) -> float:
+    """The regularisation of a singular plan's log det: :data:`GREEDY_EPS` of the pool's mean
+    trace per parameter."""
+    return GREEDY_EPS * float(np.mean(engine.trace_A)) / engine.B.shape[2]
+
+
+def _greedy(problem: Problem, criterion: str, m: int, pool: tuple, engine: PoolEngine) -> list[int]:
     """m postures one at a time, each the one that improves the criterion most (while M is
-    singular: ``log det(M + eps I)``)."""
-    L = problem.model.L
-    M = np.zeros((L, L)) if problem.M_held is None else problem.M_held.copy()
-    eps = GREEDY_EPS * float(np.mean(np.trace(A, axis1=1, axis2=2))) / L
+    singular: ``log det(M + eps I)``), priced by the engine."""
+    reads, field = CRITERIA[criterion].reads, field_measure(problem, criterion)
+    free = np.ones(len(engine.B), dtype=bool)
     chosen: list[int] = []
     for _ in range(m):
-        free = [i for i in range(len(A)) if i not in chosen]
-        if _scores(problem, pool, chosen, criterion).identifiable:
-            keys = _added_keys(problem, criterion, pool, chosen, free)
+        cands = np.flatnonzero(free)
+        state = engine.state(chosen, reads)
+        if state is not None and state.regular:
+            keys = (_field_keys(problem, criterion, pool, chosen, cands) if field
+                    else engine.keys(criterion, state, cands))
         else:
-            keys = [-np.linalg.slogdet(M + A[i] + eps * np.eye(L))[1] for i in free]
-        best = free[int(np.argmin(keys))]
+            keys = -engine.priced(engine.state(chosen, "log_det", _eps(engine)), cands, "log_det").log_det
+        best = int(cands[int(np.argmin(keys))])
         chosen.append(best)
-        M = M + A[best]
+        free[best] = False
     return chosen
 
 
-def _exchange(problem: Problem, criterion: str, S: list[int], pool: tuple) -> tuple[list[int], float, int]:
-    """Fedorov's exchange from the subset ``S``: the subset, its score key and the passes."""
-    k = len(pool[0])
-    S = list(S)
-    current = _key(criterion, _scores(problem, pool, S, criterion).value(criterion))
-    for passes in range(1, MAX_PASSES + 1):
-        best = (current, None, None)
-        out = [j for j in range(k) if j not in S]
+def _regular_state(engine: PoolEngine, S: list[int], reads: str) -> PlanState | None:
+    """The engine's state of the plan ``S``, None when its M is singular."""
+    state = engine.state(S, reads)
+    return state if state is not None and state.regular else None
+
+
+def _climb(engine: PoolEngine, S: list[int], chosen: np.ndarray, reads: str) -> tuple[int, int]:
+    """Swaps of a singular plan ``S`` (in place; ``chosen`` its mask over the pool) by the
+    regularised ``log det(M + eps I)`` until its M is regular or no swap raises it: the passes
+    and the swaps."""
+    passes = swaps = 0
+    while _regular_state(engine, S, reads) is None and passes < MAX_PASSES:
+        passes += 1
+        state, swapped = engine.state(S, "log_det", _eps(engine)), False
         for a in range(len(S)):
-            keys = _added_keys(problem, criterion, pool, S[:a] + S[a + 1:], out)
-            i = int(np.argmin(keys)) if len(keys) else 0
-            if len(keys) and keys[i] < best[0] - EXCHANGE_RTOL * abs(current):
-                best = (keys[i], a, out[i])
-        if best[1] is None:
-            return S, current, passes
-        current = best[0]
-        S[best[1]] = best[2]
-    return S, current, MAX_PASSES
+            out = np.flatnonzero(~chosen)
+            keys = -engine.priced(state, out, "log_det", S[a]).log_det
+            i = int(np.argmin(keys))
+            if keys[i] < -state.log_det - EXCHANGE_RTOL * abs(state.log_det):
+                chosen[S[a]], chosen[out[i]] = False, True
+                S[a], swapped, swaps = int(out[i]), True, swaps + 1
+                state = engine.state(S, "log_det", _eps(engine))
+        if not swapped:
+            break
+    return passes, swaps
+
+
+def _exchange(problem: Problem, criterion: str, S: list[int], pool: tuple,
+              engine: PoolEngine) -> tuple[list[int], float, int, int]:
+    """The modified exchange (Cook and Nachtsheim 1980) from the subset ``S``: each position of
+    the plan in turn takes the candidate whose swap improves the criterion most (all priced at
+    once: :class:`~casadi_design.optimisation.engine.PoolEngine`, or for the field the bordered
+    kriging), until a pass over the positions swaps nothing. A singular start first climbs
+    ``log det(M + eps I)`` (:func:`_climb`). The subset, its score key, the passes and the
+    swaps."""
+    S, chosen = [int(i) for i in S], np.zeros(len(engine.B), dtype=bool)
+    chosen[S] = True
+    reads, field = CRITERIA[criterion].reads, field_measure(problem, criterion)
+    passes, swaps = _climb(engine, S, chosen, reads)
+    state = _regular_state(engine, S, reads)
+    current = float(key(criterion, _scores(problem, pool, S, criterion).value(criterion)))
+    while state is not None and passes < MAX_PASSES:
+        passes += 1
+        swapped = False
+        for a in range(len(S)):
+            out = np.flatnonzero(~chosen)
+            keys = (_field_keys(problem, criterion, pool, S[:a] + S[a + 1:], out) if field
+                    else engine.keys(criterion, state, out, S[a]))
+            i = int(np.argmin(keys))
+            if keys[i] < current - EXCHANGE_RTOL * abs(current):
+                chosen[S[a]], chosen[out[i]] = False, True
+                S[a], current, swapped, swaps = int(out[i]), float(keys[i]), True, swaps + 1
+                if not field:
+                    state = engine.state(S, reads)
+        if not swapped:
+            break
+    return S, float(key(criterion, _scores(problem, pool, S, criterion).value(criterion))), passes, swaps
 
 
 def kept_postures(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, int, list[str]]:
@@ -158,23 +190,23 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
         raise ProblemError(f"--candidates: the pool has {k} postures that keep the problem's rules, fewer than "
                            f"m = {m}; give m <= {k} or more postures")
     B = problem.model.B_stack(Q, F)
-    A = information_matrices(B)
+    engine = PoolEngine(B, problem.B0, problem.sigma_m, problem.M_held)
     pool = (Q, F, B)
-    approx = (pool_design(problem, criterion, Q, F, A, m)
+    approx = (pool_design(problem, criterion, Q, F, engine.A, m)
               if with_bound and criterion in BOUND_CRITERIA and not field_measure(problem, criterion) else None)
     rng = start_rng(problem.solver.seed, criterion, m)
-    first = [*initial, ("greedy", _greedy(problem, criterion, m, pool, A))]
+    first = [*initial, ("greedy", _greedy(problem, criterion, m, pool, engine))]
     if approx is not None:
         first.append(("heaviest of the pool's approximate design", list(np.argsort(approx.weights)[::-1][:m])))
     first += [("seeded", list(rng.choice(k, size=m, replace=False))) for _ in range(starts)]
     records, best = [], None
     for origin, S in first:
-        S, key, passes = _exchange(problem, criterion, S, pool)
+        S, score_key, passes, swaps = _exchange(problem, criterion, S, pool, engine)
         scores = _scores(problem, pool, S)
-        records.append(StartRecord(EXCHANGED, passes, scores.value(criterion), scores.max_rms_error_m,
-                                   scores.identifiable, origin))
-        if scores.identifiable and (best is None or key < best[0]):
-            best = (key, sorted(S), scores, records[-1])
+        records.append(StartRecord(EXCHANGE_ENDED, passes, scores.value(criterion), scores.max_rms_error_m,
+                                   scores.identifiable, origin, swaps=swaps))
+        if scores.identifiable and (best is None or score_key < best[0]):
+            best = (score_key, sorted(S), scores, records[-1])
     if best is None:
         raise ProblemError(f"--candidates: no choice of {m} postures of the pool identifies the parameters; "
                            "give more varied postures or a larger m")

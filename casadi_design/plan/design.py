@@ -18,19 +18,24 @@ from ..measures.measures import Scores
 if TYPE_CHECKING:
     from ..model.cell import Clearance
 
-#: IPOPT return statuses accepted as converged.
-CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+#: Status of a start of a plan chosen from a pool whose exchange ended: no swap improves it
+#: (:mod:`casadi_design.optimisation.pool`).
+EXCHANGE_ENDED = "Exchange_Ended"
+#: IPOPT return statuses accepted as converged, and the pool exchange's end.
+CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", EXCHANGE_ENDED)
 #: ``StartRecord.origin`` of the seeded random starts.
 SEEDED = "seeded"
 
 
 @dataclass(frozen=True)
 class StartRecord:
-    """One IPOPT start: its status, iterations, criterion score and test-pose error (m), and
+    """One start: its status, iterations, criterion score and test-pose error (m), and
     where its start plan came from (``origin``: "seeded", or the label of an initial plan, e.g.
     "warm start" or "rounded approximate design"); with a cell, its IPOPT ``runs`` and the
     capsule rows its last run held (``rows_held``, of m times the rows of one experiment;
-    :mod:`casadi_design.optimisation.solve`)."""
+    :mod:`casadi_design.optimisation.solve`). A start of a plan chosen from a pool
+    (status :data:`EXCHANGE_ENDED`) counts the exchange's passes over the plan's positions as
+    ``iterations`` and its ``swaps``."""
 
     status: str
     iterations: int
@@ -40,6 +45,7 @@ class StartRecord:
     origin: str = SEEDED
     runs: int = 1
     rows_held: int = 0
+    swaps: int = 0
 
     @property
     def converged(self) -> bool:
@@ -113,7 +119,14 @@ class Design:
 
     @property
     def iterations(self) -> int:
-        return sum(st.iterations for st in self.starts)
+        """IPOPT iterations of the starts that ran IPOPT."""
+        return sum(st.iterations for st in self.starts if st.status != EXCHANGE_ENDED)
+
+    @property
+    def exchange(self) -> tuple[int, int, int]:
+        """The starts exchanged over a pool, their passes and their swaps (zeros: none)."""
+        ex = [st for st in self.starts if st.status == EXCHANGE_ENDED]
+        return len(ex), sum(st.iterations for st in ex), sum(st.swaps for st in ex)
 
     @property
     def winner(self) -> StartRecord | None:

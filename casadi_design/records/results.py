@@ -67,6 +67,7 @@ def design_record(design: Design, problem: Problem | None = None) -> dict:
             "starts": len(design.starts),
             "converged": design.converged_starts,
             "iterations": design.iterations,
+            "exchange": dict(zip(("starts", "passes", "swaps"), design.exchange)),
             "wall_s": design.wall_s,
             "seed": design.seed,
             "objective_spread": {"best": design.scores.value(design.criterion),
@@ -75,7 +76,7 @@ def design_record(design: Design, problem: Problem | None = None) -> dict:
             "per_start": [
                 {"status": st.status, "iterations": st.iterations, "value": st.value,
                  "max_rms_error_m": st.max_rms_error_m, "feasible": st.feasible, "origin": st.origin,
-                 "runs": st.runs, "rows_held": st.rows_held}
+                 "runs": st.runs, "rows_held": st.rows_held, "swaps": st.swaps}
                 for st in design.starts
             ],
         },
@@ -198,7 +199,7 @@ def design_from_record(record: dict) -> Design:
 #: Numeric fields of a design's ``scores`` (finite: a design's plan is identifiable).
 _SCORE_NUMBERS = tuple(c.score for c in CRITERIA.values())
 #: The keys of one start in ``solver.per_start``: the fields of :class:`StartRecord`; those
-#: with a default (``origin``, ``runs``, ``rows_held``) may be missing (files of earlier
+#: with a default (``origin``, ``runs``, ``rows_held``, ``swaps``) may be missing (files of earlier
 #: versions).
 _START_KEYS = tuple(f.name for f in dataclasses.fields(StartRecord))
 _START_REQUIRED = tuple(f.name for f in dataclasses.fields(StartRecord)
@@ -314,6 +315,7 @@ def _check_design(d: object, where: str, sizes: dict[str, tuple[int, str]]) -> N
         _need(isinstance(s.get("origin", ""), str), f"{at}.origin", "a string", s.get("origin"))
         _int(s.get("runs", 1), f"{at}.runs", 1)
         _int(s.get("rows_held", 0), f"{at}.rows_held", 0)
+        _int(s.get("swaps", 0), f"{at}.swaps", 0)
 
 
 def check_results(record: object) -> None:

@@ -37,12 +37,17 @@ def format_table(designs: list[Design]) -> str:
 
 
 def format_solver_lines(designs: list[Design]) -> str:
-    """One line per design: wall time, IPOPT iterations, converged starts, optimum spread."""
+    """One line per design: wall time, IPOPT iterations (or a pool's exchange passes and swaps),
+    converged starts, optimum spread."""
     out = []
     for d in designs:
         spread = d.optimum_spread()
+        exchanged, passes, swaps = d.exchange
+        work = ([f"{d.iterations:6d} IPOPT iterations"] if exchanged < len(d.starts) else []) + (
+            [f"{exchanged} exchange{'s' if exchanged > 1 else ''} over the pool: {passes} passes, {swaps} swaps"]
+            if exchanged else [])
         out.append(
-            f"{d.criterion:<10} m = {d.m:<3} {d.wall_s:7.3f} s  {d.iterations:6d} IPOPT iterations  "
+            f"{d.criterion:<10} m = {d.m:<3} {d.wall_s:7.3f} s  {'; '.join(work)}  "
             f"{d.converged_starts}/{len(d.starts)} starts converged  "
             f"{spread['starts_at_optimum']} at the optimum, their error "
             f"{spread['min_max_rms_error_m'] * 1e3:.4f}..{spread['max_max_rms_error_m'] * 1e3:.4f} mm"
