@@ -40,8 +40,10 @@ class PlanState:
     """What the engine keeps of one plan ``S`` (pool indices) to price its changes (module
     docstring): ``M`` (L, L), ``N = (M + eps I)^-1``, ``log_det`` of ``M + eps I``, whether M is
     regular (its eigenvalues above :data:`~casadi_design.measures.measures.SINGULAR_RTOL` of the
-    largest), and over the pool ``G = B N`` (k, d, L), ``V`` (k, d, d) and, when rho is read,
-    ``rho`` (s,), m^2 and ``Y`` (k, d, s r)."""
+    largest), and over the pool, row i of every candidate's block together (the engine's
+    arithmetic runs on contiguous vectors over the candidates): ``G = B N`` (d, k, L), ``V``
+    (d, d, k) with ``V[i, j, c] = (B_c N B_c^T)_ij`` and, when rho is read, ``rho`` (s,), m^2
+    and ``Y = B N B0^T`` (d, k, s r)."""
 
     S: tuple[int, ...]
     M: np.ndarray
@@ -75,6 +77,17 @@ class PoolEngine:
         return np.trace(self.A, axis1=1, axis2=2)
 
     @cached_property
+    def _per_pose(self) -> np.ndarray:
+        """The sum of a test pose's r rows: (s r, s) of ones and zeros."""
+        s, r = self.B0.shape[:2]
+        return np.kron(np.eye(s), np.ones((r, 1)))
+
+    @cached_property
+    def _B_rows(self) -> np.ndarray:
+        """``B`` by rows of the blocks: (d, k, L)."""
+        return np.ascontiguousarray(self.B.transpose(1, 0, 2))
+
+    @cached_property
     def _B0_rows(self) -> np.ndarray:
         """``B0`` as (s r, L)."""
         return np.asarray(self.B0, dtype=float).reshape(-1, self.B.shape[2])
@@ -93,24 +106,24 @@ class PoolEngine:
             return None
         Ci = np.linalg.solve(C, np.eye(L))
         N = Ci.T @ Ci
-        k, d = self.B.shape[:2]
-        G = (self.B.reshape(k * d, L) @ N).reshape(k, d, L)
+        G = self._B_rows @ N
         rho = Y = None
         if reads == "rho":
-            Y = (G.reshape(k * d, L) @ self._B0_rows.T).reshape(k, d, -1)
+            Y = G @ self._B0_rows.T
             s = self.B0.shape[0]
             rho = self.sigma**2 * np.sum((self._B0_rows @ Ci.T) ** 2, axis=1).reshape(s, -1).sum(axis=1)
         return PlanState(tuple(S), M, N, float(2.0 * np.sum(np.log(np.diag(C)))), regular, G,
-                         np.einsum("kil,kjl->kij", G, self.B), rho, Y)
+                         np.einsum("ikl,jkl->ijk", G, self._B_rows), rho, Y)
 
-    def priced(self, state: PlanState, cands: np.ndarray, reads: str, removed: int | None = None) -> PlanSpectrum:
-        """The plans ``state.S`` plus each candidate of ``cands`` (pool indices), less the
+    def priced(self, state: PlanState, cands: np.ndarray | None, reads: str, removed: int | None = None) -> PlanSpectrum:
+        """The plans ``state.S`` plus each candidate of ``cands`` (pool indices; None: every
+        posture of the pool, the plan's own among them, in the pool's order), less the
         experiment ``removed`` (a pool index of ``state.S``; None: an addition): a
         :class:`~casadi_design.measures.criteria.PlanSpectrum` whose fields have a leading
         axis of candidates, with ``identifiable`` and the field ``reads`` filled (module
         docstring). On the state of a regularised plan (``eps`` > 0) the values are those of
         the regularised M (the log det the greedy plan climbs while M is singular)."""
-        c = np.asarray(cands, dtype=int)
+        c = slice(None) if cands is None else np.asarray(cands, dtype=int)
         rhs = {"rho": state.Y, "trace_inv": state.G}.get(reads)
         logabs, ok, q = _capacitance(state, self.B, c, removed, rhs)
         trace_M = np.trace(state.M) + self.trace_A[c] - (0.0 if removed is None else self.trace_A[removed])
@@ -120,7 +133,7 @@ class PoolEngine:
         elif reads == "trace_inv":
             fields["trace_inv"] = np.where(ok, np.trace(state.N) - q.sum(axis=1), np.inf)
         elif reads == "rho":
-            drop = q.reshape(len(c), self.B0.shape[0], -1).sum(axis=2)
+            drop = q @ self._per_pose
             fields["rho"] = np.where(ok[:, None], state.rho - self.sigma**2 * drop, np.inf)
         elif reads == "lam":
             M = state.M + self.A[c] - (0.0 if removed is None else self.A[removed])
@@ -130,10 +143,19 @@ class PoolEngine:
         return PlanSpectrum(fields.get("lam"), fields.get("sv"), fields.get("rho"), trace_M, ok,
                             fields.get("log_det"), fields.get("trace_inv"))
 
-    def keys(self, criterion: str, state: PlanState, cands: np.ndarray, removed: int | None = None) -> np.ndarray:
-        """The score of each changed plan (:meth:`priced`) as a quantity to minimise (:func:`key`)."""
-        c = CRITERIA[criterion]
-        return key(criterion, c.score_of(self.priced(state, cands, c.reads, removed)))
+    def keys(self, criterion: str, state: PlanState, cands: np.ndarray | None, removed: int | None = None,
+             power: float | None = None) -> np.ndarray:
+        """The score of each changed plan (:meth:`priced`) as a quantity to minimise (:func:`key`);
+        with ``power``, the criterion's smooth surrogate of that power
+        (:attr:`~casadi_design.measures.criteria.Criterion.smoothed`)."""
+        return key(criterion, score(criterion, self.priced(state, cands, CRITERIA[criterion].reads, removed), power))
+
+
+def score(criterion: str, spectrum: PlanSpectrum, power: float | None = None) -> np.ndarray:
+    """The criterion's score of the plans of ``spectrum`` or, with ``power``, its smooth
+    surrogate of that power."""
+    c = CRITERIA[criterion]
+    return c.score_of(spectrum) if power is None else c.smoothed(spectrum, power)
 
 
 def key(criterion: str, value: np.ndarray | float) -> np.ndarray:
@@ -150,10 +172,10 @@ def key(criterion: str, value: np.ndarray | float) -> np.ndarray:
 BLOCK_RCOND = 1e-8
 
 
-def _capacitance(state: PlanState, B: np.ndarray, c: np.ndarray, removed: int | None,
+def _capacitance(state: PlanState, B: np.ndarray, c: np.ndarray | slice, removed: int | None,
                  rhs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """For each candidate of ``c``: ``log |det K|``, whether the changed M is positive definite,
-    and with right-hand sides ``rhs`` (k, d, p) over the pool (``U^T N`` times p columns: ``Y``
+    and with right-hand sides ``rhs`` (d, k, p) over the pool (``U^T N`` times p columns: ``Y``
     for rho, ``G`` for the trace) the quadratic forms ``diag(Y^T K^-1 Y)``, (n, p).
 
     An addition: ``K = I + V_c``, symmetric positive definite. A swap: ``K = [[P, X^T], [X, R]]``
@@ -161,75 +183,77 @@ def _capacitance(state: PlanState, B: np.ndarray, c: np.ndarray, removed: int | 
     B_a^T`` and ``R = I + V_c``; by block elimination ``det K = det P det S`` and ``Y^T K^-1 Y =
     Y_a^T P^-1 Y_a + Z^T S^-1 Z`` with the Schur complement ``S = R - X P^-1 X^T`` (positive
     definite exactly when the changed M is) and ``Z = Y_c - X P^-1 Y_a``. S is d x d: its
-    Cholesky factor and the triangular solves run as array operations over the candidates
+    Cholesky factor and the triangular solves run entry by entry as vectors over the candidates
     (:func:`_cholesky_small`), not one LAPACK call per candidate."""
     d = B.shape[1]
-    I = np.eye(d)
-    S, Z, const, logabs0 = I + state.V[c], None if rhs is None else rhs[c], 0.0, 0.0
+    S = np.array([[state.V[i, j][c] + (i == j) for j in range(d)] for i in range(d)])  # (d, d, n)
+    Z = None if rhs is None else [rhs[i][c] for i in range(d)]
+    const, logabs0 = 0.0, 0.0
     if removed is not None:
-        P = state.V[removed] - I
+        P = state.V[:, :, removed] - np.eye(d)
         sign, logabs0 = np.linalg.slogdet(P)
         if sign != (-1.0) ** d or 1.0 / np.linalg.cond(P) < BLOCK_RCOND:
             return _capacitance_whole(state, B, c, removed, rhs)
-        Pi, n = np.linalg.inv(P), len(c)
-        X = (state.G[c].reshape(n * d, -1) @ B[removed].T).reshape(n, d, d)  # B_c N B_a^T
-        S = S - np.einsum("nik,njk->nij", (X.reshape(n * d, d) @ Pi).reshape(n, d, d), X)
+        Pi = np.linalg.inv(P)
+        X = [state.G[i][c] @ B[removed].T for i in range(d)]  # row i of B_c N B_a^T, (n, d) each
+        XPi = [x @ Pi for x in X]
+        for i in range(d):
+            for j in range(d):
+                S[i, j] -= np.einsum("nl,nl->n", XPi[i], X[j])
         if rhs is not None:
-            Ya = rhs[removed]
-            PiYa = Pi @ Ya
-            Z = Z - (X.reshape(n * d, d) @ PiYa).reshape(n, d, -1)
-            const = np.sum(Ya * PiYa, axis=0)
+            Ya = rhs[:, removed]
+            Z = [Z[i] - XPi[i] @ Ya for i in range(d)]
+            const = np.sum(Ya * (Pi @ Ya), axis=0)
     C, ok = _cholesky_small(S)
-    logabs = logabs0 + 2.0 * np.sum(np.log(np.where(ok[:, None], np.diagonal(C, axis1=1, axis2=2), 1.0)), axis=1)
+    logabs = logabs0 + 2.0 * np.sum(np.log(np.where(ok, np.diagonal(C).T, 1.0)), axis=0)
     if rhs is None:
         return logabs, ok, None
-    W = _forward_small(C, Z)
-    return logabs, ok, const + np.sum(W * W, axis=1)
+    q = np.zeros_like(Z[0]) + const
+    W: list[np.ndarray] = []
+    for i in range(d):  # W = C^-1 Z by rows, q = |W|^2 per column
+        w = Z[i].copy()
+        for j in range(i):
+            w -= C[i, j][:, None] * W[j]
+        w /= C[i, i][:, None]
+        W.append(w)
+        q += w * w
+    return logabs, ok, q
 
 
-def _capacitance_whole(state: PlanState, B: np.ndarray, c: np.ndarray, removed: int,
+def _capacitance_whole(state: PlanState, B: np.ndarray, c: np.ndarray | slice, removed: int,
                        rhs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """:func:`_capacitance` of a swap whose rest of the plan is singular: the whole 2d x 2d K
     per candidate (sign ``(-1)^d`` where the changed M is positive definite)."""
-    d, n = B.shape[1], len(c)
+    d = B.shape[1]
     I = np.eye(d)
-    X = state.G[c] @ B[removed].T
+    X = np.stack([state.G[i][c] @ B[removed].T for i in range(d)], axis=1)  # (n, d, d)
+    n = len(X)
     K = np.empty((n, 2 * d, 2 * d))
-    K[:, :d, :d] = state.V[removed] - I
+    K[:, :d, :d] = state.V[:, :, removed] - I
     K[:, :d, d:] = X.transpose(0, 2, 1)
     K[:, d:, :d] = X
-    K[:, d:, d:] = I + state.V[c]
+    K[:, d:, d:] = I + state.V[:, :, c].transpose(2, 0, 1)
     sign, logabs = np.linalg.slogdet(K)
     ok = (sign == (-1.0) ** d) & np.isfinite(logabs)
     if rhs is None:
         return logabs, ok, None
     K = np.where(ok[:, None, None], K, np.eye(2 * d))  # the others: a placeholder, marked by ok
-    Y = np.concatenate([np.broadcast_to(rhs[removed], (n, *rhs.shape[1:])), rhs[c]], axis=1)
+    Y = np.concatenate([np.broadcast_to(rhs[:, removed], (n, *rhs[:, removed].shape)),
+                        rhs[:, c].transpose(1, 0, 2)], axis=1)
     return logabs, ok, np.sum(Y * np.linalg.solve(K, Y), axis=1)
 
 
 def _cholesky_small(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lower Cholesky factors of many small symmetric matrices ``S`` (n, d, d) by array
-    operations over n (d^3 / 6 of them), and whether each is positive definite (the factor of
-    one that is not: finite, unused)."""
-    n, d = S.shape[:2]
+    """Lower Cholesky factors of many small symmetric matrices ``S`` (d, d, n) entry by entry
+    as vectors over n, and whether each is positive definite (the factor of one that is not:
+    finite, unused)."""
+    d, n = S.shape[0], S.shape[2]
     C = np.zeros_like(S)
     ok = np.ones(n, dtype=bool)
     for j in range(d):
-        pivot = S[:, j, j] - np.sum(C[:, j, :j] ** 2, axis=1)
+        pivot = S[j, j] - sum(C[j, l] ** 2 for l in range(j))
         ok &= pivot > 0.0
-        C[:, j, j] = np.sqrt(np.where(pivot > 0.0, pivot, 1.0))
+        C[j, j] = np.sqrt(np.where(pivot > 0.0, pivot, 1.0))
         for i in range(j + 1, d):
-            C[:, i, j] = (S[:, i, j] - np.sum(C[:, i, :j] * C[:, j, :j], axis=1)) / C[:, j, j]
+            C[i, j] = (S[i, j] - sum(C[i, l] * C[j, l] for l in range(j))) / C[j, j]
     return C, ok
-
-
-def _forward_small(C: np.ndarray, Z: np.ndarray) -> np.ndarray:
-    """``C^-1 Z`` for lower triangular ``C`` (n, d, d) and ``Z`` (n, d, p), by rows."""
-    W = np.empty_like(Z)
-    for i in range(C.shape[1]):
-        W[:, i] = Z[:, i]
-        for j in range(i):
-            W[:, i] -= C[:, i, j, None] * W[:, j]
-        W[:, i] /= C[:, i, i, None]
-    return W
