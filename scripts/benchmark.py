@@ -21,6 +21,15 @@ line says whether the functions are compiled and where their cache is; build tim
 compiling what the cache does not hold yet. Figures are for the machine at hand; compare
 ratios, not absolutes.
 
+Choosing from pools (``--candidates``)::
+
+    python scripts/benchmark.py --pools ipa-500,ipa-2773,ur10-12000 [--compare-with DIR --old-pools ipa-500]
+
+runs ``solve CASE --candidates POOL --criteria test-pose,D --jobs 1`` on each pool of
+:data:`POOLS` in a fresh process and prints each design's time, gap to the pool's bound, score
+and exchanges, the command's wall time and peak memory; with ``--compare-with``, the same
+command with the other checkout on the pools of ``--old-pools``.
+
 Plan quality over the benchmark set (the rule of issue 47)::
 
     python scripts/benchmark.py --run-set DIR                     # the set's runs, in DIR/<run>
@@ -269,6 +278,102 @@ def quality(base: Path, candidate: Path) -> bool:
     return not problems
 
 
+#: Pools of ``--pools``: name -> (problem file, where the postures come from, size, --m values
+#: or None for the case's own): "ipa", a seeded subset of IPA's series (tests/data/ipa_ur10,
+#: all of it at 2773); "cell", random feasible experiments of the case's cell (seeded).
+POOLS = {
+    "ipa-500": ("tests/data/ipa_ur10/ipa_ur10.toml", "ipa", 500, "20,30"),
+    "ipa-2773": ("tests/data/ipa_ur10/ipa_ur10.toml", "ipa", 2773, "30"),
+    "ur10-12000": ("problems/ur10_drilling.toml", "cell", 12000, None),
+}
+IPA_SERIES = "tests/data/ipa_ur10/measurements_random_poses_xyz.csv"
+
+
+def pool_file(name: str, folder: Path) -> Path:
+    """The pool of ``name`` (:data:`POOLS`) written as a CSV in ``folder``."""
+    problem_file, source, size, _ = POOLS[name]
+    path = folder / f"{name}.csv"
+    if source == "ipa":
+        head, *rows = (ROOT / IPA_SERIES).read_text().splitlines()
+        keep = np.sort(np.random.default_rng(0).choice(len(rows), size=size, replace=False))
+        path.write_text("\n".join([head] + [rows[i] for i in keep]) + "\n")
+    else:
+        sys.path.insert(0, str(ROOT))
+        from casadi_design.model.build import load_problem
+        from casadi_design.plan.sampling import random_plan
+        from casadi_design.records.export import csv_text, plan_table
+
+        problem = load_problem(ROOT / problem_file)
+        path.write_text(csv_text(*plan_table(problem, *random_plan(problem, size, np.random.default_rng(0)))))
+    return path
+
+
+def pool_run(package_dir: Path, name: str, pool: Path, out: Path) -> dict:
+    """``solve CASE --candidates POOL --criteria test-pose,D --jobs 1`` with the package of
+    ``package_dir`` in a fresh process: its wall time (s), peak memory (MB) and each design's
+    time, score, max error and gap to the pool's bound from its results.json."""
+    problem_file, _, _, ms = POOLS[name]
+    argv = ["solve", str(ROOT / problem_file), "--candidates", str(pool), "--criteria", "test-pose,D",
+            "--jobs", "1", "--out", str(out), "--force", "--quiet"] + (["--m", ms] if ms else [])
+    code = ("import json, resource, sys; sys.path[:0] = [%r]; from casadi_design.cli import main; rc = main(%r); "
+            "print(json.dumps({'rc': rc, 'peak_MB': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))"
+            % (str(package_dir), argv))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", code], cwd=package_dir, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode:
+        return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
+    record = json.loads((out / "results.json").read_text())
+    return {"wall_s": wall, **json.loads(proc.stdout.strip().splitlines()[-1]),
+            "designs": {f"{d['criterion']} {d['m']}": {
+                "wall_s": d["solver"]["wall_s"], "value": d["scores"][CRITERIA_SCORE[d["criterion"]]],
+                "max_error_mm": d["max_rms_error_m"] * 1e3,
+                "gap_percent": (d.get("bound") or {}).get("gap_percent"),
+                "exchange": d["solver"].get("exchange")} for d in record["designs"]}}
+
+
+#: The score key of the criteria the pool runs compare.
+CRITERIA_SCORE = {"test-pose": "max_rms_error_m", "D": "log_det_M"}
+
+
+def pools(names: list[str], old_dir: Path | None, old_names: list[str]) -> dict:
+    """The pool runs of ``names`` (and with ``old_dir``, those of ``old_names`` with that
+    checkout too): one line per design."""
+    import tempfile
+
+    runs = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        head = (f"{'pool':<12}{'k':>6}{'criterion':>11}{'m':>4}{'design s':>10}{'gap %':>8}{'max mm':>9}"
+                f"{'value':>12}{'exchanges/passes/swaps':>24}" + (f"{'old s':>9}{'old gap %':>10}{'old value':>12}"))
+        print(head)
+        print("-" * len(head))
+        for name in names:
+            pool = pool_file(name, tmp)
+            new = pool_run(ROOT, name, pool, tmp / f"{name}-new")
+            old = pool_run(old_dir, name, pool, tmp / f"{name}-old") if old_dir and name in old_names else None
+            runs[name] = {"new": new, "old": old}
+            if "error" in new:
+                print(f"{name:<12} failed: {new['error']}")
+                continue
+            for key, d in new["designs"].items():
+                criterion, m = key.split()
+                ex = d["exchange"] or {}
+                line = (f"{name:<12}{POOLS[name][2]:>6}{criterion:>11}{m:>4}{d['wall_s']:>10.1f}"
+                        f"{d['gap_percent'] if d['gap_percent'] is not None else float('nan'):>8.2f}"
+                        f"{d['max_error_mm']:>9.4f}{d['value']:>12.6g}"
+                        f"{'/'.join(str(ex.get(k, '-')) for k in ('starts', 'passes', 'swaps')):>24}")
+                if old and "error" not in old and key in old["designs"]:
+                    o = old["designs"][key]
+                    line += f"{o['wall_s']:>9.1f}{o['gap_percent'] or float('nan'):>10.2f}{o['value']:>12.6g}"
+                print(line, flush=True)
+            print(f"{name}: the command {new['wall_s']:.1f} s wall, peak {new['peak_MB']:.0f} MB"
+                  + (f"; with the old checkout {old['wall_s']:.1f} s, peak {old['peak_MB']:.0f} MB"
+                     if old and "error" not in old else ""), flush=True)
+    return runs
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="paper,ur10,abb", help=f"among {', '.join(CASES)}")
@@ -285,7 +390,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--candidate", metavar="DIR", help="the runs judged by --quality")
     parser.add_argument("--studies", action="store_true",
                         help="also time each case's whole study, `casadi-design solve CASE --jobs 2`")
+    parser.add_argument("--pools", metavar="NAMES",
+                        help=f"time `solve --candidates` on pools instead, among {', '.join(POOLS)}")
+    parser.add_argument("--old-pools", metavar="NAMES", default="ipa-500",
+                        help="the pools also run with the --compare-with checkout (default ipa-500)")
     args = parser.parse_args(argv)
+    if args.pools:
+        runs = pools(args.pools.split(","), Path(args.compare_with) if args.compare_with else None,
+                     args.old_pools.split(","))
+        Path(args.out).write_text(json.dumps({"units": {"wall_s": "s", "peak_MB": "MB", "max_error_mm": "mm"},
+                                              "pools": runs}, indent=2) + "\n")
+        print(f"wrote {args.out}")
+        return 0
     if args.run_set:
         run_set(Path(args.run_set))
         return 0

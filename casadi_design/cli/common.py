@@ -347,6 +347,7 @@ def _kept_pool(args: argparse.Namespace, problem: Problem, path: str) -> tuple:
 
     Q, F, _ = read_experiments(problem, path, ignore_unknown=True)
     kept, repeats, why = kept_postures(problem, Q, F)
+    say(args, f"--candidates {path}: {count(len(Q), 'posture')}, {int(kept.sum())} kept for the plans")
     if repeats:
         say(args, f"note: --candidates {path}: {count(repeats, 'repeated posture')} taken once (a plan measures "
                   "each posture at most once)")

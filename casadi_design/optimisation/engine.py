@@ -133,8 +133,9 @@ class PoolEngine:
         elif reads == "trace_inv":
             fields["trace_inv"] = np.where(ok, np.trace(state.N) - q.sum(axis=1), np.inf)
         elif reads == "rho":
-            drop = q @ self._per_pose
-            fields["rho"] = np.where(ok[:, None], state.rho - self.sigma**2 * drop, np.inf)
+            rho = state.rho - self.sigma**2 * (q @ self._per_pose)
+            ok = ok & np.all(rho > 0.0, axis=1)  # not: a change that leaves M all but singular (cancellation)
+            fields["rho"] = np.where(ok[:, None], rho, np.inf)
         elif reads == "lam":
             M = state.M + self.A[c] - (0.0 if removed is None else self.A[removed])
             lam = np.clip(np.linalg.eigvalsh(M)[:, ::-1], 0.0, None)

@@ -2,20 +2,26 @@
 
 Given a pool of k feasible experiments (taught by hand, known safe, or measured) with
 information ``A_i = B_i^T B_i``, a plan of m of them (each at most once) has ``M = M_held +
-sum_{i in S} A_i``. The choice:
+sum_{i in S} A_i``. Every candidate is priced at once by the pool engine
+(:class:`~casadi_design.optimisation.engine.PoolEngine`: low-rank updates of the plan's
+``M^-1``; with the problem's field, the bordered kriging of
+:func:`~casadi_design.measures.field.kriging_rho_added`). The choice:
 
 1. starts: the greedy plan (one experiment at a time, the one that improves the criterion most;
    while M is singular, the one that raises ``log det(M + eps I)`` most), the m heaviest
-   postures of the pool's approximate design, and ``starts`` random subsets (seeded by the
-   problem's seed, the criterion and m);
-2. exchange (Fedorov): the best swap of a chosen posture with one left out, repeated until no
-   swap improves the criterion's score;
-3. the best plan over the starts, scored as any plan (:func:`~casadi_design.optimisation.solve.plan_scores`).
+   postures of the pool's approximate design, :data:`POOL_ROUNDED` plans drawn from its
+   weights, and ``starts`` random subsets (seeded by the problem's seed, the criterion and m);
+2. exchange (Cook and Nachtsheim's modified Fedorov exchange): each position of the plan in turn
+   takes the swap that improves the criterion most, until a pass swaps nothing; a criterion with
+   a smooth surrogate (test-pose: the p-mean of rho) climbs it first;
+3. :data:`POOL_PERTURBED` perturbations of the best plan so far, each exchanged (iterated local
+   search);
+4. the best plan over the starts, scored as any plan (:func:`~casadi_design.optimisation.solve.plan_scores`).
 
 The bound is the pool's relaxation with its certificate
-(:func:`casadi_design.optimisation.bound.pool_design`): over a finite pool the largest
-``d(x, W)`` is exact, so it bounds every choice of m postures from the pool (repeats allowed),
-not every plan of the robot.
+(:func:`casadi_design.optimisation.bound.pool_design`), each posture at most once (weights at
+most 1/m): priced over the whole pool, it is exact and bounds every choice of m distinct
+postures from the pool, not every plan of the robot.
 """
 
 from __future__ import annotations
@@ -44,14 +50,14 @@ from .solve import plan_scores, start_rng
 #: starts ends 3.5 % from the pool's bound, of 6 greedy and seeded ones 4.7 %.
 POOL_ROUNDED = 8
 POOL_FLOOR = 0.01
-ROUNDED_POOL = "drawn from the pool's approximate design"
+ROUNDED_POOL = "plan drawn from the pool's approximate design"
 #: Perturbations of the best plan so far (iterated local search): :data:`PERTURBED_SHARE` of
 #: its postures replaced at random, then exchanged; the better plan is kept. The exchange ends
 #: in a plan no single swap improves; these escape it (on the pool of 500 above, 40 of them
 #: take the best plan from 3.5 % to 2.9 % of the bound; m = 30: 1.6 % to 1.5 %).
 POOL_PERTURBED = 24
 PERTURBED_SHARE = 0.2
-PERTURBED = "the best plan so far, perturbed"
+PERTURBED = "best plan so far, perturbed"
 #: The power of the smooth surrogate the exchange climbs first (test-pose: the 8-mean of rho,
 #: :attr:`~casadi_design.measures.criteria.Criterion.smoothed`). From 10 random starts on IPA's
 #: pool of 500 (m = 20) the exchange ends at best 4.8 % from the pool's bound on the max alone,
