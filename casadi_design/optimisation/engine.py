@@ -168,8 +168,8 @@ def key(criterion: str, value: np.ndarray | float) -> np.ndarray:
 
 
 #: The removed experiment's block ``B_a N B_a^T - I`` of the capacitance is inverted on its own
-#: when its condition number is below this (the rest of the plan regular); else the whole 2d x
-#: 2d capacitance is solved per candidate.
+#: when its reciprocal condition number is above this (the rest of the plan regular); else the
+#: candidate's block is eliminated first (:func:`_capacitance_added_first`).
 BLOCK_RCOND = 1e-8
 
 
@@ -179,13 +179,14 @@ def _capacitance(state: PlanState, B: np.ndarray, c: np.ndarray | slice, removed
     and with right-hand sides ``rhs`` (d, k, p) over the pool (``U^T N`` times p columns: ``Y``
     for rho, ``G`` for the trace) the quadratic forms ``diag(Y^T K^-1 Y)``, (n, p).
 
-    An addition: ``K = I + V_c``, symmetric positive definite. A swap: ``K = [[P, X^T], [X, R]]``
-    with ``P = V_a - I`` (negative definite while the rest of the plan is regular), ``X = B_c N
-    B_a^T`` and ``R = I + V_c``; by block elimination ``det K = det P det S`` and ``Y^T K^-1 Y =
-    Y_a^T P^-1 Y_a + Z^T S^-1 Z`` with the Schur complement ``S = R - X P^-1 X^T`` (positive
-    definite exactly when the changed M is) and ``Z = Y_c - X P^-1 Y_a``. S is d x d: its
-    Cholesky factor and the triangular solves run entry by entry as vectors over the candidates
-    (:func:`_cholesky_small`), not one LAPACK call per candidate."""
+    An addition: ``K = R = I + V_c``, symmetric positive definite. A swap: ``K = [[P, X^T], [X,
+    R]]`` with ``P = V_a - I`` (negative definite while the rest of the plan is regular) and ``X
+    = B_c N B_a^T``; by block elimination ``det K = det P det S`` and ``Y^T K^-1 Y = Y_a^T P^-1
+    Y_a + Z^T S^-1 Z`` with the Schur complement ``S = R - X P^-1 X^T`` (positive definite
+    exactly when the changed M is) and ``Z = Y_c - X P^-1 Y_a``. Where the rest of the plan is
+    singular (P cannot be inverted) R is eliminated first (:func:`_capacitance_added_first`).
+    The d x d Cholesky factors and triangular solves run entry by entry as vectors over the
+    candidates (:func:`_cholesky_small`), not one LAPACK call per candidate."""
     d = B.shape[1]
     S = np.array([[state.V[i, j][c] + (i == j) for j in range(d)] for i in range(d)])  # (d, d, n)
     Z = None if rhs is None else [rhs[i][c] for i in range(d)]
@@ -194,7 +195,7 @@ def _capacitance(state: PlanState, B: np.ndarray, c: np.ndarray | slice, removed
         P = state.V[:, :, removed] - np.eye(d)
         sign, logabs0 = np.linalg.slogdet(P)
         if sign != (-1.0) ** d or 1.0 / np.linalg.cond(P) < BLOCK_RCOND:
-            return _capacitance_whole(state, B, c, removed, rhs)
+            return _capacitance_added_first(state, B, c, S, Z, removed, rhs)
         Pi = np.linalg.inv(P)
         X = [state.G[i][c] @ B[removed].T for i in range(d)]  # row i of B_c N B_a^T, (n, d) each
         XPi = [x @ Pi for x in X]
@@ -206,42 +207,52 @@ def _capacitance(state: PlanState, B: np.ndarray, c: np.ndarray | slice, removed
             Z = [Z[i] - XPi[i] @ Ya for i in range(d)]
             const = np.sum(Ya * (Pi @ Ya), axis=0)
     C, ok = _cholesky_small(S)
-    logabs = logabs0 + 2.0 * np.sum(np.log(np.where(ok, np.diagonal(C).T, 1.0)), axis=0)
+    logabs = logabs0 + _log_det_small(C, ok)
     if rhs is None:
         return logabs, ok, None
-    q = np.zeros_like(Z[0]) + const
+    return logabs, ok, const + sum(w * w for w in _forward_small(C, Z))
+
+
+def _capacitance_added_first(state: PlanState, B: np.ndarray, c: np.ndarray | slice, R: np.ndarray,
+                             Yc: list[np.ndarray] | None, removed: int, rhs: np.ndarray | None
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`_capacitance` of a swap whose rest of the plan is singular: ``R = I + V_c`` (d, d,
+    n) is eliminated first. With ``R = C_R C_R^T``, ``E = C_R^-1 X`` and ``W = C_R^-1 Y_c``, the
+    block ``-T = I - V_a + E^T E`` (minus the Schur complement of R: the removed block of the
+    plan with c added) is positive definite exactly when the changed M is; then ``|det K| = det
+    R det(-T)`` and ``Y^T K^-1 Y = |W|^2 - |C_T^-1 (Y_a - E^T W)|^2`` with ``-T = C_T C_T^T``."""
+    d = B.shape[1]
+    C_R, ok = _cholesky_small(R)
+    E = _forward_small(C_R, [state.G[i][c] @ B[removed].T for i in range(d)])  # rows of C_R^-1 X, (n, d)
+    V_a = state.V[:, :, removed]
+    T = np.array([[(i == j) - V_a[i, j] + sum(E[l][:, i] * E[l][:, j] for l in range(d)) for j in range(d)]
+                  for i in range(d)])
+    C_T, ok_T = _cholesky_small(T)
+    ok = ok & ok_T
+    logabs = _log_det_small(C_R, ok) + _log_det_small(C_T, ok)
+    if rhs is None:
+        return logabs, ok, None
+    W = _forward_small(C_R, Yc)
+    Ya = rhs[:, removed]
+    U = _forward_small(C_T, [Ya[j] - sum(E[l][:, j, None] * W[l] for l in range(d)) for j in range(d)])
+    return logabs, ok, sum(w * w for w in W) - sum(u * u for u in U)
+
+
+def _log_det_small(C: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``log det`` of the matrices whose Cholesky factors are ``C`` (d, d, n) (0 where not ok)."""
+    return 2.0 * np.sum(np.log(np.where(ok, np.diagonal(C).T, 1.0)), axis=0)
+
+
+def _forward_small(C: np.ndarray, Z: list[np.ndarray]) -> list[np.ndarray]:
+    """``C^-1 Z`` by rows for lower triangular ``C`` (d, d, n) and the d rows of Z, (n, p) each."""
     W: list[np.ndarray] = []
-    for i in range(d):  # W = C^-1 Z by rows, q = |W|^2 per column
+    for i in range(C.shape[0]):
         w = Z[i].copy()
         for j in range(i):
             w -= C[i, j][:, None] * W[j]
         w /= C[i, i][:, None]
         W.append(w)
-        q += w * w
-    return logabs, ok, q
-
-
-def _capacitance_whole(state: PlanState, B: np.ndarray, c: np.ndarray | slice, removed: int,
-                       rhs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """:func:`_capacitance` of a swap whose rest of the plan is singular: the whole 2d x 2d K
-    per candidate (sign ``(-1)^d`` where the changed M is positive definite)."""
-    d = B.shape[1]
-    I = np.eye(d)
-    X = np.stack([state.G[i][c] @ B[removed].T for i in range(d)], axis=1)  # (n, d, d)
-    n = len(X)
-    K = np.empty((n, 2 * d, 2 * d))
-    K[:, :d, :d] = state.V[:, :, removed] - I
-    K[:, :d, d:] = X.transpose(0, 2, 1)
-    K[:, d:, :d] = X
-    K[:, d:, d:] = I + state.V[:, :, c].transpose(2, 0, 1)
-    sign, logabs = np.linalg.slogdet(K)
-    ok = (sign == (-1.0) ** d) & np.isfinite(logabs)
-    if rhs is None:
-        return logabs, ok, None
-    K = np.where(ok[:, None, None], K, np.eye(2 * d))  # the others: a placeholder, marked by ok
-    Y = np.concatenate([np.broadcast_to(rhs[:, removed], (n, *rhs[:, removed].shape)),
-                        rhs[:, c].transpose(1, 0, 2)], axis=1)
-    return logabs, ok, np.sum(Y * np.linalg.solve(K, Y), axis=1)
+    return W
 
 
 def _cholesky_small(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -59,10 +59,10 @@ def test_every_addition_and_swap_is_priced_as_score_plan_scores_it(ur10, held):
             assert np.argmin(keys) == np.argmin([key(name, j.value(name)) for j in judged])
 
 
-def test_a_swap_whose_rest_is_singular_is_priced_whole(ur10):
+def test_a_swap_whose_rest_is_singular_is_priced_with_the_candidate_first(ur10):
     """Nine experiments give 27 rows for 27 parameters: less one, M is singular and the removed
-    block of the capacitance cannot be inverted on its own; the swap is priced through the whole
-    2d x 2d capacitance, and a swap that leaves M singular is not identifiable."""
+    block of the capacitance cannot be inverted on its own; the candidate's block is eliminated
+    first, and a swap that leaves M singular is not identifiable."""
     problem, Q, F, B = ur10
     engine = PoolEngine(B, problem.B0, problem.sigma_m)
     S = list(range(9))
@@ -72,7 +72,8 @@ def test_a_swap_whose_rest_is_singular_is_priced_whole(ur10):
     for name in ("test-pose", "D", "A"):
         crit = CRITERIA[name]
         priced = engine.priced(engine.state(S, crit.reads), out, crit.reads, S[0])
-        assert relative(crit.score_of(priced), np.array([j.value(name) for j in judged])) < 1e-7
+        # 27 rows for 27 parameters: ill-conditioned plans (0.3 to 2.8 mm for 0.025 mm of noise)
+        assert relative(crit.score_of(priced), np.array([j.value(name) for j in judged])) < 10 * RTOL, name
     # the same experiment out and in again: M is the plan's own; a copy of a chosen one: singular
     B2 = np.concatenate([B[:9], B[1:2]])
     engine2 = PoolEngine(B2, problem.B0, problem.sigma_m)
