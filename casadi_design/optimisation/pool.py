@@ -14,8 +14,8 @@ sum_{i in S} A_i``. Every candidate is priced at once by the pool engine
 2. exchange (Cook and Nachtsheim's modified Fedorov exchange): each position of the plan in turn
    takes the swap that improves the criterion most, until a pass swaps nothing; a criterion with
    a smooth surrogate (test-pose: the p-mean of rho) climbs it first;
-3. :data:`POOL_PERTURBED` perturbations of the best plan so far, each exchanged (iterated local
-   search);
+3. :data:`POOL_PERTURBED` perturbations of the best plan so far (at most
+   :data:`PERTURBED_PER_START` per seeded start), each exchanged (iterated local search);
 4. the best plan over the starts, scored as any plan (:func:`~casadi_design.optimisation.solve.plan_scores`).
 
 The bound is the pool's relaxation with its certificate
@@ -56,6 +56,9 @@ ROUNDED_POOL = "plan drawn from the pool's approximate design"
 #: in a plan no single swap improves; these escape it (on the pool of 500 above, 40 of them
 #: take the best plan from 3.5 % to 2.9 % of the bound; m = 30: 1.6 % to 1.5 %).
 POOL_PERTURBED = 24
+#: ... and at most this many per seeded start asked for (``--starts``: a search of one start
+#: perturbs 6 times).
+PERTURBED_PER_START = 6
 PERTURBED_SHARE = 0.2
 PERTURBED = "best plan so far, perturbed"
 #: The power of the smooth surrogate the exchange climbs first (test-pose: the 8-mean of rho,
@@ -267,7 +270,7 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
 
     for origin, S in first:
         run(origin, S)
-    for _ in range(POOL_PERTURBED if best is not None and k > m else 0):
+    for _ in range(min(POOL_PERTURBED, PERTURBED_PER_START * starts) if best is not None and k > m else 0):
         run(PERTURBED, _perturbed(best[1], k, rng))
     if best is None:
         raise ProblemError(f"--candidates: no choice of {m} postures of the pool identifies the parameters; "
