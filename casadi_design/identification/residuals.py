@@ -112,7 +112,9 @@ def error_scale(r: np.ndarray, P: np.ndarray, sigma: float, sigma_hat: float,
     dof)`` used when a row is needed to identify the model; ``noise_rejected`` whether the
     chi-square test rejects ``sigma`` (residuals too large)."""
     e, Ainv, _ = press(r, P)
-    s_cv = math.nan if e is None else float(np.sqrt(np.sum(e**2) / np.trace(Ainv, axis1=1, axis2=2).sum()))
+    weight = math.nan if e is None else float(np.trace(Ainv, axis1=1, axis2=2).sum())
+    # a row all but needed to identify the model (a leverage at 1 up to rounding): no cross-validation
+    s_cv = float(np.sqrt(np.sum(e**2) / weight)) if weight > 0 and np.isfinite(weight) else math.nan
     if not noise_rejected:
         return ErrorScale(sigma, 0.0, s_cv)
     s = sigma_hat if math.isnan(s_cv) else s_cv
