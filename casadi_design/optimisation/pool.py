@@ -35,13 +35,13 @@ from ..errors import ProblemError
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA, PlanSpectrum
 from ..measures.field import field_measure, kriging_rho_added
 from ..measures.measures import Scores
-from ..model.cell import clearances
 from ..model.build import Problem
+from ..model.cell import clearances
 from ..plan.design import EXCHANGE_ENDED, Design, StartRecord
 from ..plan.rules import plan_violations
+from ..plan.sampling import random_plan
 from .bound import bound, pool_design
 from .engine import PlanState, PoolEngine, key, score
-from ..plan.sampling import random_plan
 from .solve import plan_scores, start_rng
 
 #: Starts drawn from the pool's approximate design: m distinct postures, each drawn with
@@ -90,7 +90,7 @@ def _field_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], 
     criterion that weighs the problem's field: every plan at once by bordering the kriging
     system (:func:`~casadi_design.measures.field.kriging_rho_added`), scored by the criterion's
     own score of rho (with ``power``: its smooth surrogate)."""
-    Q, F, B = pool
+    Q, _, B = pool
     Qr, Br = problem.field_campaign(Q[rest], B[rest])
     if not len(Qr):  # the first posture of a plan without held poses: each on its own
         return np.array([_plan_key(problem, criterion, pool, [c], power) for c in cands])
@@ -153,7 +153,6 @@ def _climb(engine: PoolEngine, S: list[int], chosen: np.ndarray, reads: str) -> 
         passes += 1
         state, swapped = engine.state(S, "log_det", _eps(engine)), False
         for a in range(len(S)):
-            out = np.flatnonzero(~chosen)
             keys = np.where(chosen, np.inf, -engine.priced(state, None, "log_det", S[a]).log_det)
             i = int(np.argmin(keys))
             if keys[i] < -state.log_det - EXCHANGE_RTOL * abs(state.log_det):

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import ROOT
 
 from casadi_design.measures.criteria import CRITERIA
 from casadi_design.measures.measures import information_matrices, information_matrix, score_plan
@@ -20,8 +21,6 @@ from casadi_design.optimisation.pool import choose_design
 from casadi_design.optimisation.solve import plan_scores
 from casadi_design.plan.design import EXCHANGE_ENDED
 from casadi_design.plan.sampling import random_plan
-
-from conftest import ROOT
 
 #: Agreement of the engine's low-rank updates with score_plan's own factorisation.
 RTOL = 1e-9
@@ -42,7 +41,7 @@ def relative(a: np.ndarray, b: np.ndarray) -> float:
 
 @pytest.mark.parametrize("held", [False, True])
 def test_every_addition_and_swap_is_priced_as_score_plan_scores_it(ur10, held):
-    problem, Q, F, B = ur10
+    problem, _, _, B = ur10
     M_held = information_matrix(B[30:33]) if held else None
     engine = PoolEngine(B[:30], problem.B0, problem.sigma_m, M_held)
     S = [0, 3, 5, 8, 11, 14, 17, 20, 22, 25]  # 30 rows for 27 parameters
@@ -114,7 +113,7 @@ def test_the_choice_and_the_pool_bound_against_every_subset(ur10):
 
 
 def test_with_held_information_the_engine_s_choice_is_scored_with_it(ur10):
-    problem, Q, F, B = ur10
+    problem, Q, F, _ = ur10
     held = build_problem(replace(problem.spec, held=HeldSpec(tuple(map(tuple, Q[30:33].tolist())),
                                                              tuple(map(tuple, F[30:33].tolist())))))
     d = choose_design(held, "test-pose", 8, Q[:30], F[:30], starts=1)
