@@ -10,7 +10,10 @@ Rasmussen and Williams, Gaussian Processes for Machine Learning, 2006, 2.7) is
 
 with gradient ``dl/dtheta_k = 1/2 (r^T Pi V_k Pi r - tr(Pi V_k))``, ``V_k = dV/dtheta_k``,
 ``theta = log(scale, length_1 .. length_n, nugget)``; the tracker's sigma is the problem's. It
-is maximised by L-BFGS-B (scipy) from two starts. Without parameters (L = 0) it is the
+is maximised by L-BFGS-B (scipy) from two starts, for the squared exponential over the joints
+and for the field additive over them (an error of the joint angles,
+:class:`~casadi_design.measures.field.Field`), and the one of the lower AIC (``2 k - 2 l``, k
+hyperparameters: n + 2 and 2 n + 1) is kept. Without parameters (L = 0) it is the
 marginal likelihood of a Gaussian process regression of the residuals on the joint
 configurations, one output per base axis sharing the kernel: scikit-learn's
 ``GaussianProcessRegressor`` with ``ConstantKernel * RBF + WhiteKernel`` and ``alpha = sigma^2``
@@ -34,6 +37,10 @@ FIELD_ROWS = 300
 FIELD_SEED = 0
 #: The lengths are searched within these (rad or m), the scale and nugget from SCALE_LOW sigma.
 LENGTH_BOUNDS = (0.02, 50.0)
+#: ... those of the additive field within these: a joint's share longer than about a radian is
+#: all but a constant or a slope over its range, which the geometric parameters take, and its
+#: variance is then not told by the restricted likelihood (it runs to its bound).
+ADDITIVE_LENGTH_BOUNDS = (0.02, 1.0)
 SCALE_LOW = 1e-3
 
 
@@ -52,17 +59,28 @@ class FieldFit:
 
 
 def restricted_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, Q: np.ndarray, A: np.ndarray,
-                              sigma: float) -> tuple[float, np.ndarray]:
+                              sigma: float, additive: bool = False) -> tuple[float, np.ndarray]:
     """``l(theta)`` and its gradient (module docstring) for residuals ``r`` (m, d), ``J`` (m, d,
-    L), poses ``Q`` (m, n), the coupling ``A`` (d, d) of a pose's values.
+    L), poses ``Q`` (m, n), the coupling ``A`` (d, d) of a pose's values; ``additive``: the
+    field additive over the joints, ``theta = log(s_1 .. s_n, length_1 .. length_n, nugget)``
+    with ``K = sum_l s_l^2 exp(-1/2 ((q_l - q'_l) / length_l)^2)``.
 
     With ``A = U diag(a) U^T`` the values rotated by ``U`` have ``V = blockdiag_c(a_c Kt +
     sigma^2 I)`` (``Kt = K + nugget^2 I``, m x m): d blocks of m x m instead of one of m d."""
     m, n = Q.shape
-    scale, ell, nugget = np.exp(theta[0]), np.exp(theta[1:1 + n]), np.exp(theta[-1])
-    D = (Q[:, None, :] - Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
-    K = scale**2 * np.exp(-0.5 * D.sum(axis=2))
-    dK = [2 * K, *(K * D[:, :, l] for l in range(n)), 2 * nugget**2 * np.eye(m)]  # dKt / dtheta_k
+    nugget = np.exp(theta[-1])
+    if additive:
+        s2, ell = np.exp(2 * theta[:n]), np.exp(theta[n:2 * n])
+        D = (Q[:, None, :] - Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
+        E = np.exp(-0.5 * D)
+        K = E @ s2
+        dK = [*(2 * s2[l] * E[:, :, l] for l in range(n)), *(s2[l] * E[:, :, l] * D[:, :, l] for l in range(n)),
+              2 * nugget**2 * np.eye(m)]  # dKt / dtheta_k
+    else:
+        scale, ell = np.exp(theta[0]), np.exp(theta[1:1 + n])
+        D = (Q[:, None, :] - Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
+        K = scale**2 * np.exp(-0.5 * D.sum(axis=2))
+        dK = [2 * K, *(K * D[:, :, l] for l in range(n)), 2 * nugget**2 * np.eye(m)]  # dKt / dtheta_k
     a, U = np.linalg.eigh(A)
     rc = r @ U  # (m, d): the rotated values, column c of weight a_c
     Jc = np.einsum("mdl,dc->cml", J, U)  # (d, m, L)
@@ -109,17 +127,27 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
     low = math.log(SCALE_LOW * sigma)
     bounds = [(low, math.log(100 * spread)), *[tuple(map(math.log, LENGTH_BOUNDS))] * n, (low, math.log(100 * spread))]
     width = np.maximum(np.std(Q, axis=0), 0.1)
-    best = None
-    for shrink in (1.0, 3.0):
-        theta0 = np.concatenate([[math.log(spread)], np.log(np.clip(width / shrink, *LENGTH_BOUNDS)),
-                                 [math.log(max(0.3 * spread, SCALE_LOW * sigma))]])
-        found = minimize(lambda t: tuple(-v for v in restricted_log_likelihood(t, r, J, Q, A, sigma)),
-                         theta0, jac=True, method="L-BFGS-B", bounds=bounds)
-        if best is None or found.fun < best.fun:
-            best = found
-    theta = best.x
-    field = Field(float(np.exp(theta[0])), tuple(float(v) for v in np.exp(theta[1:1 + n])), float(np.exp(theta[-1])))
-    return FieldFit(field, float(-best.fun), m)
+    nugget0 = [math.log(max(0.3 * spread, SCALE_LOW * sigma))]
+    fits = []
+    for additive in (False, True):
+        scales = [math.log(spread / math.sqrt(n))] * n if additive else [math.log(spread)]
+        ell = ADDITIVE_LENGTH_BOUNDS if additive else LENGTH_BOUNDS
+        found = min((minimize(lambda t: tuple(-v for v in restricted_log_likelihood(t, r, J, Q, A, sigma, additive)),
+                              np.concatenate([scales, np.log(np.clip(width / shrink, *ell)), nugget0]),
+                              jac=True, method="L-BFGS-B",
+                              bounds=bounds[:1] * len(scales) + [tuple(map(math.log, ell))] * n + bounds[-1:])
+                     for shrink in (1.0, 3.0)),
+                    key=lambda f: f.fun)
+        theta = found.x
+        if additive:
+            s2 = np.exp(2 * theta[:n])
+            field = Field(float(np.sqrt(s2.sum())), tuple(float(v) for v in np.exp(theta[n:2 * n])),
+                          float(np.exp(theta[-1])), tuple(float(v) for v in s2 / s2.sum()))
+        else:
+            field = Field(float(np.exp(theta[0])), tuple(float(v) for v in np.exp(theta[1:1 + n])),
+                          float(np.exp(theta[-1])))
+        fits.append((2 * len(theta) + 2 * found.fun, FieldFit(field, float(-found.fun), m)))
+    return min(fits, key=lambda f: f[0])[1]  # the lower AIC: 2 hyperparameters - 2 l
 
 
 @dataclass(frozen=True, eq=False)

@@ -46,22 +46,40 @@ from .criteria import CRITERIA
 @dataclass(frozen=True)
 class Field:
     """The unmodelled error's field (module docstring): ``scale_m`` (m, per axis), the
-    correlation ``lengths`` (n,) per joint (rad, m for prismatic joints) and ``nugget_m`` (m)."""
+    correlation ``lengths`` (n,) per joint (rad, m for prismatic joints) and ``nugget_m`` (m).
+
+    With ``shares`` (n,; sum 1) the smooth part is additive over the joints, each joint's
+    share of the variance correlated along its own angle only:
+
+        k(q, q') = scale^2 sum_l shares_l exp(-1/2 ((q_l - q'_l) / length_l)^2),
+
+    an error of the joint angles, such as IPA's UR10 shows (waves of 12 to 29 cycles per
+    revolution in its pan and lift joints, ``scripts/joint_error_scan.py``): it correlates every
+    pose that shares one angle, whatever the others. Without (empty), the squared exponential
+    over all joints at once, which correlates only poses near in every joint."""
 
     scale_m: float
     lengths: tuple[float, ...]
     nugget_m: float = 0.0
+    shares: tuple[float, ...] = ()
 
     def kernel(self, Qa: np.ndarray, Qb: np.ndarray) -> np.ndarray:
-        """``scale^2 exp(-1/2 |(qa - qb) / length|^2)`` (ka, kb), m^2: the smooth part of k."""
+        """The smooth part of k (ka, kb), m^2: ``scale^2 exp(-1/2 |(qa - qb) / length|^2)``, or
+        the sum over the joints with ``shares``."""
         ell = np.asarray(self.lengths, dtype=float)
         Za, Zb = np.atleast_2d(Qa) / ell, np.atleast_2d(Qb) / ell
+        if self.shares:
+            d2 = (Za[:, None, :] - Zb[None, :, :]) ** 2
+            return self.scale_m**2 * np.exp(-0.5 * d2) @ np.asarray(self.shares, dtype=float)
         d2 = np.sum(Za**2, 1)[:, None] + np.sum(Zb**2, 1)[None, :] - 2 * Za @ Zb.T
         return self.scale_m**2 * np.exp(-0.5 * np.maximum(d2, 0.0))
 
     def as_dict(self) -> dict:
+        kernel = ("scale^2 sum_l shares_l exp(-1/2 ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis"
+                  if self.shares else
+                  "scale^2 exp(-1/2 sum_l ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis")
         return {"scale_m": self.scale_m, "lengths": list(self.lengths), "nugget_m": self.nugget_m,
-                "kernel": "scale^2 exp(-1/2 sum_l ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis"}
+                **({"shares": list(self.shares)} if self.shares else {}), "kernel": kernel}
 
 
 #: The criteria that weigh the test poses' rho, and so hold a field when the problem has one.

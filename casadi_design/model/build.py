@@ -304,7 +304,10 @@ def field_of(spec: ModelErrorSpec, problem: Problem) -> Field:
     if not np.any(problem.field_axes[0] >= 0):
         raise ProblemError(f"{where}: the field is an error of positions, and {problem.path} measures none; "
                            "measure x, y, z ([measurement].components) or remove it")
-    return Field(spec.scale_m, tuple(given) * n if len(given) == 1 else tuple(given), spec.nugget_m)
+    if spec.shares and len(spec.shares) != n:
+        raise ProblemError(f"{where}.shares: has {len(spec.shares)} shares for the {n} joints "
+                           f"({', '.join(problem.robot.joints)}); give one per joint")
+    return Field(spec.scale_m, tuple(given) * n if len(given) == 1 else tuple(given), spec.nugget_m, spec.shares)
 
 
 def with_held(problem: Problem) -> Problem:

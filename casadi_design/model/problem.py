@@ -60,7 +60,7 @@ SECTIONS: dict[str, set[str] | None] = {
     "robot.joint_limits_rad": None,  # joint names: checked against the model when built
     "calibration": {"case", "parameters", "compliant_joints", "wrench_components", "prior", "model_error"},
     "calibration.prior": {"length_m", "angle_rad", "offset_rad", "compliance_rad_per_Nm"},
-    "calibration.model_error": {"scale_m", "length_rad", "nugget_m"},
+    "calibration.model_error": {"scale_m", "length_rad", "nugget_m", "shares"},
     "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
     "test_poses": {"components", "joints_rad", "points_m", "line_m", "path", "tool_rpy_deg", "seed_q_deg",
                    "elbow", "force_N", "forces_N", "segment_forces_N"},
@@ -174,11 +174,14 @@ class ModelErrorSpec:
     """The robot's unmodelled error as a random field over its configurations
     (``[calibration.model_error]``, :mod:`casadi_design.measures.field`): ``scale_m`` its std
     per base axis (m), ``length_rad`` its correlation length per joint (rad; m for a prismatic
-    joint), ``nugget_m`` the part no neighbouring pose tells (m)."""
+    joint), ``nugget_m`` the part no neighbouring pose tells (m), ``shares`` each joint's share
+    of the variance of an additive field (sum 1; empty: the squared exponential over all
+    joints at once)."""
 
     scale_m: float
     length_rad: tuple[float, ...]
     nugget_m: float = 0.0
+    shares: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -762,7 +765,15 @@ def _model_error(table: _Reader | None) -> ModelErrorSpec | None:
     nugget = table.number("nugget_m", 0.0, hint="the uncorrelated unmodelled error's std in m, e.g. 2e-5")
     if not nugget >= 0:
         raise table.error(f"is {nugget:g}", "give a std >= 0 in m", "nugget_m")
-    return ModelErrorSpec(scale, tuple(float(v) for v in lengths), nugget)
+    value = table.get("shares", (list,), [], hint="each joint's share of the variance, e.g. [0.5, 0.5, 0, 0, 0, 0]")
+    try:
+        shares = np.asarray(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        shares = np.array([np.nan])
+    if shares.size and not (np.all(np.isfinite(shares) & (shares >= 0)) and abs(shares.sum() - 1.0) < 1e-6):
+        raise table.error(f"is {value!r}", "give one share >= 0 per joint, summing to 1 (an additive field), "
+                          "or leave it out", "shares")
+    return ModelErrorSpec(scale, tuple(float(v) for v in lengths), nugget, tuple(float(v) for v in shares))
 
 
 def _prior(prior: _Reader | None) -> PriorSpec | None:

@@ -43,16 +43,42 @@ def test_without_parameters_it_is_scikit_learn_s_marginal_likelihood():
     assert mine == pytest.approx(reference.log_marginal_likelihood_value_, rel=1e-12)
 
 
+def test_the_additive_field_is_scikit_learn_s_sum_of_one_joint_kernels():
+    """The field additive over the joints (an error of the joint angles): scikit-learn's sum of
+    RBF kernels each on one joint (the others' lengths 1e6: constant to 1e-12 over the poses)."""
+    gp = pytest.importorskip("sklearn.gaussian_process")
+    kernels = pytest.importorskip("sklearn.gaussian_process.kernels")
+    rng = np.random.default_rng(3)
+    Q, r = rng.normal(size=(30, 6)), rng.normal(size=(30, 3)) * 1e-4
+    theta = np.log([1e-4, 2e-4, 5e-5, 3e-5, 1e-5, 8e-5, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 3e-5])
+    mine, _ = restricted_log_likelihood(theta, r, np.zeros((30, 3, 0)), Q, np.eye(3), SIGMA, additive=True)
+    kernel = kernels.WhiteKernel(np.exp(theta[-1]) ** 2)
+    for j in range(6):
+        ell = np.full(6, 1e6)
+        ell[j] = np.exp(theta[6 + j])
+        kernel = kernel + kernels.ConstantKernel(np.exp(theta[j]) ** 2) * kernels.RBF(ell)
+    reference = gp.GaussianProcessRegressor(kernel, alpha=SIGMA**2, optimizer=None).fit(Q, r)
+    assert mine == pytest.approx(reference.log_marginal_likelihood_value_, rel=1e-9)
+    # the field's own kernel is the same sum: scale^2 = sum s_l^2, shares s_l^2 / scale^2
+    s2 = np.exp(2 * theta[:6])
+    field = Field(float(np.sqrt(s2.sum())), tuple(np.exp(theta[6:12])), 0.0, tuple(s2 / s2.sum()))
+    np.testing.assert_allclose(field.kernel(Q, Q[:5]), reference.kernel_(Q, Q[:5]),  # (its white part: 0 here)
+                               rtol=1e-9, atol=1e-22)
+
+
 def test_the_gradient_is_the_finite_differences_of_the_likelihood():
     """With parameters, markers coupled by a whitening (``A`` not diagonal)."""
     rng = np.random.default_rng(1)
     Q, r, J = rng.normal(size=(25, 6)), rng.normal(size=(25, 3)) * 1e-4, rng.normal(size=(25, 3, 4)) * 1e-2
     A = np.array([[1.0, 0.2, 0.0], [0.2, 1.0, 0.0], [0.0, 0.0, 0.5]])
-    _, grad = restricted_log_likelihood(THETA, r, J, Q, A, SIGMA)
     h = 1e-6
-    fd = [(restricted_log_likelihood(THETA + h * e, r, J, Q, A, SIGMA)[0]
-           - restricted_log_likelihood(THETA - h * e, r, J, Q, A, SIGMA)[0]) / (2 * h) for e in np.eye(len(THETA))]
-    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-3)
+    additive = np.log([1e-4, 2e-4, 5e-5, 3e-5, 1e-5, 8e-5, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 3e-5])
+    for theta, kind in ((THETA, False), (additive, True)):
+        _, grad = restricted_log_likelihood(theta, r, J, Q, A, SIGMA, kind)
+        fd = [(restricted_log_likelihood(theta + h * e, r, J, Q, A, SIGMA, kind)[0]
+               - restricted_log_likelihood(theta - h * e, r, J, Q, A, SIGMA, kind)[0]) / (2 * h)
+              for e in np.eye(len(theta))]
+        np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-3)
 
 
 def test_a_known_field_is_recovered():
