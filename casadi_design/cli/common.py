@@ -296,9 +296,7 @@ def field_line(problem: Problem) -> str:
     f, (Qh, _) = problem.field, problem.field_held
     source = ("[calibration.model_error]" if problem.spec.calibration.model_error is not None
               else f"the field of {problem.spec.held.prior_file}")
-    return (f"model error: test-pose and I weigh the robot's unmodelled error, {source}: scale "
-            f"{f.scale_m * 1e3:.4g} mm, nugget {f.nugget_m * 1e3:.4g} mm, lengths "
-            + ", ".join(f"{v:.3g}" for v in f.lengths) + " rad"
+    return (f"model error: test-pose and I weigh the robot's unmodelled error, {source}: {f.describe()}"
             + (f", correlated with the {len(Qh)} poses measured before" if len(Qh) else "")
             + "; their sqrt(rho) is the error after compensation with the field (kriging), no bound: "
             "its experiments are not independent")

@@ -228,9 +228,7 @@ def summary_lines(calibration: Calibration) -> list[str]:
                      "hold it, the designs keep sigma")
     if c.field is not None:
         fld = c.field.field
-        lines.append(f"field of the unmodelled error (REML on {c.field.estimate.rows} rows): scale "
-                     f"{fld.scale_m * 1e3:.4f} mm, nugget {fld.nugget_m * 1e3:.4f} mm, lengths "
-                     + ", ".join(f"{v:.3g}" for v in fld.lengths) + " rad per joint"
+        lines.append(f"field of the unmodelled error (REML on {c.field.estimate.rows} rows): {fld.describe()}"
                      + ("; the compensation adds its kriging mean" if c.field_compensates else ""))
     lines += [f"correlated beyond {CORRELATION_LIMIT}: {label(a)} / {label(b)} ({r:+.3f})"
               for a, b, r in c.correlated_pairs()]

@@ -74,6 +74,14 @@ class Field:
         d2 = np.sum(Za**2, 1)[:, None] + np.sum(Zb**2, 1)[None, :] - 2 * Za @ Zb.T
         return self.scale_m**2 * np.exp(-0.5 * np.maximum(d2, 0.0))
 
+    def describe(self) -> str:
+        """The field for people: scale, nugget (mm), lengths (rad per joint) and, additive, the
+        joints' shares."""
+        return (f"scale {self.scale_m * 1e3:.4g} mm, nugget {self.nugget_m * 1e3:.4g} mm, lengths "
+                + ", ".join(f"{v:.3g}" for v in self.lengths) + " rad per joint"
+                + (", additive over the joints (an error of the joint angles), shares "
+                   + ", ".join(f"{v:.2f}" for v in self.shares) if self.shares else ""))
+
     def as_dict(self) -> dict:
         kernel = ("scale^2 sum_l shares_l exp(-1/2 ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis"
                   if self.shares else
