@@ -115,3 +115,29 @@ def test_a_simulated_robot_with_a_known_field_meets_the_kriging_variance(ur10):
     z0 = np.einsum("tl,srl->tsr", X, problem.B0) + delta[:, m:, :]
     err = z0 - (np.einsum("tl,srl->tsr", Xhat, problem.B0) + mean)
     np.testing.assert_allclose(np.mean(np.sum(err**2, axis=2), axis=0), rho, rtol=0.05)
+
+
+def test_an_additive_field_from_the_problem_file(tmp_path):
+    """``shares`` in [calibration.model_error]: the field is additive over the joints, its kernel
+    the sum of one-joint squared exponentials; shares that are not one per joint summing to 1
+    are refused by name."""
+    from casadi_design.errors import ProblemError
+    from casadi_design.model.build import load_problem
+
+    base = (ROOT / "problems" / "paper_planar_2r.toml").read_text()
+
+    def problem(lines: str):
+        path = tmp_path / "paper_field.toml"
+        path.write_text(base.replace("[measurement]", f"[calibration.model_error]\n{lines}\n\n[measurement]"))
+        return load_problem(path)
+
+    field = problem("scale_m = 5e-4\nlength_rad = [0.3, 0.6]\nshares = [0.7, 0.3]").field
+    Q = np.random.default_rng(0).uniform(-2, 2, size=(6, 2))
+    expected = 5e-4**2 * sum(w * np.exp(-0.5 * ((Q[:, None, l] - Q[None, :, l]) / ell) ** 2)
+                             for l, (w, ell) in enumerate([(0.7, 0.3), (0.3, 0.6)]))
+    np.testing.assert_allclose(field.kernel(Q, Q), expected, rtol=1e-12)
+    assert "additive over the joints" in field.describe() and field.as_dict()["shares"] == [0.7, 0.3]
+    with pytest.raises(ProblemError, match=r"shares: is \[0.7, 0.4\].*summing to 1"):
+        problem("scale_m = 5e-4\nlength_rad = 0.5\nshares = [0.7, 0.4]")
+    with pytest.raises(ProblemError, match="shares: has 3 shares for the 2 joints"):
+        problem("scale_m = 5e-4\nlength_rad = 0.5\nshares = [0.5, 0.25, 0.25]")
