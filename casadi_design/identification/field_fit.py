@@ -68,18 +68,17 @@ def restricted_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, Q
     With ``A = U diag(a) U^T`` the values rotated by ``U`` have ``V = blockdiag_c(a_c Kt +
     sigma^2 I)`` (``Kt = K + nugget^2 I``, m x m): d blocks of m x m instead of one of m d."""
     m, n = Q.shape
-    nugget = np.exp(theta[-1])
+    nugget, scales = np.exp(theta[-1]), np.exp(theta[:n] if additive else theta[:1])
+    ell = np.exp(theta[len(scales):len(scales) + n])
+    D = (Q[:, None, :] - Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
     if additive:
-        s2, ell = np.exp(2 * theta[:n]), np.exp(theta[n:2 * n])
-        D = (Q[:, None, :] - Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
+        s2 = scales**2
         E = np.exp(-0.5 * D)
         K = E @ s2
         dK = [*(2 * s2[l] * E[:, :, l] for l in range(n)), *(s2[l] * E[:, :, l] * D[:, :, l] for l in range(n)),
               2 * nugget**2 * np.eye(m)]  # dKt / dtheta_k
     else:
-        scale, ell = np.exp(theta[0]), np.exp(theta[1:1 + n])
-        D = (Q[:, None, :] - Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
-        K = scale**2 * np.exp(-0.5 * D.sum(axis=2))
+        K = scales[0] ** 2 * np.exp(-0.5 * D.sum(axis=2))
         dK = [2 * K, *(K * D[:, :, l] for l in range(n)), 2 * nugget**2 * np.eye(m)]  # dKt / dtheta_k
     a, U = np.linalg.eigh(A)
     rc = r @ U  # (m, d): the rotated values, column c of weight a_c
@@ -132,8 +131,12 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
     for additive in (False, True):
         scales = [math.log(spread / math.sqrt(n))] * n if additive else [math.log(spread)]
         ell = ADDITIVE_LENGTH_BOUNDS if additive else LENGTH_BOUNDS
-        found = min((minimize(lambda t: tuple(-v for v in restricted_log_likelihood(t, r, J, Q, A, sigma, additive)),
-                              np.concatenate([scales, np.log(np.clip(width / shrink, *ell)), nugget0]),
+
+        def minus_l(t: np.ndarray, additive: bool = additive) -> tuple[float, np.ndarray]:
+            value, grad = restricted_log_likelihood(t, r, J, Q, A, sigma, additive)
+            return -value, -grad
+
+        found = min((minimize(minus_l, np.concatenate([scales, np.log(np.clip(width / shrink, *ell)), nugget0]),
                               jac=True, method="L-BFGS-B",
                               bounds=bounds[:1] * len(scales) + [tuple(map(math.log, ell))] * n + bounds[-1:])
                      for shrink in (1.0, 3.0)),

@@ -247,8 +247,8 @@ def pool_design(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, 
     first = linearised(np.mean(s.A, axis=0), np.full(1 if s.Hj is None else len(s.Hj), 1.0), s.Hj, s.F0)
     d = np.einsum("kij,ij->k", s.A, first.G)
     active = np.sort(np.argsort(d)[::-1][:max(POOL_COLUMNS, 2 * m)])
-    w_all, best, steps = np.zeros(k), None, 0
-    for steps in range(1, POOL_STEPS + 1):
+    w_all, best = np.zeros(k), None
+    for _ in range(POOL_STEPS):
         w0 = np.maximum(w_all[active], 0.1 / len(active))
         w, mu = pool_optimum(s.A[active], s.Hj, np.minimum(w0 / w0.sum(), w_max), s.F0, w_max)
         W = np.einsum("k,kij->ij", w, s.A[active])

@@ -27,6 +27,7 @@ postures from the pool, not every plan of the robot.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -144,21 +145,25 @@ def _regular_state(engine: PoolEngine, S: list[int], reads: str) -> PlanState | 
     return state if state is not None and state.regular else None
 
 
-def _climb(engine: PoolEngine, S: list[int], chosen: np.ndarray, reads: str) -> tuple[int, int]:
-    """Swaps of a singular plan ``S`` (in place; ``chosen`` its mask over the pool) by the
-    regularised ``log det(M + eps I)`` until its M is regular or no swap raises it: the passes
-    and the swaps."""
+def _passes(S: list[int], chosen: np.ndarray, state: PlanState | None, restate: Callable, keys_at: Callable,
+            current: float, stop: Callable, budget: int) -> tuple[int, int]:
+    """Passes of the modified exchange over the plan ``S`` (in place; ``chosen`` its mask over
+    the pool): each position a in turn takes the posture of the least ``keys_at(state, a)`` (a
+    key per posture of the pool) when it is below ``current`` by more than
+    :data:`EXCHANGE_RTOL`, and ``restate(S)`` is the state after a swap; until a pass swaps
+    nothing, ``stop(state)`` holds when a pass would start, or ``budget`` passes. The passes and
+    the swaps."""
     passes = swaps = 0
-    while _regular_state(engine, S, reads) is None and passes < MAX_PASSES:
+    while passes < budget and not stop(state):
         passes += 1
-        state, swapped = engine.state(S, "log_det", _eps(engine)), False
+        swapped = False
         for a in range(len(S)):
-            keys = np.where(chosen, np.inf, -engine.priced(state, None, "log_det", S[a]).log_det)
+            keys = np.where(chosen, np.inf, keys_at(state, a))
             i = int(np.argmin(keys))
-            if keys[i] < -state.log_det - EXCHANGE_RTOL * abs(state.log_det):
+            if keys[i] < current - EXCHANGE_RTOL * abs(current):
                 chosen[S[a]], chosen[i] = False, True
-                S[a], swapped, swaps = i, True, swaps + 1
-                state = engine.state(S, "log_det", _eps(engine))
+                S[a], current, swapped, swaps = i, float(keys[i]), True, swaps + 1
+                state = restate(S)
         if not swapped:
             break
     return passes, swaps
@@ -166,38 +171,37 @@ def _climb(engine: PoolEngine, S: list[int], chosen: np.ndarray, reads: str) -> 
 
 def _exchange(problem: Problem, criterion: str, S: list[int], pool: tuple,
               engine: PoolEngine) -> tuple[list[int], float, int, int]:
-    """The modified exchange (Cook and Nachtsheim 1980) from the subset ``S``: each position of
-    the plan in turn takes the candidate whose swap improves the criterion most (all priced at
-    once: :class:`~casadi_design.optimisation.engine.PoolEngine`, or for the field the bordered
-    kriging), until a pass over the positions swaps nothing. A singular start first climbs
-    ``log det(M + eps I)`` (:func:`_climb`); a criterion with a smooth surrogate climbs it
+    """The modified exchange (Cook and Nachtsheim 1980) from the subset ``S`` (:func:`_passes`),
+    every candidate of a position priced at once (:class:`~casadi_design.optimisation.engine.PoolEngine`,
+    or for the field the bordered kriging). A singular start first climbs the regularised
+    ``log det(M + eps I)`` until M is regular; a criterion with a smooth surrogate climbs it
     (power :data:`POOL_POWER`) before its own score. The subset, its score key, the passes and
     the swaps."""
     S, chosen = [int(i) for i in S], np.zeros(len(engine.B), dtype=bool)
     chosen[S] = True
     reads, field = CRITERIA[criterion].reads, field_measure(problem, criterion)
-    passes, swaps = _climb(engine, S, chosen, reads)
+
+    def regularised(S: list[int]) -> PlanState:  # its ``regular`` is M's own, without eps
+        return engine.state(S, "log_det", _eps(engine))
+
+    state = regularised(S)
+    passes, swaps = _passes(S, chosen, state, regularised,
+                            lambda state, a: -engine.priced(state, None, "log_det", S[a]).log_det,
+                            -state.log_det, lambda state: state.regular, MAX_PASSES)
+
+    def field_keys(state: PlanState, a: int, power: float | None) -> np.ndarray:
+        keys = np.full(len(chosen), np.inf)
+        keys[~chosen] = _field_keys(problem, criterion, pool, S[:a] + S[a + 1:], np.flatnonzero(~chosen), power)
+        return keys
+
     for power in ((POOL_POWER,) if CRITERIA[criterion].smoothed else ()) + (None,):
         state = _regular_state(engine, S, reads)
-        current = _plan_key(problem, criterion, pool, S, power)
-        while state is not None and passes < MAX_PASSES:
-            passes += 1
-            swapped = False
-            for a in range(len(S)):
-                if field:
-                    keys = np.full(len(chosen), np.inf)
-                    keys[~chosen] = _field_keys(problem, criterion, pool, S[:a] + S[a + 1:], np.flatnonzero(~chosen),
-                                                power)
-                else:
-                    keys = np.where(chosen, np.inf, engine.keys(criterion, state, None, S[a], power))
-                i = int(np.argmin(keys))
-                if keys[i] < current - EXCHANGE_RTOL * abs(current):
-                    chosen[S[a]], chosen[i] = False, True
-                    S[a], current, swapped, swaps = i, float(keys[i]), True, swaps + 1
-                    if not field:
-                        state = engine.state(S, reads)
-            if not swapped:
-                break
+        done = _passes(S, chosen, state, (lambda S, state=state: state) if field else (lambda S: engine.state(S, reads)),
+                       (lambda state, a, power=power: field_keys(state, a, power)) if field else
+                       (lambda state, a, power=power: engine.keys(criterion, state, None, S[a], power)),
+                       _plan_key(problem, criterion, pool, S, power), lambda state: state is None,
+                       MAX_PASSES - passes)
+        passes, swaps = passes + done[0], swaps + done[1]
     return S, _plan_key(problem, criterion, pool, S), passes, swaps
 
 
