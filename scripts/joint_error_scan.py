@@ -64,17 +64,17 @@ def columns(Q: np.ndarray, J: np.ndarray, terms: list[tuple[int, float]]) -> np.
     return np.array(out).T if out else np.zeros((3 * len(Q), 0))
 
 
-def best_term(Q, J, y, basis, joints, grid) -> tuple[float, tuple[int, float]]:
-    """The (joint, N) whose term, orthogonal to ``basis``, explains most of ``y``: (share, term)."""
-    best = (0.0, (0, 0.0))
-    for j in joints:
-        for N in grid:
-            X = columns(Q, J, [(j, N)])
-            X = X - basis @ (basis.T @ X)
-            c, *_ = np.linalg.lstsq(X, y, rcond=None)
-            share = float(np.sum((X @ c) ** 2) / (y @ y))
-            best = max(best, (share, (j, float(N))))
-    return best
+def scan(Q: np.ndarray, J: np.ndarray, y: np.ndarray, basis: np.ndarray, j: int,
+         grid: np.ndarray) -> list[tuple[float, float, float]]:
+    """For each N of ``grid``: the share of ``y`` that joint j's term of N explains, orthogonal to
+    ``basis``, with N and the term's amplitude (rad)."""
+    out = []
+    for N in grid:
+        X = columns(Q, J, [(j, N)])
+        X = X - basis @ (basis.T @ X)
+        c, *_ = np.linalg.lstsq(X, y, rcond=None)
+        out.append((float(np.sum((X @ c) ** 2) / (y @ y)), float(N), float(np.hypot(*c))))
+    return out
 
 
 def main() -> None:
@@ -94,12 +94,7 @@ def main() -> None:
     print(f"residual RMS per value {1e3 * np.sqrt(np.mean(y**2)):.4f} mm")
     moving = [j for j in range(Q.shape[1]) if np.max(np.linalg.norm(J[:, j], axis=1)) > 1e-3]
     for j in moving:
-        shares = []
-        for N in N_GRID:
-            X = columns(Q, J, [(j, N)])
-            X = X - basis @ (basis.T @ X)
-            c, *_ = np.linalg.lstsq(X, rest, rcond=None)
-            shares.append((float(np.sum((X @ c) ** 2) / (rest @ rest)), float(N), float(np.hypot(*c))))
+        shares = scan(Q, J, rest, basis, j, N_GRID)
         peaks = [s for k, s in enumerate(shares) if 0 < k < len(shares) - 1
                  and s[0] >= shares[k - 1][0] and s[0] >= shares[k + 1][0]]
         print(f"{names[j]:<22}" + "  ".join(f"N {N:6.2f}: {100 * e:5.1f} % ({a * ARCSEC:4.0f} arcsec)"
@@ -114,7 +109,8 @@ def main() -> None:
             X = np.hstack([C, columns(Q, J, terms)])[ia]
             basis_a, _ = np.linalg.qr(X)
             ya = y[ia] - basis_a @ (basis_a.T @ y[ia])
-            terms.append(best_term(Q[A], J[A], ya, basis_a, moving, N_GREEDY)[1])
+            terms.append(max((share, (j, N)) for j in moving
+                             for share, N, _ in scan(Q[A], J[A], ya, basis_a, j, N_GREEDY))[1])
         held = []
         for K in (0, len(terms)):
             X = np.hstack([C, columns(Q, J, terms[:K])])
