@@ -311,13 +311,15 @@ def train_field(problem: Problem, f: Fit, meas: Measurements) -> TrainedField:
     with what predicts and corrects it at other poses: their residuals and their rows ``B`` at
     X = 0 (:func:`design_rows`)."""
     used = f.used
-    axes, Wh = problem.field_axes[0], problem.whitening
+    axes, Wh, model = problem.field_axes[0], problem.whitening, f.fit.model
     B = design_rows(f, meas)
-    estimate = estimate_field(f.r[used], f.J[used], meas.Q[used], axes, Wh, problem.sigma_m)
+    dq = model.dq_stack(meas.Q, meas.F) * f.mask[:, :, None]
+    estimate = estimate_field(f.r[used], f.J[used], meas.Q[used], axes, Wh, problem.sigma_m, dq[used])
     rows = np.flatnonzero(used)
     if len(rows) > KRIGING_ROWS:  # the kriging's cost is cubic in the rows
         rows = np.sort(np.random.default_rng(FIELD_SEED).choice(rows, KRIGING_ROWS, replace=False))
-    return TrainedField(estimate, meas.Q[rows], f.r[rows], B[rows], axes, Wh, problem.sigma_m)
+    sites = estimate.field.sites(meas.Q[rows], axes, Wh, dq[rows])
+    return TrainedField(estimate, sites, f.r[rows], B[rows], Wh, problem.sigma_m, model)
 
 
 def field_notes(trained: TrainedField, rows: int) -> tuple[bool, list[str]]:
@@ -414,7 +416,7 @@ def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
         return errors
     corrected = calibrated + field.shift(valid.Q)[:, None, :]  # the markers move together, as compensated
     seen_share = mask.sum(axis=1) / mask.shape[1]  # (a marker not seen: its share of the field's error)
-    rho = field.rho(Bv, valid.Q, field.axes) * seen_share
+    rho = field.rho(Bv, field.at(valid.Q, valid.F, "measured")) * seen_share
     return replace(errors, field_m=pose_rms(point_errors(problem, valid.P_m, in_tracker(f.tracker_from_base, corrected))),
                    field_reregistered_m=reregistered(corrected),
                    predicted_field_m=np.sqrt((rho + mask.sum(axis=1) * problem.sigma_m**2) / k))
@@ -513,7 +515,7 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     M0 = design_information(f, meas)
     parameters_var = rho_at_test_poses(M0, B0, s_m)  # s^2 trace(B0 M^-1 B0^T)
     predicted = np.sqrt(parameters_var + B0.shape[1] * scale.tau_m**2)  # + the pose's own unmodelled error
-    predicted_field = None if compensating is None else np.sqrt(compensating.rho(B0, tp.q, problem.field_axes[1]))
+    predicted_field = None if compensating is None else np.sqrt(compensating.rho(B0, compensating.at(tp.q, tp.F)))
     qc, done = corrected_commands(fm.model, f.robot_X, tp.q, tp.F, sigma, compensating)
     valid = None
     if validation is not None:

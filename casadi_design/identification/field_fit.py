@@ -10,10 +10,11 @@ Rasmussen and Williams, Gaussian Processes for Machine Learning, 2006, 2.7) is
 
 with gradient ``dl/dtheta_k = 1/2 (r^T Pi V_k Pi r - tr(Pi V_k))``, ``V_k = dV/dtheta_k``,
 ``theta = log(scale, length_1 .. length_n, nugget)``; the tracker's sigma is the problem's. It
-is maximised by L-BFGS-B (scipy) from two starts, for the squared exponential over the joints
-and for the field additive over them (an error of the joint angles,
-:class:`~casadi_design.measures.field.Field`), and the one of the lower AIC (``2 k - 2 l``, k
-hyperparameters: n + 2 and 2 n + 1) is kept. Without parameters (L = 0) it is the
+is maximised by L-BFGS-B (scipy) from two starts, for the three fields of
+:class:`~casadi_design.measures.field.Field`: of the base axes, the squared exponential over the
+joints and the one additive over them; of the joint angles, seen through each joint's Jacobian
+column (``theta = log(angle_1 .. angle_n, length_1 .. length_n, nugget)``, V dense); the one
+of the lower AIC (``2 k - 2 l``, k hyperparameters: n + 2, 2 n + 1, 2 n + 1) is kept. Without parameters (L = 0) it is the
 marginal likelihood of a Gaussian process regression of the residuals on the joint
 configurations, one output per base axis sharing the kernel: scikit-learn's
 ``GaussianProcessRegressor`` with ``ConstantKernel * RBF + WhiteKernel`` and ``alpha = sigma^2``
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..measures.field import Field, coupling, kriging_mean, kriging_rho, value_covariance
+from ..measures.field import Field, Sites, axes_of, coupling, kriging_mean, kriging_rho, value_covariance
 
 #: Rows the field is estimated from, at most.
 FIELD_ROWS = 300
@@ -109,46 +110,105 @@ def restricted_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, Q
     return float(value), grad
 
 
+def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Sites,
+                          sigma: float) -> tuple[float, np.ndarray]:
+    """``l(theta)`` and its gradient (module docstring) of the field of the joints' angle errors
+    for residuals ``r`` (m, d), ``J`` (m, d, L) at the sites ``S`` (their loads ``dy/dq``),
+    ``theta = log(angle_1 .. angle_n, length_1 .. length_n, nugget)``. ``V`` is dense (m d x m
+    d); ``dV/dtheta_k`` is never formed: with ``a_ic = G_ic^T alpha_i`` and ``P_c[i, k] = G_ic^T
+    Pi_ik G_kc``, ``alpha^T dV alpha`` and ``tr(Pi dV)`` of joint c's angle are ``2 a_c^T K_c a_c``
+    and ``2 sum(K_c * P_c)``, of its length ``K_c * D_c`` in their place."""
+    m, d = r.shape
+    n, N, L = S.Q.shape[1], m * d, J.shape[2]
+    s2, ell, nug2 = np.exp(2 * theta[:n]), np.exp(theta[n:2 * n]), np.exp(2 * theta[-1])
+    D = (S.Q[:, None, :] - S.Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
+    K = s2 * np.exp(-0.5 * D)  # k_c(q_i, q_k)
+    V = (np.einsum("ivc,ikc,kwc->ivkw", S.G, K, S.G, optimize=True).reshape(N, N)
+         + np.kron(nug2 * np.eye(m), S.A) + sigma**2 * np.eye(N))
+    C = np.linalg.cholesky(V)
+    Ci = np.linalg.solve(C, np.eye(N))
+    Vi = Ci.T @ Ci
+    logdet = 2 * np.sum(np.log(np.diag(C)))
+    if L:
+        Sx = J.reshape(N, L)
+        VS = Vi @ Sx
+        Gm = Sx.T @ VS
+        Pi = Vi - VS @ np.linalg.solve(Gm, VS.T)
+        logdet_G = np.linalg.slogdet(Gm)[1]
+    else:
+        Pi, logdet_G = Vi, 0.0
+    rr = r.reshape(N)
+    alpha = Pi @ rr
+    value = -0.5 * (rr @ alpha + logdet + logdet_G + (N - L) * math.log(2 * math.pi))
+    a = np.einsum("ivc,iv->ic", S.G, alpha.reshape(m, d))  # (m, n)
+    P = np.einsum("ivc,ivkw,kwc->cik", S.G, Pi.reshape(m, d, m, d), S.G, optimize=True)  # (n, m, m)
+    quad = np.einsum("ic,ikc,kc->c", a, K, a)
+    trace = np.einsum("ikc,cik->c", K, P)
+    quad_l = np.einsum("ic,ikc,kc->c", a, K * D, a)
+    trace_l = np.einsum("ikc,cik->c", K * D, P)
+    Pd = Pi.reshape(m, d, m, d)[np.arange(m), :, np.arange(m), :]  # (m, d, d)
+    Ar = alpha.reshape(m, d)
+    nug = 2 * nug2 * (np.einsum("iv,vw,iw->", Ar, S.A, Ar) - np.einsum("ivw,wv->", Pd, S.A))
+    grad = 0.5 * np.concatenate([2 * (quad - trace), quad_l - trace_l, [nug]])
+    return float(value), grad
+
+
 def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray,
-                   sigma: float) -> FieldFit:
+                   sigma: float, dq: np.ndarray | None = None) -> FieldFit:
     """The field of the residuals ``r`` (m, d) of a fit with Jacobian ``J`` (m, d, L) at the
-    poses ``Q`` (m, n), their values' base ``axes`` (d,) and whitening ``Wh`` (module docstring)."""
+    poses ``Q`` (m, n), their values' base ``axes`` (d,) and whitening ``Wh`` (module
+    docstring); with ``dq`` (m, d, n), the values' ``dy/dq`` (whitened), the field of the joint
+    angles is among those compared."""
     from scipy.optimize import minimize  # imported here: scipy.optimize takes ~0.3 s
 
     m, d = r.shape
     if m > FIELD_ROWS:
         keep = np.sort(np.random.default_rng(FIELD_SEED).choice(m, FIELD_ROWS, replace=False))
         r, J, Q = r[keep], J[keep], Q[keep]
+        dq = None if dq is None else dq[keep]
         m = FIELD_ROWS
     A = Wh @ coupling(axes, axes) @ Wh.T
     n = Q.shape[1]
     spread = max(float(np.sqrt(max(np.mean(r[:, axes >= 0] ** 2) - sigma**2, sigma**2))), sigma)
-    low = math.log(SCALE_LOW * sigma)
-    bounds = [(low, math.log(100 * spread)), *[tuple(map(math.log, LENGTH_BOUNDS))] * n, (low, math.log(100 * spread))]
+    low, high = math.log(SCALE_LOW * sigma), math.log(100 * spread)
     width = np.maximum(np.std(Q, axis=0), 0.1)
     nugget0 = [math.log(max(0.3 * spread, SCALE_LOW * sigma))]
+    kinds = ("axes", "additive") + (() if dq is None else ("joints",))
     fits = []
-    for additive in (False, True):
-        scales = [math.log(spread / math.sqrt(n))] * n if additive else [math.log(spread)]
-        ell = ADDITIVE_LENGTH_BOUNDS if additive else LENGTH_BOUNDS
+    for kind in kinds:
+        if kind == "joints":  # an angle (rad) moves a value by |dy/dq| (m per rad)
+            lever = max(float(np.sqrt(np.mean(np.sum(dq**2, axis=1)))), 1e-9)
+            scales, scale_bounds = [math.log(spread / lever / math.sqrt(n))] * n, (low - math.log(lever),
+                                                                                   high - math.log(lever))
+            sites = Field(0.0, (1.0,) * n, 0.0, (), (1.0,) * n).sites(Q, axes, Wh, dq)
 
-        def minus_l(t: np.ndarray, additive: bool = additive) -> tuple[float, np.ndarray]:
-            value, grad = restricted_log_likelihood(t, r, J, Q, A, sigma, additive)
-            return -value, -grad
+            def minus_l(t: np.ndarray, sites: Sites = sites) -> tuple[float, np.ndarray]:
+                value, grad = joints_log_likelihood(t, r, J, sites, sigma)
+                return -value, -grad
+        else:
+            additive = kind == "additive"
+            scales = [math.log(spread / math.sqrt(n))] * n if additive else [math.log(spread)]
+            scale_bounds = (low, high)
 
+            def minus_l(t: np.ndarray, additive: bool = additive) -> tuple[float, np.ndarray]:
+                value, grad = restricted_log_likelihood(t, r, J, Q, A, sigma, additive)
+                return -value, -grad
+
+        ell = LENGTH_BOUNDS if kind == "axes" else ADDITIVE_LENGTH_BOUNDS
         found = min((minimize(minus_l, np.concatenate([scales, np.log(np.clip(width / shrink, *ell)), nugget0]),
                               jac=True, method="L-BFGS-B",
-                              bounds=bounds[:1] * len(scales) + [tuple(map(math.log, ell))] * n + bounds[-1:])
+                              bounds=[scale_bounds] * len(scales) + [tuple(map(math.log, ell))] * n + [(low, high)])
                      for shrink in (1.0, 3.0)),
                     key=lambda f: f.fun)
         theta = found.x
-        if additive:
+        lengths, nugget = tuple(float(v) for v in np.exp(theta[len(scales):len(scales) + n])), float(np.exp(theta[-1]))
+        if kind == "joints":
+            field = Field(0.0, lengths, nugget, (), tuple(float(v) for v in np.exp(theta[:n])))
+        elif kind == "additive":
             s2 = np.exp(2 * theta[:n])
-            field = Field(float(np.sqrt(s2.sum())), tuple(float(v) for v in np.exp(theta[n:2 * n])),
-                          float(np.exp(theta[-1])), tuple(float(v) for v in s2 / s2.sum()))
+            field = Field(float(np.sqrt(s2.sum())), lengths, nugget, tuple(float(v) for v in s2 / s2.sum()))
         else:
-            field = Field(float(np.exp(theta[0])), tuple(float(v) for v in np.exp(theta[1:1 + n])),
-                          float(np.exp(theta[-1])))
+            field = Field(float(np.exp(theta[0])), lengths, nugget)
         fits.append((2 * len(theta) + 2 * found.fun, FieldFit(field, float(-found.fun), m)))
     return min(fits, key=lambda f: f[0])[1]  # the lower AIC: 2 hyperparameters - 2 l
 
@@ -156,36 +216,50 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
 @dataclass(frozen=True, eq=False)
 class TrainedField:
     """A field estimated with the rows it was estimated on: what predicts and corrects the
-    robot's unmodelled error at other poses (:mod:`casadi_design.measures.field`). ``Q`` (m, n)
-    the rows' poses, ``r`` (m, d) their whitened residuals (m), ``B`` (m, d, L) their rows at
-    X = 0 (the design's), ``axes`` (d,) the base axis of each value, ``Wh`` the whitening and
-    ``sigma`` the tracker's noise (m)."""
+    robot's unmodelled error at other poses (:mod:`casadi_design.measures.field`). ``sites`` the
+    rows' :class:`~casadi_design.measures.field.Sites`, ``r`` (m, d) their whitened residuals
+    (m), ``B`` (m, d, L) their rows at X = 0 (the design's), ``Wh`` the whitening, ``sigma`` the
+    tracker's noise (m) and ``model`` the calibration model (how other poses see the field)."""
 
     estimate: FieldFit
-    Q: np.ndarray
+    sites: Sites
     r: np.ndarray
     B: np.ndarray
-    axes: np.ndarray
     Wh: np.ndarray
     sigma: float
+    model: object
 
     @property
     def field(self) -> Field:
         return self.estimate.field
 
-    def mean(self, Q0: np.ndarray, axes0: np.ndarray) -> np.ndarray:
-        """The kriging mean of the error (s, r), m, at the poses ``Q0`` on the components of
-        ``axes0`` (-1: an orientation, 0)."""
-        return kriging_mean(self.field, self.sigma, self.r, self.Q, self.axes, self.Wh, Q0, axes0)
+    @property
+    def Q(self) -> np.ndarray:
+        """The rows' poses (m, n), rad."""
+        return self.sites.Q
+
+    def at(self, Q0: np.ndarray, F0: np.ndarray | None = None, rows: str = "accuracy") -> Sites:
+        """The sites of the poses ``Q0`` (s, n) under the wrenches ``F0`` for their ``rows``: the
+        required components (``"accuracy"``), the measured values (``"measured"``, whitened) or
+        the frame's origin (``"position"``, base frame)."""
+        model = self.model
+        axes = {"accuracy": axes_of(model.accuracy_rows), "position": np.arange(3),
+                "measured": axes_of(model.measured_rows, len(model.markers_m))}[rows]
+        Wh = self.Wh if rows == "measured" else np.eye(len(axes))
+        return self.field.sites(Q0, axes, Wh, model.dq_stack(Q0, F0, rows) if self.field.through_joints else None)
+
+    def mean(self, S0: Sites) -> np.ndarray:
+        """The kriging mean of the error (s, r), m, at the sites ``S0``."""
+        return kriging_mean(self.field, self.sigma, self.r, self.sites, S0)
 
     def shift(self, Q0: np.ndarray) -> np.ndarray:
-        """The correction of a point's position (s, 3), m, base frame: the kriging mean on x, y, z."""
-        return self.mean(Q0, np.arange(3))
+        """The correction of the frame's position (s, 3), m, base frame: the kriging mean on x, y, z."""
+        return self.mean(self.at(Q0, rows="position"))
 
-    def rho(self, B0: np.ndarray, Q0: np.ndarray, axes0: np.ndarray) -> np.ndarray:
-        """The error variance (s,), m^2, after compensation with the field at the poses ``Q0``
+    def rho(self, B0: np.ndarray, S0: Sites) -> np.ndarray:
+        """The error variance (s,), m^2, after compensation with the field at the sites ``S0``
         of rows ``B0`` (s, r, L): :func:`~casadi_design.measures.field.kriging_rho`."""
-        return kriging_rho(self.field, self.sigma, self.B, self.Q, self.axes, self.Wh, B0, Q0, axes0)
+        return kriging_rho(self.field, self.sigma, self.B, self.sites, B0, S0)
 
     def loo_rms(self, with_field: bool = True) -> float:
         """The RMS per value (m) of the rows' leave-one-out errors: each row predicted from the
@@ -195,8 +269,7 @@ class TrainedField:
         neighborhood, 1983); ``V = I`` gives least squares' PRESS residuals."""
         m, d, L = self.B.shape
         S = self.B.reshape(m * d, L)
-        V = (value_covariance(self.field, self.Q, self.axes, self.Wh, self.sigma) if with_field
-             else np.eye(m * d))
+        V = value_covariance(self.field, self.sites, self.sigma) if with_field else np.eye(m * d)
         Vi = np.linalg.inv(V)
         ViS = Vi @ S
         Pi = Vi - ViS @ np.linalg.solve(S.T @ ViS, ViS.T)

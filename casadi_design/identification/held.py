@@ -73,7 +73,8 @@ def read_prior_field(problem: Problem, path: str) -> tuple[ModelErrorSpec | None
         return none
     try:
         spec = ModelErrorSpec(float(error["scale_m"]), tuple(float(v) for v in error["lengths"]),
-                              float(error["nugget_m"]), tuple(float(v) for v in error.get("shares") or ()))
+                              float(error["nugget_m"]), tuple(float(v) for v in error.get("shares") or ()),
+                              tuple(float(v) for v in error.get("angles_rad") or ()))
         Q = np.array(error["poses"]["q"], dtype=float).reshape(-1, problem.robot.n)
         F = np.array(error["poses"]["F"], dtype=float)
     except (TypeError, KeyError, ValueError):

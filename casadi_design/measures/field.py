@@ -6,26 +6,35 @@ UR10, 40 times its tracker's noise. Model it as Kennedy and O'Hagan's discrepanc
 
     y_i = B_i X + delta(q_i) + eps_i
 
-with ``delta`` a Gaussian process over the joint configurations on each position axis (x, y, z
-of the robot's base), ``cov(delta_a(q), delta_b(q')) = [a == b] k(q, q')``,
+with ``delta`` a Gaussian process over the joint configurations of p components, each of its
+own covariance ``k_c(q, q')``, that move a pose's values by its loads ``G(q)`` (d x p):
 
-    k(q, q') = scale^2 exp(-1/2 sum_l ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'],
+    cov(y_i, y_k) = G_i diag(k_c(q_i, q_k)) G_k^T + nugget^2 [i == k] A + sigma^2 [i == k] I,
 
-(squared exponential over the joints, one length per joint, rad or m; the nugget is the part
-of the error no neighbouring pose tells: repeatability, backlash) and ``eps`` the tracker's
-noise, ``sigma^2`` per value. All in the whitened values of the model (``Wh = sigma
-Sigma^-1/2``): ``V = cov(y) = (K + nugget^2 I) (x) Wh A Wh^T + sigma^2 I`` with ``A_vw =
-[axis(v) == axis(w)]`` over position values (the markers of a pose move together).
+- **an error of the joint angles** (:attr:`Field.angles_rad`): component c is joint c's angle
+  error, ``k_c = angle_c^2 exp(-1/2 ((q_c - q'_c) / length_c)^2)`` (rad^2), seen through the
+  joint's own column of the values' Jacobian, ``G = dy/dq`` (at X = 0): an angle error of the
+  gears moves the tool along ``J_c(q)``, whose lever changes with the other joints. IPA's UR10
+  has such waves, 12 to 29 cycles per revolution in its pan and lift joints
+  (``scripts/joint_error_scan.py``);
+- **an error of each base axis** (x, y, z): ``G = Wh C`` (``C_va = [axis(v) == a]`` over the
+  position values; the markers of a pose move together) and one kernel for the three, the
+  squared exponential over all joints, ``k = scale^2 exp(-1/2 sum_l ((q_l - q'_l) /
+  length_l)^2)`` (m^2), or additive over the joints (:attr:`Field.shares`);
 
-After calibration and compensation with the field, the error at test pose ``q0`` is the
-error of the universal kriging predictor of ``z0 = B0 X + delta(q0)``: with the cross
-covariance ``k0 = cov(y, delta(q0))`` (N x r), ``H = P + B^T V^-1 B`` (P: the prior's
-information on X, 1/m^2 units of B) and ``R = B0 - k0^T V^-1 B``,
+the nugget ``A = Wh C C^T Wh^T`` the part no neighbouring pose tells (repeatability, backlash) and
+``eps`` the tracker's noise, ``sigma^2`` per value, all in the whitened values of the model
+(``Wh = sigma Sigma^-1/2``).
+
+After calibration and compensation with the field, the error at test pose ``q0`` (loads ``G0``,
+r x p, of its required components) is the error of the universal kriging predictor of ``z0 = B0
+X + delta(q0)``: with the cross covariance ``k0 = cov(y, delta(q0))`` (N x r), ``H = P + B^T V^-1
+B`` (P: the prior's information on X, 1/m^2 units of B) and ``R = B0 - k0^T V^-1 B``,
 
     rho(q0) = tr(T00) - tr(k0^T V^-1 k0) + tr(R H^-1 R^T) + nugget^2 r_p
 
-(``T00 = scale^2 A00`` the field's own covariance at the test pose, ``r_p`` its position
-components; the nugget at the test pose is not compensated). With ``scale = nugget = 0`` it is
+(``T00 = G0 diag(k_c(q0, q0)) G0^T`` the field's own covariance at the test pose, ``r_p`` its
+position components; the nugget at the test pose is not compensated). With no field it is
 ``sigma^2 tr(B0 M^-1 B0^T)``: the paper's measure is its limit. Measuring near the test poses
 pays when the field dominates (``k0`` grows), informative poses when the noise does.
 
@@ -45,27 +54,31 @@ from .criteria import CRITERIA
 
 @dataclass(frozen=True)
 class Field:
-    """The unmodelled error's field (module docstring): ``scale_m`` (m, per axis), the
-    correlation ``lengths`` (n,) per joint (rad, m for prismatic joints) and ``nugget_m`` (m).
+    """The unmodelled error's field (module docstring): the correlation ``lengths`` (n,) per joint
+    (rad, m for prismatic joints), the ``nugget_m`` (m) and either
 
-    With ``shares`` (n,; sum 1) the smooth part is additive over the joints, each joint's
-    share of the variance correlated along its own angle only:
-
-        k(q, q') = scale^2 sum_l shares_l exp(-1/2 ((q_l - q'_l) / length_l)^2),
-
-    an error of the joint angles, such as IPA's UR10 shows (waves of 12 to 29 cycles per
-    revolution in its pan and lift joints, ``scripts/joint_error_scan.py``): it correlates every
-    pose that shares one angle, whatever the others. Without (empty), the squared exponential
-    over all joints at once, which correlates only poses near in every joint."""
+    - ``angles_rad`` (n,): the std of each joint's angle error (rad; m for a prismatic joint),
+      seen through the joint's own column of the Jacobian: an error of the joint angles, which
+      correlates every pose that shares one angle, whatever the others (``scale_m`` 0); or
+    - ``scale_m`` (m, per base axis), the squared exponential over all joints at once, which
+      correlates only poses near in every joint; with ``shares`` (n,; sum 1) additive over the
+      joints, ``k = scale^2 sum_l shares_l exp(-1/2 ((q_l - q'_l) / length_l)^2)`` on each base
+      axis."""
 
     scale_m: float
     lengths: tuple[float, ...]
     nugget_m: float = 0.0
     shares: tuple[float, ...] = ()
+    angles_rad: tuple[float, ...] = ()
+
+    @property
+    def through_joints(self) -> bool:
+        """An error of the joint angles (:attr:`angles_rad`), not of the base axes."""
+        return bool(self.angles_rad)
 
     def kernel(self, Qa: np.ndarray, Qb: np.ndarray) -> np.ndarray:
-        """The smooth part of k (ka, kb), m^2: ``scale^2 exp(-1/2 |(qa - qb) / length|^2)``, or
-        the sum over the joints with ``shares``."""
+        """The base axes' smooth kernel (ka, kb), m^2: ``scale^2 exp(-1/2 |(qa - qb) / length|^2)``,
+        or the sum over the joints with ``shares``."""
         ell = np.asarray(self.lengths, dtype=float)
         Za, Zb = np.atleast_2d(Qa) / ell, np.atleast_2d(Qb) / ell
         if self.shares:
@@ -74,20 +87,80 @@ class Field:
         d2 = np.sum(Za**2, 1)[:, None] + np.sum(Zb**2, 1)[None, :] - 2 * Za @ Zb.T
         return self.scale_m**2 * np.exp(-0.5 * np.maximum(d2, 0.0))
 
+    def components(self, Qa: np.ndarray, Qb: np.ndarray) -> np.ndarray:
+        """``k_c(qa, qb)`` of each component (ka, kb, p): the joints' angle errors (rad^2), or
+        the base axes' one kernel three times (m^2)."""
+        if self.through_joints:
+            ell, s = np.asarray(self.lengths, dtype=float), np.asarray(self.angles_rad, dtype=float)
+            Za, Zb = np.atleast_2d(Qa) / ell, np.atleast_2d(Qb) / ell
+            return s**2 * np.exp(-0.5 * (Za[:, None, :] - Zb[None, :, :]) ** 2)
+        return np.repeat(self.kernel(Qa, Qb)[:, :, None], 3, axis=2)
+
+    @property
+    def variances(self) -> np.ndarray:
+        """``k_c(q, q)`` of each component (p,)."""
+        return (np.asarray(self.angles_rad, dtype=float) ** 2 if self.through_joints
+                else np.full(3, self.scale_m**2))
+
+    def sites(self, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray, dq: np.ndarray | None = None) -> "Sites":
+        """The :class:`Sites` of the poses ``Q`` (m, n) whose values lie on the base ``axes``
+        (d,; -1 an orientation), whitened by ``Wh`` (d x d; the identity for a test pose's
+        components); ``dq`` (m, d, n): the values' ``dy/dq``, whitened (for the joints' field)."""
+        Q = np.atleast_2d(np.asarray(Q, dtype=float))
+        C = coupling(axes, np.arange(3))
+        if self.through_joints:
+            G = np.asarray(dq, dtype=float).reshape(len(Q), len(axes), -1)
+        else:
+            G = np.broadcast_to(Wh @ C, (len(Q), len(axes), 3))
+        return Sites(Q, G, Wh @ C @ C.T @ Wh.T)
+
     def describe(self) -> str:
-        """The field for people: scale, nugget (mm), lengths (rad per joint) and, additive, the
-        joints' shares."""
-        return (f"scale {self.scale_m * 1e3:.4g} mm, nugget {self.nugget_m * 1e3:.4g} mm, lengths "
-                + ", ".join(f"{v:.3g}" for v in self.lengths) + " rad per joint"
-                + (", additive over the joints (an error of the joint angles), shares "
-                   + ", ".join(f"{v:.2f}" for v in self.shares) if self.shares else ""))
+        """The field for people: its kind, the joints' angle errors (arcsec) or scale (mm),
+        nugget (mm), lengths (rad per joint) and, additive, the joints' shares."""
+        lengths = ", ".join(f"{v:.3g}" for v in self.lengths)
+        if self.through_joints:
+            return ("an error of the joint angles (through each joint's Jacobian column), angles "
+                    + ", ".join(f"{v * ARCSEC:.3g}" for v in self.angles_rad)
+                    + f" arcsec, lengths {lengths} rad per joint, nugget {self.nugget_m * 1e3:.4g} mm")
+        return (f"scale {self.scale_m * 1e3:.4g} mm, nugget {self.nugget_m * 1e3:.4g} mm, lengths {lengths} rad per joint"
+                + (", additive over the joints, shares " + ", ".join(f"{v:.2f}" for v in self.shares)
+                   if self.shares else ""))
 
     def as_dict(self) -> dict:
-        kernel = ("scale^2 sum_l shares_l exp(-1/2 ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis"
-                  if self.shares else
-                  "scale^2 exp(-1/2 sum_l ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis")
+        if self.through_joints:
+            kernel = ("cov(y, y') = sum_c angle_c^2 exp(-1/2 ((q_c - q'_c) / length_c)^2) (dy/dq_c)(dy'/dq_c)^T "
+                      "+ nugget^2 [q == q'] per base axis")
+        elif self.shares:
+            kernel = "scale^2 sum_l shares_l exp(-1/2 ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis"
+        else:
+            kernel = "scale^2 exp(-1/2 sum_l ((q_l - q'_l) / length_l)^2) + nugget^2 [q == q'] per base axis"
         return {"scale_m": self.scale_m, "lengths": list(self.lengths), "nugget_m": self.nugget_m,
-                **({"shares": list(self.shares)} if self.shares else {}), "kernel": kernel}
+                **({"shares": list(self.shares)} if self.shares else {}),
+                **({"angles_rad": list(self.angles_rad)} if self.through_joints else {}), "kernel": kernel}
+
+
+ARCSEC = 180.0 / np.pi * 3600.0
+
+
+@dataclass(frozen=True, eq=False)
+class Sites:
+    """Poses where the field is seen and how their values see it: ``Q`` (m, n), rad; ``G`` (m,
+    d, p) how each value moves with each component of the field (module docstring); ``A`` (d, d)
+    the nugget's coupling of one pose's values."""
+
+    Q: np.ndarray
+    G: np.ndarray
+    A: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.Q)
+
+    def __getitem__(self, rows) -> "Sites":
+        return Sites(self.Q[rows], self.G[rows], self.A)
+
+    def __add__(self, other: "Sites") -> "Sites":
+        """The sites of both, these first."""
+        return Sites(np.vstack([self.Q, other.Q]), np.concatenate([self.G, other.G]), self.A)
 
 
 #: The criteria that weigh the test poses' rho, and so hold a field when the problem has one.
@@ -114,74 +187,75 @@ def coupling(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return ((a[:, None] == b[None, :]) & (a[:, None] >= 0)).astype(float)
 
 
-def value_covariance(field: Field, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray, sigma: float) -> np.ndarray:
-    """``V`` (N x N), N = m d, m^2: the covariance of the whitened values of the poses ``Q``
-    (m, n), their values' ``axes`` (d,) (module docstring)."""
-    A = Wh @ coupling(axes, axes) @ Wh.T
-    m = len(Q)
-    return np.kron(field.kernel(Q, Q) + field.nugget_m**2 * np.eye(m), A) + sigma**2 * np.eye(m * len(axes))
+def covariance(field: Field, Sa: Sites, Sb: Sites) -> np.ndarray:
+    """``cov(delta(a), delta(b))`` of the smooth part between every value of the sites ``Sa``
+    and ``Sb``: (ma, da, mb, db), m^2: ``G_a diag(k_c(q_a, q_b)) G_b^T``."""
+    return np.einsum("ivc,ikc,kwc->ivkw", Sa.G, field.components(Sa.Q, Sb.Q), Sb.G, optimize=True)
 
 
-def cross_covariance(field: Field, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray, Q0: np.ndarray,
-                     axes0: np.ndarray) -> np.ndarray:
-    """``k0 = cov(y, delta(q0))`` for every test pose: (s, N, r), m^2."""
-    C = Wh @ coupling(axes, axes0)  # (d, r)
-    k = field.kernel(Q0, Q)  # (s, m)
-    return np.einsum("si,vc->sivc", k, C).reshape(len(Q0), len(Q) * len(axes), len(axes0))
+def value_covariance(field: Field, S: Sites, sigma: float) -> np.ndarray:
+    """``V`` (N x N), N = m d, m^2: the covariance of the whitened values of the sites ``S``
+    (module docstring)."""
+    m, d = S.G.shape[:2]
+    return (covariance(field, S, S).reshape(m * d, m * d) + np.kron(field.nugget_m**2 * np.eye(m), S.A)
+            + sigma**2 * np.eye(m * d))
 
 
-def kriging_rho(field: Field, sigma: float, B: np.ndarray, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray,
-                B0: np.ndarray, Q0: np.ndarray, axes0: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
-    """``rho(q0)`` (s,), m^2, at the test poses ``Q0`` (s, n) of rows ``B0`` (s, r, L) after a
-    campaign of poses ``Q`` (m, n) with rows ``B`` (m, d, L) (whitened), a prior information
-    ``P`` (L x L, 1/m^2 units of B; None: none) (module docstring). Infinite where the
-    campaign does not identify X."""
+def cross_covariance(field: Field, S: Sites, S0: Sites) -> np.ndarray:
+    """``k0 = cov(y, delta(q0))`` for every test pose of ``S0``: (s, N, r), m^2."""
+    k0 = np.einsum("ivc,sic,swc->sivw", S.G, field.components(S0.Q, S.Q), S0.G, optimize=True)
+    return k0.reshape(len(S0), -1, S0.G.shape[1])
+
+
+def own_variance(field: Field, S0: Sites) -> np.ndarray:
+    """``tr(T00) + nugget^2 r_p`` (s,), m^2: the field's variance summed over each test pose's
+    components, before any measurement."""
+    return np.einsum("c,svc->s", field.variances, S0.G**2) + field.nugget_m**2 * np.trace(S0.A)
+
+
+def kriging_rho(field: Field, sigma: float, B: np.ndarray, S: Sites, B0: np.ndarray, S0: Sites,
+                P: np.ndarray | None = None) -> np.ndarray:
+    """``rho(q0)`` (s,), m^2, at the test poses ``S0`` (s sites) of rows ``B0`` (s, r, L) after a
+    campaign of sites ``S`` (m) with rows ``B`` (m, d, L) (whitened), a prior information ``P``
+    (L x L, 1/m^2 units of B; None: none) (module docstring). Infinite where the campaign does
+    not identify X."""
     m, d, L = B.shape
     if not m:
-        return np.full(len(Q0), np.inf)
-    V = value_covariance(field, Q, axes, Wh, sigma)
-    Cv = np.linalg.cholesky(V)
-    S = B.reshape(m * d, L)
-    k0 = cross_covariance(field, Q, axes, Wh, Q0, axes0)  # (s, N, r)
-    W = np.linalg.solve(Cv, np.concatenate([S, k0.transpose(1, 0, 2).reshape(m * d, -1)], axis=1))
-    WS, Wk = W[:, :L], W[:, L:].reshape(m * d, len(Q0), -1).transpose(1, 0, 2)  # Cv^-1 S, Cv^-1 k0
+        return np.full(len(S0), np.inf)
+    Cv = np.linalg.cholesky(value_covariance(field, S, sigma))
+    k0 = cross_covariance(field, S, S0)  # (s, N, r)
+    W = np.linalg.solve(Cv, np.concatenate([B.reshape(m * d, L), k0.transpose(1, 0, 2).reshape(m * d, -1)], axis=1))
+    WS, Wk = W[:, :L], W[:, L:].reshape(m * d, len(S0), -1).transpose(1, 0, 2)  # Cv^-1 S, Cv^-1 k0
     H = WS.T @ WS + (0.0 if P is None else P)
     lam = np.linalg.eigvalsh(H)
     if not lam[0] > 1e-12 * max(lam[-1], np.finfo(float).tiny):
-        return np.full(len(Q0), np.inf)
+        return np.full(len(S0), np.inf)
     R = B0 - np.einsum("snc,nl->scl", Wk, WS)  # B0 - k0^T V^-1 B
     Y = np.linalg.solve(np.linalg.cholesky(H), R.transpose(0, 2, 1))
-    pos0 = float(np.sum(axes0 >= 0))
-    return ((field.scale_m**2 + field.nugget_m**2) * pos0 - np.einsum("snc,snc->s", Wk, Wk)
-            + np.einsum("slc,slc->s", Y, Y))
+    return own_variance(field, S0) - np.einsum("snc,snc->s", Wk, Wk) + np.einsum("slc,slc->s", Y, Y)
 
 
-def kriging_mean(field: Field, sigma: float, r: np.ndarray, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray,
-                 Q0: np.ndarray, axes0: np.ndarray) -> np.ndarray:
-    """The field's kriging mean at the poses ``Q0`` (s, r), m: ``k0^T V^-1 r`` of the whitened
-    residuals ``r`` (m, d) of the poses ``Q`` (regression kriging, module docstring)."""
-    V = value_covariance(field, Q, axes, Wh, sigma)
-    alpha = np.linalg.solve(V, np.asarray(r, dtype=float).reshape(-1))
-    return np.einsum("snc,n->sc", cross_covariance(field, Q, axes, Wh, Q0, axes0), alpha)
+def kriging_mean(field: Field, sigma: float, r: np.ndarray, S: Sites, S0: Sites) -> np.ndarray:
+    """The field's kriging mean at the sites ``S0`` (s, r), m: ``k0^T V^-1 r`` of the whitened
+    residuals ``r`` (m, d) of the sites ``S`` (regression kriging, module docstring)."""
+    alpha = np.linalg.solve(value_covariance(field, S, sigma), np.asarray(r, dtype=float).reshape(-1))
+    return np.einsum("snc,n->sc", cross_covariance(field, S, S0), alpha)
 
 
-def kriging_rho_added(field: Field, sigma: float, B: np.ndarray, Q: np.ndarray, Bc: np.ndarray, Qc: np.ndarray,
-                      axes: np.ndarray, Wh: np.ndarray, B0: np.ndarray, Q0: np.ndarray, axes0: np.ndarray,
-                      P: np.ndarray | None = None) -> np.ndarray:
-    """``rho`` (k, s), m^2, of the campaigns ``Q`` (m, n) plus one candidate pose each, ``Qc``
-    (k, n) with rows ``Bc`` (k, d, L): :func:`kriging_rho` of every campaign at once, by bordering.
-    With ``Cv Cv^T = V`` of ``Q`` and a candidate's covariance with them ``v`` (N x d), its own
-    ``v_cc``: the Schur complement ``s_c = v_cc - v^T V^-1 v`` brings in the rank-d updates
-    ``H + u^T s_c^-1 u`` (``u = B_c - v^T V^-1 S``), ``k0^T V^-1 k0 + w^T s_c^-1 w`` and ``k0^T V^-1 S +
-    w^T s_c^-1 u`` (``w = k0_c - v^T V^-1 k0``): O(N^2 (k d + L + s r)) for all k, instead of k
-    Cholesky factorisations of (N + d)^2."""
+def kriging_rho_added(field: Field, sigma: float, B: np.ndarray, S: Sites, Bc: np.ndarray, Sc: Sites,
+                      B0: np.ndarray, S0: Sites, P: np.ndarray | None = None) -> np.ndarray:
+    """``rho`` (k, s), m^2, of the campaigns ``S`` (m sites, rows ``B``) plus one candidate each,
+    ``Sc`` (k sites) with rows ``Bc`` (k, d, L): :func:`kriging_rho` of every campaign at once, by
+    bordering. With ``Cv Cv^T = V`` of ``S`` and a candidate's covariance with them ``v`` (N x
+    d), its own ``v_cc``: the Schur complement ``s_c = v_cc - v^T V^-1 v`` brings in the rank-d
+    updates ``H + u^T s_c^-1 u`` (``u = B_c - v^T V^-1 S``), ``k0^T V^-1 k0 + w^T s_c^-1 w`` and
+    ``k0^T V^-1 S + w^T s_c^-1 u`` (``w = k0_c - v^T V^-1 k0``): O(N^2 (k d + L + s r)) for all
+    k, instead of k Cholesky factorisations of (N + d)^2."""
     m, d, L = B.shape
-    k, s, r = len(Qc), len(Q0), len(axes0)
-    A = Wh @ coupling(axes, axes) @ Wh.T  # a pose's values with one another
-    C0 = Wh @ coupling(axes, axes0)  # a pose's values with a test pose's components
-    Cv = np.linalg.cholesky(value_covariance(field, Q, axes, Wh, sigma))
-    k0 = cross_covariance(field, Q, axes, Wh, Q0, axes0)  # (s, N, r)
-    v = np.einsum("ic,vw->civw", field.kernel(Q, Qc), A).reshape(k, m * d, d)
+    k, s, r = len(Sc), len(S0), S0.G.shape[1]
+    Cv = np.linalg.cholesky(value_covariance(field, S, sigma))
+    k0 = cross_covariance(field, S, S0)  # (s, N, r)
+    v = covariance(field, S, Sc).transpose(2, 0, 1, 3).reshape(k, m * d, d)
     Y = np.linalg.solve(Cv, np.concatenate([B.reshape(m * d, L), k0.transpose(1, 0, 2).reshape(m * d, s * r),
                                             v.transpose(1, 0, 2).reshape(m * d, k * d)], axis=1))
     YS, Yk = Y[:, :L], Y[:, L:L + s * r].reshape(m * d, s, r)
@@ -189,12 +263,13 @@ def kriging_rho_added(field: Field, sigma: float, B: np.ndarray, Q: np.ndarray, 
     G = YS.T @ YS + (0.0 if P is None else P)
     T = np.einsum("nsr,nl->srl", Yk, YS)  # k0^T V^-1 S
     KK = np.einsum("nsr,nsr->s", Yk, Yk)  # tr(k0^T V^-1 k0)
-    vcc = (field.scale_m**2 + field.nugget_m**2) * A + sigma**2 * np.eye(d)
-    Sc = vcc - np.einsum("nca,ncb->cab", Yv, Yv)
+    vcc = (np.einsum("cvp,p,cwp->cvw", Sc.G, field.variances, Sc.G) + field.nugget_m**2 * Sc.A
+           + sigma**2 * np.eye(d))
+    Sch = vcc - np.einsum("nca,ncb->cab", Yv, Yv)
     u = Bc - (Yv.reshape(m * d, k * d).T @ YS).reshape(k, d, L)
-    k0c = np.einsum("cs,ar->csar", field.kernel(Qc, Q0), C0)
+    k0c = covariance(field, Sc, S0).transpose(0, 2, 1, 3)  # (k, s, d, r)
     w = k0c - (Yv.reshape(m * d, k * d).T @ Yk.reshape(m * d, s * r)).reshape(k, d, s, r).transpose(0, 2, 1, 3)
-    Lc = np.linalg.cholesky(Sc)
+    Lc = np.linalg.cholesky(Sch)
     ut = np.linalg.solve(Lc, u)  # (k, d, L)
     wt = np.linalg.solve(Lc[:, None], w)  # (k, s, d, r)
     H = G + np.einsum("cal,cak->clk", ut, ut)
@@ -205,7 +280,6 @@ def kriging_rho_added(field: Field, sigma: float, B: np.ndarray, Q: np.ndarray, 
     if ok.any():
         Ch = np.linalg.cholesky(H[ok])
         Z = np.linalg.solve(Ch, R[ok].transpose(0, 3, 1, 2).reshape(int(ok.sum()), L, s * r))
-        pos0 = float(np.sum(axes0 >= 0))
-        out[ok] = ((field.scale_m**2 + field.nugget_m**2) * pos0 - KK[None] - np.einsum("csar,csar->cs", wt[ok], wt[ok])
+        out[ok] = (own_variance(field, S0)[None] - KK[None] - np.einsum("csar,csar->cs", wt[ok], wt[ok])
                    + np.sum(Z.reshape(-1, L, s, r) ** 2, axis=(1, 3)))
     return out

@@ -24,7 +24,7 @@ import pinocchio as pin
 from ..runtime.cache import Memo, code_digest, digest, memoised
 from .cell import Cell, build_cell
 from .held import prior_information
-from ..measures.field import Field, axes_of
+from ..measures.field import Field, Sites, axes_of
 from ..measures.measures import information_matrix
 from ..errors import ProblemError
 from .identifiability import BaseSet, base_set, unit_columns
@@ -190,17 +190,32 @@ class Problem:
             F = np.vstack([F, np.asarray(held.prior_F, dtype=float).reshape(k, self.model.nF)])
         return Q, F
 
-    @functools.cached_property
-    def _field_held_rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """The held poses (:attr:`field_held`), Q (k, n), and their rows B (k, d, L), once."""
-        Qh, Fh = self.field_held
-        return Qh, self.model.B_stack(Qh, Fh) if len(Qh) else np.zeros((0, self.model.d, self.model.L))
+    def field_sites(self, Q: np.ndarray, F: np.ndarray) -> Sites:
+        """The :class:`~casadi_design.measures.field.Sites` of the experiments ``Q`` (m, n), rad,
+        ``F`` (m, nF), N, for the problem's field: how their measured values see it."""
+        field, axes = self.field, self.field_axes[0]
+        return field.sites(Q, axes, self.whitening, self.model.dq_stack(Q, F) if field.through_joints else None)
 
-    def field_campaign(self, Q: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The poses (k + m, n), rad, and rows (k + m, d, L) the field's kriging holds for a plan
-        of poses ``Q`` (m, n) and rows ``B`` (m, d, L): the held poses (:attr:`field_held`) first."""
-        Qh, Bh = self._field_held_rows
-        return np.vstack([Qh, Q]), np.concatenate([Bh, B])
+    @functools.cached_property
+    def field_test_sites(self) -> Sites:
+        """The test poses' :class:`~casadi_design.measures.field.Sites`: how their required
+        components see the field."""
+        field, tp, axes0 = self.field, self.test_poses, self.field_axes[1]
+        return field.sites(tp.q, axes0, np.eye(len(axes0)),
+                           self.model.dq_stack(tp.q, tp.F, "accuracy") if field.through_joints else None)
+
+    @functools.cached_property
+    def _field_held_rows(self) -> tuple[np.ndarray, Sites]:
+        """The held poses' (:attr:`field_held`) rows B (k, d, L) and sites, once."""
+        Qh, Fh = self.field_held
+        return (self.model.B_stack(Qh, Fh) if len(Qh) else np.zeros((0, self.model.d, self.model.L)),
+                self.field_sites(Qh, Fh))
+
+    def field_campaign(self, B: np.ndarray, S: Sites) -> tuple[np.ndarray, Sites]:
+        """The rows (k + m, d, L) and sites the field's kriging holds for a plan of rows ``B`` (m,
+        d, L) and sites ``S``: the held poses (:attr:`field_held`) first."""
+        Bh, Sh = self._field_held_rows
+        return np.concatenate([Bh, B]), Sh + S
 
     @functools.cached_property
     def field_axes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -287,12 +302,14 @@ def build_problem(spec: ProblemSpec) -> Problem:
 
 def field_of(spec: ModelErrorSpec, problem: Problem) -> Field:
     """The :class:`~casadi_design.measures.field.Field` of ``spec`` for the robot of ``problem``:
-    one correlation length for every joint, or one per joint.
+    one correlation length (and, of the joints' angle errors, one angle) for every joint, or one
+    per joint.
 
     Raises
     ------
     ProblemError
-        Lengths of another number than the joints, or a measurement without positions.
+        Lengths, angles or shares of another number than the joints, or a field of the base axes
+        for a measurement without positions.
     """
     n, given = problem.robot.n, spec.length_rad
     held = problem.spec.calibration.model_error is None
@@ -301,13 +318,18 @@ def field_of(spec: ModelErrorSpec, problem: Problem) -> Field:
     if len(given) not in (1, n):
         raise ProblemError(f"{where}.length_rad: has {len(given)} lengths for the {n} joints "
                            f"({', '.join(problem.robot.joints)}); give one for every joint or one per joint")
-    if not np.any(problem.field_axes[0] >= 0):
+    if spec.angle_rad and len(spec.angle_rad) not in (1, n):
+        raise ProblemError(f"{where}.angle_rad: has {len(spec.angle_rad)} angles for the {n} joints "
+                           f"({', '.join(problem.robot.joints)}); give one for every joint or one per joint")
+    if not spec.angle_rad and not np.any(problem.field_axes[0] >= 0):
         raise ProblemError(f"{where}: the field is an error of positions, and {problem.path} measures none; "
                            "measure x, y, z ([measurement].components) or remove it")
     if spec.shares and len(spec.shares) != n:
         raise ProblemError(f"{where}.shares: has {len(spec.shares)} shares for the {n} joints "
                            f"({', '.join(problem.robot.joints)}); give one per joint")
-    return Field(spec.scale_m, tuple(given) * n if len(given) == 1 else tuple(given), spec.nugget_m, spec.shares)
+    angles = tuple(spec.angle_rad) * n if len(spec.angle_rad) == 1 else tuple(spec.angle_rad)
+    return Field(spec.scale_m, tuple(given) * n if len(given) == 1 else tuple(given), spec.nugget_m, spec.shares,
+                 angles)
 
 
 def with_held(problem: Problem) -> Problem:

@@ -28,6 +28,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import ProblemError
+from ..runtime.cache import memoised
 from .problem import CASES, TWIST_ROWS, WRENCH_ROWS
 from .symbolic import SymbolicKinematics, twist_jacobian
 
@@ -146,6 +147,31 @@ class CalibrationModel:
         # contiguous: sums over it (e.g. the NLP's scale) then add in the same order in every
         # process, whether the array was computed here or unpickled
         return np.ascontiguousarray(out.reshape(fn.size1_out(0), len(Q), self.L).transpose(1, 0, 2))
+
+    def dq_stack(self, Q: np.ndarray, F: np.ndarray | None = None, rows: str = "measured") -> np.ndarray:
+        """How the values move with the joint angles at X = 0 about the nominal pose, (N, ., n):
+        ``dy/dq`` of the measured values (whitened, d), ``de/dq`` of the required components
+        (r; ``rows="accuracy"``) or ``dp/dq`` of the frame's origin (3; ``"position"``), rad^-1
+        (:func:`joint_jacobians`): the loads of a field of joint-angle errors."""
+        Q = np.atleast_2d(np.asarray(Q, float))
+        F = np.zeros((len(Q), self.nF)) if F is None else np.asarray(F, float).reshape(len(Q), self.nF)
+        fn = joint_jacobians(self)[("measured", "accuracy", "position").index(rows)]
+        out = np.asarray(fn.map(len(Q))(Q.T, F.T), dtype=float)
+        return np.ascontiguousarray(out.reshape(fn.size1_out(0), len(Q), self.n).transpose(1, 0, 2))
+
+
+@memoised(8)
+def joint_jacobians(model: CalibrationModel) -> tuple[ca.Function, ca.Function, ca.Function]:
+    """``(q, F) -> dy/dq`` (d x n), ``de/dq`` (r x n) and ``dp/dq`` (3 x n) of ``model`` at X = 0,
+    ``ref = pose(q, F, 0)``: the measured values', the required components' and the frame
+    origin's derivatives by the joint angles, derived once per model."""
+    q, F, ref = ca.SX.sym("q", model.n), ca.SX.sym("F", model.nF), ca.SX.sym("ref", 12)
+    X0 = ca.DM.zeros(model.L)
+    ref0 = model.pose(q, F, X0)
+    y, _ = model.measurement(q, F, X0, ref)
+    e, _ = model.accuracy(q, F, X0, ref)
+    return tuple(ca.Function(name, [q, F], [ca.substitute(ca.jacobian(v, q), ref, ref0)], ["q", "F"], [name])
+                 for name, v in (("dy_dq", y), ("de_dq", e), ("dp_dq", ref0[9:12])))
 
 
 def _skew_vee(A: ca.SX) -> ca.SX:

@@ -60,7 +60,7 @@ SECTIONS: dict[str, set[str] | None] = {
     "robot.joint_limits_rad": None,  # joint names: checked against the model when built
     "calibration": {"case", "parameters", "compliant_joints", "wrench_components", "prior", "model_error"},
     "calibration.prior": {"length_m", "angle_rad", "offset_rad", "compliance_rad_per_Nm"},
-    "calibration.model_error": {"scale_m", "length_rad", "nugget_m", "shares"},
+    "calibration.model_error": {"scale_m", "angle_rad", "length_rad", "nugget_m", "shares"},
     "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
     "test_poses": {"components", "joints_rad", "points_m", "line_m", "path", "tool_rpy_deg", "seed_q_deg",
                    "elbow", "force_N", "forces_N", "segment_forces_N"},
@@ -172,16 +172,19 @@ class PriorSpec:
 @dataclass(frozen=True)
 class ModelErrorSpec:
     """The robot's unmodelled error as a random field over its configurations
-    (``[calibration.model_error]``, :mod:`casadi_design.measures.field`): ``scale_m`` its std
-    per base axis (m), ``length_rad`` its correlation length per joint (rad; m for a prismatic
-    joint), ``nugget_m`` the part no neighbouring pose tells (m), ``shares`` each joint's share
-    of the variance of an additive field (sum 1; empty: the squared exponential over all
-    joints at once)."""
+    (``[calibration.model_error]``, :mod:`casadi_design.measures.field`): either ``angle_rad``
+    the std of each joint's angle error (rad; an error of the joint angles, seen through each
+    joint's Jacobian column) or ``scale_m`` its std per base axis (m, 0 with ``angle_rad``);
+    ``length_rad`` its correlation length per joint (rad; m for a prismatic joint), ``nugget_m``
+    the part no neighbouring pose tells (m), ``shares`` each joint's share of the variance of a
+    field of the base axes additive over the joints (sum 1; empty: the squared exponential over
+    all joints at once)."""
 
     scale_m: float
     length_rad: tuple[float, ...]
     nugget_m: float = 0.0
     shares: tuple[float, ...] = ()
+    angle_rad: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -748,20 +751,24 @@ def _calibration(cal: _Reader) -> CalibrationSpec:
 
 
 def _model_error(table: _Reader | None) -> ModelErrorSpec | None:
-    """``[calibration.model_error]``: the field's scale (m), its correlation length (rad, one
-    for every joint or one per joint; checked against the robot's joints when it is built) and
-    its nugget (m)."""
+    """``[calibration.model_error]``: the joints' angle errors (rad) or the field's scale per base
+    axis (m), its correlation length (rad, one for every joint or one per joint; checked against
+    the robot's joints when it is built), its nugget (m) and, of the base axes' field, the joints'
+    shares."""
     if table is None:
         return None
-    scale = table.number("scale_m", hint="the unmodelled error's std per axis in m, e.g. 2.5e-4", positive=True)
+    joints = table.get("angle_rad", (int, float, list), None,
+                       hint="each joint's angle error std in rad, e.g. 3e-4, or one per joint")
+    angles = () if joints is None else _positive_list(table, "angle_rad", joints,
+                                                       "give a positive angle in rad, e.g. 3e-4, or one per joint")
+    if angles and table.get("scale_m", (int, float), None) is not None:
+        raise table.error("and angle_rad are both given", "give angle_rad (an error of the joint angles) or scale_m "
+                          "(an error of each base axis), not both", "scale_m")
+    scale = 0.0 if angles else table.number("scale_m", hint="the unmodelled error's std per axis in m, e.g. 2.5e-4",
+                                            positive=True)
     value = table.get("length_rad", (int, float, list), hint="a correlation length in rad, e.g. 0.5, or one per joint")
-    try:
-        lengths = np.atleast_1d(np.asarray(value, dtype=float)) if not isinstance(value, bool) else np.array([np.nan])
-    except (TypeError, ValueError):
-        lengths = np.array([np.nan])
-    if lengths.ndim != 1 or not lengths.size or not np.all(np.isfinite(lengths) & (lengths > 0)):
-        raise table.error(f"is {value!r}", "give a positive length in rad, e.g. 0.5, or a list of one per joint",
-                          "length_rad")
+    lengths = _positive_list(table, "length_rad", value, "give a positive length in rad, e.g. 0.5, or a list of one "
+                             "per joint")
     nugget = table.number("nugget_m", 0.0, hint="the uncorrelated unmodelled error's std in m, e.g. 2e-5")
     if not nugget >= 0:
         raise table.error(f"is {nugget:g}", "give a std >= 0 in m", "nugget_m")
@@ -770,10 +777,24 @@ def _model_error(table: _Reader | None) -> ModelErrorSpec | None:
         shares = np.asarray(value, dtype=float).ravel()
     except (TypeError, ValueError):
         shares = np.array([np.nan])
+    if shares.size and angles:
+        raise table.error("is given with angle_rad", "shares split the base axes' scale_m over the joints; with "
+                          "angle_rad each joint has its own angle, leave shares out", "shares")
     if shares.size and not (np.all(np.isfinite(shares) & (shares >= 0)) and abs(shares.sum() - 1.0) < 1e-6):
         raise table.error(f"is {value!r}", "give one share >= 0 per joint, summing to 1 (an additive field), "
                           "or leave it out", "shares")
-    return ModelErrorSpec(scale, tuple(float(v) for v in lengths), nugget, tuple(float(v) for v in shares))
+    return ModelErrorSpec(scale, lengths, nugget, tuple(float(v) for v in shares), angles)
+
+
+def _positive_list(table: _Reader, key: str, value, fix: str) -> tuple[float, ...]:
+    """``value``, one positive number or a list of them, as a tuple; else the error naming ``key``."""
+    try:
+        v = np.atleast_1d(np.asarray(value, dtype=float)) if not isinstance(value, bool) else np.array([np.nan])
+    except (TypeError, ValueError):
+        v = np.array([np.nan])
+    if v.ndim != 1 or not v.size or not np.all(np.isfinite(v) & (v > 0)):
+        raise table.error(f"is {value!r}", fix, key)
+    return tuple(float(x) for x in v)
 
 
 def _prior(prior: _Reader | None) -> PriorSpec | None:

@@ -76,12 +76,12 @@ MAX_PASSES = 200
 EXCHANGE_RTOL = 1e-6
 
 
-def _scores(problem: Problem, pool: tuple[np.ndarray, np.ndarray, np.ndarray], S: list[int],
+def _scores(problem: Problem, pool: tuple, S: list[int],
             criterion: str | None = None) -> Scores:
-    """The scores of the postures ``S`` of the pool ``(Q, F, B)`` (their B precomputed, (k, d,
-    L)): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
+    """The scores of the postures ``S`` of the pool ``(Q, F, B, sites)`` (their B precomputed,
+    (k, d, L), and their field's sites where the search weighs it, else None): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
     ``criterion`` (None: every score as reported) the field only where it weighs it."""
-    Q, F, B = pool
+    Q, F, B, _ = pool
     return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion))
 
 
@@ -91,13 +91,12 @@ def _field_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], 
     criterion that weighs the problem's field: every plan at once by bordering the kriging
     system (:func:`~casadi_design.measures.field.kriging_rho_added`), scored by the criterion's
     own score of rho (with ``power``: its smooth surrogate)."""
-    Q, _, B = pool
-    Qr, Br = problem.field_campaign(Q[rest], B[rest])
-    if not len(Qr):  # the first posture of a plan without held poses: each on its own
+    _, _, B, S = pool
+    Br, Sr = problem.field_campaign(B[rest], S[rest])
+    if not len(Sr):  # the first posture of a plan without held poses: each on its own
         return np.array([_plan_key(problem, criterion, pool, [c], power) for c in cands])
-    axes, axes0 = problem.field_axes
-    rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Qr, B[cands], Q[cands], axes, problem.whitening,
-                            problem.B0, problem.test_poses.q, axes0, problem.field_prior)
+    rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Sr, B[cands], S[cands], problem.B0,
+                            problem.field_test_sites, problem.field_prior)
     finite = np.all(np.isfinite(rho), axis=1)
     spectrum = PlanSpectrum(None, None, np.where(finite[:, None], rho, 1.0), None, finite)
     return np.where(finite, key(criterion, score(criterion, spectrum, power)), np.inf)
@@ -249,7 +248,7 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
                            f"m = {m}; give m <= {k} or more postures")
     B = problem.model.B_stack(Q, F)
     engine = PoolEngine(B, problem.B0, problem.sigma_m, problem.M_held)
-    pool = (Q, F, B)
+    pool = (Q, F, B, problem.field_sites(Q, F) if field_measure(problem, criterion) else None)
     approx = (pool_design(problem, criterion, Q, F, engine.A, m)
               if with_bound and criterion in BOUND_CRITERIA and not field_measure(problem, criterion) else None)
     rng = start_rng(problem.solver.seed, criterion, m)

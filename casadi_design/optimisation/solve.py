@@ -76,9 +76,8 @@ def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray | 
 def field_rho(problem: Problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``rho`` (s,), m^2, at the test poses of the campaign of the held poses and the plan
     ``Q``, ``F`` (rows ``B``) with the problem's field (:attr:`Problem.field`)."""
-    axes, axes0 = problem.field_axes
-    return kriging_rho(problem.field, problem.sigma_m, *problem.field_campaign(Q, B)[::-1], axes, problem.whitening,
-                       problem.B0, problem.test_poses.q, axes0, problem.field_prior)
+    B, S = problem.field_campaign(B, problem.field_sites(Q, F))
+    return kriging_rho(problem.field, problem.sigma_m, B, S, problem.B0, problem.field_test_sites, problem.field_prior)
 
 
 def make_solver(problem: Problem, nlp: DesignNLP, verbose: bool = False, how: str = "cold",

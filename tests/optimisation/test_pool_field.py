@@ -17,6 +17,7 @@ from tests.conftest import ROOT
 
 UR10 = ROOT / "problems" / "ur10_drilling.toml"
 SCALE_M, LENGTH_RAD = 2.5e-4, 0.4
+JOINTS = Field(0.0, (0.2,) * 6, 2e-5, (), (3e-4, 4e-4, 3e-4, 2e-4, 2e-4, 1e-4))
 
 
 @pytest.fixture(scope="module")
@@ -37,13 +38,16 @@ def test_all_candidates_at_once_are_each_campaign_s_kriging_variance(case):
     problem, Q, F = case
     model = problem.model
     B = model.B_stack(Q, F)
-    a, a0 = axes_of(model.measured_rows), axes_of(model.accuracy_rows)
     rest, cands = list(range(10)), list(range(10, 30))
-    added = kriging_rho_added(problem.field, problem.sigma_m, B[rest], Q[rest], B[cands], Q[cands], a, np.eye(3),
-                              problem.B0, problem.test_poses.q, a0)
-    one_by_one = [kriging_rho(problem.field, problem.sigma_m, B[rest + [c]], Q[rest + [c]], a, np.eye(3), problem.B0,
-                              problem.test_poses.q, a0) for c in cands]
-    np.testing.assert_allclose(added, one_by_one, rtol=1e-9)
+    tp = problem.test_poses
+    for field in (problem.field, JOINTS):  # of the base axes, of the joint angles
+        joints = field.through_joints
+        S = field.sites(Q, axes_of(model.measured_rows), np.eye(3), model.dq_stack(Q, F) if joints else None)
+        S0 = field.sites(tp.q, axes_of(model.accuracy_rows), np.eye(3),
+                         model.dq_stack(tp.q, tp.F, "accuracy") if joints else None)
+        added = kriging_rho_added(field, problem.sigma_m, B[rest], S[rest], B[cands], S[cands], problem.B0, S0)
+        one_by_one = [kriging_rho(field, problem.sigma_m, B[rest + [c]], S[rest + [c]], problem.B0, S0) for c in cands]
+        np.testing.assert_allclose(added, one_by_one, rtol=1e-9)
 
 
 def test_the_plan_with_the_field_beats_d_at_the_test_poses(case):
@@ -58,8 +62,8 @@ def test_the_plan_with_the_field_beats_d_at_the_test_poses(case):
     assert plans["test-pose"].bound is None  # experiments correlated by the field: no bound
     near = [int(np.sum(np.min(np.linalg.norm(d.Q[:, None] - tp.q[None], axis=2), axis=1) < 0.2)) for d in plans.values()]
     assert near[0] > near[1]
-    a, a0 = axes_of(model.measured_rows), axes_of(model.accuracy_rows)
     field: Field = problem.field
+    S0 = field.sites(tp.q, axes_of(model.accuracy_rows), np.eye(3))
     rng = np.random.default_rng(5)
     held_out = {}
     for name, d in plans.items():
@@ -74,7 +78,7 @@ def test_the_plan_with_the_field_beats_d_at_the_test_poses(case):
             y = S @ X + delta[:m].reshape(-1) + problem.sigma_m * rng.normal(size=len(S))
             Xhat = np.linalg.lstsq(S, y, rcond=None)[0]
             r = (y - S @ Xhat).reshape(m, -1)
-            mean = kriging_mean(field, problem.sigma_m, r, d.Q, a, np.eye(3), tp.q, a0)
+            mean = kriging_mean(field, problem.sigma_m, r, field.sites(d.Q, axes_of(model.measured_rows), np.eye(3)), S0)
             e = np.einsum("srl,l->sr", problem.B0, X - Xhat) + delta[m:] - mean
             err.append(np.sum(e**2, axis=1))
         held_out[name] = float(np.sqrt(np.mean(err)))
