@@ -30,7 +30,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..measures.field import Field, Sites, axes_of, coupling, kriging_mean, kriging_rho, value_covariance
+from ..measures.field import (
+    Field,
+    Sites,
+    axes_of,
+    coupling,
+    kriging_mean,
+    kriging_rho,
+    value_covariance,
+)
 
 #: Rows the field is estimated from, at most.
 FIELD_ROWS = 300
@@ -161,7 +169,7 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
     angles is among those compared."""
     from scipy.optimize import minimize  # imported here: scipy.optimize takes ~0.3 s
 
-    m, d = r.shape
+    m = len(r)
     if m > FIELD_ROWS:
         keep = np.sort(np.random.default_rng(FIELD_SEED).choice(m, FIELD_ROWS, replace=False))
         r, J, Q = r[keep], J[keep], Q[keep]

@@ -102,14 +102,14 @@ class Field:
         return (np.asarray(self.angles_rad, dtype=float) ** 2 if self.through_joints
                 else np.full(3, self.scale_m**2))
 
-    def sites(self, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray, dq: np.ndarray | None = None) -> "Sites":
+    def sites(self, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray, dq: np.ndarray | None = None) -> Sites:
         """The :class:`Sites` of the poses ``Q`` (m, n) whose values lie on the base ``axes``
         (d,; -1 an orientation), whitened by ``Wh`` (d x d; the identity for a test pose's
         components); ``dq`` (m, d, n): the values' ``dy/dq``, whitened (for the joints' field)."""
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
         C = coupling(axes, np.arange(3))
         if self.through_joints:
-            G = np.asarray(dq, dtype=float).reshape(len(Q), len(axes), -1)
+            G = np.asarray(dq, dtype=float).reshape(len(Q), len(axes), len(self.lengths))
         else:
             G = np.broadcast_to(Wh @ C, (len(Q), len(axes), 3))
         return Sites(Q, G, Wh @ C @ C.T @ Wh.T)
@@ -155,10 +155,10 @@ class Sites:
     def __len__(self) -> int:
         return len(self.Q)
 
-    def __getitem__(self, rows) -> "Sites":
+    def __getitem__(self, rows) -> Sites:
         return Sites(self.Q[rows], self.G[rows], self.A)
 
-    def __add__(self, other: "Sites") -> "Sites":
+    def __add__(self, other: Sites) -> Sites:
         """The sites of both, these first."""
         return Sites(np.vstack([self.Q, other.Q]), np.concatenate([self.G, other.G]), self.A)
 

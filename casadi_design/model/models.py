@@ -156,6 +156,8 @@ class CalibrationModel:
         Q = np.atleast_2d(np.asarray(Q, float))
         F = np.zeros((len(Q), self.nF)) if F is None else np.asarray(F, float).reshape(len(Q), self.nF)
         fn = joint_jacobians(self)[("measured", "accuracy", "position").index(rows)]
+        if not len(Q):
+            return np.zeros((0, fn.size1_out(0), self.n))
         out = np.asarray(fn.map(len(Q))(Q.T, F.T), dtype=float)
         return np.ascontiguousarray(out.reshape(fn.size1_out(0), len(Q), self.n).transpose(1, 0, 2))
 

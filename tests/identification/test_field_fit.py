@@ -13,8 +13,11 @@ import pytest
 from casadi_design.cli import main
 from casadi_design.cli.identify import load_without_cell
 from casadi_design.identification.calibrate import calibrate
-from casadi_design.identification.field_fit import (estimate_field, joints_log_likelihood,
-                                                    restricted_log_likelihood)
+from casadi_design.identification.field_fit import (
+    estimate_field,
+    joints_log_likelihood,
+    restricted_log_likelihood,
+)
 from casadi_design.identification.fit import model_points
 from casadi_design.identification.held import read_held
 from casadi_design.identification.lsq import nominal_poses

@@ -62,26 +62,26 @@ def test_the_joints_loads_are_the_values_derivatives(ur10):
 
 def test_without_a_field_it_is_the_paper_s_measure(ur10):
     problem, Q, F, B = ur10
-    a, a0 = axes(problem)
     paper = rho_at_test_poses(information_matrix(B), problem.B0, problem.sigma_m)
     for zero in (Field(0.0, FIELD.lengths, 0.0), Field(0.0, JOINTS.lengths, 0.0, (), (0.0,) * 6)):
-        rho = kriging_rho(zero, problem.sigma_m, B, *sites(zero, problem, Q, F)[:1], problem.B0,
-                          sites(zero, problem, Q, F)[1])
-        np.testing.assert_allclose(rho, paper, rtol=1e-9)
+        S, S0 = sites(zero, problem, Q, F)
+        np.testing.assert_allclose(kriging_rho(zero, problem.sigma_m, B, S, problem.B0, S0), paper, rtol=1e-9)
 
 
 def test_a_vanishing_field_in_the_problem_file_gives_every_figure_of_today(ur10):
-    """[calibration.model_error] of 1e-12 m: every score of the plan is today's to 1e-9."""
-    problem, Q, F, B = ur10
+    """[calibration.model_error] of 1e-12 m per axis or 1e-12 rad per joint: every score of the
+    plan is today's to 1e-9."""
+    problem, Q, F, _ = ur10
     spec = problem.spec
-    tiny = dataclasses.replace(spec, calibration=dataclasses.replace(
-        spec.calibration, model_error=ModelErrorSpec(1e-12, (0.5,), 0.0)))
-    with_field = build_problem(tiny)
-    assert with_field.field is not None and with_field.field.lengths == (0.5,) * 6
-    today, field = plan_scores(problem, Q, F), plan_scores(with_field, Q, F)
-    np.testing.assert_allclose(field.rms_error_m, today.rms_error_m, rtol=1e-9)
-    for k, v in today.values.items():
-        assert field.values[k] == pytest.approx(v, rel=1e-9), k
+    today = plan_scores(problem, Q, F)
+    for error in (ModelErrorSpec(1e-12, (0.5,), 0.0), ModelErrorSpec(0.0, (0.5,), 0.0, (), (1e-12,))):
+        tiny = dataclasses.replace(spec, calibration=dataclasses.replace(spec.calibration, model_error=error))
+        with_field = build_problem(tiny)
+        assert with_field.field is not None and with_field.field.lengths == (0.5,) * 6
+        field = plan_scores(with_field, Q, F)
+        np.testing.assert_allclose(field.rms_error_m, today.rms_error_m, rtol=1e-9)
+        for k, v in today.values.items():
+            assert field.values[k] == pytest.approx(v, rel=1e-9), k
 
 
 def universal_kriging_variance(Sigma_y, S, k0, C00, B0):
@@ -117,7 +117,8 @@ def test_the_kriging_variance_is_the_blup_s_error(ur10, field):
     Sigma_y = np.array([[k(Q[i], Q[j], G[i], G[j], u, v) + (field.nugget_m**2 * (a[u] == a[v]) if i == j else 0.0)
                          + sigma**2 * (i == j and u == v) for j in range(m) for v in range(d)]
                         for i in range(m) for u in range(d)])
-    rho = kriging_rho(field, sigma, B, *sites(field, problem, Q, F)[:1], problem.B0, sites(field, problem, Q, F)[1])
+    S, S0 = sites(field, problem, Q, F)
+    rho = kriging_rho(field, sigma, B, S, problem.B0, S0)
     for j in range(tp.s):
         k0 = np.array([[k(Q[i], tp.q[j], G[i], G0[j], u, c) for c in range(len(a0))] for i in range(m) for u in range(d)])
         C00 = np.array([[k(tp.q[j], tp.q[j], G0[j], G0[j], u, v) for v in range(len(a0))] for u in range(len(a0))])
