@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from casadi_design.cli.identify import load_without_cell
-from casadi_design.measures.field import Field, axes_of, kriging_mean, kriging_rho, kriging_rho_added
+from casadi_design.measures.field import (
+    Field,
+    axes_of,
+    kriging_mean,
+    kriging_rho,
+    kriging_rho_added,
+)
 from casadi_design.model.build import build_problem
 from casadi_design.model.problem import ModelErrorSpec
 from casadi_design.optimisation.pool import choose_design
@@ -28,7 +34,7 @@ def with_field(error: ModelErrorSpec):
     problem = build_problem(dataclasses.replace(spec, calibration=dataclasses.replace(spec.calibration,
                                                                                       model_error=error)))
     rng = np.random.default_rng(11)
-    Q, F = random_plan(problem, 60, rng)
+    Q, _ = random_plan(problem, 60, rng)
     near = np.repeat(problem.test_poses.q, 3, axis=0) + rng.uniform(-0.1, 0.1, size=(27, problem.robot.n))
     return problem, np.vstack([Q, near]), np.zeros((87, 0))
 
@@ -65,7 +71,7 @@ def draws(field: Field, model, Q: np.ndarray, Q0: np.ndarray, rng, k: int) -> np
         chol = np.linalg.cholesky(field.kernel(Qall, Qall) + 1e-14 * field.scale_m**2 * np.eye(len(Qall)))
         return np.einsum("ij,tjc->tic", chol, rng.normal(size=(k, len(Qall), 3)))
     h = 1e-6
-    position = lambda q: np.asarray(model.position(q)).ravel()  # noqa: E731
+    position = lambda q: np.asarray(model.position(q)).ravel()
     G = np.array([[(position(q + h * e) - position(q - h * e)) / (2 * h) for e in np.eye(len(q))] for q in Qall])
     g = np.stack([np.linalg.cholesky(s**2 * np.exp(-0.5 * ((Qall[:, None, c] - Qall[None, :, c]) / ell) ** 2)
                                      + 1e-12 * s**2 * np.eye(len(Qall))) @ rng.normal(size=(len(Qall), k))
