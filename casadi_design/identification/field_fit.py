@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf, dpotri
 
 from ..measures.field import (
     Field,
@@ -37,6 +38,7 @@ from ..measures.field import (
     coupling,
     kriging_mean,
     kriging_rho,
+    loaded,
     value_covariance,
 )
 
@@ -131,11 +133,12 @@ def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Si
     s2, ell, nug2 = np.exp(2 * theta[:n]), np.exp(theta[n:2 * n]), np.exp(2 * theta[-1])
     D = (S.Q[:, None, :] - S.Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
     K = s2 * np.exp(-0.5 * D)  # k_c(q_i, q_k)
-    V = (np.einsum("ivc,ikc,kwc->ivkw", S.G, K, S.G, optimize=True).reshape(N, N)
-         + np.kron(nug2 * np.eye(m), S.A) + sigma**2 * np.eye(N))
-    C = np.linalg.cholesky(V)
-    Ci = np.linalg.solve(C, np.eye(N))
-    Vi = Ci.T @ Ci
+    V = loaded(S.G, K, S.G).reshape(N, N) + np.kron(nug2 * np.eye(m), S.A) + sigma**2 * np.eye(N)
+    C, info = dpotrf(V, lower=1)
+    if info:
+        raise np.linalg.LinAlgError("the field's covariance is not positive definite")
+    Vi = dpotri(C, lower=1)[0]
+    Vi = np.tril(Vi) + np.tril(Vi, -1).T
     logdet = 2 * np.sum(np.log(np.diag(C)))
     if L:
         Sx = J.reshape(N, L)
@@ -149,7 +152,8 @@ def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Si
     alpha = Pi @ rr
     value = -0.5 * (rr @ alpha + logdet + logdet_G + (N - L) * math.log(2 * math.pi))
     a = np.einsum("ivc,iv->ic", S.G, alpha.reshape(m, d))  # (m, n)
-    P = np.einsum("ivc,ivkw,kwc->cik", S.G, Pi.reshape(m, d, m, d), S.G, optimize=True)  # (n, m, m)
+    P4 = Pi.reshape(m, d, m, d)
+    P = np.stack([np.einsum("iv,ivkw,kw->ik", S.G[:, :, c], P4, S.G[:, :, c], optimize=True) for c in range(n)])
     quad = np.einsum("ic,ikc,kc->c", a, K, a)
     trace = np.einsum("ikc,cik->c", K, P)
     quad_l = np.einsum("ic,ikc,kc->c", a, K * D, a)

@@ -189,8 +189,17 @@ def coupling(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def covariance(field: Field, Sa: Sites, Sb: Sites) -> np.ndarray:
     """``cov(delta(a), delta(b))`` of the smooth part between every value of the sites ``Sa``
-    and ``Sb``: (ma, da, mb, db), m^2: ``G_a diag(k_c(q_a, q_b)) G_b^T``."""
-    return np.einsum("ivc,ikc,kwc->ivkw", Sa.G, field.components(Sa.Q, Sb.Q), Sb.G, optimize=True)
+    and ``Sb``: (ma, da, mb, db), m^2: :func:`loaded`."""
+    return loaded(Sa.G, field.components(Sa.Q, Sb.Q), Sb.G)
+
+
+def loaded(Ga: np.ndarray, K: np.ndarray, Gb: np.ndarray) -> np.ndarray:
+    """``G_a diag(K_ab) G_b^T`` for every pair (ma, da, mb, db) of loads ``Ga`` (ma, da, p), ``Gb``
+    (mb, db, p) and components' covariances ``K`` (ma, mb, p): a sum of p outer products."""
+    out = np.zeros((Ga.shape[0], Ga.shape[1], Gb.shape[0], Gb.shape[1]))
+    for c in range(K.shape[2]):
+        out += Ga[:, :, c, None, None] * K[:, None, :, c, None] * Gb[None, None, :, :, c]
+    return out
 
 
 def value_covariance(field: Field, S: Sites, sigma: float) -> np.ndarray:
