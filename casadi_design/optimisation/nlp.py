@@ -35,6 +35,7 @@ import casadi as ca
 import numpy as np
 
 from ..model.build import Problem
+from .field_nlp import FieldNLP, kriging_graph
 from .reduced import all_rows, reduced_nlp
 from ..model.rules import LoadVariables
 
@@ -83,17 +84,21 @@ def information_scale(L: int, B0: np.ndarray) -> float:
 
 
 def build_nlp(problem: Problem, criterion: str, m: int, power: float = 0.0, active: np.ndarray | None = None,
-              weights: np.ndarray | None = None, fixed: np.ndarray | None = None) -> DesignNLP:
+              weights: np.ndarray | None = None, fixed: np.ndarray | None = None, field: bool = False) -> DesignNLP:
     """Build the NLP of ``criterion`` for ``m`` experiments (a pure function of the problem);
     ``power``: r of the surrogate of E and condition (one of ``Criterion.powers``);
     ``active``: the capsule rows it holds, (experiment, row) pairs (K x 2; None: all);
     ``weights`` (m,): ``M = sum_i w_i B_i^T B_i + fixed``, the support of an approximate design
     (:func:`casadi_design.optimisation.reduced.reduced_nlp`; no joint-distance rows);
     ``fixed`` (L x L, unscaled): information held before the plan (``problem.M_held`` for a
-    design, the light support points' for a move of the approximate design)."""
+    design, the light support points' for a move of the approximate design); ``field``: the
+    criterion (test-pose or I) weighs the problem's field, its part the kriging variance
+    (:class:`~casadi_design.optimisation.field_nlp.FieldNLP`)."""
     n, loads = problem.robot.n, problem.rules.loads
     scale = information_scale(problem.model.L, problem.B0)
     nlp = reduced_nlp(problem, criterion, m, scale, power, active, weights, fixed)
+    if field:
+        nlp = FieldNLP(nlp, kriging_graph(problem, m))
     oracle, options = nlp.functions()
     lbx, ubx = plan_bounds(problem, m, loads)
     lbg, ubg = rule_bounds(problem, m, loads, nlp.active, pairs=len(nlp.pairs) > 0)

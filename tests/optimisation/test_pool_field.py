@@ -137,6 +137,12 @@ def test_a_free_design_with_a_field_is_exchanged_with_it_and_has_no_bound(tmp_pa
     nlp = [s for s in starts if not s["origin"].startswith("exchange with the field")]
     assert len(nlp) < len(starts) and any(s["origin"] == "exchange with the field: the NLP's plan" for s in starts)
     assert tp["max_rms_error_m"] <= min(s["max_rms_error_m"] for s in nlp if s["feasible"]) + 1e-15
+    # then IPOPT on the NLP with the field (the kriging variance) from the exchange's plan: on this
+    # smooth field (0.5 rad) it improves on the exchange, and its plan is the design's
+    field_nlp = [s for s in starts if s["origin"] == "NLP with the field, from the exchange's plan"]
+    exchanged = min(s["max_rms_error_m"] for s in starts if s["origin"].startswith("exchange with the field"))
+    assert len(field_nlp) == 1 and field_nlp[0]["feasible"]
+    assert field_nlp[0]["max_rms_error_m"] < exchanged and tp["max_rms_error_m"] == field_nlp[0]["max_rms_error_m"]
 
 
 def test_the_bound_command_refuses_a_field(tmp_path, capsys):

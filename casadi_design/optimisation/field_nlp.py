@@ -1,0 +1,232 @@
+"""The NLP of test-pose and I with the robot's unmodelled error as a field: the kriging variance in IPOPT.
+
+The reduced NLP (:mod:`casadi_design.optimisation.reduced`) is a function of M; with a field the
+error at a test pose is the universal kriging variance of the whole campaign
+(:mod:`casadi_design.measures.field`), which M does not hold. Here IPOPT's variables, bounds and
+rule rows are the reduced NLP's (the same rulebook, :func:`~casadi_design.optimisation.nlp.build_nlp`
+with ``field``), and the criterion's part is the kriging variance instead: test-pose's rows
+``rho_j / sigma^2 - t <= 0``, I's objective ``mean_j rho_j / sigma^2`` (``rho / sigma^2`` is
+``trace(B0 M^-1 B0^T)``, the reduced NLP's rows, in the limit of no field).
+
+``rho`` is a CasADi graph of the plan's variables ``Z`` (p x m, each experiment's ``z = (q,
+v)``): each experiment's rows ``B(z)`` and loads ``G(z)`` (``dy/dq`` for an error of the joint
+angles; ``Wh C`` for the base axes), mapped; the kernels of the campaign (the held poses, then
+the plan's) and of the test poses; ``V = sum_c (K_c (x) 1) * (g_c g_c^T) + nugget^2 I (x) A +
+sigma^2 I`` and the cross covariance ``k0``; two linear solves (LDL); then, as
+:func:`~casadi_design.measures.field.kriging_rho`,
+
+    rho_j = tr(T00_j) - tr(k0_j^T V^-1 k0_j) + tr(R_j H^-1 R_j^T),
+    H = P + S^T V^-1 S,  R = B0 - k0^T V^-1 S,
+
+differentiated by CasADi: the gradient in reverse mode, the Hessian of the Lagrangian's
+kriging part forward over reverse (the rules' part is the reduced NLP's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import NamedTuple
+
+import casadi as ca
+import numpy as np
+
+from ..measures.field import coupling, own_variance
+from ..model.build import Problem
+from ..model.models import joint_jacobians
+from .reduced import NumericFunction, ReducedNLP, _plan_hessian
+
+
+def kriging_graph(problem: Problem, m: int) -> ca.Function:
+    """``Z -> (rows, d rows / d vec(Z))``: ``rho_j / sigma^2`` (s,) at the test poses of the
+    campaign of the held poses and the plan of variables ``Z`` (p x m) with the problem's field
+    (module docstring), and its Jacobian (s x p m, ``vec`` column-major: experiment i's
+    variable a at ``i p + a``)."""
+    fld, model, loads = problem.field, problem.model, problem.rules.loads
+    n, nv, d, L = model.n, loads.nv, model.d, model.L
+    axes = problem.field_axes[0]
+    Wh, sigma = problem.whitening, problem.sigma_m
+    q, v = ca.SX.sym("q", n), ca.SX.sym("v", nv)
+    F = loads.load(v)
+    G = joint_jacobians(model)[0](q, F) if fld.through_joints else ca.DM(Wh @ coupling(axes, np.arange(3)))
+    one = ca.Function("one", [ca.vertcat(q, v)], [model.B(q, F), G])
+    Z = ca.MX.sym("Z", n + nv, m)
+    Bm, Gm = one.map(m)(Z)  # (d, L m), (d, p m)
+    p = Gm.shape[1] // m
+    Bh, Sh = problem.field_campaign(np.zeros((0, d, L)), problem.field_sites(np.zeros((0, n)), np.zeros((0, model.nF))))
+    k = len(Sh)
+    S = ca.vertcat(ca.DM(Bh.reshape(k * d, L)), *(Bm[:, i * L:(i + 1) * L] for i in range(m)))
+    g = [ca.vertcat(ca.DM(Sh.G[:, :, c].reshape(-1)), *(Gm[:, i * p + c] for i in range(m))) for c in range(p)]
+    Qall = ca.vertcat(ca.DM(Sh.Q), Z[:n, :].T)  # (k + m, n)
+    S0 = problem.field_test_sites
+    Kc, K0c = _components(fld, Qall, S0.Q)
+    Mx = k + m
+    ones = ca.DM.ones(d, d)
+    V = sum(ca.kron(Kc[c], ones) * (g[c] @ g[c].T) for c in range(p))
+    V = V + ca.DM(np.kron(fld.nugget_m**2 * np.eye(Mx), Sh.A) + sigma**2 * np.eye(Mx * d))
+    s, r = S0.G.shape[:2]
+    k0 = sum((g[c] * ca.kron(K0c[c], ca.DM.ones(d, 1))) @ ca.DM(_spread(S0.G[:, :, c])) for c in range(p))
+    W = ca.solve(V, ca.horzcat(S, k0), "ldl")
+    WS, Wk = W[:, :L], W[:, L:]
+    H = S.T @ WS + (0.0 if problem.field_prior is None else ca.DM(problem.field_prior))
+    R = ca.DM(problem.B0.reshape(s * r, L)) - k0.T @ WS
+    Y = ca.solve(H, R.T, "ldl")
+    KK = ca.sum1(ca.reshape(ca.sum1(k0 * Wk), r, s))
+    RR = ca.sum1(ca.reshape(ca.sum2(R * Y.T).T, r, s))
+    rows = (ca.DM(own_variance(fld, S0)).T - KK + RR).T / sigma**2
+    return ca.Function("kriging", [Z], [rows, ca.jacobian(rows, ca.vec(Z))], ["Z"], ["rows", "drows"])
+
+
+def _components(fld, Qall: ca.MX, Q0: np.ndarray) -> tuple[list, list]:
+    """The components' kernels ``k_c`` among the campaign's poses (MX, k + m square) and with
+    the test poses (k + m, s), as :meth:`~casadi_design.measures.field.Field.components`."""
+    M, s = Qall.shape[0], len(Q0)
+    D2 = [((ca.repmat(Qall[:, l], 1, M) - ca.repmat(Qall[:, l].T, M, 1)) / ell) ** 2 for l, ell in enumerate(fld.lengths)]
+    D02 = [((ca.repmat(Qall[:, l], 1, s) - ca.repmat(ca.DM(Q0[:, l]).T, M, 1)) / ell) ** 2
+           for l, ell in enumerate(fld.lengths)]
+    if fld.through_joints:
+        return ([a**2 * ca.exp(-0.5 * D) for a, D in zip(fld.angles_rad, D2)],
+                [a**2 * ca.exp(-0.5 * D) for a, D in zip(fld.angles_rad, D02)])
+    if fld.shares:
+        K = fld.scale_m**2 * sum(w * ca.exp(-0.5 * D) for w, D in zip(fld.shares, D2))
+        K0 = fld.scale_m**2 * sum(w * ca.exp(-0.5 * D) for w, D in zip(fld.shares, D02))
+    else:
+        K, K0 = fld.scale_m**2 * ca.exp(-0.5 * sum(D2)), fld.scale_m**2 * ca.exp(-0.5 * sum(D02))
+    return [K] * 3, [K0] * 3
+
+
+def _spread(G0c: np.ndarray) -> np.ndarray:
+    """``P`` (s, s r) with ``P[j, j r + w] = G0c[j, w]``: test pose j's loads of one component
+    on its r components."""
+    s, r = G0c.shape
+    P = np.zeros((s, s * r))
+    for j in range(s):
+        P[j, j * r:(j + 1) * r] = G0c[j]
+    return P
+
+
+class _FieldValues(NamedTuple):
+    """f, g and M at one x (M: the reduced NLP's, for :attr:`DesignNLP.information`)."""
+
+    f: float
+    g: np.ndarray
+    M: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class FieldNLP:
+    """The reduced NLP ``base`` of test-pose or I with its criterion's part replaced by the
+    kriging variance (module docstring): its rules, bounds and layout; ``kriging`` the graph of
+    :func:`kriging_graph`."""
+
+    base: ReducedNLP
+    kriging: ca.Function
+    last: list = field(default_factory=list)
+
+    @property
+    def n_rows(self) -> int:
+        return self.base.n_rows
+
+    @property
+    def nx(self) -> int:
+        return self.base.nx
+
+    @property
+    def active(self) -> np.ndarray:
+        return self.base.active
+
+    @property
+    def active_rows(self) -> np.ndarray:
+        return self.base.active_rows
+
+    @property
+    def pairs(self) -> np.ndarray:
+        return self.base.pairs
+
+    def _rows(self, x: np.ndarray, slopes: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """``rho_j / sigma^2`` (s,) at x and, with ``slopes``, their gradient by x (s, nx); those
+        of the last x kept (its gradient costs some 40 times its values)."""
+        x = np.asarray(x, dtype=float).ravel()
+        key = x.tobytes()
+        base = self.base
+        if not self.last or self.last[0] != key:
+            self.last[:] = [key, np.asarray(self.values(x[base.cols].T), dtype=float).ravel(), None]
+        if slopes and self.last[2] is None:
+            J = np.zeros((len(base.B0s), base.nx))
+            J[:, base.cols.ravel()] = np.asarray(self.kriging(x[base.cols].T)[1], dtype=float)
+            self.last[2] = J
+        return self.last[1], self.last[2]
+
+    @cached_property
+    def values(self) -> ca.Function:
+        """``Z -> rows`` alone."""
+        Z = self.kriging.mx_in(0)
+        return ca.Function("rows", [Z], [self.kriging(Z)[0]])
+
+    @cached_property
+    def curvature(self) -> ca.Function:
+        """``(Z, w) -> d2 (w . rows) / d vec(Z)^2`` (m p square, plan order)."""
+        Z, w = self.kriging.mx_in(0), ca.MX.sym("w", len(self.base.B0s))
+        return ca.Function("curvature", [Z, w], [ca.hessian(ca.dot(w, self.kriging(Z)[0]), ca.vec(Z))[0]])
+
+    def at(self, x: np.ndarray) -> _FieldValues:
+        v = self.base.at(x)
+        rows, _ = self._rows(x)
+        g = v.g.copy()
+        if self.n_rows:
+            g[:self.n_rows] = rows - np.asarray(x, dtype=float).ravel()[-1]
+            return _FieldValues(v.f, g, v.M)
+        return _FieldValues(float(np.mean(rows)), g, v.M)
+
+    def f_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v = self.at(x)
+        return np.array([v.f]), v.g
+
+    def grad_f(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v = self.at(x)
+        if self.n_rows:
+            return np.array([v.f]), self.base.slopes(x).grad_f
+        return np.array([v.f]), np.mean(self._rows(x, slopes=True)[1], axis=0)
+
+    def jac_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        base, v = self.base, self.at(x)
+        J = base.slopes(x).jac_g.copy()
+        if self.n_rows:
+            J[:self.n_rows] = self._rows(x, slopes=True)[1]
+            J[:self.n_rows, -1] = -1.0
+        return v.g, J.ravel()[base.jacobian_nonzeros]
+
+    def hess_lag(self, x: np.ndarray, lam_f: float, lam_g: np.ndarray) -> np.ndarray:
+        """The upper triangle (column-major nonzeros) of the Hessian of the Lagrangian: the
+        rules' (the reduced NLP's, its criterion's part left out) and the kriging rows' weighted
+        by their multipliers (test-pose) or ``lam_f / s`` (I)."""
+        base = self.base
+        lam_g = np.array(lam_g, dtype=float).ravel()
+        s = len(base.B0s)
+        w = lam_g[:self.n_rows].copy() if self.n_rows else np.full(s, lam_f / s)
+        lam_g[:self.n_rows] = 0.0
+        H = _plan_hessian(base, base.at(x), base.slopes(x), 0.0, lam_g)
+        H = H + np.asarray(self.curvature(np.asarray(x, dtype=float).ravel()[base.cols].T, w), dtype=float)
+        return H.ravel()[base.hessian_nonzeros]
+
+    def functions(self) -> tuple[ca.Function, dict]:
+        """The NLP ``(x, p) -> (f, g)`` and the nlpsol options with its derivative functions."""
+        dense = ca.Sparsity.dense
+        def pattern(mask: np.ndarray) -> ca.Sparsity:
+            rows, cols = np.nonzero(mask)
+            return ca.Sparsity.triplet(*mask.shape, rows.tolist(), cols.tolist())
+
+        x_p = [("x", dense(self.nx, 1)), ("p", dense(0, 1))]
+        f, g = ("f", dense(1, 1)), ("g", dense(self.base.ng, 1))
+        oracle = NumericFunction("nlp", x_p, [f, g], lambda x, p: self.f_g(x))
+        options = {
+            "grad_f": NumericFunction("grad_f", x_p, [f, ("grad_f_x", dense(self.nx, 1))], lambda x, p: self.grad_f(x)),
+            "jac_g": NumericFunction("jac_g", x_p, [g, ("jac_g_x", pattern(self.base.jacobian_pattern))],
+                                     lambda x, p: self.jac_g(x)),
+            "hess_lag": NumericFunction(
+                "hess_lag", x_p + [("lam_f", dense(1, 1)), ("lam_g", dense(self.base.ng, 1))],
+                [("triu_hess_gamma_x_x", pattern(self.base.hessian_pattern))],
+                lambda x, p, lam_f, lam_g: [self.hess_lag(x, lam_f[0], lam_g)]),
+            "no_nlp_grad": True,
+        }
+        return oracle, options

@@ -1,0 +1,62 @@
+"""The NLP of test-pose and I with the robot's unmodelled error as a field
+(casadi_design/optimisation/field_nlp.py): its rows are the kriging variance of
+measures/field.py, its first and second derivatives central finite differences, on the paper's
+arm (loads as variables) with a field of the base axes and one of the joint angles."""
+
+import numpy as np
+import pytest
+
+from casadi_design.model.build import load_problem
+from casadi_design.optimisation.nlp import build_nlp
+from casadi_design.optimisation.solve import field_rho
+from casadi_design.plan.sampling import random_plan
+from tests.conftest import ROOT
+
+FIELDS = {"base axes": "scale_m = 5e-4\nlength_rad = 0.5", "joint angles": "angle_rad = [8e-4, 5e-4]\nlength_rad = [0.4, 0.6]"}
+
+
+@pytest.fixture(scope="module", params=list(FIELDS))
+def paper(request, tmp_path_factory):
+    text = (ROOT / "problems" / "paper_planar_2r.toml").read_text().replace(
+        "[measurement]", f"[calibration.model_error]\n{FIELDS[request.param]}\n\n[measurement]")
+    path = tmp_path_factory.mktemp("field") / "paper_field.toml"
+    path.write_text(text)
+    problem = load_problem(path)
+    Q, F = random_plan(problem, 3, np.random.default_rng(1))
+    return problem, Q, F
+
+
+def dense(value) -> np.ndarray:
+    """A CasADi output (sparse) as a dense array."""
+    import casadi as ca
+
+    return np.asarray(ca.DM(value).full())
+
+
+@pytest.mark.parametrize("criterion", ["test-pose", "I"])
+def test_the_rows_are_the_kriging_variance_and_their_derivatives_finite_differences(paper, criterion):
+    problem, Q, F = paper
+    nlp = build_nlp(problem, criterion, 3, fixed=problem.M_held, field=True)
+    x0 = nlp.start(Q, F)
+    f, g = (np.asarray(v, dtype=float).ravel() for v in nlp.oracle(x0, []))
+    rho = field_rho(problem, Q, F, problem.model.B_stack(Q, F))
+    s = problem.test_poses.s
+    if criterion == "test-pose":  # rho_j / sigma^2 - t <= 0
+        np.testing.assert_allclose((g[:s] + x0[-1]) * problem.sigma_m**2, rho, rtol=1e-10)
+    else:  # the mean of rho_j / sigma^2
+        assert f[0] * problem.sigma_m**2 == pytest.approx(np.mean(rho), rel=1e-10)
+    h, n = 1e-6, len(x0)
+    E = np.eye(n)
+    J = dense(nlp.options["jac_g"](x0, [])[1])
+    fd = np.array([(np.asarray(nlp.oracle(x0 + h * e, [])[1]) - np.asarray(nlp.oracle(x0 - h * e, [])[1])).ravel()
+                   for e in E]).T / (2 * h)
+    np.testing.assert_allclose(J, fd, atol=1e-7 * np.max(np.abs(fd)))
+    lam = np.random.default_rng(0).uniform(0, 1, len(g))
+
+    def lagrangian_gradient(x):
+        return (np.asarray(nlp.options["grad_f"](x, [])[1]).ravel() * 0.7
+                + dense(nlp.options["jac_g"](x, [])[1]).T @ lam)
+
+    H = dense(nlp.options["hess_lag"](x0, [], 0.7, lam))
+    Hfd = np.array([lagrangian_gradient(x0 + h * e) - lagrangian_gradient(x0 - h * e) for e in E]) / (2 * h)
+    np.testing.assert_allclose(H, np.triu(Hfd), atol=1e-6 * np.max(np.abs(Hfd)))
