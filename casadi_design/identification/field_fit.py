@@ -10,11 +10,13 @@ Rasmussen and Williams, Gaussian Processes for Machine Learning, 2006, 2.7) is
 
 with gradient ``dl/dtheta_k = 1/2 (r^T Pi V_k Pi r - tr(Pi V_k))``, ``V_k = dV/dtheta_k``,
 ``theta = log(scale, length_1 .. length_n, nugget)``; the tracker's sigma is the problem's. It
-is maximised by L-BFGS-B (scipy) from two starts, for the three fields of
+is maximised by L-BFGS-B (scipy) from two starts, for the fields of
 :class:`~casadi_design.measures.field.Field`: of the base axes, the squared exponential over the
 joints and the one additive over them; of the joint angles, seen through each joint's Jacobian
-column (``theta = log(angle_1 .. angle_n, length_1 .. length_n, nugget)``, V dense); the one
-of the lower AIC (``2 k - 2 l``, k hyperparameters: n + 2, 2 n + 1, 2 n + 1) is kept. Without parameters (L = 0) it is the
+column (``theta = log(angle_1 .. angle_n, length_1 .. length_n, nugget)``, V dense), with an
+angle and a length per joint or one angle and one length for every joint (a robot whose joints
+have gears alike); the one of the lower AIC (``2 k - 2 l``, k hyperparameters: n + 2, 2 n + 1,
+2 n + 1 and 3) is kept. Without parameters (L = 0) it is the
 marginal likelihood of a Gaussian process regression of the residuals on the joint
 configurations, one output per base axis sharing the kernel: scikit-learn's
 ``GaussianProcessRegressor`` with ``ConstantKernel * RBF + WhiteKernel`` and ``alpha = sigma^2``
@@ -185,18 +187,22 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
     low, high = math.log(SCALE_LOW * sigma), math.log(100 * spread)
     width = np.maximum(np.std(Q, axis=0), 0.1)
     nugget0 = [math.log(max(0.3 * spread, SCALE_LOW * sigma))]
-    kinds = ("axes", "additive") + (() if dq is None else ("joints",))
+    kinds = ("axes", "additive") + (() if dq is None else ("joints", "joints alike"))
     fits = []
     for kind in kinds:
-        if kind == "joints":  # an angle (rad) moves a value by |dy/dq| (m per rad)
+        if kind.startswith("joints"):  # an angle (rad) moves a value by |dy/dq| (m per rad)
             lever = max(float(np.sqrt(np.mean(np.sum(dq**2, axis=1)))), 1e-9)
-            scales, scale_bounds = [math.log(spread / lever / math.sqrt(n))] * n, (low - math.log(lever),
+            alike = kind == "joints alike"  # one angle and one length for every joint
+            k = 1 if alike else n
+            scales, scale_bounds = [math.log(spread / lever / math.sqrt(n))] * k, (low - math.log(lever),
                                                                                    high - math.log(lever))
             sites = Field(0.0, (1.0,) * n, 0.0, (), (1.0,) * n).sites(Q, axes, Wh, dq)
+            E = np.zeros((2 * n + 1, 2 * k + 1))  # theta = E t
+            E[np.arange(n), np.arange(n) % k] = E[n + np.arange(n), k + np.arange(n) % k] = E[-1, -1] = 1.0
 
-            def minus_l(t: np.ndarray, sites: Sites = sites) -> tuple[float, np.ndarray]:
-                value, grad = joints_log_likelihood(t, r, J, sites, sigma)
-                return -value, -grad
+            def minus_l(t: np.ndarray, sites: Sites = sites, E: np.ndarray = E) -> tuple[float, np.ndarray]:
+                value, grad = joints_log_likelihood(E @ t, r, J, sites, sigma)
+                return -value, -E.T @ grad
         else:
             additive = kind == "additive"
             scales = [math.log(spread / math.sqrt(n))] * n if additive else [math.log(spread)]
@@ -207,21 +213,24 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
                 return -value, -grad
 
         ell = LENGTH_BOUNDS if kind == "axes" else ADDITIVE_LENGTH_BOUNDS
-        found = min((minimize(minus_l, np.concatenate([scales, np.log(np.clip(width / shrink, *ell)), nugget0]),
+        w0 = width if len(scales) > 1 or kind == "axes" else np.full(1, np.median(width))
+        found = min((minimize(minus_l, np.concatenate([scales, np.log(np.clip(w0 / shrink, *ell)), nugget0]),
                               jac=True, method="L-BFGS-B",
-                              bounds=[scale_bounds] * len(scales) + [tuple(map(math.log, ell))] * n + [(low, high)])
+                              bounds=[scale_bounds] * len(scales) + [tuple(map(math.log, ell))] * len(w0)
+                              + [(low, high)])
                      for shrink in (1.0, 3.0)),
                     key=lambda f: f.fun)
-        theta = found.x
-        lengths, nugget = tuple(float(v) for v in np.exp(theta[len(scales):len(scales) + n])), float(np.exp(theta[-1]))
-        if kind == "joints":
+        theta = found.x if kind != "joints alike" else E @ found.x
+        lengths, nugget = tuple(float(v) for v in np.exp(theta[n if kind.startswith("joints") else len(scales):][:n])), \
+            float(np.exp(theta[-1]))
+        if kind.startswith("joints"):
             field = Field(0.0, lengths, nugget, (), tuple(float(v) for v in np.exp(theta[:n])))
         elif kind == "additive":
             s2 = np.exp(2 * theta[:n])
             field = Field(float(np.sqrt(s2.sum())), lengths, nugget, tuple(float(v) for v in s2 / s2.sum()))
         else:
             field = Field(float(np.exp(theta[0])), lengths, nugget)
-        fits.append((2 * len(theta) + 2 * found.fun, FieldFit(field, float(-found.fun), m)))
+        fits.append((2 * len(found.x) + 2 * found.fun, FieldFit(field, float(-found.fun), m)))
     return min(fits, key=lambda f: f[0])[1]  # the lower AIC: 2 hyperparameters - 2 l
 
 

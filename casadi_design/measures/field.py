@@ -117,12 +117,12 @@ class Field:
     def describe(self) -> str:
         """The field for people: its kind, the joints' angle errors (arcsec) or scale (mm),
         nugget (mm), lengths (rad per joint) and, additive, the joints' shares."""
-        lengths = ", ".join(f"{v:.3g}" for v in self.lengths)
+        lengths = _per_joint(self.lengths, 1.0, "rad")
         if self.through_joints:
             return ("an error of the joint angles (through each joint's Jacobian column), angles "
-                    + ", ".join(f"{v * ARCSEC:.3g}" for v in self.angles_rad)
-                    + f" arcsec, lengths {lengths} rad per joint, nugget {self.nugget_m * 1e3:.4g} mm")
-        return (f"scale {self.scale_m * 1e3:.4g} mm, nugget {self.nugget_m * 1e3:.4g} mm, lengths {lengths} rad per joint"
+                    + _per_joint(self.angles_rad, ARCSEC, "arcsec") + f", lengths {lengths}, nugget "
+                    f"{self.nugget_m * 1e3:.4g} mm")
+        return (f"scale {self.scale_m * 1e3:.4g} mm, nugget {self.nugget_m * 1e3:.4g} mm, lengths {lengths}"
                 + (", additive over the joints, shares " + ", ".join(f"{v:.2f}" for v in self.shares)
                    if self.shares else ""))
 
@@ -140,6 +140,13 @@ class Field:
 
 
 ARCSEC = 180.0 / np.pi * 3600.0
+
+
+def _per_joint(values: tuple[float, ...], factor: float, unit: str) -> str:
+    """Values per joint for people: one for every joint when they are all the same."""
+    if len(set(values)) == 1:
+        return f"{values[0] * factor:.3g} {unit} for every joint"
+    return ", ".join(f"{v * factor:.3g}" for v in values) + f" {unit} per joint"
 
 
 @dataclass(frozen=True, eq=False)

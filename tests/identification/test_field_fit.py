@@ -112,15 +112,12 @@ def test_the_joints_gradient_is_the_finite_differences_of_the_likelihood():
     assert joints_log_likelihood(theta, r, J, S, SIGMA)[0] == pytest.approx(expected, rel=1e-10)
 
 
-def test_a_known_error_of_the_joint_angles_is_recovered():
-    """Residuals drawn from angle errors of three joints (60, 100 and 40 arcsec, lengths 0.1 to
-    0.3 rad) through random loads, the tracker's noise, four parameters profiled out, 150 poses:
-    the AIC chooses the field of the joint angles, the angles within 30 %."""
-    rng = np.random.default_rng(6)
-    angles, lengths = np.array([3e-4, 5e-4, 2e-4]), np.array([0.1, 0.2, 0.3])
-    m = 150
-    Q = rng.uniform(-2, 2, size=(m, 3))
-    G = rng.normal(size=(m, 3, 3)) * 0.7  # m per rad
+def joint_angle_residuals(angles, lengths, m: int, seed: int):
+    """Residuals of angle errors of len(angles) joints through random loads, the tracker's noise,
+    four parameters profiled out: (r, J, Q, G)."""
+    rng = np.random.default_rng(seed)
+    Q = rng.uniform(-2, 2, size=(m, len(angles)))
+    G = rng.normal(size=(m, 3, len(angles))) * 0.7  # m per rad
     g = np.stack([np.linalg.cholesky(s**2 * np.exp(-0.5 * ((Q[:, None, c] - Q[None, :, c]) / ell) ** 2)
                                      + 1e-12 * s**2 * np.eye(m)) @ rng.normal(size=m)
                   for c, (s, ell) in enumerate(zip(angles, lengths))], axis=1)
@@ -128,7 +125,24 @@ def test_a_known_error_of_the_joint_angles_is_recovered():
     y = np.einsum("mdl,l->md", J, rng.normal(size=4) * 1e-3) + np.einsum("mvc,mc->mv", G, g)
     y += SIGMA * rng.normal(size=y.shape)
     S = J.reshape(-1, 4)
-    r = (y.reshape(-1) - S @ np.linalg.lstsq(S, y.reshape(-1), rcond=None)[0]).reshape(m, 3)
+    return (y.reshape(-1) - S @ np.linalg.lstsq(S, y.reshape(-1), rcond=None)[0]).reshape(m, 3), J, Q, G
+
+
+def test_joints_alike_are_told_by_the_aic():
+    """Three joints with the same angle error (80 arcsec) and length (0.15 rad), 120 poses: the AIC
+    keeps one angle and one length for every joint, within 25 %."""
+    r, J, Q, G = joint_angle_residuals([4e-4] * 3, [0.15] * 3, 120, 8)
+    found = estimate_field(r, J, Q, np.arange(3), np.eye(3), SIGMA, G).field
+    assert found.through_joints and len(set(found.angles_rad)) == 1 and len(set(found.lengths)) == 1
+    assert found.angles_rad[0] == pytest.approx(4e-4, rel=0.25) and found.lengths[0] == pytest.approx(0.15, rel=0.25)
+
+
+def test_a_known_error_of_the_joint_angles_is_recovered():
+    """Residuals drawn from angle errors of three joints (60, 100 and 40 arcsec, lengths 0.1 to
+    0.3 rad) through random loads, the tracker's noise, four parameters profiled out, 150 poses:
+    the AIC chooses the field of the joint angles, one angle per joint, within 30 %."""
+    angles = np.array([3e-4, 5e-4, 2e-4])
+    r, J, Q, G = joint_angle_residuals(angles, [0.1, 0.2, 0.3], 150, 6)
     found = estimate_field(r, J, Q, np.arange(3), np.eye(3), SIGMA, G).field
     assert found.through_joints
     np.testing.assert_allclose(found.angles_rad, angles, rtol=0.3)
