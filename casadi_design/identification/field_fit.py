@@ -10,7 +10,8 @@ Rasmussen and Williams, Gaussian Processes for Machine Learning, 2006, 2.7) is
 
 with gradient ``dl/dtheta_k = 1/2 (r^T Pi V_k Pi r - tr(Pi V_k))``, ``V_k = dV/dtheta_k``,
 ``theta = log(scale, length_1 .. length_n, nugget)``; the tracker's sigma is the problem's. It
-is maximised by L-BFGS-B (scipy) from two starts, for the fields of
+is maximised by L-BFGS-B (scipy) from two starts (the joint angles' per joint: from the optimum of
+one angle and length for every joint), for the fields of
 :class:`~casadi_design.measures.field.Field`: of the base axes, the squared exponential over the
 joints and the one additive over them; of the joint angles, seen through each joint's Jacobian
 column (``theta = log(angle_1 .. angle_n, length_1 .. length_n, nugget)``, V dense), with an
@@ -187,8 +188,8 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
     low, high = math.log(SCALE_LOW * sigma), math.log(100 * spread)
     width = np.maximum(np.std(Q, axis=0), 0.1)
     nugget0 = [math.log(max(0.3 * spread, SCALE_LOW * sigma))]
-    kinds = ("axes", "additive") + (() if dq is None else ("joints", "joints alike"))
-    fits = []
+    kinds = ("axes", "additive") + (() if dq is None else ("joints alike", "joints"))
+    fits, alike_theta = [], None
     for kind in kinds:
         if kind.startswith("joints"):  # an angle (rad) moves a value by |dy/dq| (m per rad)
             lever = max(float(np.sqrt(np.mean(np.sum(dq**2, axis=1)))), 1e-9)
@@ -214,13 +215,18 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
 
         ell = LENGTH_BOUNDS if kind == "axes" else ADDITIVE_LENGTH_BOUNDS
         w0 = width if len(scales) > 1 or kind == "axes" else np.full(1, np.median(width))
-        found = min((minimize(minus_l, np.concatenate([scales, np.log(np.clip(w0 / shrink, *ell)), nugget0]),
-                              jac=True, method="L-BFGS-B",
+        # an angle and a length per joint: from the optimum of one for every joint (nested, so its
+        # likelihood is at least that one's); the others from two starts
+        starts = ([alike_theta] if kind == "joints" and alike_theta is not None else
+                  [np.concatenate([scales, np.log(np.clip(w0 / shrink, *ell)), nugget0]) for shrink in (1.0, 3.0)])
+        found = min((minimize(minus_l, t0, jac=True, method="L-BFGS-B",
                               bounds=[scale_bounds] * len(scales) + [tuple(map(math.log, ell))] * len(w0)
                               + [(low, high)])
-                     for shrink in (1.0, 3.0)),
+                     for t0 in starts),
                     key=lambda f: f.fun)
         theta = found.x if kind != "joints alike" else E @ found.x
+        if kind == "joints alike":
+            alike_theta = theta
         lengths, nugget = tuple(float(v) for v in np.exp(theta[n if kind.startswith("joints") else len(scales):][:n])), \
             float(np.exp(theta[-1]))
         if kind.startswith("joints"):

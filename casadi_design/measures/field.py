@@ -202,11 +202,9 @@ def covariance(field: Field, Sa: Sites, Sb: Sites) -> np.ndarray:
 
 def loaded(Ga: np.ndarray, K: np.ndarray, Gb: np.ndarray) -> np.ndarray:
     """``G_a diag(K_ab) G_b^T`` for every pair (ma, da, mb, db) of loads ``Ga`` (ma, da, p), ``Gb``
-    (mb, db, p) and components' covariances ``K`` (ma, mb, p): a sum of p outer products."""
-    out = np.zeros((Ga.shape[0], Ga.shape[1], Gb.shape[0], Gb.shape[1]))
-    for c in range(K.shape[2]):
-        out += Ga[:, :, c, None, None] * K[:, None, :, c, None] * Gb[None, None, :, :, c]
-    return out
+    (mb, db, p) and components' covariances ``K`` (ma, mb, p)."""
+    T = Ga[:, None, :, :] * K[:, :, None, :]  # (ma, mb, da, p): G_a diag(K_ab)
+    return np.matmul(T, Gb.transpose(0, 2, 1)[None]).transpose(0, 2, 1, 3)  # one small product per pair
 
 
 def value_covariance(field: Field, S: Sites, sigma: float) -> np.ndarray:
