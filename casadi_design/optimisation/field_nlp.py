@@ -35,10 +35,10 @@ import numpy as np
 from ..measures.field import coupling, own_variance
 from ..model.build import Problem
 from ..model.models import joint_jacobians
+from .reduced import NumericFunction, ReducedNLP
 
 #: IPOPT's Hessian of the NLP with the field.
 LIMITED_MEMORY = {"ipopt.hessian_approximation": "limited-memory"}
-from .reduced import NumericFunction, ReducedNLP
 
 
 def kriging_graph(problem: Problem, m: int) -> ca.Function:
