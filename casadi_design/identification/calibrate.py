@@ -414,7 +414,7 @@ def validate_rows(problem: Problem, f: Fit, valid: Measurements, M: np.ndarray,
                         predicted, outside, moved)
     if field is None:
         return errors
-    corrected = calibrated + field.shift(valid.Q)[:, None, :]  # the markers move together, as compensated
+    corrected = calibrated + field.marker_shift(valid.Q, valid.F)
     seen_share = mask.sum(axis=1) / mask.shape[1]  # (a marker not seen: its share of the field's error)
     rho = field.rho(Bv, field.at(valid.Q, valid.F, "measured")) * seen_share
     return replace(errors, field_m=pose_rms(point_errors(problem, valid.P_m, in_tracker(f.tracker_from_base, corrected))),

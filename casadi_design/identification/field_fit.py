@@ -51,9 +51,10 @@ FIELD_ROWS = 300
 FIELD_SEED = 0
 #: The lengths are searched within these (rad or m), the scale and nugget from SCALE_LOW sigma.
 LENGTH_BOUNDS = (0.02, 50.0)
-#: ... those of the additive field within these: a joint's share longer than about a radian is
-#: all but a constant or a slope over its range, which the geometric parameters take, and its
-#: variance is then not told by the restricted likelihood (it runs to its bound).
+#: ... those of the additive field and of the joint angles' within these: a joint's share longer
+#: than about a radian is all but a constant or a slope over its range, which the geometric
+#: parameters take, and its variance is then not told by the restricted likelihood (it runs to
+#: its bound).
 ADDITIVE_LENGTH_BOUNDS = (0.02, 1.0)
 SCALE_LOW = 1e-3
 
@@ -184,7 +185,8 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
         m = FIELD_ROWS
     A = Wh @ coupling(axes, axes) @ Wh.T
     n = Q.shape[1]
-    spread = max(float(np.sqrt(max(np.mean(r[:, axes >= 0] ** 2) - sigma**2, sigma**2))), sigma)
+    seen = r[:, axes >= 0] if np.any(axes >= 0) else r  # positions; an orientation's only without them
+    spread = max(float(np.sqrt(max(np.mean(seen**2) - sigma**2, sigma**2))), sigma)
     low, high = math.log(SCALE_LOW * sigma), math.log(100 * spread)
     width = np.maximum(np.std(Q, axis=0), 0.1)
     nugget0 = [math.log(max(0.3 * spread, SCALE_LOW * sigma))]
@@ -282,6 +284,21 @@ class TrainedField:
     def shift(self, Q0: np.ndarray) -> np.ndarray:
         """The correction of the frame's position (s, 3), m, base frame: the kriging mean on x, y, z."""
         return self.mean(self.at(Q0, rows="position"))
+
+    def marker_shift(self, Q0: np.ndarray, F0: np.ndarray | None = None) -> np.ndarray:
+        """The correction of each measured point (s, markers, 3), m, base frame (0 on an axis not
+        measured): the kriging mean of the measured values, un-whitened. The base axes' field
+        moves the markers of a pose together (:meth:`shift`); an angle error of a joint turns
+        them about it, each by its own lever."""
+        model = self.model
+        markers = len(model.markers_m)
+        if not self.field.through_joints:
+            return np.repeat(self.shift(Q0)[:, None, :], markers, axis=1)
+        pos = [a for a in model.measured_rows if a < 3]
+        dev = self.mean(self.at(Q0, F0, "measured")) @ np.linalg.inv(self.Wh).T  # (s, d)
+        out = np.zeros((len(dev), markers, 3))
+        out[:, :, pos] = dev[:, :markers * len(pos)].reshape(len(dev), markers, len(pos))
+        return out
 
     def rho(self, B0: np.ndarray, S0: Sites) -> np.ndarray:
         """The error variance (s,), m^2, after compensation with the field at the sites ``S0``

@@ -120,9 +120,10 @@ def identification_record(calibration: Calibration, files: dict) -> dict:
             "compensates": c.field_compensates,
             "leave_one_out_rms_m": {"with_the_field": c.field.loo_rms(), "least_squares_alone": c.field.loo_rms(False)},
             "joints": list(problem.robot.joints),
-            "meaning": "the robot's unmodelled error as a Gaussian process over the joint configurations, per base "
-                       "axis (REML on the residuals of the model identified); --prior designs with it, and with the "
-                       "poses below, which it correlates new poses with",
+            "meaning": "the robot's unmodelled error as a Gaussian process over the joint configurations: of the "
+                       "joint angles, seen through each joint's Jacobian column (angles_rad), or per base axis "
+                       "(scale_m) (REML on the residuals of the model identified); --prior designs with it, and "
+                       "with the poses below, which it correlates new poses with",
             "poses": {"q": c.field.Q.tolist(), "F": meas.F[f.used].tolist(), "unit": "rad (m), N"}},
         "correlation_limit": CORRELATION_LIMIT,
         "correlated_pairs": [{"a": a, "b": b, "correlation": r} for a, b, r in c.correlated_pairs()],

@@ -105,7 +105,8 @@ class Field:
     def sites(self, Q: np.ndarray, axes: np.ndarray, Wh: np.ndarray, dq: np.ndarray | None = None) -> Sites:
         """The :class:`Sites` of the poses ``Q`` (m, n) whose values lie on the base ``axes``
         (d,; -1 an orientation), whitened by ``Wh`` (d x d; the identity for a test pose's
-        components); ``dq`` (m, d, n): the values' ``dy/dq``, whitened (for the joints' field)."""
+        components); ``dq`` (m, d, n): the values' ``dy/dq`` as the values are (the measured
+        ones whitened, a test pose's not), for the joints' field."""
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
         C = coupling(axes, np.arange(3))
         if self.through_joints:

@@ -151,8 +151,9 @@ class CalibrationModel:
     def dq_stack(self, Q: np.ndarray, F: np.ndarray | None = None, rows: str = "measured") -> np.ndarray:
         """How the values move with the joint angles at X = 0 about the nominal pose, (N, ., n):
         ``dy/dq`` of the measured values (whitened, d), ``de/dq`` of the required components
-        (r; ``rows="accuracy"``) or ``dp/dq`` of the frame's origin (3; ``"position"``), rad^-1
-        (:func:`joint_jacobians`): the loads of a field of joint-angle errors."""
+        (r; ``rows="accuracy"``) or ``dp/dq`` of the frame's origin (3; ``"position"``), m per rad
+        (rad per rad for orientation rows) (:func:`joint_jacobians`): the loads of a field of
+        joint-angle errors."""
         Q = np.atleast_2d(np.asarray(Q, float))
         F = np.zeros((len(Q), self.nF)) if F is None else np.asarray(F, float).reshape(len(Q), self.nF)
         fn = joint_jacobians(self)[("measured", "accuracy", "position").index(rows)]

@@ -43,9 +43,9 @@ LIMITED_MEMORY = {"ipopt.hessian_approximation": "limited-memory"}
 
 def kriging_graph(problem: Problem, m: int) -> ca.Function:
     """``Z -> (rows, d rows / d vec(Z))``: ``rho_j / sigma^2`` (s,) at the test poses of the
-    campaign of the held poses and the plan of variables ``Z`` (p x m) with the problem's field
-    (module docstring), and its Jacobian (s x p m, ``vec`` column-major: experiment i's
-    variable a at ``i p + a``)."""
+    campaign of the held poses and the plan of variables ``Z`` (n + nv x m) with the problem's
+    field (module docstring), and its Jacobian (s x (n + nv) m, ``vec`` column-major: experiment
+    i's variable a at ``i (n + nv) + a``); p below is the field's number of components."""
     fld, model, loads = problem.field, problem.model, problem.rules.loads
     n, nv, d, L = model.n, loads.nv, model.d, model.L
     axes = problem.field_axes[0]
@@ -171,9 +171,10 @@ class FieldNLP:
         v = self.base.at(x)
         rows, _ = self._rows(x)
         g = v.g.copy()
-        if self.n_rows:
-            g[:self.n_rows] = rows - np.asarray(x, dtype=float).ravel()[-1]
-            return _FieldValues(v.f, g, v.M)
+        if self.n_rows:  # f = t
+            t = float(np.asarray(x, dtype=float).ravel()[-1])
+            g[:self.n_rows] = rows - t
+            return _FieldValues(t, g, v.M)
         return _FieldValues(float(np.mean(rows)), g, v.M)
 
     def f_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -183,7 +184,7 @@ class FieldNLP:
     def grad_f(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         v = self.at(x)
         if self.n_rows:
-            return np.array([v.f]), self.base.slopes(x).grad_f
+            return np.array([v.f]), np.eye(self.nx)[-1]
         return np.array([v.f]), np.mean(self._rows(x, slopes=True)[1], axis=0)
 
     def jac_g(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -35,6 +35,7 @@ import casadi as ca
 import numpy as np
 
 from ..model.build import Problem
+from ..measures.field import FIELD_CRITERIA
 from .field_nlp import FieldNLP, kriging_graph
 from .reduced import all_rows, reduced_nlp
 from ..model.rules import LoadVariables
@@ -98,6 +99,9 @@ def build_nlp(problem: Problem, criterion: str, m: int, power: float = 0.0, acti
     scale = information_scale(problem.model.L, problem.B0)
     nlp = reduced_nlp(problem, criterion, m, scale, power, active, weights, fixed)
     if field:
+        if criterion not in FIELD_CRITERIA or problem.field is None:
+            raise ValueError(f"build_nlp: the NLP with the field is one of {', '.join(FIELD_CRITERIA)} for a problem "
+                             f"with a field, not {criterion}{'' if problem.field is not None else ' without one'}")
         nlp = FieldNLP(nlp, kriging_graph(problem, m))
     oracle, options = nlp.functions()
     lbx, ubx = plan_bounds(problem, m, loads)

@@ -330,8 +330,9 @@ def field_design(problem: Problem, design: Design, others: list[Design], starts:
                            initial=(("the NLP's plan", list(range(design.m))),))
     crit = CRITERIA[design.criterion]
     starts_of = design.starts + tuple(replace(r, origin=f"exchange with the field: {r.origin}") for r in chosen.starts)
-    best = (replace(chosen, wall_s=design.wall_s + chosen.wall_s)
-            if crit.better(chosen.scores.value(design.criterion), design.scores.value(design.criterion)) else design)
+    best = (chosen if crit.better(chosen.scores.value(design.criterion), design.scores.value(design.criterion))
+            else design)
+    best = replace(best, wall_s=design.wall_s + chosen.wall_s)  # the NLP's and the exchange's
     t0 = time.perf_counter()
     rec, Qn, Fn, scores = field_nlp(problem, best)
     starts_of += (rec,)

@@ -197,6 +197,9 @@ def test_identify_estimates_the_field_and_compensates_with_it(ipa):
     assert cal.compensation_converged.all()
     np.testing.assert_allclose(reached, nominal_poses(model, tp.q, tp.F)[:, 9:], rtol=0, atol=2e-6)
     assert np.max(np.linalg.norm(field.shift(tp.q), axis=1)) > 1e-5  # a correction, not nothing
+    # the measured point is the frame's origin: the kriging mean of the measured values (through
+    # dy/dq) is the frame's (through dp/dq)
+    np.testing.assert_allclose(field.marker_shift(tp.q, tp.F)[:, 0], field.shift(tp.q), rtol=1e-9, atol=1e-12)
 
 
 def test_a_second_round_designs_with_the_first_round_s_field(ipa, tmp_path, capsys):
