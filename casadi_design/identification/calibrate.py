@@ -344,11 +344,20 @@ def corrected_commands(model, X: np.ndarray, Q: np.ndarray, F: np.ndarray, sigma
     nominal targets of the poses ``Q`` (k, n), rad, under the wrenches ``F`` (k, nF), N, and
     which converged (k,): :func:`~.compensate.compensate`; with a ``field`` the target's
     position is moved against the field's kriging mean at the pose (the robot will be off by
-    it there), so the robot with its unmodelled error lands on the target."""
+    it there) and, with an error of the joint angles, its orientation turned back by the
+    field's turn ``w`` (``R <- exp(-[w]) R``; the required orientation components), so the robot
+    with its unmodelled error lands on the target."""
     target = nominal_poses(model, Q, F)
     if field is not None:
         target = target.copy()
         target[:, 9:] -= field.shift(Q)
+        w = field.turn(Q, F)
+        if np.any(w):
+            from scipy.spatial.transform import Rotation
+
+            R = target[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)  # the pose's vec(R), column-major
+            R = Rotation.from_rotvec(-w).as_matrix() @ R
+            target[:, :9] = R.transpose(0, 2, 1).reshape(-1, 9)
     qc, done, _ = compensate(model, Q, F, target, np.tile(X, (len(Q), 1)), sigma)
     return qc, done
 

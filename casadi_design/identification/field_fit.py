@@ -285,6 +285,17 @@ class TrainedField:
         """The correction of the frame's position (s, 3), m, base frame: the kriging mean on x, y, z."""
         return self.mean(self.at(Q0, rows="position"))
 
+    def turn(self, Q0: np.ndarray, F0: np.ndarray | None = None) -> np.ndarray:
+        """The tool's turn (s, 3), rad, base frame, on the orientation components the test poses
+        require (0 on the others): the kriging mean of their rows. Only an error of the joint
+        angles turns the tool; the base axes' field moves positions."""
+        model = self.model
+        turn = np.zeros((len(np.atleast_2d(Q0)), 3))
+        rot = [k for k, a in enumerate(model.accuracy_rows) if a >= 3]
+        if self.field.through_joints and rot:
+            turn[:, [model.accuracy_rows[k] - 3 for k in rot]] = self.mean(self.at(Q0, F0, "accuracy"))[:, rot]
+        return turn
+
     def marker_shift(self, Q0: np.ndarray, F0: np.ndarray | None = None) -> np.ndarray:
         """The correction of each measured point (s, markers, 3), m, base frame (0 on an axis not
         measured): the kriging mean of the measured values, un-whitened. The base axes' field

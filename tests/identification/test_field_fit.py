@@ -251,3 +251,41 @@ def test_a_user_s_poses_are_compensated_as_the_test_poses(ipa):
     reached = model_points(model, q, np.zeros((5, 0)), cal.fit.robot_X)[:, 0] + shift
     assert ok.all()
     np.testing.assert_allclose(reached, nominal_poses(model, Q, np.zeros((5, 0)))[:, 9:], rtol=0, atol=2e-6)
+
+
+def test_an_error_of_the_joint_angles_turns_the_targets_back():
+    """The UR10 of the drilling cell, the test poses' orientation required too, a field of the
+    joint angles trained on 15 poses' residuals: the compensated commands put the nominal robot's
+    frame at the target moved against the field's mean position and turned back by its mean turn
+    (``R = exp(-[w]) R_target``), and the turn is the kriging mean of the orientation rows."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from casadi_design.identification.calibrate import corrected_commands
+    from casadi_design.identification.field_fit import FieldFit, TrainedField
+    from casadi_design.plan.sampling import random_plan
+
+    plain = load_without_cell(str(Path(__file__).parents[2] / "problems" / "ur10_drilling.toml"))
+    spec = plain.spec
+    problem = build_problem(dataclasses.replace(spec, test_poses=dataclasses.replace(
+        spec.test_poses, components=("x", "y", "z", "rx", "ry", "rz"))))
+    model, tp = problem.model, problem.test_poses
+    field = Field(0.0, (0.3,) * 6, 1e-5, (), (4e-4,) * 6)
+    Q, F = random_plan(problem, 15, np.random.default_rng(2))
+    S = field.sites(Q, problem.field_axes[0], problem.whitening, model.dq_stack(Q, F))
+    r = np.random.default_rng(3).normal(size=(15, model.d)) * 3e-4
+    trained = TrainedField(FieldFit(field, 0.0, 15), S, r, model.B_stack(Q, F), problem.whitening,
+                           problem.sigma_m, model)
+    q0, F0 = tp.q[:5], tp.F[:5]
+    w = trained.turn(q0, F0)
+    assert np.max(np.abs(w)) > 1e-5  # a turn of some arcsec
+    np.testing.assert_allclose(w, trained.mean(trained.at(q0, F0))[:, 3:], rtol=1e-12)
+    qc, ok = corrected_commands(model, np.zeros(model.L), q0, F0, problem.sigma_m, trained)
+    assert ok.all()
+    reached, target = nominal_poses(model, qc, F0), nominal_poses(model, q0, F0)
+    np.testing.assert_allclose(reached[:, 9:], target[:, 9:] - trained.shift(q0), rtol=0, atol=1e-8)
+    R = reached[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)
+    R0 = target[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)
+    turned = Rotation.from_matrix(R @ R0.transpose(0, 2, 1)).as_rotvec()
+    np.testing.assert_allclose(turned, -w, rtol=0, atol=1e-9)
