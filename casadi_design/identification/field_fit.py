@@ -37,11 +37,11 @@ from scipy.linalg.lapack import dpotrf, dpotri
 from ..measures.field import (
     Field,
     Sites,
-    axes_of,
     coupling,
     kriging_mean,
     kriging_rho,
     loaded,
+    model_sites,
     value_covariance,
 )
 
@@ -271,11 +271,7 @@ class TrainedField:
         """The sites of the poses ``Q0`` (s, n) under the wrenches ``F0`` for their ``rows``: the
         required components (``"accuracy"``), the measured values (``"measured"``, whitened) or
         the frame's origin (``"position"``, base frame)."""
-        model = self.model
-        axes = {"accuracy": axes_of(model.accuracy_rows), "position": np.arange(3),
-                "measured": axes_of(model.measured_rows, len(model.markers_m))}[rows]
-        Wh = self.Wh if rows == "measured" else np.eye(len(axes))
-        return self.field.sites(Q0, axes, Wh, model.dq_stack(Q0, F0, rows) if self.field.through_joints else None)
+        return model_sites(self.field, self.model, self.Wh, Q0, F0, rows)
 
     def mean(self, S0: Sites) -> np.ndarray:
         """The kriging mean of the error (s, r), m, at the sites ``S0``."""

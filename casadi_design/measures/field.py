@@ -171,6 +171,18 @@ class Sites:
         return Sites(np.vstack([self.Q, other.Q]), np.concatenate([self.G, other.G]), self.A)
 
 
+def model_sites(field: Field, model, Wh: np.ndarray, Q: np.ndarray, F: np.ndarray | None = None,
+                rows: str = "measured") -> Sites:
+    """The :class:`Sites` of the poses ``Q`` (m, n), rad, under the wrenches ``F`` (m, nF), N, of a
+    calibration ``model`` (:class:`~casadi_design.model.models.CalibrationModel`) for their
+    ``rows``: the measured values (``"measured"``, whitened by ``Wh``), the required components
+    (``"accuracy"``) or the frame's origin (``"position"``, base frame)."""
+    axes = {"measured": axes_of(model.measured_rows, len(model.markers_m)), "accuracy": axes_of(model.accuracy_rows),
+            "position": np.arange(3)}[rows]
+    return field.sites(Q, axes, Wh if rows == "measured" else np.eye(len(axes)),
+                       model.dq_stack(Q, F, rows) if field.through_joints else None)
+
+
 #: The criteria that weigh the test poses' rho, and so hold a field when the problem has one.
 FIELD_CRITERIA = tuple(name for name, c in CRITERIA.items() if c.reads == "rho")
 
@@ -217,9 +229,8 @@ def value_covariance(field: Field, S: Sites, sigma: float) -> np.ndarray:
 
 
 def cross_covariance(field: Field, S: Sites, S0: Sites) -> np.ndarray:
-    """``k0 = cov(y, delta(q0))`` for every test pose of ``S0``: (s, N, r), m^2."""
-    k0 = np.einsum("ivc,sic,swc->sivw", S.G, field.components(S0.Q, S.Q), S0.G, optimize=True)
-    return k0.reshape(len(S0), -1, S0.G.shape[1])
+    """``k0 = cov(y, delta(q0))`` for every test pose of ``S0``: (s, N, r), m^2 (:func:`covariance`)."""
+    return covariance(field, S, S0).transpose(2, 0, 1, 3).reshape(len(S0), -1, S0.G.shape[1])
 
 
 def own_variance(field: Field, S0: Sites) -> np.ndarray:

@@ -24,7 +24,7 @@ import pinocchio as pin
 from ..runtime.cache import Memo, code_digest, digest, memoised
 from .cell import Cell, build_cell
 from .held import prior_information
-from ..measures.field import Field, Sites, axes_of
+from ..measures.field import Field, Sites, axes_of, model_sites
 from ..measures.measures import information_matrix
 from ..errors import ProblemError
 from .identifiability import BaseSet, base_set, unit_columns
@@ -193,19 +193,16 @@ class Problem:
     def field_sites(self, Q: np.ndarray, F: np.ndarray) -> Sites:
         """The :class:`~casadi_design.measures.field.Sites` of the experiments ``Q`` (m, n), rad,
         ``F`` (m, nF), N, for the problem's field: how their measured values see it."""
-        field, axes = self.field, self.field_axes[0]
-        return field.sites(Q, axes, self.whitening, self.model.dq_stack(Q, F) if field.through_joints else None)
+        return model_sites(self.field, self.model, self.whitening, Q, F)
 
     @functools.cached_property
     def field_test_sites(self) -> Sites:
         """The test poses' :class:`~casadi_design.measures.field.Sites`: how their required
         components see the field."""
-        field, tp, axes0 = self.field, self.test_poses, self.field_axes[1]
-        return field.sites(tp.q, axes0, np.eye(len(axes0)),
-                           self.model.dq_stack(tp.q, tp.F, "accuracy") if field.through_joints else None)
+        return model_sites(self.field, self.model, self.whitening, self.test_poses.q, self.test_poses.F, "accuracy")
 
     @functools.cached_property
-    def _field_held_rows(self) -> tuple[np.ndarray, Sites]:
+    def field_held_rows(self) -> tuple[np.ndarray, Sites]:
         """The held poses' (:attr:`field_held`) rows B (k, d, L) and sites, once."""
         Qh, Fh = self.field_held
         return (self.model.B_stack(Qh, Fh) if len(Qh) else np.zeros((0, self.model.d, self.model.L)),
@@ -214,7 +211,7 @@ class Problem:
     def field_campaign(self, B: np.ndarray, S: Sites) -> tuple[np.ndarray, Sites]:
         """The rows (k + m, d, L) and sites the field's kriging holds for a plan of rows ``B`` (m,
         d, L) and sites ``S``: the held poses (:attr:`field_held`) first."""
-        Bh, Sh = self._field_held_rows
+        Bh, Sh = self.field_held_rows
         return np.concatenate([Bh, B]), Sh + S
 
     @functools.cached_property

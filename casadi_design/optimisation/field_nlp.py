@@ -57,7 +57,7 @@ def kriging_graph(problem: Problem, m: int) -> ca.Function:
     Z = ca.MX.sym("Z", n + nv, m)
     Bm, Gm = one.map(m)(Z)  # (d, L m), (d, p m)
     p = Gm.shape[1] // m
-    Bh, Sh = problem.field_campaign(np.zeros((0, d, L)), problem.field_sites(np.zeros((0, n)), np.zeros((0, model.nF))))
+    Bh, Sh = problem.field_held_rows
     k = len(Sh)
     S = ca.vertcat(ca.DM(Bh.reshape(k * d, L)), *(Bm[:, i * L:(i + 1) * L] for i in range(m)))
     g = [ca.vertcat(ca.DM(Sh.G[:, :, c].reshape(-1)), *(Gm[:, i * p + c] for i in range(m))) for c in range(p)]
