@@ -35,7 +35,7 @@ import numpy as np
 from ..measures.field import coupling, own_variance
 from ..model.build import Problem
 from ..model.models import joint_jacobians
-from .reduced import NumericFunction, ReducedNLP
+from .reduced import ReducedNLP, callbacks
 
 #: IPOPT's Hessian of the NLP with the field.
 LIMITED_MEMORY = {"ipopt.hessian_approximation": "limited-memory"}
@@ -198,19 +198,6 @@ class FieldNLP:
     def functions(self) -> tuple[ca.Function, dict]:
         """The NLP ``(x, p) -> (f, g)`` and the nlpsol options: its first derivatives and IPOPT's
         limited-memory Hessian."""
-        dense = ca.Sparsity.dense
-        def pattern(mask: np.ndarray) -> ca.Sparsity:
-            rows, cols = np.nonzero(mask)
-            return ca.Sparsity.triplet(*mask.shape, rows.tolist(), cols.tolist())
-
-        x_p = [("x", dense(self.nx, 1)), ("p", dense(0, 1))]
-        f, g = ("f", dense(1, 1)), ("g", dense(self.base.ng, 1))
-        oracle = NumericFunction("nlp", x_p, [f, g], lambda x, p: self.f_g(x))
-        options = {
-            "grad_f": NumericFunction("grad_f", x_p, [f, ("grad_f_x", dense(self.nx, 1))], lambda x, p: self.grad_f(x)),
-            "jac_g": NumericFunction("jac_g", x_p, [g, ("jac_g_x", pattern(self.base.jacobian_pattern))],
-                                     lambda x, p: self.jac_g(x)),
-            "no_nlp_grad": True,
-            **LIMITED_MEMORY,
-        }
-        return oracle, options
+        base = self.base
+        oracle, options = callbacks(self, base.nx, base.ng, base.jacobian_pattern)
+        return oracle, {**options, **LIMITED_MEMORY}

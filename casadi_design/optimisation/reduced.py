@@ -409,27 +409,35 @@ class ReducedNLP:
 
     def functions(self) -> tuple[ca.Function, dict]:
         """The NLP ``(x, p) -> (f, g)`` and the nlpsol options with its derivative functions."""
-        dense = ca.Sparsity.dense
+        return callbacks(self, self.nx, self.ng, self.jacobian_pattern, self.hessian_pattern)
 
-        def pattern(mask: np.ndarray) -> ca.Sparsity:
-            rows, cols = np.nonzero(mask)
-            return ca.Sparsity.triplet(*mask.shape, rows.tolist(), cols.tolist())
 
-        x_p = [("x", dense(self.nx, 1)), ("p", dense(0, 1))]
-        f, g = ("f", dense(1, 1)), ("g", dense(self.ng, 1))
-        oracle = NumericFunction("nlp", x_p, [f, g], lambda x, p: self.f_g(x))
-        options = {
-            "grad_f": NumericFunction("grad_f", x_p, [f, ("grad_f_x", dense(self.nx, 1))],
-                                      lambda x, p: self.grad_f(x)),
-            "jac_g": NumericFunction("jac_g", x_p, [g, ("jac_g_x", pattern(self.jacobian_pattern))],
-                                     lambda x, p: self.jac_g(x)),
-            "hess_lag": NumericFunction(
-                "hess_lag", x_p + [("lam_f", dense(1, 1)), ("lam_g", dense(self.ng, 1))],
-                [("triu_hess_gamma_x_x", pattern(self.hessian_pattern))],
-                lambda x, p, lam_f, lam_g: [self.hess_lag(x, lam_f[0], lam_g)]),
-            "no_nlp_grad": True,  # the multipliers' gradient would differentiate the callbacks
-        }
-        return oracle, options
+def callbacks(nlp, nx: int, ng: int, jacobian: np.ndarray,
+              hessian: np.ndarray | None = None) -> tuple[ca.Function, dict]:
+    """The NLP ``(x, p) -> (f, g)`` of ``nlp`` (its ``f_g``, ``grad_f``, ``jac_g`` and, with the
+    structural nonzeros ``hessian`` of the upper triangle, ``hess_lag``) as
+    :class:`NumericFunction` callbacks and the nlpsol options that hold its derivatives;
+    ``jacobian``: the structural nonzeros of dg/dx (ng x nx, bool)."""
+    dense = ca.Sparsity.dense
+
+    def pattern(mask: np.ndarray) -> ca.Sparsity:
+        rows, cols = np.nonzero(mask)
+        return ca.Sparsity.triplet(*mask.shape, rows.tolist(), cols.tolist())
+
+    x_p = [("x", dense(nx, 1)), ("p", dense(0, 1))]
+    f, g = ("f", dense(1, 1)), ("g", dense(ng, 1))
+    oracle = NumericFunction("nlp", x_p, [f, g], lambda x, p: nlp.f_g(x))
+    options = {
+        "grad_f": NumericFunction("grad_f", x_p, [f, ("grad_f_x", dense(nx, 1))], lambda x, p: nlp.grad_f(x)),
+        "jac_g": NumericFunction("jac_g", x_p, [g, ("jac_g_x", pattern(jacobian))], lambda x, p: nlp.jac_g(x)),
+        "no_nlp_grad": True,  # the multipliers' gradient would differentiate the callbacks
+    }
+    if hessian is not None:
+        options["hess_lag"] = NumericFunction(
+            "hess_lag", x_p + [("lam_f", dense(1, 1)), ("lam_g", dense(ng, 1))],
+            [("triu_hess_gamma_x_x", pattern(hessian))],
+            lambda x, p, lam_f, lam_g: [nlp.hess_lag(x, lam_f[0], lam_g)])
+    return oracle, options
 
 
 class _Values(NamedTuple):
