@@ -162,7 +162,7 @@ def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Si
     trace = np.einsum("ikc,cik->c", K, P)
     quad_l = np.einsum("ic,ikc,kc->c", a, K * D, a)
     trace_l = np.einsum("ikc,cik->c", K * D, P)
-    Pd = Pi.reshape(m, d, m, d)[np.arange(m), :, np.arange(m), :]  # (m, d, d)
+    Pd = P4[np.arange(m), :, np.arange(m), :]  # (m, d, d)
     Ar = alpha.reshape(m, d)
     nug = 2 * nug2 * (np.einsum("iv,vw,iw->", Ar, S.A, Ar) - np.einsum("ivw,wv->", Pd, S.A))
     grad = 0.5 * np.concatenate([2 * (quad - trace), quad_l - trace_l, [nug]])
@@ -191,19 +191,19 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
     width = np.maximum(np.std(Q, axis=0), 0.1)
     nugget0 = [math.log(max(0.3 * spread, SCALE_LOW * sigma))]
     kinds = ("axes", "additive") + (() if dq is None else ("joints alike", "joints"))
+    if dq is not None:  # an angle (rad) moves a value by |dy/dq| (m per rad)
+        sites = Sites(Q, dq, A)
+        lever = max(float(np.sqrt(np.mean(np.sum(dq**2, axis=1)))), 1e-9)
     fits, alike_theta = [], None
     for kind in kinds:
-        if kind.startswith("joints"):  # an angle (rad) moves a value by |dy/dq| (m per rad)
-            lever = max(float(np.sqrt(np.mean(np.sum(dq**2, axis=1)))), 1e-9)
-            alike = kind == "joints alike"  # one angle and one length for every joint
-            k = 1 if alike else n
+        if kind.startswith("joints"):
+            k = 1 if kind == "joints alike" else n  # one angle and one length for every joint, or each its own
             scales, scale_bounds = [math.log(spread / lever / math.sqrt(n))] * k, (low - math.log(lever),
                                                                                    high - math.log(lever))
-            sites = Field(0.0, (1.0,) * n, 0.0, (), (1.0,) * n).sites(Q, axes, Wh, dq)
             E = np.zeros((2 * n + 1, 2 * k + 1))  # theta = E t
             E[np.arange(n), np.arange(n) % k] = E[n + np.arange(n), k + np.arange(n) % k] = E[-1, -1] = 1.0
 
-            def minus_l(t: np.ndarray, sites: Sites = sites, E: np.ndarray = E) -> tuple[float, np.ndarray]:
+            def minus_l(t: np.ndarray, E: np.ndarray = E) -> tuple[float, np.ndarray]:
                 value, grad = joints_log_likelihood(E @ t, r, J, sites, sigma)
                 return -value, -E.T @ grad
         else:
@@ -219,18 +219,18 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
         w0 = width if len(scales) > 1 or kind == "axes" else np.full(1, np.median(width))
         # an angle and a length per joint: from the optimum of one for every joint (nested, so its
         # likelihood is at least that one's); the others from two starts
-        starts = ([alike_theta] if kind == "joints" and alike_theta is not None else
+        starts = ([alike_theta] if kind == "joints" else
                   [np.concatenate([scales, np.log(np.clip(w0 / shrink, *ell)), nugget0]) for shrink in (1.0, 3.0)])
         found = min((minimize(minus_l, t0, jac=True, method="L-BFGS-B",
                               bounds=[scale_bounds] * len(scales) + [tuple(map(math.log, ell))] * len(w0)
                               + [(low, high)])
                      for t0 in starts),
                     key=lambda f: f.fun)
-        theta = found.x if kind != "joints alike" else E @ found.x
+        theta = E @ found.x if kind.startswith("joints") else found.x  # the joints': one entry per joint
         if kind == "joints alike":
             alike_theta = theta
-        lengths, nugget = tuple(float(v) for v in np.exp(theta[n if kind.startswith("joints") else len(scales):][:n])), \
-            float(np.exp(theta[-1]))
+        first = n if kind.startswith("joints") else len(scales)
+        lengths, nugget = tuple(float(v) for v in np.exp(theta[first:first + n])), float(np.exp(theta[-1]))
         if kind.startswith("joints"):
             field = Field(0.0, lengths, nugget, (), tuple(float(v) for v in np.exp(theta[:n])))
         elif kind == "additive":
