@@ -313,8 +313,8 @@ def field_design(problem: Problem, design: Design, others: list[Design], starts:
     ``FIELD_POOL`` random feasible experiments (seeded) and, without loads, the test poses that
     keep the rules (where the field rewards measuring), from the NLP's plan first; the better of
     the two goes to the NLP with the field (:func:`field_nlp`), whose plan is kept where IPOPT
-    converged to a plan that keeps the rules and is better. The best by the criterion with the field; its starts record
-    all three."""
+    converged to a plan that keeps the rules and is better. The best by the criterion with the
+    field; its starts record all three."""
     rng = start_rng(problem.solver.seed, design.criterion, design.m)
     Qr, Fr = random_plan(problem, FIELD_POOL, rng)
     Qs = [design.Q, *(d.Q for d in others), Qr]
