@@ -8,9 +8,9 @@ command's start, :mod:`casadi_design.launch`) costs nothing before Ctrl-C is han
 import importlib
 
 #: The package's own names and the module that defines each.
-_NAMES = {"DesignError": "errors", "ProblemError": "errors", "Problem": "model.build",
-          "build_problem": "model.build", "load_problem": "model.build", "ProblemSpec": "model.problem",
-          "read_problem": "model.problem"}
+_NAMES = {"DesignError": "errors", "ProblemError": "errors", "Problem": "problem.build",
+          "build_problem": "problem.build", "load_problem": "problem.build",
+          "ProblemSpec": "problem_file.read", "read_problem": "problem_file.read"}
 
 __all__ = sorted(_NAMES)
 __version__ = "0.1.0"

@@ -16,7 +16,7 @@ with a grid of 50 drilling points as test poses, m = 20, 16 starts.
 ``--compare-with DIR`` runs the same designs with the package found in DIR (another checkout,
 e.g. a worktree of an older commit) and adds the old/new ratios of time per start and memory;
 ``--compare-vm`` compares instead with this checkout in CasADi's virtual machine
-(``CASADI_DESIGN_COMPILE=0``: no compiled functions, :mod:`casadi_design.model.compiled`). The first
+(``CASADI_DESIGN_COMPILE=0``: no compiled functions, :mod:`casadi_design.robot.compiled`). The first
 line says whether the functions are compiled and where their cache is; build times include
 compiling what the cache does not hold yet. Figures are for the machine at hand; compare
 ratios, not absolutes.
@@ -74,9 +74,9 @@ def run_one(problem_file: str, criterion: str, m: int, starts: int, grid: tuple 
     import inspect
     import tomllib
 
-    build_problem = module("casadi_design.model.build").build_problem
+    build_problem = module("casadi_design.problem.build").build_problem
     CRITERIA = module("casadi_design.measures.criteria").CRITERIA
-    parse_problem = module("casadi_design.model.problem").parse_problem
+    parse_problem = module("casadi_design.problem_file.read").parse_problem
     solve = module("casadi_design.optimisation.solve")
     random_plan = module("casadi_design.plan.sampling").random_plan
     start_rng = solve.start_rng
@@ -135,15 +135,24 @@ def _capsule_rows(problem) -> int:
 
 
 def module(layered: str):
-    """``casadi_design.<layer>.<name>`` of the checkout imported, or ``casadi_design.<name>`` in
-    a checkout of the flat layout (--compare-with): told by its folders, since an editable
-    install would otherwise resolve the layered names in this checkout."""
+    """``casadi_design.<room>.<name>`` of the checkout imported, in the layout that checkout has
+    (--compare-with): today's rooms, the older one where the robot, cell, problem file and
+    calibration model all lived in ``model/`` (``problem_file.read`` was ``model.problem``), or
+    the flat ``casadi_design.<name>``. Told by its folders, since an editable install would
+    otherwise resolve today's names in this checkout."""
     import importlib
 
     import casadi_design
 
-    flat = not (Path(casadi_design.__file__).parent / "model").is_dir()
-    return importlib.import_module("casadi_design." + layered.rsplit(".", 1)[1] if flat else layered)
+    root = Path(casadi_design.__file__).parent
+    name = layered.rsplit(".", 1)[1]
+    if not (root / "problem_file").is_dir() and layered.split(".")[1] in ("problem", "problem_file", "robot", "cell",
+                                                                          "calibration"):
+        name = "problem" if layered.endswith("problem_file.read") else name
+        layered = f"casadi_design.model.{name}" if (root / "model").is_dir() else f"casadi_design.{name}"
+    elif not (root / "model").is_dir() and not (root / "problem_file").is_dir():
+        layered = "casadi_design." + name
+    return importlib.import_module(layered)
 
 
 def study(problem_file: str, jobs: int) -> dict:
@@ -299,8 +308,8 @@ def pool_file(name: str, folder: Path) -> Path:
         path.write_text("\n".join([head] + [rows[i] for i in keep]) + "\n")
     else:
         sys.path.insert(0, str(ROOT))
-        from casadi_design.model.build import load_problem
         from casadi_design.plan.sampling import random_plan
+        from casadi_design.problem.build import load_problem
         from casadi_design.records.export import csv_text, plan_table
 
         problem = load_problem(ROOT / problem_file)
@@ -412,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare_with and args.compare_vm:
         parser.error("--compare-with and --compare-vm: choose one")
     sys.path.insert(0, str(ROOT))
-    from casadi_design.model import compiled
+    from casadi_design.robot import compiled
 
     print(f"compiled CasADi functions: on, cache {compiled.cache_dir()}" if compiled.enabled() else
           "compiled CasADi functions: off (CASADI_DESIGN_COMPILE=0 or no C compiler): the virtual machine")

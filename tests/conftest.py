@@ -19,7 +19,7 @@ sys.dont_write_bytecode = False
 from casadi_design.runtime.threads import fixed_blas  # noqa: E402
 
 # The suite runs CasADi's virtual machine: compiling a robot's functions the first time costs
-# seconds per cell. tests/model/test_compiled.py checks the compiled code gives the same bits.
+# seconds per cell. tests/robot/test_compiled.py checks the compiled code gives the same bits.
 os.environ.setdefault("CASADI_DESIGN_COMPILE", "0")
 # What the package keeps between runs (casadi_design.runtime.cache: the capsules fitted around the
 # meshes) goes to a folder of the test runs, not the user's cache.
@@ -29,8 +29,8 @@ os.environ.setdefault("CASADI_DESIGN_CACHE", os.path.join(tempfile.gettempdir(),
 os.environ.setdefault("CASADI_DESIGN_KEEP_DESIGNS", "0")
 fixed_blas()  # as the command does, before numpy and CasADi load (casadi_design.launch)
 
-from casadi_design.model.build import build_problem, load_problem  # noqa: E402
-from casadi_design.model.problem import parse_problem  # noqa: E402
+from casadi_design.problem.build import build_problem, load_problem  # noqa: E402
+from casadi_design.problem_file.read import parse_problem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "problems" / "paper_planar_2r.toml"

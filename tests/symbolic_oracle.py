@@ -17,9 +17,9 @@ import casadi as ca
 import numpy as np
 
 from casadi_design.optimisation import nlp as nlp_module
-from casadi_design.model.build import Problem
 from casadi_design.optimisation.nlp import DesignNLP, information_scale
 from casadi_design.plan.rules import joint_distance_sq
+from casadi_design.problem.build import Problem
 
 
 @dataclass(frozen=True, eq=False)

@@ -11,19 +11,20 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from dataclasses import replace
+from pathlib import Path
 
-from ..model.build import Problem
-from ..execution.campaign import Campaign, Settings
-from ..measures.criteria import BOUND_CRITERIA, CRITERIA
-from ..runtime import interrupt
 from ..errors import OutputError
-from ..records.files import prepare_out
-from ..model.problem import MAX_EXPERIMENTS, ProblemSpec
+from ..execution.campaign import Campaign, Settings
 from ..execution.study import Study, run_study
-from ..runtime.threads import cpu_count
 from ..execution.sweep import Sweep
+from ..measures.criteria import BOUND_CRITERIA, CRITERIA
+from ..problem.build import Problem
+from ..problem_file.fields import MAX_EXPERIMENTS
+from ..problem_file.read import ProblemSpec
+from ..records.files import prepare_out
+from ..runtime import interrupt
+from ..runtime.threads import cpu_count
 
 #: A design's better plans are printed once its starts have run this long (s), or when its
 #: approximate design comes after them (a one-start solve): a long design says its best plan
@@ -136,7 +137,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
 
 def add_bound_steps(p: argparse.ArgumentParser, minimum: int = 0) -> None:
     """``--bound-steps`` (at least ``minimum``; 0 turns the bound off) and ``--bound-pool``."""
-    from ..optimisation.bound import BOUND_STEPS, POOL_SIZE, SAMPLE_SIZE
+    from ..optimisation.approximate import BOUND_STEPS, POOL_SIZE, SAMPLE_SIZE
 
     p.add_argument("--bound-steps", type=integer("--bound-steps", minimum), default=BOUND_STEPS,
                    metavar="K",
@@ -238,10 +239,10 @@ def say(args: argparse.Namespace, *lines: str) -> None:
 
 
 def read_spec(args: argparse.Namespace) -> ProblemSpec:
-    """Read and check the problem file of ``args`` (:func:`casadi_design.model.problem.read_problem`,
+    """Read and check the problem file of ``args`` (:func:`casadi_design.problem_file.read.read_problem`,
     no robot built yet), with the ``--ipopt`` options over its [solver.ipopt]. A command that
     starts worker processes reads it first, so a malformed file fails before any worker starts."""
-    from ..model.problem import read_problem
+    from ..problem_file.read import read_problem
 
     spec = read_problem(args.problem)
     if getattr(args, "ipopt", None):
@@ -254,10 +255,9 @@ def load(args: argparse.Namespace, check_solver: bool = True, spec: ProblemSpec 
     """Build the problem of ``args`` (``spec``: as :func:`read_spec` read it; None: read it
     now) with what ``--measured`` and ``--prior`` hold (:mod:`casadi_design.identification.held`);
     with ``check_solver``, also try the IPOPT options."""
-    from ..model.build import build_problem
-    from ..optimisation.solve import check_ipopt_options
-
     from ..identification.held import read_held
+    from ..optimisation.solve import check_ipopt_options
+    from ..problem.build import build_problem
 
     spec = read_spec(args) if spec is None else spec
     problem = build_problem(spec)

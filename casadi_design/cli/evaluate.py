@@ -44,11 +44,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..model.cell import clearances
+    from ..cell.cell import clearances
     from ..identification.measurements import read_experiments
-    from ..records.results import design_from_record, experiment_records
-    from ..plan.rules import plan_violations
     from ..optimisation.solve import plan_scores
+    from ..plan.rules import plan_violations
+    from ..records.results import design_from_record, experiment_records
 
     out = common.output_folder(args, "evaluate")
     problem = common.load(args, check_solver=False)

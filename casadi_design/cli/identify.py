@@ -33,8 +33,8 @@ def load_without_cell(path: str):
     plans, and fitting the cell's capsules takes seconds (``calibrated.toml`` keeps the cell)."""
     from dataclasses import replace
 
-    from ..model.build import build_problem
-    from ..model.problem import read_problem
+    from ..problem.build import build_problem
+    from ..problem_file.read import read_problem
 
     return build_problem(replace(read_problem(path), cell=None))
 
@@ -100,9 +100,18 @@ def run(args: argparse.Namespace) -> int:
         an ``--out`` that cannot be written (before anything is computed).
     """
     from ..identification.calibrate import calibrate
-    from ..identification.measurements import FileFormat, parse_columns, read_measurements, rounds_of
+    from ..identification.calibrated_toml import (
+        calibrated_dh_problem,
+        calibrated_problem,
+        toml_text,
+    )
     from ..identification.dh_table import calibrated_dh, has_dh_table
-    from ..identification.problem_file import calibrated_dh_problem, calibrated_problem, toml_text
+    from ..identification.measurements import (
+        FileFormat,
+        parse_columns,
+        read_measurements,
+        rounds_of,
+    )
     from ..identification.report import (
         compensated_csv,
         identification_record,

@@ -7,10 +7,10 @@ import time
 from pathlib import Path
 
 from ..errors import OutputError
-from ..model.build import Problem
 from ..execution.campaign import Campaign
-from ..records.files import write_atomic
 from ..execution.study import writing
+from ..problem.build import Problem
+from ..records.files import write_atomic
 from ..reports.tables import format_solver_lines, format_table
 from . import common
 

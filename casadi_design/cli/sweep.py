@@ -7,11 +7,11 @@ import math
 import time
 from pathlib import Path
 
-from ..model.build import Problem
-from ..model.problem import starts_text
-from ..records.files import write_atomic
 from ..execution.study import writing
 from ..execution.sweep import PARTIAL_NAME, RESUME_FILES, Sweep
+from ..problem.build import Problem
+from ..problem_file.solver import starts_text
+from ..records.files import write_atomic
 from ..reports.tables import format_sweep_table
 from . import common
 
@@ -68,10 +68,10 @@ def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log
                 approx: dict, target=None) -> list[str]:
     """sweep.json, sweep.csv, the figures, the plans and report.md (``target``: the
     :class:`~casadi_design.execution.target.TargetAnswer` of ``--target-mm``)."""
+    from ..execution.sweep import COLUMNS, sweep_record, sweep_rows
     from ..records.export import report_markdown, write_plans, write_table_csv
     from ..records.files import write_json
     from ..reports.plotting import fig1, sweep_figure, write_figures
-    from ..execution.sweep import COLUMNS, sweep_record, sweep_rows
 
     designs = list(sweep.designs.values())
     record = sweep_record(problem, sweep, key, approx)

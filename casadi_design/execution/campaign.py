@@ -5,7 +5,7 @@ solve (:func:`casadi_design.optimisation.solve.solve_design`) from
 
 1. the seeded random starts (``settings.seeded(criterion)``, drawn from ``(seed, m, criterion)``),
 2. the caller's extra starts (a sweep's warm start from the previous m),
-3. the starts rounded from an approximate design (:func:`casadi_design.optimisation.bound.rounded_plans`):
+3. the starts rounded from an approximate design (:func:`casadi_design.optimisation.approximate.rounded_plans`):
    the criterion's own when it has a bound, A's for E and condition
    (:attr:`~casadi_design.measures.criteria.Criterion.approximate`),
 
@@ -30,25 +30,32 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..optimisation.bound import (
+from ..errors import DesignError, ProblemError
+from ..measures.criteria import BOUND_CRITERIA, CRITERIA
+from ..measures.field import field_measure
+from ..optimisation.approximate import (
     BOUND_STEPS,
     POOL_SIZE,
     ROUNDED,
-    ApproximateDesign,
     Maximise,
     approximate_one,
-    bound,
     rounded_plans,
 )
-from ..runtime.cache import Memo, digest
-from ..model.build import Problem
-from ..model.problem import seeded_starts, starts_text
-from ..measures.criteria import BOUND_CRITERIA, CRITERIA
-from ..measures.field import field_measure
+from ..optimisation.bound import ApproximateDesign, bound
+from ..optimisation.solve import (
+    StartExecutor,
+    StartPlan,
+    StartResult,
+    best_design,
+    initial_starts,
+    seeded_plans,
+    solve_design,
+)
 from ..plan.design import SEEDED, Bound, Design
-from ..errors import DesignError, ProblemError
+from ..problem.build import Problem
+from ..problem_file.solver import seeded_starts, starts_text
+from ..runtime.cache import Memo, digest
 from . import parallel
-from ..optimisation.solve import StartExecutor, StartPlan, StartResult, best_design, initial_starts, seeded_plans, solve_design
 
 #: Extra starts of a design: ``(criterion, m, designs so far) -> [(Q0, F0, origin), ...]``.
 ExtraStarts = Callable[[str, int, dict[tuple[str, int], Design]], list[tuple]]
@@ -175,7 +182,7 @@ class Campaign:
 
 #: Approximate designs, a pure function of (the problem, criterion, steps, pool): the ones
 #: used last in this process, and on disk (:mod:`casadi_design.runtime.cache`, named by the problem's
-#: :attr:`~casadi_design.model.build.Problem.fingerprint`, the criterion, steps and pool), so that a
+#: :attr:`~casadi_design.problem.build.Problem.fingerprint`, the criterion, steps and pool), so that a
 #: later run of any command on the same problem reads them back, to the bit, marked ``kept``;
 #: not when :data:`casadi_design.runtime.cache.KEEP_DESIGNS` is 0.
 APPROXIMATE: Memo[ApproximateDesign] = Memo(32, kind="approximate-design",

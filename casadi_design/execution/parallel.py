@@ -1,7 +1,7 @@
 """Run the starts of a multi-start on local processes or on a Dask cluster.
 
 An executor sends each start to a worker as plain data: the problem's checked data
-(:class:`~casadi_design.model.problem.ProblemSpec`), the criterion, ``m`` and the start plan
+(:class:`~casadi_design.problem_file.read.ProblemSpec`), the criterion, ``m`` and the start plan
 ``(Q0, F0)`` (Q0 (m, n), rad; F0 (m, nF), N). The worker builds the problem and the design NLP once (cached per process) and runs
 :func:`casadi_design.optimisation.solve.solve_start`, the same code the serial loop runs, so a start gives
 the same numbers wherever it runs. The seeded start plans are drawn by the caller
@@ -39,14 +39,15 @@ from typing import Any, Protocol, Self
 
 import numpy as np
 
-from ..optimisation.bound import ApproximateDesign, approximate_one, maximise_d
-from ..model.build import Problem, build_problem
-from ..runtime.cache import Memo
 from ..errors import DesignError
-from ..runtime.interrupt import pressed
-from ..model.problem import ProblemSpec
-from ..runtime.threads import KERNEL_VARIABLE, THREAD_VARIABLES, blas_setup, cpu_count, fixed_blas
+from ..optimisation.approximate import approximate_one, maximise_d
+from ..optimisation.bound import ApproximateDesign
 from ..optimisation.solve import StartPlan, StartResult, make_design_solver, solve_start
+from ..problem.build import Problem, build_problem
+from ..problem_file.read import ProblemSpec
+from ..runtime.cache import Memo
+from ..runtime.interrupt import pressed
+from ..runtime.threads import KERNEL_VARIABLE, THREAD_VARIABLES, blas_setup, cpu_count, fixed_blas
 
 #: Seconds to wait for a Dask scheduler before giving up.
 DASK_CONNECT_TIMEOUT_S = 5.0
@@ -100,14 +101,14 @@ def _cached(ref: ProblemRef) -> tuple[Problem, dict]:
 
 
 def run_approximate(ref: ProblemRef, criterion: str, m: int, steps: int, pool: int) -> ApproximateDesign:
-    """One approximate design, in a worker (:func:`casadi_design.optimisation.bound.approximate_one`)."""
+    """One approximate design, in a worker (:func:`casadi_design.optimisation.approximate.approximate_one`)."""
     with _LOCK:
         return approximate_one(_cached(ref)[0], criterion, steps, pool, m=m)
 
 
 def run_searches(ref: ProblemRef, scale: float, G: np.ndarray, Q: np.ndarray, F: np.ndarray,
                  duals: list) -> tuple:
-    """Searches of an approximate design's step, in a worker (:func:`casadi_design.optimisation.bound.maximise_d`)."""
+    """Searches of an approximate design's step, in a worker (:func:`casadi_design.optimisation.approximate.maximise_d`)."""
     with _LOCK:
         return maximise_d(_cached(ref)[0], scale, G, Q, F, duals)
 
@@ -430,7 +431,7 @@ class DaskExecutor(_Workers):
         """The workers compute with this process's OpenBLAS kernels and BLAS threads
         (:mod:`casadi_design.runtime.threads`), or their starts would give other numbers than ``--jobs``
         (and an approximate design computed there would be kept under this process's name,
-        :attr:`casadi_design.model.build.Problem.fingerprint`): a clear error otherwise."""
+        :attr:`casadi_design.problem.build.Problem.fingerprint`): a clear error otherwise."""
         here = blas_setup()
         other = {w: k for w, k in self.client.run(blas_setup).items() if tuple(k) != here}
         kernels_here, threads_here = here

@@ -22,14 +22,23 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import DesignError, OutputError, ProblemError
+from ..plan.design import Design
+from ..problem.build import Problem
+from ..records.files import load_partial, partial_record
 from ..runtime import interrupt
 from ..runtime.cache import digest
-from ..model.build import Problem
-from .campaign import (Campaign, Interim, Settings, campaign_key, check_criteria, check_m_values,
-                       choose_campaign, run_campaign, total_starts)
-from ..plan.design import Design
-from ..errors import DesignError, OutputError, ProblemError
-from ..records.files import load_partial, partial_record
+from .campaign import (
+    Campaign,
+    Interim,
+    Settings,
+    campaign_key,
+    check_criteria,
+    check_m_values,
+    choose_campaign,
+    run_campaign,
+    total_starts,
+)
 from .parallel import WorkerLost, make_executor
 from .sweep import RESUME_KEYS, Sweep, run_sweep, sweep_total_starts
 from .target import TARGET_CRITERION, run_target

@@ -23,14 +23,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..optimisation.bound import ApproximateDesign
-from ..model.build import Problem
-from .campaign import Settings, check_m_values, run_campaign, total_starts
 from ..measures.criteria import CRITERIA
-from ..plan.design import Design
-from ..records.results import design_from_record, design_record, results_dict
-from ..plan.sampling import random_plan
+from ..optimisation.bound import ApproximateDesign
 from ..optimisation.solve import StartExecutor
+from ..plan.design import Design
+from ..plan.sampling import random_plan
+from ..problem.build import Problem
+from ..records.results import design_from_record, design_record, results_dict
+from .campaign import Settings, check_m_values, run_campaign, total_starts
 
 #: The 4th entry of the warm-start generator's seed (start_rng uses 3 entries).
 WARM_STREAM = 1

@@ -17,10 +17,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ..model.build import Problem
+from ..measures.field import field_measure
 from ..optimisation.bound import bound
 from ..plan.design import Design
-from ..measures.field import field_measure
+from ..problem.build import Problem
 from .campaign import Campaign, Settings, aim, approximate_designs, has_bound, run_campaign
 
 #: The criterion whose plans the target is met with.

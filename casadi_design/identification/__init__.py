@@ -9,7 +9,7 @@ tracker's noise and the robot's unmodelled error, leverages, outlier scores), :m
 (the unmodelled error's field by restricted maximum likelihood), :mod:`.calibrate` (outliers,
 statistics, validation rows, compensation), :mod:`.report` (``identification.json``, the summary, the compensated poses),
 :mod:`.urdf` (``calibrated.urdf``), :mod:`.dh_table` (the calibrated DH table) and
-:mod:`.problem_file` (``calibrated.toml``, ``calibrated_dh.toml``); :mod:`.held` reads what a
+:mod:`.calibrated_toml` (``calibrated.toml``, ``calibrated_dh.toml``); :mod:`.held` reads what a
 second round starts from (measured experiments, an identification as a prior). The command
 is ``casadi-design identify`` (:mod:`casadi_design.cli.identify`).
 """

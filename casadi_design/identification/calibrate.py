@@ -43,23 +43,43 @@ tracker's noise ``sigma`` per value, ``J = dh/dX`` at the estimate):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-
 import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..model.build import Problem
 from ..errors import DesignError, ProblemError
 from ..measures.measures import information_matrix, rho_at_test_poses
-from .choice import MODELS, NEGATIVE_STD, Candidate, candidates, choose, has_weight, negative_compliances
+from ..problem.build import Problem
+from .choice import (
+    MODELS,
+    NEGATIVE_STD,
+    Candidate,
+    candidates,
+    choose,
+    has_weight,
+    negative_compliances,
+)
 from .compensate import compensate
-from .fit import (Fit, FitModel, fit, fit_model, frame_matrix, frames_projected, in_tracker, model_points, point_errors, pose_rms,
-                  REGISTRATION_TOL_M, register, row_errors)
+from .field_fit import FIELD_SEED, TrainedField, estimate_field
+from .fit import (
+    REGISTRATION_TOL_M,
+    Fit,
+    FitModel,
+    fit,
+    fit_model,
+    frame_matrix,
+    frames_projected,
+    in_tracker,
+    model_points,
+    point_errors,
+    pose_rms,
+    register,
+    row_errors,
+)
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
-from .field_fit import FIELD_SEED, TrainedField, estimate_field
 from .residuals import ErrorScale, deleted_scores, error_scale, leverages
 
 #: A row whose externally studentized residual exceeds this many times the other rows' error

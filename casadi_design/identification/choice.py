@@ -41,9 +41,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.build import Problem
-from ..model.symbolic import carried_weights
 from ..errors import DesignError, ProblemError
+from ..problem.build import Problem
+from ..robot.symbolic import carried_weights
 from .fit import Fit, FitModel, fit, fit_model, row_errors
 from .measurements import Measurements, measured_axes
 from .residuals import leverages, press

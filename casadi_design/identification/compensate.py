@@ -15,9 +15,9 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from ..calibration.models import CalibrationModel
+from ..robot.mapped import evaluate
 from ..runtime.cache import memoised
-from ..model.mapped import evaluate
-from ..model.models import CalibrationModel
 
 #: Compensation: converged when the identified model misses the target by at most
 #: this fraction of sigma, or when the joint step falls below COMPENSATION_STEP_TOL (rad, m).

@@ -1,6 +1,6 @@
 """The DH table of a calibrated DH robot (``calibrated_dh.toml``), in closed form from its axes.
 
-A DH table (:func:`casadi_design.model.robots.dh_arm`, both conventions) is the chain
+A DH table (:func:`casadi_design.robot.robots.dh_arm`, both conventions) is the chain
 
     base [link_0] prod_i [ Rz(theta_i + q_i) Tz(d_i) link_i ] flange,   link = Tx(a) Rx(alpha) Ry(beta)
 
@@ -41,8 +41,8 @@ from itertools import accumulate
 import numpy as np
 import pinocchio as pin
 
-from ..model.problem import DHRow, RobotSpec
-from ..model.robots import dh_joint, dh_link, placement_from_xyz_rpy
+from ..problem_file.robot import DHRow, RobotSpec
+from ..robot.robots import dh_joint, dh_link, placement_from_xyz_rpy
 from .urdf import CalibratedChain
 
 #: Consecutive axes whose nominal directions are within this angle of parallel (or

@@ -1,12 +1,12 @@
 """Identify a robot from measured points: the tracker frame, then the iterated weighted fit.
 
-The measurement model is the problem's one ``y(q, F, X)`` (:mod:`casadi_design.model.models`). With
+The measurement model is the problem's one ``y(q, F, X)`` (:mod:`casadi_design.calibration.models`). With
 ``frame = "tracker"`` the measured coordinates ``P`` are in the tracker's frame, an unknown
 rigid motion ``T`` of the base frame: ``P = T p``. ``T = T0 E(delta)``:
 
 1. ``T0`` in closed form (:func:`~.registration.rigid_fit`) from the nominal model's points;
 2. ``delta`` (tx, ty, tz m, rx, ry, rz rad) is the model's base error ``base.*``
-   (``E(delta) = (Rx Ry Rz, t)`` left-multiplies the chain, :mod:`casadi_design.model.symbolic`), so
+   (``E(delta) = (Rx Ry Rz, t)`` left-multiplies the chain, :mod:`casadi_design.robot.symbolic`), so
    the fit's parameters are ``(delta, X)`` of one measurement model; the robot parameters the
    frame absorbs (a combination of ``delta`` and the parameters before them, tested on the
    column-normalised Jacobian stacked over random poses) are dropped and reported;
@@ -27,14 +27,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..model.build import Problem, model_arguments
+from ..calibration.held import prior_std
+from ..calibration.identifiability import RANK_RTOL, stacked_jacobian, unit_columns
+from ..calibration.models import CalibrationModel, calibration_model
 from ..errors import DesignError, ProblemError
-from ..model.identifiability import RANK_RTOL, stacked_jacobian, unit_columns
-from ..model.held import prior_std
-from ..model.mapped import evaluate
 from ..measures.measures import SINGULAR_RTOL, information_matrix
-from ..model.models import CalibrationModel, calibration_model
-from ..model.symbolic import PLACEMENT_ERRORS
+from ..problem.build import Problem, model_arguments
+from ..robot.mapped import evaluate
+from ..robot.symbolic import PLACEMENT_ERRORS
 from ..runtime.cache import Memo
 from .lsq import Identification, expanded, identify_nonlinear, measurement_jacobian, nominal_poses
 from .measurements import Measurements, measured_axes
@@ -150,7 +150,7 @@ def frame_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def error_placement(delta: np.ndarray) -> np.ndarray:
     """``E(delta)`` (4 x 4) of a placement error (tx, ty, tz m, rx, ry, rz rad): the rotation
-    ``Rx(rx) Ry(ry) Rz(rz)`` and the translation (as in :mod:`casadi_design.model.symbolic`)."""
+    ``Rx(rx) Ry(ry) Rz(rz)`` and the translation (as in :mod:`casadi_design.robot.symbolic`)."""
     tx, ty, tz, rx, ry, rz = delta
     cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
     Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
@@ -311,8 +311,8 @@ def with_points(problem: Problem, d: np.ndarray, build: bool = True):
     only when not ``build``."""
     from dataclasses import replace
 
-    from ..model.build import build_problem
-    from ..model.robots import placement_from_xyz_rpy
+    from ..problem.build import build_problem
+    from ..robot.robots import placement_from_xyz_rpy
 
     spec = problem.spec
     if spec.measurement.markers_m is not None:

@@ -1,8 +1,8 @@
 """What a second round starts from, read from files: experiments already measured (a plan or
 measurement CSV, ``--measured``) and an earlier identification (``identification.json``,
 ``--prior``: its covariance, and its field of unmodelled error with the poses it was estimated
-on), as the :class:`~casadi_design.model.problem.HeldSpec` of a problem
-(:mod:`casadi_design.model.held` turns it into information)."""
+on), as the :class:`~casadi_design.problem_file.read.HeldSpec` of a problem
+(:mod:`casadi_design.calibration.held` turns it into information)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ProblemError
-from ..model.build import Problem
-from ..model.problem import HeldSpec, ModelErrorSpec
+from ..problem.build import Problem
+from ..problem_file.calibration import ModelErrorSpec
+from ..problem_file.read import HeldSpec
 from .measurements import file_sha256, read_experiments
 
 
@@ -101,7 +102,7 @@ def _same_file(path: str, source: tuple[str, str | None]) -> bool:
 
 
 def read_held(problem: Problem, measured: list[str] | None, prior: str | None) -> HeldSpec | None:
-    """The :class:`~casadi_design.model.problem.HeldSpec` of ``--measured`` files (their rows
+    """The :class:`~casadi_design.problem_file.read.HeldSpec` of ``--measured`` files (their rows
     in order) and a ``--prior`` identification; None without either."""
     if not measured and prior is None:
         return None

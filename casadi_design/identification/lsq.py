@@ -33,10 +33,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ..runtime.cache import memoised
+from ..calibration.models import CalibrationModel
 from ..errors import ProblemError
-from ..model.mapped import EXACT, Stacked, evaluate
-from ..model.models import CalibrationModel
+from ..robot.mapped import EXACT, Stacked, evaluate
+from ..runtime.cache import memoised
 
 #: Losses of ``--loss``: scipy.optimize.least_squares's names.
 LOSSES = ("linear", "soft_l1", "huber", "cauchy")

@@ -23,16 +23,23 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
-from ..model.build import Problem
 from ..errors import ProblemError
-from ..records.export import (LIMIT_TOL, PlanFile, check_joint_limits, is_prismatic, joint_units, read_plan_file,
-                              read_plan_table)
+from ..problem.build import Problem
+from ..records.export import (
+    LIMIT_TOL,
+    PlanFile,
+    check_joint_limits,
+    is_prismatic,
+    joint_units,
+    read_plan_file,
+    read_plan_table,
+)
 
 #: The position components a tracker measures, in the order of the columns.
 AXES = ("x", "y", "z")

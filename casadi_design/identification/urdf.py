@@ -1,6 +1,6 @@
 """The calibrated robot for any URDF reader, and as a problem file every command accepts.
 
-The identified errors ``Pi`` enter the kinematics as (:mod:`casadi_design.model.symbolic`)
+The identified errors ``Pi`` enter the kinematics as (:mod:`casadi_design.robot.symbolic`)
 
     oMf = E(Pi_base) prod_k [ M_k E(Pi_k) X_k(q_k + offset_k) ] fMt E(Pi_tool)
 
@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from ..model.build import Problem
-from ..model.robots import Robot, urdf_file
-from ..model.symbolic import joint_axis
+from ..problem.build import Problem
+from ..robot.robots import Robot, urdf_file
+from ..robot.symbolic import joint_axis
 from .fit import error_placement
 
 #: Name of the fixed frame at the identified measured point; markers are ``marker_<i>``.
@@ -122,7 +122,7 @@ def urdf_text(problem: Problem, chain: CalibratedChain) -> str:
     """The calibrated URDF (module docstring)."""
     robot = problem.robot
     if problem.spec.robot.source == "urdf":
-        from ..model.cell import _package_dirs  # where package:// meshes of this URDF are found
+        from ..cell.cell import _package_dirs  # where package:// meshes of this URDF are found
 
         source = urdf_file(problem.spec.robot.urdf)
         tree = ET.parse(source)

@@ -78,7 +78,7 @@ class BoundForm:
     score : ``(constant, m, sigma_m, L) -> bound of the score`` for m experiments.
     meaning : what ``bound.value`` of a results record bounds, with units.
     moves : exchange steps between two moves of the heavy support points
-        (:func:`casadi_design.optimisation.bound._moved`); 0: the support moves only through the maxima of
+        (:func:`casadi_design.optimisation.approximate._moved`); 0: the support moves only through the maxima of
         d. On the UR10 cell (README, Speed), moves every 6 steps narrow the test-pose
         certificate's gap from 0.58 % to 0.05 % for 1.17x the time (ABB: 0.85 % to 0.02 %,
         1.42x), so test-pose has 6. For D they tighten the bound by only 0.008 in log det at
@@ -151,7 +151,7 @@ class Criterion:
         pool's exchange climbs it before the score itself: a swap that lowers one of several
         test poses at the max does not lower the max, and the exchange would stop there.
     rounded : starts rounded from that approximate design per design
-        (:func:`casadi_design.optimisation.bound.rounded_plans`: the apportioned support, then jittered
+        (:func:`casadi_design.optimisation.approximate.rounded_plans`: the apportioned support, then jittered
         copies; the first four the same whatever the count). Of 12 on the UR10 study, the best
         is the 8th (test-pose, m = 9), 6th (test-pose, m = 12), 6th (D, m = 9: 0.3 higher in
         log det than the best of the first 4) and 4th (A, m = 9). D's and A's rounded starts

@@ -174,7 +174,7 @@ class Sites:
 def model_sites(field: Field, model, Wh: np.ndarray, Q: np.ndarray, F: np.ndarray | None = None,
                 rows: str = "measured") -> Sites:
     """The :class:`Sites` of the poses ``Q`` (m, n), rad, under the wrenches ``F`` (m, nF), N, of a
-    calibration ``model`` (:class:`~casadi_design.model.models.CalibrationModel`) for their
+    calibration ``model`` (:class:`~casadi_design.calibration.models.CalibrationModel`) for their
     ``rows``: the measured values (``"measured"``, whitened by ``Wh``), the required components
     (``"accuracy"``) or the frame's origin (``"position"``, base frame)."""
     axes = {"measured": axes_of(model.measured_rows, len(model.markers_m)), "accuracy": axes_of(model.accuracy_rows),
@@ -189,7 +189,7 @@ FIELD_CRITERIA = tuple(name for name, c in CRITERIA.items() if c.reads == "rho")
 
 def field_measure(problem, criterion: str) -> bool:
     """Whether ``criterion`` weighs the test poses with the problem's field of unmodelled error
-    (test-pose and I with :attr:`~casadi_design.model.build.Problem.field`): its experiments are
+    (test-pose and I with :attr:`~casadi_design.problem.build.Problem.field`): its experiments are
     not independent, so the approximate design's bound does not hold for it."""
     return problem.field is not None and criterion in FIELD_CRITERIA
 

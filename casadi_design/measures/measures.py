@@ -131,7 +131,7 @@ def observability_indices(sv: np.ndarray, m: int) -> dict[str, float]:
 def score_plan(B: np.ndarray, B0: np.ndarray, sigma: float, M_held: np.ndarray | None = None,
                m_held: int = 0, rho: np.ndarray | None = None) -> Scores:
     """All measures of a plan, of the campaign ``M = M_held + sum_i B_i^T B_i`` when
-    information is held before it (:mod:`casadi_design.model.held`).
+    information is held before it (:mod:`casadi_design.calibration.held`).
 
     Parameters
     ----------

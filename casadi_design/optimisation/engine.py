@@ -58,7 +58,7 @@ class PlanState:
 
 @dataclass(frozen=True, eq=False)
 class PoolEngine:
-    """The pool's rows ``B`` (k, d, L) (computed in batch, :meth:`~casadi_design.model.models.CalibrationModel.B_stack`),
+    """The pool's rows ``B`` (k, d, L) (computed in batch, :meth:`~casadi_design.calibration.models.CalibrationModel.B_stack`),
     the test poses' ``B0`` (s, r, L), the noise ``sigma`` (m) and the information held before
     the plan ``M_held`` (L, L; None: none)."""
 

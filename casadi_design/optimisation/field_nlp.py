@@ -32,9 +32,9 @@ from typing import NamedTuple
 import casadi as ca
 import numpy as np
 
+from ..calibration.models import joint_jacobians
 from ..measures.field import coupling, own_variance
-from ..model.build import Problem
-from ..model.models import joint_jacobians
+from ..problem.build import Problem
 from .reduced import ReducedNLP, callbacks
 
 #: IPOPT's Hessian of the NLP with the field.

@@ -1,7 +1,7 @@
 """The design NLP: choose the plan ``{(q_i, F_i)}, i = 1..m`` that optimises a criterion.
 
 Decision variables: ``Q`` (m, n), rad, the load variables ``V`` (m, nv; see
-:class:`~casadi_design.model.rules.LoadVariables`: ``Fbar = F / |F|_max``, a magnitude ``a`` for a
+:class:`~casadi_design.problem.rules.LoadVariables`: ``Fbar = F / |F|_max``, a magnitude ``a`` for a
 load of fixed direction, none for fixed loads and geometric cases), and the criterion's own
 bound ``t`` of the test-pose criterion: ``x = (Q, V, t)`` row by row, so that the variables of
 one experiment are contiguous. The test-pose criterion is the min-max of
@@ -13,7 +13,7 @@ the paper (eq. 15) in epigraph form:
 
 Constraint rows, in this order: the criterion's rows, the loads (``|Fbar_i|^2 = 1`` or
 ``<= 1``), the workspace rows of every experiment
-(:attr:`~casadi_design.model.rules.PlanRules.pose`) but a cell's capsule rows, the capsule rows
+(:attr:`~casadi_design.problem.rules.PlanRules.pose`) but a cell's capsule rows, the capsule rows
 the NLP holds (``active``: all of them, or those that can bind at the plans of a start,
 :mod:`casadi_design.optimisation.solve`), and the joint distance of every pair of experiments; joint limits
 and load magnitudes are bounds of x.
@@ -34,11 +34,11 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from ..model.build import Problem
 from ..measures.field import FIELD_CRITERIA
+from ..problem.build import Problem
+from ..problem.rules import LoadVariables
 from .field_nlp import FieldNLP, kriging_graph
 from .reduced import all_rows, reduced_nlp
-from ..model.rules import LoadVariables
 
 
 @dataclass(frozen=True, eq=False)

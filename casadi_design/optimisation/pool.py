@@ -32,15 +32,15 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..cell.cell import clearances
 from ..errors import ProblemError
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA, PlanSpectrum
 from ..measures.field import field_measure, kriging_rho_added
 from ..measures.measures import Scores
-from ..model.build import Problem
-from ..model.cell import clearances
 from ..plan.design import EXCHANGE_ENDED, Design, StartRecord
 from ..plan.rules import START_MARGIN_M, plan_violations
 from ..plan.sampling import random_plan
+from ..problem.build import Problem
 from .bound import bound, pool_design
 from .engine import PlanState, PoolEngine, key, score
 from .ipopt import QUIET, ipopt_call

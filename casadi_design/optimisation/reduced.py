@@ -47,12 +47,12 @@ import casadi as ca
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dtrtri
 
-from ..model.build import Problem, per_model
-from ..model.compiled import compiled_group
 from ..measures.criteria import CRITERIA
 from ..measures.objectives import EpigraphRows, Local, Objective
-from ..model.rules import CollisionRows
 from ..plan.rules import joint_distance_sq
+from ..problem.build import Problem, per_model
+from ..problem.rules import CollisionRows
+from ..robot.compiled import compiled_group
 
 
 class NumericFunction(ca.Callback):
@@ -153,7 +153,7 @@ class ExperimentFunctions:
     """CasADi functions of one experiment's variables ``z = (q, v)`` (p = n + nv).
 
     ``c(z)`` are the experiment's rule rows held in every experiment: ``|v|^2`` when the load
-    direction is free, then the workspace rows :attr:`~casadi_design.model.rules.PlanRules.pose` of
+    direction is free, then the workspace rows :attr:`~casadi_design.problem.rules.PlanRules.pose` of
     q (m), but for a cell's capsule rows: those enter row by row (``collision``, from the world
     points ``w(q)``, 3K, m), only where they can bind.
 
@@ -237,7 +237,7 @@ class ReducedNLP:
     pairs : ndarray, shape (P, 2): the experiments (a < b) of each joint-distance row.
     pair_rows : ndarray, shape (P,): their index in g.
     active : ndarray, shape (K, 2): the capsule rows held, as (experiment i, row r of
-        :class:`~casadi_design.model.rules.CollisionRows`); ``active_rows`` (K,): their index in g.
+        :class:`~casadi_design.problem.rules.CollisionRows`); ``active_rows`` (K,): their index in g.
     n_rows : number of criterion rows (s for an epigraph criterion, 0 otherwise), first in g.
     nx, ng : sizes of x and g.
     objective : the criterion's part (:mod:`casadi_design.measures.objectives`).
@@ -278,7 +278,7 @@ class ReducedNLP:
 
     @cached_property
     def mapped(self) -> dict[str, BufferedFunction]:
-        """The functions of :class:`ExperimentFunctions`, compiled (:mod:`casadi_design.model.compiled`),
+        """The functions of :class:`ExperimentFunctions`, compiled (:mod:`casadi_design.robot.compiled`),
         mapped over the experiments (pairs)."""
         f, P = self.fns, len(self.pairs)
         values, first, second = compiled_group([f.values, f.first, f.second])  # built side by side

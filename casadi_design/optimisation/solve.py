@@ -19,19 +19,19 @@ from typing import Protocol
 import casadi as ca
 import numpy as np
 
-from ..model.build import Problem
-from ..runtime.cache import Memo, digest, keeping_designs
-from ..model.cell import clearances
-from ..measures.criteria import CRITERIA
-from ..plan.design import CONVERGED, SEEDED, Design, StartRecord
+from ..cell.cell import clearances
 from ..errors import DesignError, ProblemError
-from .ipopt import QUIET, WARM_START, ipopt_call
+from ..measures.criteria import CRITERIA
 from ..measures.field import kriging_rho
 from ..measures.measures import Scores, score_plan
-from .nlp import DesignNLP, build_nlp
-from ..model.rules import PoseConstraints
+from ..plan.design import CONVERGED, SEEDED, Design, StartRecord
 from ..plan.rules import ADD_MARGIN_M, FEASIBILITY_TOL, START_MARGIN_M, plan_violations
 from ..plan.sampling import random_plan
+from ..problem.build import Problem
+from ..problem.rules import PoseConstraints
+from ..runtime.cache import Memo, digest, keeping_designs
+from .ipopt import QUIET, WARM_START, ipopt_call
+from .nlp import DesignNLP, build_nlp
 
 #: IPOPT statuses of a run stopped by one of its limits: the options were taken.
 LIMITS = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded", "Maximum_WallTime_Exceeded")
@@ -340,7 +340,7 @@ def solve_start(
 
     A start is a pure function of the problem, the criterion, m and its start plan, so
     it is kept on disk (:mod:`casadi_design.runtime.cache`, ``start-<key>``, named by the problem's
-    :attr:`~casadi_design.model.build.Problem.fingerprint` and those) and a later command reads it
+    :attr:`~casadi_design.problem.build.Problem.fingerprint` and those) and a later command reads it
     back to the bit: a sweep after the study, a one-start solve, a run stopped by Ctrl-C and
     started again. Not with ``verbose`` (IPOPT's output is asked for) nor when
     :data:`casadi_design.runtime.cache.KEEP_DESIGNS` is 0.
@@ -438,7 +438,7 @@ def _grown(rules: PoseConstraints, Q: np.ndarray, active: np.ndarray, status: st
 
 
 def seeded_plans(problem: Problem, criterion: str, m: int, starts: int | None = None) -> list[StartPlan]:
-    """The ``starts`` (default: the problem's, :meth:`~casadi_design.model.problem.SolverSettings.starts_for`)
+    """The ``starts`` (default: the problem's, :meth:`~casadi_design.problem_file.solver.SolverSettings.starts_for`)
     seeded random start plans of a design, from :func:`start_rng`: they depend on the seed, the
     criterion and m only, and fewer starts are the first of more."""
     rng = start_rng(problem.solver.seed, criterion, m)

@@ -16,7 +16,7 @@ from ..measures.criteria import CRITERIA
 from ..measures.measures import Scores
 
 if TYPE_CHECKING:
-    from ..model.cell import Clearance
+    from ..cell.cell import Clearance
 
 #: Status of a start of a plan chosen from a pool whose exchange ended: no swap improves it
 #: (:mod:`casadi_design.optimisation.pool`).
@@ -90,7 +90,7 @@ class Design:
     seed : ``[solver].seed`` of the problem the starts were drawn with.
     bound : the certified bound of the criterion for m experiments, when it was computed.
     clearances : with a ``[cell]``, each experiment's clearance on the real geometry
-        (:func:`casadi_design.model.cell.clearances`), else None.
+        (:func:`casadi_design.cell.cell.clearances`), else None.
     kept_starts : how many of ``starts`` were read back from the disk, computed by an earlier
         run (:func:`casadi_design.optimisation.solve.solve_start`; not in results files).
     """

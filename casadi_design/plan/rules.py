@@ -1,13 +1,13 @@
 """The rules a plan must satisfy, checked once: the NLP's constraints and the plan check use them.
 
 A plan is m experiments ``(q_i, F_i)``. Each experiment keeps the rules of the problem
-(``problem.rules``, :class:`casadi_design.model.rules.PlanRules`): its joint limits, the
+(``problem.rules``, :class:`casadi_design.problem.rules.PlanRules`): its joint limits, the
 workspace and cell rows of its configuration, its calibration load. The plan adds:
 
 * distinct experiments: ``joint_distance(q_i, q_j) >= min_joint_distance_rad``
   (:func:`joint_distance_sq`);
 * with a ``[cell]``, no two bodies touching on the real geometry
-  (:func:`casadi_design.model.cell.touching`, :func:`mesh_contacts`), checked after solving.
+  (:func:`casadi_design.cell.cell.touching`, :func:`mesh_contacts`), checked after solving.
 
 The NLP imposes the pose rows on every experiment, and its bounds and load variables encode the
 other rules. After solving, :func:`plan_violations` checks every rule on the returned plan: the
@@ -20,9 +20,9 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ..model.build import Problem
-from ..model.cell import touching
-from ..model.rules import JointLimits
+from ..cell.cell import touching
+from ..problem.build import Problem
+from ..problem.rules import JointLimits
 
 #: Largest violation of a joint limit or workspace rule accepted (rad, m).
 FEASIBILITY_TOL = 1e-6
@@ -59,7 +59,7 @@ def _amount(v: float, unit: str, lb: float) -> str:
 
 def mesh_contacts(problem: Problem, Q: np.ndarray) -> list[str]:
     """The experiments of ``Q`` (m, n), rad, whose links or obstacles touch or cross on the
-    cell's real geometry (:func:`casadi_design.model.cell.touching`), one line each; none without
+    cell's real geometry (:func:`casadi_design.cell.cell.touching`), one line each; none without
     a cell."""
     if problem.cell is None:
         return []

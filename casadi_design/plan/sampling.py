@@ -1,8 +1,8 @@
 """Random feasible plans: the seeded starts of the multi-start and the candidates of the bound.
 
 A plan is drawn one experiment at a time: configurations uniform within the joint limits
-(:meth:`~casadi_design.model.rules.JointLimits.sample`), kept when every workspace and cell row holds
-(:meth:`~casadi_design.model.rules.PoseConstraints.feasible`), and a load that satisfies the
+(:meth:`~casadi_design.problem.rules.JointLimits.sample`), kept when every workspace and cell row holds
+(:meth:`~casadi_design.problem.rules.PoseConstraints.feasible`), and a load that satisfies the
 problem's load rule. Each experiment tries one configuration, then growing batches, and takes
 the first feasible one of the first batch that has one. The configurations are judged in large
 blocks ahead of that rule (a few CasADi calls for a whole plan instead of several per
@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.build import Problem
 from ..errors import DesignError
+from ..problem.build import Problem
 
 #: Random configurations tried per experiment to satisfy the workspace constraints, drawn one
 #: first, then in batches of ``SAMPLING_BATCH`` doubling up to ``SAMPLING_BATCH_MAX``.

@@ -6,8 +6,8 @@ and the code a controller runs.
   the order of the experiments that minimises the load changes first and then the time from
   and back to home (Held-Karp up to ``order.EXACT_UP_TO`` experiments, 2-opt / or-opt beyond).
 * :mod:`.moves`: each move checked along its whole path with the cell's capsule rows
-  (:attr:`casadi_design.model.rules.PlanRules.pose`) and the real meshes
-  (:func:`casadi_design.model.cell.clearances`);
+  (:attr:`casadi_design.problem.rules.PlanRules.pose`) and the real meshes
+  (:func:`casadi_design.cell.cell.clearances`);
 * :mod:`.detours`: a blocked move's via points, found by a search over collision-free
   configurations;
 * :mod:`.sequence`: the program as a sequence of checked moves.

@@ -15,14 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.build import Problem
 from ..plan.rules import FEASIBILITY_TOL
-from .order import TimeModel
+from ..problem.build import Problem
 
 #: Largest displacement of any capsule between two samples of a move where it touches the
 #: clearance, as a fraction of the clearance (module docstring).
 from .moves import Move, check_move, move_rules, scan, scanned_move
-
+from .order import TimeModel
 
 #: Collision-free random configurations of the whole workspace offered as via points, and
 #: per blocked move near its middle (at spreads ``LOCAL_SPREADS_RAD`` of each joint).

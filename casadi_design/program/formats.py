@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.build import Problem
 from ..errors import ProblemError
+from ..problem.build import Problem
 from ..records.export import joint_scales
 from ..records.files import json_ready
 from .sequence import Point, Program

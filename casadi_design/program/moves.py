@@ -1,7 +1,7 @@
 """Moves that cannot collide: each move checked along its whole path.
 
 A move is the straight joint-space line ``q(s) = q_a + s (q_b - q_a)``, ``0 <= s <= 1``. It is
-checked with the rows of the plan's rules, written once (:attr:`casadi_design.model.rules.PlanRules.pose`):
+checked with the rows of the plan's rules, written once (:attr:`casadi_design.problem.rules.PlanRules.pose`):
 
 * the cell's **capsule rows** (self-collision, obstacles and the floor: ``g >= 0`` keeps the
   clearance c) at samples close enough that no capsule can come more than ``c / 2`` inside
@@ -17,7 +17,7 @@ checked with the rows of the plan's rules, written once (:attr:`casadi_design.mo
   Where every sample keeps the clearance, the whole move keeps at least ``c / 2`` between
   the capsules, hence between the meshes inside them (``STEP_WITHOUT_CLEARANCE_M`` stands
   for ``c / 4`` in a cell without clearance);
-* the **real meshes** (:func:`casadi_design.model.cell.clearances`, coal) at the ``MESH_SAMPLES``
+* the **real meshes** (:func:`casadi_design.cell.cell.clearances`, coal) at the ``MESH_SAMPLES``
   samples where the capsule rows come closest (their local minima);
 * the **beam** to the reflectors, at the same samples: the line-of-sight rows (broken where
   the beam meets a capsule, ``g < -c``) and the incidence row. A move where the beam breaks
@@ -36,13 +36,13 @@ from dataclasses import dataclass, replace
 import casadi as ca
 import numpy as np
 
-from ..model.build import Problem, per_model
-from ..model.cell import clearances, touching
-from ..model.capsules import capsule_names, carrier
-from ..model.compiled import compiled
-from ..records.export import is_prismatic
-from ..model.mapped import OneByOne, evaluate
+from ..cell.capsules import capsule_names, carrier
+from ..cell.cell import clearances, touching
 from ..plan.rules import FEASIBILITY_TOL
+from ..problem.build import Problem, per_model
+from ..records.export import is_prismatic
+from ..robot.compiled import compiled
+from ..robot.mapped import OneByOne, evaluate
 
 #: Largest displacement of any capsule between two samples of a move where it touches the
 #: clearance, as a fraction of the clearance (module docstring).
@@ -57,10 +57,10 @@ STEP_WITHOUT_CLEARANCE_M = 0.005
 MESH_SAMPLES = 3
 @dataclass(frozen=True, eq=False)
 class MoveRules:
-    """The rows a move is checked with (indices into :attr:`casadi_design.model.rules.PlanRules.pose`):
+    """The rows a move is checked with (indices into :attr:`casadi_design.problem.rules.PlanRules.pose`):
     ``collision`` (capsule rows: self-collision, obstacles, floor), ``sight`` (lines of sight)
     and ``incidence`` (the reflector's acceptance angle, ``g >= lb``), the rows ``g`` of one
-    configuration (compiled, :mod:`casadi_design.model.compiled`), ``reach_m`` (rows, n): per row,
+    configuration (compiled, :mod:`casadi_design.robot.compiled`), ``reach_m`` (rows, n): per row,
     the sum of the bounds R_k of the module docstring of the bodies it keeps apart (0 for rows
     that are not capsule rows), and ``step_m``, the capsules' largest displacement between
     two samples where they touch the clearance."""
@@ -78,7 +78,7 @@ class MoveRules:
     @functools.cached_property
     def at(self) -> OneByOne:
         """``g`` called one configuration at a time, as a move's scan does, through one kept
-        buffer (:class:`~casadi_design.model.mapped.OneByOne`)."""
+        buffer (:class:`~casadi_design.robot.mapped.OneByOne`)."""
         return OneByOne(self.g)
 
     def rows(self, Q: np.ndarray) -> np.ndarray:
@@ -111,7 +111,7 @@ def move_rules(problem: Problem) -> MoveRules | None:
 
 def row_reach(problem: Problem, labels: tuple[str, ...]) -> np.ndarray:
     """Per row of ``labels`` (rows, n), m per rad: the sum of :func:`reach` over the capsules
-    the row names (:func:`casadi_design.model.collision.capsule_names`, as the capsule rows' labels
+    the row names (:func:`casadi_design.cell.collision.capsule_names`, as the capsule rows' labels
     name them; 0 for the other rows). A capsule row changes by at most ``reach @ |dq|`` over
     a move ``dq``: it is a distance between bodies that move at most that much."""
     cell = problem.cell

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.build import Problem
 from ..errors import ProblemError
+from ..problem.build import Problem
+from ..problem_file.robot import ControllerSpec
 from ..records.export import joint_scales
-from ..model.problem import ControllerSpec
 
 #: Speed (rad/s, m/s) of a joint without a velocity limit in its model or problem file.
 DEFAULT_SPEED = 1.0

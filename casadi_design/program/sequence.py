@@ -16,9 +16,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..model.build import Problem
 from ..errors import DesignError, ProblemError
 from ..plan.rules import LOAD_RTOL, load_violations
+from ..problem.build import Problem
 from .detours import MoveSearch, NoSafePath, Route
 from .moves import on_meshes, pose_problems
 from .order import TimeModel, best_order, load_changes, order_cost, time_model, tour_cost
@@ -78,7 +78,7 @@ def load_text(problem: Problem, f: np.ndarray) -> str:
 
 def turns(problem: Problem, q: np.ndarray, home: np.ndarray) -> list[np.ndarray]:
     """The configurations of the pose ``q`` (n,), rad: each periodic joint (a range of more than
-    a turn, as the UR10's +/-360 deg: :class:`casadi_design.model.rules.JointLimits`) at its angle
+    a turn, as the UR10's +/-360 deg: :class:`casadi_design.problem.rules.JointLimits`) at its angle
     plus any whole turns within the limits; the fastest from ``home`` first, and of equal times
     (a fast wrist beside a slow arm) the one of least joint travel: no whole turn for nothing."""
     limits = problem.rules.limits

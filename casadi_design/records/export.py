@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.build import Problem
-from ..model.cell import Clearance
-from ..plan.design import Design
+from ..cell.cell import Clearance
 from ..errors import ProblemError
+from ..plan.design import Design
+from ..problem.build import Problem
+from ..problem_file.fields import WRENCH_ROWS
 from .files import write_atomic
-from ..model.problem import WRENCH_ROWS
 
 #: Largest disagreement (rad or m) between the two unit columns of one joint in a plan CSV.
 UNIT_AGREEMENT_TOL = 1e-6
@@ -103,7 +103,7 @@ def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray,
 
 
 def design_table(problem: Problem, design: Design) -> tuple[list[str], list[list]]:
-    """:func:`plan_table` of a design's campaign (:meth:`~casadi_design.model.build.Problem.campaign`):
+    """:func:`plan_table` of a design's campaign (:meth:`~casadi_design.problem.build.Problem.campaign`):
     with experiments already measured, they come first and a last column ``measured`` says
     ``yes`` or ``no``."""
     Q, F, measured = problem.campaign(design.Q, design.F)

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..optimisation.bound import ApproximateDesign
-from ..model.build import Problem
-from ..plan.design import Design
 from ..errors import OutputError
+from ..optimisation.bound import ApproximateDesign
+from ..plan.design import Design
+from ..problem.build import Problem
 from .results import MalformedRecord, check_results, design_from_record, design_record, results_dict
 
 #: The files written by :func:`write_atomic` since the command started (:func:`start_log`):

@@ -14,13 +14,13 @@ from importlib.metadata import version
 
 import numpy as np
 
-from ..optimisation.bound import ApproximateDesign
-from ..model.build import Problem
-from ..model.cell import Clearance
-from ..model.capsules import capsule_names
+from ..cell.capsules import capsule_names
+from ..cell.cell import Clearance
 from ..measures.criteria import CRITERIA
-from ..plan.design import Bound, Design, StartRecord
 from ..measures.measures import Scores
+from ..optimisation.bound import ApproximateDesign
+from ..plan.design import Bound, Design, StartRecord
+from ..problem.build import Problem
 from ..runtime.threads import blas_kernels
 
 
@@ -34,7 +34,7 @@ def experiment_records(Q: np.ndarray, F: np.ndarray, near: tuple[Clearance, ...]
 
 
 def campaign_records(problem: Problem | None, design: Design) -> list[dict]:
-    """The experiments of a design's campaign (:meth:`~casadi_design.model.build.Problem.campaign`):
+    """The experiments of a design's campaign (:meth:`~casadi_design.problem.build.Problem.campaign`):
     the measured ones first, marked ``"measured": true``, then the plan's."""
     held = [] if problem is None else experiment_records(*problem.measured, None)
     return [e | {"measured": True} for e in held] + experiment_records(design.Q, design.F, design.clearances)

@@ -309,8 +309,8 @@ def poses_figure(problem, designs: list[Design]) -> Figure:
     thick lines (one colour per experiment), the obstacles, the tracker and its beams to the
     reflectors, and the test path. The view holds the robot, the tracker and the test path
     (5 % more each way); each obstacle draws itself in it
-    (:meth:`casadi_design.model.obstacles.Obstacle.draw`: the floor becomes its bottom)."""
-    from ..model.cell import world_capsules
+    (:meth:`casadi_design.cell.obstacles.Obstacle.draw`: the floor becomes its bottom)."""
+    from ..cell.cell import world_capsules
 
     cell, robot = problem.cell, problem.robot
     # no constrained layout: it places the 3-D panels so that their titles are cut off

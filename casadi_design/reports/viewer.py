@@ -22,7 +22,7 @@ the data below, as JSON in ``<script type="application/json" id="viewer-data">``
 Nothing here recomputes what the package computes: the rows are the plan CSV's
 (:func:`casadi_design.records.export.design_table`, :func:`~casadi_design.records.export.plan_table`),
 the clearances the cell check's (:attr:`casadi_design.plan.design.Design.clearances`,
-:func:`casadi_design.model.cell.clearances`), the reflectors the calibration model's
+:func:`casadi_design.cell.cell.clearances`), the reflectors the calibration model's
 (``problem.model.points``), ``sqrt(rho)`` the design's scores, a program's points and an
 identification's points and residuals their own. What moves is placed by Pinocchio
 (``updateGeometryPlacements``) once per pose; the page only applies those placements.
@@ -49,16 +49,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from ..cell.capsules import carrier
+from ..cell.cell import clearances
+from ..cell.obstacles import Capsule
 from ..measures.criteria import CRITERIA
-from ..model.build import Problem
-from ..model.capsules import carrier
-from ..model.cell import clearances
-from ..model.obstacles import Capsule
-from ..model.problem import WRENCH_ROWS
-from ..model.robots import frame_placement, urdf_file
 from ..plan.design import Design
+from ..problem.build import Problem
+from ..problem_file.fields import WRENCH_ROWS
 from ..records.export import design_table, joint_units, plan_table
 from ..records.files import write_atomic
+from ..robot.robots import frame_placement, urdf_file
 from ..runtime.cache import memoised
 
 if TYPE_CHECKING:
@@ -171,7 +171,7 @@ def visual_geometry(urdf: str, model: pin.Model) -> tuple[pin.GeometryModel, tup
     """The visual geometry of ``urdf`` on ``model`` (the robot loaded from it) and each object's
     triangles in its frame, the meshes decimated together under ``MESH_TRIANGLES``
     (:func:`decimated`). Read once per process (about 1 s for the UR10's 116 000 triangles)."""
-    from ..model.cell import _package_dirs  # the folders the collision meshes are found in
+    from ..cell.cell import _package_dirs  # the folders the collision meshes are found in
 
     try:
         geometry = pin.buildGeomFromUrdf(model, str(urdf_file(urdf)), pin.GeometryType.VISUAL,
@@ -619,7 +619,7 @@ def results_problem(record: dict) -> tuple[Problem | None, str]:
     is gone or changed (other test poses), or the plans follow experiments measured before
     (``--measured``: their rows come first in the plan CSVs)."""
     from ..errors import DesignError, ProblemError
-    from ..model.build import load_problem
+    from ..problem.build import load_problem
 
     if (record.get("held") or {}).get("m_measured"):
         return None, "the plans follow experiments measured before (--measured); solve writes their viewer"

@@ -1,8 +1,8 @@
 """What the package keeps: in this process, the values used last (:class:`Memo`: built problems,
 cells, functions per model, approximate designs; :func:`memoised` functions: the fitted capsules
 of a URDF, mesh clearances, mapped CasADi functions, the identification's Jacobians); on disk between runs, per machine, the compiled CasADi functions
-(:mod:`casadi_design.model.compiled`), the capsules fitted around a robot's meshes
-(:func:`casadi_design.model.collision.capsules_from_geometry`), the cell's pairs, the approximate
+(:mod:`casadi_design.robot.compiled`), the capsules fitted around a robot's meshes
+(:func:`casadi_design.cell.collision.capsules_from_geometry`), the cell's pairs, the approximate
 designs behind the bounds (:func:`casadi_design.execution.campaign.approximate_designs`) and the designs'
 starts (:func:`casadi_design.optimisation.solve.solve_start`).
 

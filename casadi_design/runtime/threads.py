@@ -79,7 +79,7 @@ def blas_threads() -> int:
     :func:`fixed_blas` ran first (the commands, their workers, the test suite); a library
     caller that did not call it gets one per core, and other rounding (the approximate designs'
     numpy products: another certificate to the last bits, another plan from some starts), so
-    what is kept on disk is named by it too (:attr:`casadi_design.model.build.Problem.fingerprint`)."""
+    what is kept on disk is named by it too (:attr:`casadi_design.problem.build.Problem.fingerprint`)."""
     from threadpoolctl import threadpool_info
 
     return max((int(i["num_threads"]) for i in threadpool_info()), default=1)

@@ -4,7 +4,7 @@ For a plan ``{(q_i, F_i)}, i = 1..m`` the design step predicts the RMS error aft
 compensation at each test pose, ``sqrt(rho_j)`` with ``rho_j = sigma^2 trace(B0_j M^-1 B0_j^T)``
 (m^2, ../shared/paper/MATH.md sections 1-3). That prediction rests on the linearised model
 ``y = B X``. Here every step of a real calibration is simulated ``N`` times on the problem's
-own nonlinear measurement model (:class:`casadi_design.model.models.CalibrationModel`: markers,
+own nonlinear measurement model (:class:`casadi_design.calibration.models.CalibrationModel`: markers,
 load-point moment, joint deflection fixed point and noise model included):
 
 1. a true robot (:mod:`.simulate`): random errors of the identified geometric parameters

@@ -6,16 +6,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.build import Problem
-from ..plan.design import Design
 from ..errors import OutputError, ProblemError
+from ..plan.design import Design
+from ..problem.build import Problem
 from ..records.files import read_results
 from .simulate import Plan
 
 
 def plans_from_designs(problem: Problem, designs: list[Design]) -> list[Plan]:
     """The plans of solved designs, each with its campaign's measured experiments first
-    (:meth:`~casadi_design.model.build.Problem.campaign`): the whole campaign is identified."""
+    (:meth:`~casadi_design.problem.build.Problem.campaign`): the whole campaign is identified."""
     return [Plan(d.criterion, len(Q), Q, F) for d in designs for Q, F, _ in [problem.campaign(d.Q, d.F)]]
 
 

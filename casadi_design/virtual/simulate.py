@@ -1,12 +1,12 @@
 """Simulated calibrations: true robots and the measurements of a plan, from the one model.
 
-Every value here comes from the problem's :class:`~casadi_design.model.models.CalibrationModel`:
+Every value here comes from the problem's :class:`~casadi_design.calibration.models.CalibrationModel`:
 ``model.pose`` gives the nominal references, ``model.measurement`` the whitened measured
 values of a true robot (markers, load-point moment and joint deflection included), to which
 the noise ``sigma`` per value is added. Nothing here rebuilds kinematics, markers, loads or
 the noise model.
 
-Every trial runs at once: :func:`casadi_design.model.mapped.evaluate` maps a CasADi function over N
+Every trial runs at once: :func:`casadi_design.robot.mapped.evaluate` maps a CasADi function over N
 stacked inputs.
 """
 
@@ -18,10 +18,10 @@ from dataclasses import dataclass, replace
 import casadi as ca
 import numpy as np
 
+from ..calibration.models import DEFLECTION_ITERATIONS, CalibrationModel
 from ..errors import DesignError, ProblemError
 from ..identification.lsq import nominal_poses
-from ..model.mapped import evaluate
-from ..model.models import DEFLECTION_ITERATIONS, CalibrationModel
+from ..robot.mapped import evaluate
 
 #: Largest last fixed-point update of the joint deflection (rad, or m for prismatic joints)
 #: accepted for a true robot.

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.build import Problem
 from ..errors import DesignError, ProblemError
 from ..measures.measures import information_matrix, score_plan
+from ..problem.build import Problem
 from .compensate import compensate as _compensate  # the name `compensate` stays the module
 from .identify import Identification, identify_nonlinear
 from .simulate import (

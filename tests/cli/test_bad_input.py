@@ -6,11 +6,11 @@ import time
 
 import pytest
 
-from casadi_design.execution import parallel
-from casadi_design.model.build import load_problem
 from casadi_design.cli import main
 from casadi_design.errors import DesignError, ProblemError
-from casadi_design.model.problem import read_problem
+from casadi_design.execution import parallel
+from casadi_design.problem.build import load_problem
+from casadi_design.problem_file.read import read_problem
 from tests.conftest import PAPER, ROOT, build, paper_raw, read_raw
 
 GEOMETRIC = ROOT / "problems" / "planar_2r_geometric.toml"

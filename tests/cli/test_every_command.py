@@ -18,18 +18,18 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from casadi_design.execution.campaign import approximate_designs
-from casadi_design.optimisation.bound import bound
-from casadi_design.model.build import build_robot, load_problem
 from casadi_design.cli import main
-from casadi_design.records.export import read_plan_table
+from casadi_design.execution.campaign import approximate_designs
 from casadi_design.identification.fit import model_points
 from casadi_design.identification.urdf import MEASURED_POINT
 from casadi_design.measures.measures import information_matrix
-from casadi_design.model.problem import read_problem
-from casadi_design.model.robots import frame_placement, make_robot
+from casadi_design.optimisation.bound import bound
 from casadi_design.plan.rules import FEASIBILITY_TOL
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_robot, load_problem
+from casadi_design.problem_file.read import read_problem
+from casadi_design.records.export import read_plan_table
+from casadi_design.robot.robots import frame_placement, make_robot
 from tests.conftest import PAPER, PROBLEM_FILES, ROOT
 from tests.identify_data import measurement_csv
 

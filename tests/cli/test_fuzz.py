@@ -22,10 +22,10 @@ import tomli_w
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from casadi_design.model.build import load_problem
 from casadi_design.cli import main
-from casadi_design.records.export import csv_text, plan_table
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import load_problem
+from casadi_design.records.export import csv_text, plan_table
 from tests.conftest import PAPER, ROOT, read_raw
 
 #: Examples per property: bounded so that the default suite stays fast.

@@ -10,11 +10,11 @@ import pytest
 
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
-from casadi_design.model.build import build_problem
-from casadi_design.model.problem import read_problem
-from casadi_design.plan.sampling import random_plan
-from casadi_design.records.export import csv_text, plan_table
 from casadi_design.identification.held import read_held
+from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem
+from casadi_design.problem_file.read import read_problem
+from casadi_design.records.export import csv_text, plan_table
 from tests.cli.test_cli import _A
 from tests.conftest import PAPER, ROOT
 from tests.identify_data import TrueRobot, measured, measurement_csv
@@ -111,7 +111,7 @@ def test_a_solve_reads_each_measured_file_once_and_builds_its_problem_once(paper
     header, rows and joint limits from that one reading; B in FIGAROH's measurement layout,
     whose header decides how it is read) and the problem is built twice, without and then with
     what is held, not once more for the program's format."""
-    import casadi_design.model.build as build
+    import casadi_design.problem.build as build
     import casadi_design.records.export as export
 
     geometric = build_problem(read_problem(GEOMETRIC))

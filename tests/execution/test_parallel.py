@@ -1,13 +1,15 @@
 """Starts on other processes or a Dask cluster give the serial numbers, bit for bit."""
 
 import pickle
-from concurrent.futures.process import BrokenProcessPool
 import sys
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pytest
 
 from casadi_design.cli import main
+from casadi_design.errors import DesignError
+from casadi_design.execution.campaign import Settings
 from casadi_design.execution.parallel import (
     DaskExecutor,
     MissingExtraError,
@@ -16,11 +18,9 @@ from casadi_design.execution.parallel import (
     make_executor,
     run_start,
 )
-from casadi_design.errors import DesignError
-from casadi_design.optimisation.solve import solve_design
-from casadi_design.optimisation.bound import ROUNDED
-from casadi_design.execution.campaign import Settings
 from casadi_design.execution.sweep import run_sweep
+from casadi_design.optimisation.approximate import ROUNDED
+from casadi_design.optimisation.solve import solve_design
 from tests.conftest import PAPER
 
 #: Designs compared: a smooth criterion and the PSD-constrained E, at 1 and 3 experiments.
@@ -130,8 +130,8 @@ def test_pipelined_sweep_with_bounds_equals_the_serial_sweep(paper, monkeypatch)
 def test_worker_builds_the_problem_from_its_plain_data(paper, serial):
     """What a worker runs, called here with a copy of the problem's data only."""
     from casadi_design.execution.parallel import ProblemRef
-    from casadi_design.plan.sampling import random_plan
     from casadi_design.optimisation.solve import start_rng
+    from casadi_design.plan.sampling import random_plan
 
     d = serial["test-pose", 1]
     Q0, F0 = random_plan(paper, 1, start_rng(paper.solver.seed, "test-pose", 1))

@@ -4,8 +4,8 @@ in its partial file and read back by a resumed study without solving again."""
 import numpy as np
 import pytest
 
-from casadi_design.execution.campaign import Settings
 from casadi_design.errors import ProblemError
+from casadi_design.execution.campaign import Settings
 from casadi_design.execution.study import Study, run_study, writing
 
 
@@ -45,7 +45,7 @@ def test_a_criterion_runs_its_own_seeded_starts_the_first_of_more(paper):
     plan depends on the seed, the criterion and m only), and --starts replaces both."""
     from dataclasses import replace
 
-    from casadi_design.model.build import build_problem
+    from casadi_design.problem.build import build_problem
 
     problem = build_problem(replace(paper.spec, solver=replace(paper.solver, starts=3, criterion_starts=(("D", 1),))))
     settings = Settings.of(problem, bound_steps=0)

@@ -8,17 +8,16 @@ import math
 import numpy as np
 import pytest
 
-from casadi_design.measures.criteria import BOUND_CRITERIA, CRITERIA
-from casadi_design.optimisation.bound import ROUNDED
-
 import casadi_design.execution.campaign as campaign_module
 import casadi_design.execution.sweep as sweep_module
 from casadi_design.cli import main
-from casadi_design.errors import ProblemError
-from casadi_design.model.build import load_problem
 from casadi_design.cli.common import parse_m_values
+from casadi_design.errors import ProblemError
 from casadi_design.execution.sweep import sweep_from_record, sweep_rows
-from tests.conftest import STARTS, PAPER, ROOT
+from casadi_design.measures.criteria import BOUND_CRITERIA, CRITERIA
+from casadi_design.optimisation.approximate import ROUNDED
+from casadi_design.problem.build import load_problem
+from tests.conftest import PAPER, ROOT, STARTS
 
 #: Seeded starts per design in these tests: few (fast), yet with the warm start the sweep
 #: finds the Table-4 optima of the paper's example at m = 1 and 5 (20 is the problem's default);
@@ -276,7 +275,8 @@ def test_the_later_starts_of_e_are_the_rounded_plans_of_a(paper):
     """The routing alone, on a stand-in for A's approximate design (three random experiments):
     E's rounded starts are ``rounded_plans`` of A's design with E's count; a criterion finds
     only the design its registry entry names."""
-    from casadi_design.optimisation.bound import ApproximateDesign, rounded_plans
+    from casadi_design.optimisation.approximate import rounded_plans
+    from casadi_design.optimisation.bound import ApproximateDesign
     from casadi_design.plan.sampling import random_plan
 
     Q, F = random_plan(paper, 3, np.random.default_rng(0))

@@ -15,13 +15,14 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from casadi_design.model.build import build_robot, load_problem
 from casadi_design.cli import main
 from casadi_design.identification.dh_table import calibrated_dh, is_hayati
 from casadi_design.identification.urdf import MEASURED_POINT, CalibratedChain, calibrated_model
-from casadi_design.model.problem import DHRow, RobotSpec, parse_problem, read_problem
-from casadi_design.model.robots import frame_placement, make_robot
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_robot, load_problem
+from casadi_design.problem_file.read import parse_problem, read_problem
+from casadi_design.problem_file.robot import DHRow, RobotSpec
+from casadi_design.robot.robots import frame_placement, make_robot
 from tests.conftest import ROOT
 from tests.identify_data import measured, measurement_csv, perturbed
 

@@ -23,8 +23,8 @@ from casadi_design.identification.held import read_held
 from casadi_design.identification.lsq import nominal_poses
 from casadi_design.identification.measurements import FileFormat, read_measurements
 from casadi_design.measures.field import Field, own_variance
-from casadi_design.model.build import build_problem
 from casadi_design.optimisation.solve import plan_scores
+from casadi_design.problem.build import build_problem
 
 DATA = Path(__file__).parents[1] / "data" / "ipa_ur10"
 PROBLEM = DATA / "ipa_ur10.toml"

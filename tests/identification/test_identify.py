@@ -12,14 +12,14 @@ from scipy.stats import chi2
 
 from casadi_design.cli import main
 from casadi_design.cli.identify import load_without_cell
+from casadi_design.errors import ProblemError
 from casadi_design.identification import lsq
 from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.fit import model_points
 from casadi_design.identification.measurements import read_measurements
-from casadi_design.errors import ProblemError
 from casadi_design.identification.report import identification_record, tracker_std
-from casadi_design.model.robots import frame_placement, make_robot
 from casadi_design.plan.sampling import random_plan
+from casadi_design.robot.robots import frame_placement, make_robot
 from casadi_design.virtual import identify as virtual_identify
 from tests.conftest import ROOT
 from tests.identify_data import angle_between, measured, measurement_csv, perturbed, true_points
@@ -309,8 +309,8 @@ def test_ur10_campaigns_meet_the_predicted_accuracy(tmp_path):
     """UR10 in its cell, the test-pose plan at m = 12 (4 seeded starts), sigma = 25 um, 20
     campaigns on independently perturbed robots: the error of the compensated robot at the
     test poses (in the tracker frame, where the holes are registered) against sqrt(rho)."""
-    from casadi_design.model.build import load_problem
     from casadi_design.optimisation.solve import solve_design
+    from casadi_design.problem.build import load_problem
 
     problem = load_without_cell(str(UR10))
     design = solve_design(load_problem(UR10), "test-pose", 12, starts=4)

@@ -11,12 +11,13 @@ and that every table, column and option is generated from the registry.
 import numpy as np
 import pytest
 
-from casadi_design.optimisation.bound import approximate_design, bound
 from casadi_design.cli import build_parser
+from casadi_design.execution.sweep import COLUMNS
 from casadi_design.measures.criteria import BOUND_CRITERIA, CRITERIA
 from casadi_design.measures.measures import score_plan
+from casadi_design.optimisation.approximate import approximate_design
+from casadi_design.optimisation.bound import bound
 from casadi_design.optimisation.solve import solve_design
-from casadi_design.execution.sweep import COLUMNS
 from casadi_design.reports.tables import MEASURE_ROWS
 from tests.optimisation.test_bound import SMALL_POOL, planar_A
 

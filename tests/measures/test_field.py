@@ -12,10 +12,10 @@ import pytest
 from casadi_design.cli.identify import load_without_cell
 from casadi_design.measures.field import Field, axes_of, kriging_mean, kriging_rho, value_covariance
 from casadi_design.measures.measures import information_matrix, rho_at_test_poses
-from casadi_design.model.build import build_problem
-from casadi_design.model.problem import ModelErrorSpec
 from casadi_design.optimisation.solve import plan_scores
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem
+from casadi_design.problem_file.calibration import ModelErrorSpec
 from tests.conftest import ROOT
 
 UR10 = ROOT / "problems" / "ur10_drilling.toml"
@@ -170,7 +170,7 @@ def test_an_additive_field_from_the_problem_file(tmp_path):
     the sum of one-joint squared exponentials; shares that are not one per joint summing to 1
     are refused by name."""
     from casadi_design.errors import ProblemError
-    from casadi_design.model.build import load_problem
+    from casadi_design.problem.build import load_problem
 
     base = (ROOT / "problems" / "paper_planar_2r.toml").read_text()
 
@@ -195,7 +195,7 @@ def test_an_error_of_the_joint_angles_from_the_problem_file(tmp_path):
     """``angle_rad`` in [calibration.model_error]: each joint's angle error, seen through its
     Jacobian column; with scale_m or shares, or of another number than the joints, refused by name."""
     from casadi_design.errors import ProblemError
-    from casadi_design.model.build import load_problem
+    from casadi_design.problem.build import load_problem
 
     base = (ROOT / "problems" / "paper_planar_2r.toml").read_text()
 

@@ -5,16 +5,29 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from casadi_design.optimisation.bound import (EXCHANGE_RTOL, _distinct, _moved, _search, _search_one, experiment_information, pool_optimum, _sample, apportion,
-                                 approximate_design, bound, rounded_plans)
-from casadi_design.model.build import load_problem
-from casadi_design.measures.criteria import CRITERIA
-from casadi_design.errors import DesignError
-from casadi_design.plan.rules import plan_violations
-from casadi_design.optimisation.solve import solve_design
-
 from conftest import PROBLEM_FILES, ROOT, build, paper_raw
+
+from casadi_design.errors import DesignError
+from casadi_design.measures.criteria import CRITERIA
+from casadi_design.optimisation.approximate import (
+    _distinct,
+    _moved,
+    _sample,
+    _search,
+    _search_one,
+    apportion,
+    approximate_design,
+    rounded_plans,
+)
+from casadi_design.optimisation.bound import (
+    EXCHANGE_RTOL,
+    bound,
+    experiment_information,
+    pool_optimum,
+)
+from casadi_design.optimisation.solve import solve_design
+from casadi_design.plan.rules import plan_violations
+from casadi_design.problem.build import load_problem
 
 #: Issue 10's figures for the paper case (mm): the relaxation (t* on a fine pool) and the
 #: certified form with max_x d over a 181^3 grid of (q1, q2, load angle), computed outside the

@@ -13,14 +13,14 @@ from conftest import ROOT
 
 from casadi_design.measures.criteria import CRITERIA
 from casadi_design.measures.measures import information_matrices, information_matrix, score_plan
-from casadi_design.model.build import build_problem, load_problem
-from casadi_design.model.problem import HeldSpec
 from casadi_design.optimisation.bound import bound, pool_design, top_mean
 from casadi_design.optimisation.engine import PoolEngine, key
 from casadi_design.optimisation.pool import choose_design
 from casadi_design.optimisation.solve import plan_scores
 from casadi_design.plan.design import EXCHANGE_ENDED
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem, load_problem
+from casadi_design.problem_file.read import HeldSpec
 
 #: Agreement of the engine's low-rank updates with score_plan's own factorisation.
 RTOL = 1e-9

@@ -6,10 +6,10 @@ arm (loads as variables) with a field of the base axes and one of the joint angl
 import numpy as np
 import pytest
 
-from casadi_design.model.build import load_problem
 from casadi_design.optimisation.nlp import build_nlp
 from casadi_design.optimisation.solve import field_rho
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import load_problem
 from tests.conftest import ROOT
 
 FIELDS = {"base axes": "scale_m = 5e-4\nlength_rad = 0.5", "joint angles": "angle_rad = [8e-4, 5e-4]\nlength_rad = [0.4, 0.6]"}

@@ -10,11 +10,11 @@ import pytest
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
 from casadi_design.measures.criteria import CRITERIA
-from casadi_design.model.build import build_problem
-from casadi_design.model.problem import HeldSpec
 from casadi_design.optimisation.pool import choose_design
 from casadi_design.optimisation.solve import plan_scores
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem
+from casadi_design.problem_file.read import HeldSpec
 from casadi_design.records.export import csv_text, plan_table
 from tests.conftest import PAPER
 

@@ -15,10 +15,10 @@ from casadi_design.measures.field import (
     kriging_rho,
     kriging_rho_added,
 )
-from casadi_design.model.build import build_problem
-from casadi_design.model.problem import ModelErrorSpec
 from casadi_design.optimisation.pool import choose_design
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem
+from casadi_design.problem_file.calibration import ModelErrorSpec
 from tests.conftest import ROOT
 
 UR10 = ROOT / "problems" / "ur10_drilling.toml"

@@ -11,16 +11,16 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from casadi_design.model.build import build_problem, load_problem
 from casadi_design.measures.criteria import CRITERIA as REGISTRY
 from casadi_design.measures.measures import score_plan
-from casadi_design.optimisation.nlp import build_nlp
-from casadi_design.model.problem import read_problem
 from casadi_design.measures.objectives import log_power_mean
-from casadi_design.plan.design import CONVERGED
 from casadi_design.optimisation.ipopt import QUIET, ipopt_call
-from casadi_design.plan.sampling import random_plan
+from casadi_design.optimisation.nlp import build_nlp
 from casadi_design.optimisation.solve import make_solver, solve_design
+from casadi_design.plan.design import CONVERGED
+from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem, load_problem
+from casadi_design.problem_file.read import read_problem
 from tests.conftest import ROOT, build, paper_raw
 from tests.symbolic_oracle import symbolic_nlp
 
@@ -55,7 +55,7 @@ def _cases():
         "paper-fixed": (lambda: _fixed_load_paper(), 3),
         "geometric": (lambda: load_problem(ROOT / "problems" / "planar_2r_geometric.toml"), 3),
         # without its cell: the collision rows are only C1 where their closest points change
-        # branch, so finite differences of their Hessian are checked in tests/model/test_cell.py
+        # branch, so finite differences of their Hessian are checked in tests/cell/test_cell.py
         "ur10": (lambda: build_problem(dataclasses.replace(read_problem(ROOT / "problems" / "ur10_drilling.toml"),
                                                            cell=None)), 9),
     }

@@ -8,10 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from casadi_design.model.build import build_problem, load_problem
-from casadi_design.model.cell import clearances
+from casadi_design.cell.cell import clearances
 from casadi_design.plan.rules import plan_violations
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem, load_problem
 from casadi_design.records.export import read_plan_csv
 from tests.conftest import ROOT
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from casadi_design.model.build import load_problem
-from casadi_design.model.cell import clearances
+from casadi_design.cell.cell import clearances
 from casadi_design.plan.rules import plan_violations
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import load_problem
 from tests.conftest import ROOT
 
 UR10 = ROOT / "problems" / "ur10_drilling.toml"

@@ -14,9 +14,10 @@ import pytest
 import tomli_w
 import yaml
 
-from casadi_design.model.build import load_problem
 from casadi_design.cli import main
 from casadi_design.errors import DesignError, ProblemError
+from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import load_problem
 from casadi_design.program import detours
 from casadi_design.program.formats import FILES, controller, program_text
 from casadi_design.program.moves import check_move, move_rules
@@ -31,7 +32,6 @@ from casadi_design.program.order import (
     tour_cost,
 )
 from casadi_design.program.sequence import make_program
-from casadi_design.plan.sampling import random_plan
 from tests.conftest import PAPER, ROOT, build, paper_raw
 
 ABB = ROOT / "problems" / "abb_irb6640_machining.toml"
@@ -273,7 +273,7 @@ def test_controller_mapping_reads_back_through_signs_and_offsets():
 # --------------------------------------------------------------------------- bad input
 
 def _plan_csv(path, problem, Q, F=None):
-    from casadi_design.model.cell import clearances
+    from casadi_design.cell.cell import clearances
     from casadi_design.records.export import csv_text, plan_table
 
     near = tuple(clearances(problem.cell, Q)) if problem.cell else None

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from casadi_design.cli import main
-from casadi_design.measures.criteria import CRITERIA
 from casadi_design.errors import ProblemError
-from casadi_design.model.build import load_problem
-from casadi_design.records.export import plan_table, read_plan_csv, report_markdown, write_plan_csv
-from casadi_design.plan.rules import plan_violations
+from casadi_design.measures.criteria import CRITERIA
 from casadi_design.optimisation.solve import plan_scores, solve_design
+from casadi_design.plan.rules import plan_violations
+from casadi_design.problem.build import load_problem
+from casadi_design.records.export import plan_table, read_plan_csv, report_markdown, write_plan_csv
 from tests.conftest import PAPER, ROOT, build, paper_raw, read_raw
 
 L1, L2 = 0.6, 0.4  # the paper's arm, m

@@ -31,14 +31,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from casadi_design.cell.cell import clearances
 from casadi_design.cli import main
 from casadi_design.measures.criteria import CRITERIA
-from casadi_design.model.build import build_problem, load_problem
-from casadi_design.model.cell import clearances
-from casadi_design.model.problem import parse_problem
 from casadi_design.optimisation.solve import plan_scores
 from casadi_design.plan.design import Design, StartRecord
 from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import build_problem, load_problem
+from casadi_design.problem_file.read import parse_problem
 from casadi_design.records.export import read_plan_table, write_plans
 from casadi_design.reports.viewer import (
     VIEWER_NAME,
@@ -237,7 +237,7 @@ def rows_of(path: Path) -> list[list[str]]:
 
 def check_against_plans(viewer: Path, plans: Path, problem) -> None:
     """The page's rows are its plan CSVs' (same numbers), its poses their joints (deg) and its
-    clearances the cell check's, computed here apart (:func:`casadi_design.model.cell.clearances`)."""
+    clearances the cell check's, computed here apart (:func:`casadi_design.cell.cell.clearances`)."""
     data = read_viewer_data(viewer)
     n = problem.robot.n
     plan_views = [v for v in data["views"] if v["kind"] == "plan"]

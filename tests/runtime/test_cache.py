@@ -12,12 +12,11 @@ import time
 import numpy as np
 import pytest
 
+from casadi_design.cell import capsules, collision, pairs
+from casadi_design.cell.capsules import capsules_from_geometry, load_collision_geometry
+from casadi_design.cell.cell import _package_dirs
+from casadi_design.robot.robots import load_urdf, urdf_file
 from casadi_design.runtime import cache
-
-from casadi_design.model import capsules, collision, pairs
-from casadi_design.model.cell import _package_dirs
-from casadi_design.model.capsules import capsules_from_geometry, load_collision_geometry
-from casadi_design.model.robots import load_urdf, urdf_file
 from tests.conftest import ROOT
 
 UR10 = "example-robot-data:ur_description/urdf/ur10_robot.urdf"
@@ -107,8 +106,8 @@ def test_the_ur10_capsules_read_back_as_fitted(directory, monkeypatch):
 def test_the_cells_pairs_read_back_as_selected(directory, monkeypatch):
     """The pairs of the ABB's cell are selected once (sampled configurations), then read back:
     the same pairs as a selection computed here; another clearance selects anew."""
-    from casadi_design.model import cell as cell_module
-    from casadi_design.model.build import load_problem
+    from casadi_design.cell import cell as cell_module
+    from casadi_design.problem.build import load_problem
 
     problem = load_problem(ROOT / "problems" / "abb_irb6640_machining.toml")
     c = problem.cell
@@ -205,8 +204,8 @@ def test_the_fingerprint_is_of_the_files_not_their_paths(tmp_path, monkeypatch):
     but not its fingerprint: what was kept for it is not read back."""
     import tomli_w
 
-    from casadi_design.model import build
-    from casadi_design.model.robots import urdf_file
+    from casadi_design.problem import build
+    from casadi_design.robot.robots import urdf_file
     from tests.conftest import ROOT, read_raw
 
     urdf = tmp_path / "ur10.urdf"
@@ -240,7 +239,7 @@ def test_the_fingerprint_names_the_blas_thread_count(monkeypatch):
     command, nor the other way round."""
     from threadpoolctl import threadpool_limits
 
-    from casadi_design.model import build
+    from casadi_design.problem import build
     from casadi_design.runtime.threads import blas_threads
     from tests.conftest import PAPER
 

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 import casadi_design.cli
-from casadi_design.model.build import load_problem
-from casadi_design.errors import DesignError, ProblemError
+from casadi_design.cli.validate import add_arguments, run
+from casadi_design.errors import DesignError, OutputError, ProblemError
 from casadi_design.measures.measures import score_plan
-from casadi_design.errors import OutputError
-from casadi_design.records.files import write_results
-from casadi_design.model.robots import frame_jacobian, frame_placement
-from casadi_design.plan.sampling import random_plan
 from casadi_design.optimisation.solve import solve_design
+from casadi_design.plan.sampling import random_plan
+from casadi_design.problem.build import load_problem
+from casadi_design.records.files import write_results
+from casadi_design.robot.robots import frame_jacobian, frame_placement
 from casadi_design.virtual import (
     ErrorSpreads,
     Plan,
@@ -28,10 +28,13 @@ from casadi_design.virtual import (
     rankings,
     validate,
 )
-from casadi_design.cli.validate import add_arguments, run
 from casadi_design.virtual.compensate import compensate
 from casadi_design.virtual.identify import identify_nonlinear
-from casadi_design.virtual.simulate import draw_true_parameters, nominal_poses, simulate_measurements
+from casadi_design.virtual.simulate import (
+    draw_true_parameters,
+    nominal_poses,
+    simulate_measurements,
+)
 from casadi_design.virtual.statistics import chi2_quantile, rms_interval
 from tests.conftest import ROOT, build, paper_raw, read_raw
 

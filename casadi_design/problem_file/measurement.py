@@ -1,0 +1,87 @@
+"""``[measurement]``: what each experiment measures (components, markers) and with which noise
+(one std, per axis, or a full covariance)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .fields import TWIST_ROWS, Mat, TableReader, to_mat
+
+#: Relative asymmetry accepted in a covariance matrix.
+SYMMETRY_RTOL = 1e-9
+#: Largest measurement noise std (m) and calibration load (N, N m) accepted: beyond them the
+#: value is a typing error (no tracker is that noisy, no rig that strong), and its square
+#: overflows the arithmetic.
+MAX_SIGMA_M = 1.0
+
+#: The keys allowed in each table of this section (None: any key).
+KEYS: dict[str, set[str] | None] = {
+    "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
+}
+
+
+@dataclass(frozen=True)
+class MeasurementSpec:
+    """What each experiment measures and with which noise.
+
+    ``whitening`` is ``sigma * Sigma^-1/2`` (d x d) for the per-value noise of one experiment,
+    None when every value has std ``sigma_m``. Values are ordered as measured: the position
+    components of each marker, then the orientation components.
+    """
+
+    components: tuple[str, ...]
+    sigma_m: float
+    markers_m: Mat | None = None
+    whitening: Mat | None = None
+
+
+def read_measurement(meas: TableReader) -> MeasurementSpec:
+    measured = meas.names("components", TWIST_ROWS, hint="e.g. components = [\"x\", \"y\", \"z\"]")
+    sigma = meas.number("sigma_m", hint="the measurement noise std in m, e.g. 1e-4", positive=True)
+    if sigma > MAX_SIGMA_M:
+        raise meas.error(f"is {sigma:g} m, above {MAX_SIGMA_M:g} m (no tracker is that noisy)",
+                         "give the noise std in m, e.g. 1e-4 for 0.1 mm", "sigma_m")
+    markers = meas.array("markers_m", (None, 3), None, hint="one row (x, y, z) in m per marker, in the measured frame")
+    if markers is not None and len(markers) == 0:
+        raise meas.error("is empty", "give one row (x, y, z) in m per marker, or remove it", "markers_m")
+    if markers is not None and not any(c in ("x", "y", "z") for c in measured):
+        raise meas.error("markers need position components", "measure x, y or z, or remove markers_m", "markers_m")
+    return MeasurementSpec(measured, sigma, to_mat(markers), to_mat(_whitening(meas, measured, markers, sigma)))
+
+
+def _whitening(meas: TableReader, measured: tuple[str, ...], markers, sigma: float) -> np.ndarray | None:
+    """``sigma * Sigma^-1/2`` for the per-value noise of one experiment (None: all values sigma).
+
+    ``sigma_axes_m`` gives a std per x, y, z axis, ``sigma_rad`` the orientation std,
+    ``covariance`` the full d x d covariance (m^2, rad^2).
+    """
+    k = 1 if markers is None else len(markers)
+    pos = [c for c in measured if c in ("x", "y", "z")]
+    rot = [c for c in measured if c in ("rx", "ry", "rz")]
+    d = k * len(pos) + len(rot)
+    if rot and "sigma_rad" not in meas.table and "covariance" not in meas.table:
+        raise meas.error("orientation is measured but its noise is not given", "add sigma_rad (rad)", "sigma_rad")
+    if "covariance" in meas.table:
+        if "sigma_axes_m" in meas.table or "sigma_rad" in meas.table:
+            raise meas.error("give either covariance or sigma_axes_m / sigma_rad", "not both", "covariance")
+        C = meas.array("covariance", (d, d), hint=f"a {d} x {d} symmetric positive definite matrix (m^2, rad^2)")
+        asym = float(np.max(np.abs(C - C.T)))
+        if asym > SYMMETRY_RTOL * float(np.max(np.abs(C))):
+            raise meas.error(f"is not symmetric (largest |C - C^T| = {asym:.3g})",
+                             "give a symmetric covariance (m^2, rad^2)", "covariance")
+        try:
+            Lc = np.linalg.cholesky((C + C.T) / 2)
+        except np.linalg.LinAlgError:
+            raise meas.error("is not positive definite", "give a valid covariance (m^2, rad^2)", "covariance") from None
+        return sigma * np.linalg.inv(Lc)
+    axes = meas.array("sigma_axes_m", (3,), None, hint="std of x, y, z in m")
+    srad = meas.number("sigma_rad", None, hint="the orientation noise std in rad", positive=True)
+    if axes is None and srad is None:
+        return None
+    if axes is not None and not np.all((axes > 0) & (axes <= MAX_SIGMA_M)):
+        raise meas.error(f"must be positive and at most {MAX_SIGMA_M:g} m, got {axes.tolist()}",
+                         "give standard deviations in m", "sigma_axes_m")
+    std = [axes["xyz".index(c)] if axes is not None else sigma for _ in range(k) for c in pos] + [srad] * len(rot)
+    return np.diag(sigma / np.array(std, dtype=float))
