@@ -59,8 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(the tracker moved between them) unless --same-frame")
     p.add_argument("--same-frame", action="store_true",
                    help="the --measurements files share one tracker frame (the tracker did not move)")
-    p.add_argument("--validation", metavar="CSV",
-                   help="poses measured for validation only (same format), not used in the fit")
+    p.add_argument("--validation", metavar="CSV", action="append",
+                   help="poses measured for validation only (same format), not used in the fit; with an artefact "
+                        "([measurement.artefact]) a placement's folder or CSV, repeatable: placements held out")
     p.add_argument("--frame", choices=FRAMES, default="tracker",
                    help="frame of the coordinates: tracker (default: its placement is identified) or base")
     p.add_argument("--outlier-sigma", type=number("--outlier-sigma", "a positive number"), default=OUTLIER_SIGMA, metavar="S",
@@ -126,6 +127,12 @@ def run(args: argparse.Namespace) -> int:
     fmt = FileFormat(args.units, tuple(u.strip() for u in args.joint_units.split(",") if u.strip()),
                      parse_columns(args.columns), args.limit_tolerance)
     problem = load_without_cell(args.problem)
+    if problem.artefact is not None:
+        return run_artefact(args, problem, out, t0)
+    if args.validation is not None and len(args.validation) > 1:
+        raise ProblemError(f"--validation: given {len(args.validation)} times; tracker measurements are validated "
+                           "by one file (join the rows of the others into it)")
+    args.validation = None if args.validation is None else args.validation[0]
     meas = rounds_of([read_measurements(problem, path, fmt) for path in args.measurements], args.same_frame)
     valid = None if args.validation is None else read_measurements(problem, args.validation, fmt)
     if valid is not None and valid.path in (meas.paths or (meas.path,)):
@@ -178,4 +185,38 @@ def run(args: argparse.Namespace) -> int:
 
     write_identification_viewer(out, cal)  # the measured points and the model's, in the cell
     say(args, f"wrote {', '.join(names)} in {out}")
+    return 0
+
+
+def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
+    """``identify`` of recordings of an artefact's points (:mod:`casadi_design.identification.artefact_fit`):
+    each ``--measurements`` a placement's folder (``hole_<k>.csv``) or a CSV with ``point`` and
+    ``placement`` columns, each ``--validation`` a placement held out. Writes identification.json,
+    calibrated.urdf (``measured_point``: the calibrated ball centre) and calibrated.toml."""
+    from ..identification.artefact_fit import calibrate_artefact
+    from ..identification.artefact_report import artefact_record, artefact_summary
+    from ..identification.calibrated_toml import calibrated_problem, toml_text
+    from ..identification.recordings import read_recordings
+    from ..identification.urdf import calibrated_chain, urdf_text
+
+    rec = read_recordings(problem, args.measurements)
+    valid = None if not args.validation else read_recordings(problem, args.validation, "--validation")
+    if valid is not None and set(valid.names) & set(rec.names):
+        raise ProblemError(f"--validation: placement '{sorted(set(valid.names) & set(rec.names))[0]}' is in the fit; "
+                           "give placements not used in the fit")
+    cal = calibrate_artefact(problem, rec, valid, args.model, args.outlier_sigma)
+    print("\n".join(artefact_summary(cal)))
+    say(args, f"identification time {time.perf_counter() - t0:.2f} s")
+    f = cal.fit
+    geometric = tuple(n for n in cal.names if not n.startswith("k."))
+    chain = calibrated_chain(problem, geometric, f.X[[cal.names.index(n) for n in geometric]])
+    header = (f"calibrated by casadi-design identify from {', '.join(rec.names)} ({problem.path}, the artefact's "
+              f"points, {cal.model} model)")
+    texts = {"calibrated.urdf": urdf_text(problem, chain),
+             "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header)}
+    files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml"}
+    for name, text in texts.items():
+        write_atomic(out / name, text.encode())
+    write_json(out / "identification.json", artefact_record(cal, files))
+    say(args, f"wrote identification.json, {', '.join(texts)} in {out}")
     return 0

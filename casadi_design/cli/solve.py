@@ -49,6 +49,9 @@ def run(args: argparse.Namespace) -> int:
 
             check_format(problem, args.program, "--program")
 
+    spec = common.read_spec(args)
+    if spec.measurement.artefact is not None:
+        return run_artefact(args, spec, out, t0)
     study, done, fig_m = common.design(args, "solve", out / PARTIAL_NAME if out else None, check=check)
     problem = study.problem
     designs = list(done.designs.values())
@@ -99,3 +102,57 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
                              notes=[] if target is None else [target["answer"]])
     write_atomic(out / "report.md", report.encode())
     return files + ["report.md"]
+
+
+def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) -> int:
+    """``solve`` of a problem measured at points fixed in an artefact
+    (:mod:`casadi_design.optimisation.artefact_pool`): the m recordings of ``--candidates`` (a
+    placement's folder of ``hole_<k>.csv``, or a CSV with point and placement columns) best by
+    each criterion; prints Table 4's table and writes ``artefact_design.json`` and
+    ``plans/<criterion>_m<m>.csv`` (joints in rad, point, placement: what ``identify`` reads)."""
+    from ..errors import ProblemError
+    from ..identification.recordings import read_recordings
+    from ..optimisation.artefact_pool import artefact_pool, choose_recordings, chosen_rows
+    from ..records.files import write_json
+
+    if not getattr(args, "candidates", None):
+        raise ProblemError(f"{spec.path}: [measurement.artefact]: its designs choose from recorded configurations; "
+                           "give them as --candidates DIR (a placement's folder of hole_0.csv, hole_1.csv, ...) "
+                           "(configurations planned with the ball seated are not designed yet)")
+    problem = common.load(args, check_solver=False, spec=spec)
+    rec = read_recordings(problem, [args.candidates], "--candidates")
+    pool = artefact_pool(problem, rec.Q, rec.point, rec.placement)
+    criteria = tuple(args.criteria or problem.criteria)
+    designs, rows = [], {}
+    for m in args.m or sorted(problem.m_values):
+        for c in criteria:
+            d = choose_recordings(problem, pool, c, m, args.starts or problem.solver.starts_for(c))
+            designs.append(d)
+            rows[(c, m)] = chosen_rows(pool, d)
+    print(f"{problem.name}: {rec.N} recorded configurations of {', '.join(rec.names)} ({len(pool.names)} parameters "
+          f"the pool tells, with the placements' poses); {problem.test_poses.s} test poses, registered; "
+          f"sigma = {problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
+    print(format_table(designs))
+    common.say(args, f"total {time.perf_counter() - t0:.2f} s for {common.count(len(designs), 'design')} (after imports)")
+    if out:
+        joints = [f"{j}_rad" for j in problem.robot.joints]
+        files = []
+        for (c, m), idx in rows.items():
+            lines = [",".join([*joints, "point", "placement"])]
+            lines += [",".join([*(repr(float(v)) for v in rec.Q[i]), str(int(rec.point[i])), str(int(rec.placement[i]))])
+                      for i in idx]
+            name = f"plans/{c}_m{m}.csv"
+            (out / "plans").mkdir(parents=True, exist_ok=True)
+            write_atomic(out / name, ("\n".join(lines) + "\n").encode())
+            files.append(name)
+        record = {"problem": problem.path, "measurement": "points fixed in an artefact", "seed": problem.solver.seed,
+                  "candidates": args.candidates, "placements": list(rec.names), "parameters": list(pool.names),
+                  "test_pose_measure": "sqrt(rho) of the test poses' positions after registering the work "
+                                       "(their rigid motion projected out), every placement's pose unknown",
+                  "designs": [{"criterion": d.criterion, "m": d.m, "max_rms_error_m": d.scores.max_rms_error_m,
+                               "rms_error_m": d.scores.rms_error_m.tolist(), "scores": d.scores.values,
+                               "recordings": [rec.sources[i] for i in rows[(d.criterion, d.m)]],
+                               "plan": f"plans/{d.criterion}_m{d.m}.csv"} for d in designs]}
+        write_json(out / "artefact_design.json", record)
+        common.say(args, f"wrote artefact_design.json and {common.count(len(files), 'plan')} in {out / 'plans'}")
+    return 0

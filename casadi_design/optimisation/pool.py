@@ -80,11 +80,12 @@ EXCHANGE_RTOL = 1e-6
 
 def _scores(problem: Problem, pool: tuple, S: list[int],
             criterion: str | None = None) -> Scores:
-    """The scores of the postures ``S`` of the pool ``(Q, F, B, sites)`` (their B precomputed,
-    (k, d, L), and their field's sites where the search weighs it, else None): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
+    """The scores of the postures ``S`` of the pool ``(Q, F, B, sites, B0)`` (their B precomputed,
+    (k, d, L), their field's sites where the search weighs it, else None, and the test poses'
+    rows): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
     ``criterion`` (None: every score as reported) the field only where it weighs it."""
-    Q, F, B, _ = pool
-    return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion))
+    Q, F, B, _, B0 = pool
+    return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion), B0)
 
 
 def _field_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], cands: np.ndarray,
@@ -93,7 +94,7 @@ def _field_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], 
     criterion that weighs the problem's field: every plan at once by bordering the kriging
     system (:func:`~casadi_design.measures.field.kriging_rho_added`), scored by the criterion's
     own score of rho (with ``power``: its smooth surrogate)."""
-    _, _, B, S = pool
+    _, _, B, S, _ = pool
     Br, Sr = problem.field_campaign(B[rest], S[rest])
     if not len(Sr):  # the first posture of a plan without held poses: each on its own
         return np.array([_plan_key(problem, criterion, pool, [c], power) for c in cands])
@@ -232,11 +233,14 @@ def kept_postures(problem: Problem, Q: np.ndarray, F: np.ndarray) -> tuple[np.nd
 
 
 def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np.ndarray,
-                  starts: int, with_bound: bool = True, initial: tuple[tuple[str, list[int]], ...] = ()) -> Design:
+                  starts: int, with_bound: bool = True, initial: tuple[tuple[str, list[int]], ...] = (),
+                  rows: tuple[np.ndarray, np.ndarray] | None = None) -> Design:
     """The plan of m postures of the pool ``Q`` (k, n), rad, ``F`` (k, nF), N that is best by
     ``criterion`` (module docstring), with the pool's bound when the criterion has one. The
     pool's postures keep the problem's rules (:func:`kept_postures`). ``initial``: (origin,
-    indices of m postures) exchanged first, beside the greedy plan and the others.
+    indices of m postures) exchanged first, beside the greedy plan and the others. ``rows``:
+    the pool's rows and the test poses' (B (k, d, L'), B0 (s, r, L')) when they are not the
+    problem's model's (an artefact's, with its placements' poses beside X; no bound then).
 
     Raises
     ------
@@ -248,11 +252,11 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
     if m > k:
         raise ProblemError(f"--candidates: the pool has {k} postures that keep the problem's rules, fewer than "
                            f"m = {m}; give m <= {k} or more postures")
-    B = problem.model.B_stack(Q, F)
-    engine = PoolEngine(B, problem.B0, problem.sigma_m, problem.M_held)
-    pool = (Q, F, B, problem.field_sites(Q, F) if field_measure(problem, criterion) else None)
-    approx = (pool_design(problem, criterion, Q, F, engine.A, m)
-              if with_bound and criterion in BOUND_CRITERIA and not field_measure(problem, criterion) else None)
+    B, B0 = (problem.model.B_stack(Q, F), problem.B0) if rows is None else rows
+    engine = PoolEngine(B, B0, problem.sigma_m, problem.M_held)
+    pool = (Q, F, B, problem.field_sites(Q, F) if field_measure(problem, criterion) else None, B0)
+    approx = (pool_design(problem, criterion, Q, F, engine.A, m) if with_bound and rows is None and
+              criterion in BOUND_CRITERIA and not field_measure(problem, criterion) else None)
     rng = start_rng(problem.solver.seed, criterion, m)
     first = [*initial, ("greedy", _greedy(problem, criterion, m, pool, engine))]
     if approx is not None:

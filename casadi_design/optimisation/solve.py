@@ -62,14 +62,16 @@ def start_rng(seed: int, criterion: str, m: int) -> np.random.Generator:
 
 
 def plan_scores(problem: Problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray | None = None,
-                field: bool = True) -> Scores:
+                field: bool = True, B0: np.ndarray | None = None) -> Scores:
     """Scores of a plan given as ``Q`` (m, n), rad, and ``F`` (m, nF), N (``B`` its rows when
-    they are at hand). With the problem's field of unmodelled error (:attr:`Problem.field`)
-    ``rho`` at the test poses is the kriging variance of the whole campaign (the poses held
-    before it, then the plan's; :func:`~casadi_design.measures.field.kriging_rho`); not
-    ``field``: the paper's, for a search by a criterion that does not weigh rho."""
+    they are at hand; ``B0`` the test poses' rows when not the problem's: an artefact's rows with
+    the placements' poses beside X, :func:`~casadi_design.calibration.artefact.artefact_rows`).
+    With the problem's field of unmodelled error (:attr:`Problem.field`) ``rho`` at the test
+    poses is the kriging variance of the whole campaign (the poses held before it, then the
+    plan's; :func:`~casadi_design.measures.field.kriging_rho`); not ``field``: the paper's, for a
+    search by a criterion that does not weigh rho."""
     B = problem.model.B_stack(Q, F) if B is None else B
-    return score_plan(B, problem.B0, problem.sigma_m, problem.M_held, problem.m_held,
+    return score_plan(B, problem.B0 if B0 is None else B0, problem.sigma_m, problem.M_held, problem.m_held,
                       rho=None if problem.field is None or not field else field_rho(problem, Q, F, B))
 
 

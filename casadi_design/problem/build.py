@@ -21,6 +21,7 @@ from typing import TypeVar
 import numpy as np
 import pinocchio as pin
 
+from ..calibration.artefact import Artefact, artefact
 from ..calibration.held import prior_information
 from ..calibration.identifiability import BaseSet, base_set, unit_columns
 from ..calibration.models import CalibrationModel, calibration_model
@@ -125,6 +126,13 @@ class Problem:
     @property
     def sigma_m(self) -> float:
         return self.spec.measurement.sigma_m
+
+    @property
+    def artefact(self) -> Artefact | None:
+        """The artefact whose points the measured point is seated at (``[measurement.artefact]``,
+        :mod:`casadi_design.calibration.artefact`); None: a tracker measures."""
+        spec = self.spec.measurement.artefact
+        return None if spec is None else artefact(np.array(spec.points_m))
 
     @property
     def m_values(self) -> tuple[int, ...]:

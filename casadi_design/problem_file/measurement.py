@@ -1,5 +1,6 @@
 """``[measurement]``: what each experiment measures (components, markers) and with which noise
-(one std, per axis, or a full covariance)."""
+(one std, per axis, or a full covariance); with ``[measurement.artefact]``, no tracker: the
+measured point seated at points fixed in an artefact (:mod:`casadi_design.calibration.artefact`)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fields import TWIST_ROWS, Mat, TableReader, to_mat
+from .fields import TWIST_ROWS, Mat, TableReader, to_mat, to_vec
 
 #: Relative asymmetry accepted in a covariance matrix.
 SYMMETRY_RTOL = 1e-9
@@ -18,8 +19,32 @@ MAX_SIGMA_M = 1.0
 
 #: The keys allowed in each table of this section (None: any key).
 KEYS: dict[str, set[str] | None] = {
-    "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m"},
+    "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m", "artefact"},
+    "measurement.artefact": {"points_m", "placements"},
+    "measurement.artefact.placements": {"name", "xyz_m", "rpy_deg"},
 }
+#: Largest distance (m) of an artefact's point from its first: beyond it the value is in mm.
+MAX_ARTEFACT_M = 5.0
+
+
+@dataclass(frozen=True)
+class PlacementSpec:
+    """Where an artefact is clamped: its frame's position ``xyz_m`` (m) and orientation
+    ``rpy_rad`` (roll, pitch, yaw, rad; ``R = Rz Ry Rx``) in the robot's base frame."""
+
+    name: str
+    xyz_m: tuple[float, float, float]
+    rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class ArtefactSpec:
+    """``[measurement.artefact]``: the points fixed in the artefact, in its frame (m, K x 3),
+    and the placements it is clamped at (for the designs that plan configurations; recordings
+    bring their own placements, each an unknown pose)."""
+
+    points_m: Mat
+    placements: tuple[PlacementSpec, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -35,6 +60,7 @@ class MeasurementSpec:
     sigma_m: float
     markers_m: Mat | None = None
     whitening: Mat | None = None
+    artefact: ArtefactSpec | None = None
 
 
 def read_measurement(meas: TableReader) -> MeasurementSpec:
@@ -48,7 +74,48 @@ def read_measurement(meas: TableReader) -> MeasurementSpec:
         raise meas.error("is empty", "give one row (x, y, z) in m per marker, or remove it", "markers_m")
     if markers is not None and not any(c in ("x", "y", "z") for c in measured):
         raise meas.error("markers need position components", "measure x, y or z, or remove markers_m", "markers_m")
-    return MeasurementSpec(measured, sigma, to_mat(markers), to_mat(_whitening(meas, measured, markers, sigma)))
+    artefact = _artefact(meas, measured, markers)
+    return MeasurementSpec(measured, sigma, to_mat(markers), to_mat(_whitening(meas, measured, markers, sigma)),
+                           artefact)
+
+
+def _artefact(meas: TableReader, measured: tuple[str, ...], markers) -> ArtefactSpec | None:
+    """``[measurement.artefact]``: the ball's seating points and the placements; the measured
+    point is then one point (the measured frame's origin or its tool point), all of x, y, z,
+    with one std (the seating repeatability)."""
+    table = meas.sub("artefact")
+    if table is None:
+        return None
+    if tuple(sorted(measured)) != ("x", "y", "z") or markers is not None:
+        raise meas.error("an artefact's points are met by one point in x, y and z", "give components = "
+                         "[\"x\", \"y\", \"z\"] and no markers_m (the ball centre: [robot] frame or tool_xyz_m)",
+                         "components")
+    for key in ("sigma_axes_m", "sigma_rad", "covariance"):
+        if key in meas.table:
+            raise meas.error("is not used with an artefact", "give sigma_m, the seating repeatability in m", key)
+    points = table.array("points_m", (None, 3), hint="one row (x, y, z) in m per point, in the artefact's frame, "
+                         "e.g. [[0, 0, 0], [0.05, 0, 0]]")
+    if len(points) == 0:
+        raise table.error("is empty", "give one row (x, y, z) in m per point", "points_m")
+    far = float(np.max(np.linalg.norm(points - points[0], axis=1)))
+    if far > MAX_ARTEFACT_M:
+        raise table.error(f"has points {far:g} m apart", "give them in m, e.g. [[0, 0, 0], [0.05, 0, 0]] for "
+                          "sockets 50 mm apart", "points_m")
+    if len(np.unique(np.round(points, 9), axis=0)) < len(points):
+        raise table.error("has a point twice", "give each point once", "points_m")
+    placements = []
+    for k, row in enumerate(table.get("placements", list, [])):
+        if not isinstance(row, dict):
+            raise table.error(f"entry {k + 1} is not a table", "write { name = \"front\", xyz_m = [x, y, z], "
+                              "rpy_deg = [r, p, y] }", "placements")
+        r = table.row(row, "measurement.artefact.placements", f"measurement.artefact.placements[{k + 1}]")
+        name = r.get("name", str, hint="a name, e.g. name = \"front\"")
+        if not name.strip() or name in [p.name for p in placements]:
+            raise r.error(f"'{name}' is empty or repeated", "give each placement its own name", "name")
+        xyz = r.array("xyz_m", (3,), hint="the artefact frame's origin in the robot's base frame, m")
+        rpy = r.array("rpy_deg", (3,), np.zeros(3), hint="roll, pitch, yaw of the artefact frame in deg")
+        placements.append(PlacementSpec(name, to_vec(xyz), to_vec(np.radians(rpy))))
+    return ArtefactSpec(to_mat(points), tuple(placements))
 
 
 def _whitening(meas: TableReader, measured: tuple[str, ...], markers, sigma: float) -> np.ndarray | None:

@@ -1,0 +1,500 @@
+"""Identify a robot from recordings of points fixed in an artefact (no tracker).
+
+The measurement model is :mod:`casadi_design.calibration.artefact`'s: each recording puts the
+measured point ``p(q_i, X)`` (the problem's one model, :mod:`casadi_design.calibration.models`)
+at point ``a_k`` of placement g, ``t_g + R_g a_k``, within the seating repeatability sigma. The
+fit is weighted least squares over X and every placement's pose (scipy's Levenberg-Marquardt,
+exact Jacobian; the placements start from the rigid fit of the artefact's points to the nominal
+robot's mean point of each, :meth:`~casadi_design.calibration.artefact.Artefact.place`).
+
+What the recordings tell: no placement fixes the robot's base, so the parameters a rigid motion
+of the whole robot absorbs (``base.*`` and their combinations, :func:`~.fit.fit_model` in the
+tracker frame) are left out; of the rest, the base set of the rows is chosen by QR with column
+pivoting of the Jacobian with the placements projected out (:func:`artefact_base_set`).
+Statistics are those of :mod:`.residuals` on the rows with the placements projected out
+(``J^T J`` the information of X with every placement unknown): leverages, the PRESS residuals of
+the model choice (:mod:`.choice`'s one-standard-error rule), the outlier scores (a ball that was
+not seated), the error scale ``s`` (the seating repeatability and the robot's unmodelled error).
+
+Judged on placements not in the fit, by the figures a user of this setup computes without us
+(:func:`judged`): **consistency**, the mean distance of the FK ball centres to their point's mean
+(MUKCa's figure), and **spacing**, the error of the distance between two points' means against
+the artefact's; each with its prediction from the fit's covariance and scale (:func:`predicted`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..calibration.artefact import Artefact, identifiable, placement_projected
+from ..calibration.identifiability import RANK_RTOL
+from ..calibration.models import CalibrationModel
+from ..errors import DesignError, ProblemError
+from ..problem.build import Problem
+from ..robot.mapped import evaluate
+from ..measures.field import Field, covariance, value_covariance
+from .choice import Candidate, choose
+from .field_fit import FieldFit, estimate_field
+from .fit import FitModel, fit_model
+from .lsq import LSQ_TOL, measurement_jacobian, nominal_poses
+from .recordings import Recordings
+from .residuals import ErrorScale, deleted_scores, error_scale, leverages, press
+
+#: Outlier test: a configuration whose externally studentized residual exceeds this many of the
+#: other rows' errors is a ball not seated; at most this share of the rows is excluded.
+OUTLIER_SIGMA = 4.0
+MAX_OUTLIER_SHARE = 0.05
+#: Draws of the Monte Carlo that turns a predicted covariance into a mean distance (seeded).
+DISTANCE_DRAWS = 4000
+DISTANCE_SEED = 0
+#: The base axes of the measured point's values (x, y, z).
+AXES = np.arange(3)
+#: Model evaluations of one fit at most: a few recordings for many parameters leave directions
+#: the trust region crawls along (16 configurations of a Panda's 25 parameters: 40 to 200).
+MAX_EVALUATIONS = 1000
+#: The chi-square quantile above which the residuals are more than the seating repeatability.
+UNMODELLED_CONFIDENCE = 0.999
+
+
+def ball_points(model: CalibrationModel, Q: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The measured point ``p(q, X)`` (N, 3), m, of configurations ``Q`` (N, n) and ``dp/dX``
+    (N, 3, L): the model's measurement plus its nominal reference (one point, x y z, whitening
+    the identity: one sigma)."""
+    F = np.zeros((len(Q), model.nF))
+    ref = nominal_poses(model, Q, F)
+    y, J = evaluate(measurement_jacobian(model), Q, F, np.tile(X, (len(Q), 1)), ref, threads=1)
+    return y.reshape(len(Q), 3) + ref[:, 9:12], J.reshape(len(Q), 3, model.L)
+
+
+@dataclass(frozen=True, eq=False)
+class ArtefactFit:
+    """One least-squares fit of the recordings ``used``.
+
+    Attributes
+    ----------
+    fit : the fit's model (``fit.model.parameter_names`` are X's).
+    X : ndarray, shape (L,), SI units.
+    R : ndarray, shape (P, 3, 3); t : ndarray, shape (P, 3), m: each placement's pose.
+    r : ndarray, shape (N, 3), m: residuals ``p(q_i, X) - (t_g + R_g a_k)`` of every row.
+    J : ndarray, shape (N, 3, L), m per unit: ``dp/dX`` with each placement's columns projected
+        out over the rows used (``J[used]^T J[used]`` the information of X).
+    used : ndarray of bool, shape (N,).
+    evaluations : model evaluations of the least squares.
+    placement_parameters : the placements' pose parameters fitted beside X.
+    """
+
+    fit: FitModel
+    X: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    used: np.ndarray
+    evaluations: int
+    placement_parameters: int
+
+    @property
+    def information(self) -> np.ndarray:
+        """``J^T J`` over the rows used, (L, L): the information of X with the placements unknown."""
+        J = self.J[self.used].reshape(-1, self.J.shape[2])
+        return J.T @ J
+
+    @property
+    def dof(self) -> int:
+        """Values less parameters (X and the placements' poses)."""
+        return 3 * int(self.used.sum()) - self.J.shape[2] - self.placement_parameters
+
+
+def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarray | None = None) -> ArtefactFit:
+    """Fit X and the placements to the recordings ``used`` (module docstring).
+
+    Raises
+    ------
+    DesignError
+        Rows that do not identify X with the placements unknown, or a fit that does not converge.
+    """
+    from scipy.optimize import least_squares  # imported here: scipy.optimize takes ~0.3 s
+
+    A, model, sigma = problem.artefact, fm.model, problem.sigma_m
+    used = np.ones(rec.N, dtype=bool) if used is None else used
+    Q, k, g = rec.Q[used], rec.point[used], rec.placement[used]
+    places = np.unique(g)
+    p0, _ = ball_points(model, Q, np.zeros(model.L))
+    R0, t0 = zip(*(A.place({j: p0[(g == h) & (k == j)].mean(axis=0) for j in np.unique(k[g == h])})
+                   for h in places))
+    L, nP = model.L, A.nP
+
+    def poses(x: np.ndarray) -> tuple[list, list]:
+        moved = [A.moved(R0[i], t0[i], x[L + i * nP:L + (i + 1) * nP]) for i in range(len(places))]
+        return [m[0] for m in moved], [m[1] for m in moved]
+
+    def residuals(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        R, t = poses(x)
+        p, J = ball_points(model, Q, x[:L])
+        at = np.searchsorted(places, g)
+        s = np.array([t[i] + R[i] @ A.points_m[j] for i, j in zip(at, k)])
+        jac = np.zeros((len(Q), 3, L + nP * len(places)))
+        jac[:, :, :L] = J
+        for i in range(len(places)):
+            rows = at == i
+            jac[rows, :, L + i * nP:L + (i + 1) * nP] = -A.columns(R[i], k[rows])
+        return (p - s).reshape(-1) / sigma, jac.reshape(-1, jac.shape[2]) / sigma
+
+    last: dict = {}
+
+    def at(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = x.tobytes()
+        if key not in last:
+            last.clear()
+            last[key] = residuals(x)
+        return last[key]
+
+    x0 = np.zeros(L + nP * len(places))
+    J0 = at(x0)[1]
+    if 3 * len(Q) < len(x0) or np.linalg.matrix_rank(J0, tol=RANK_RTOL * np.linalg.norm(J0, 2)) < len(x0):
+        raise DesignError(f"the {int(used.sum())} recordings do not identify the {L} parameters with the "
+                          f"{len(places)} placement(s) unknown; record more varied configurations")
+    norms = np.linalg.norm(J0, axis=0)
+    found = least_squares(lambda x: at(x)[0], x0, jac=lambda x: at(x)[1], method="lm",
+                          x_scale=1.0 / np.where(norms > 0, norms, 1.0), ftol=LSQ_TOL, xtol=LSQ_TOL, gtol=LSQ_TOL,
+                          max_nfev=MAX_EVALUATIONS)
+    if found.status <= 0:
+        raise DesignError(f"the fit to the recordings did not converge in {found.nfev} evaluations")
+    X = found.x[:L]
+    R, t = poses(found.x)
+    # every row's residual and Jacobian at the estimate; the placements projected out over the rows used
+    Rall = np.zeros((len(rec.names), 3, 3))
+    tall = np.full((len(rec.names), 3), np.nan)
+    for i, h in enumerate(places):
+        Rall[h], tall[h] = R[i], t[i]
+    p, J = ball_points(model, rec.Q, X)
+    seen = np.isin(rec.placement, places)
+    s = np.full((rec.N, 3), np.nan)
+    s[seen] = tall[rec.placement[seen]] + np.einsum("kab,kb->ka", Rall[rec.placement[seen]], A.points_m[rec.point[seen]])
+    G = np.zeros((rec.N, 3, nP))
+    for h in places:
+        rows = rec.placement == h
+        G[rows] = A.columns(Rall[h], rec.point[rows])
+    Jp = np.array(J)
+    Jp[used] = placement_projected(J[used], G[used], rec.placement[used])
+    return ArtefactFit(fm, X, Rall, tall, p - s, Jp, used, int(found.nfev), nP * len(places))
+
+
+def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...]) -> tuple[tuple[str, ...], list[tuple[str, str]]]:
+    """The parameters of ``names`` the recordings identify with every placement and the robot's
+    base unknown (:func:`~casadi_design.calibration.artefact.identifiable` at the nominal
+    robot), and (name, why) of those left out."""
+    fm = fit_model(problem, "base", names)
+    f = nominal_fit(problem, fm, rec)
+    p, J = ball_points(fm.model, rec.Q, np.zeros(fm.model.L))
+    G = np.zeros((rec.N, 3, problem.artefact.nP))
+    for h in range(rec.P):
+        rows = rec.placement == h
+        G[rows] = problem.artefact.columns(f.R[h], rec.point[rows])
+    kept, live = identifiable(J, p, G, rec.placement, RANK_RTOL)
+    why = {False: "a rigid motion of the whole robot or of a placement (the base, which no fixed point tells)",
+           True: "acts as a combination of the parameters kept"}
+    return (tuple(n for n, k in zip(fm.model.parameter_names, kept) if k),
+            [(n, why[bool(live[i])]) for i, n in enumerate(fm.model.parameter_names) if not kept[i]])
+
+
+def nominal_fit(problem: Problem, fm: FitModel, rec: Recordings) -> ArtefactFit:
+    """The rows' Jacobian at the nominal robot with the placements projected out (no fit):
+    what the recordings can tell, before any least squares."""
+    A, model = problem.artefact, fm.model
+    p, J = ball_points(model, rec.Q, np.zeros(model.L))
+    G = np.zeros((rec.N, 3, A.nP))
+    R = np.zeros((rec.P, 3, 3))
+    t = np.zeros((rec.P, 3))
+    for h in range(rec.P):
+        rows = rec.placement == h
+        R[h], t[h] = A.place({j: p[rows & (rec.point == j)].mean(axis=0) for j in np.unique(rec.point[rows])})
+        G[rows] = A.columns(R[h], rec.point[rows])
+    return ArtefactFit(fm, np.zeros(model.L), R, t, np.zeros((rec.N, 3)),
+                       placement_projected(J, G, rec.placement), np.ones(rec.N, dtype=bool), 0, A.nP * rec.P)
+
+
+def row_scores(f: ArtefactFit, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's outlier score and scale (m): its externally studentized residual among the
+    rows used (:func:`~.residuals.deleted_scores`); rows not used score -inf."""
+    used = f.used
+    score, s = np.full(len(used), -np.inf), np.full(len(used), np.nan)
+    score[used], s[used] = deleted_scores(f.r[used], np.ones((int(used.sum()), 3), dtype=bool),
+                                          leverages(f.J[used], f.information), sigma, f.dof + 3)
+    return score, s
+
+
+def fit_without_outliers(problem: Problem, fm: FitModel, rec: Recordings,
+                         threshold: float = OUTLIER_SIGMA) -> tuple[ArtefactFit, list[tuple[str, float]], list[str]]:
+    """Fit, then exclude the rows scoring beyond ``threshold`` (and half the worst one's), the
+    worst first, and refit, at most :data:`MAX_OUTLIER_SHARE` of the rows: a ball that was not
+    seated stands out against the other rows' error. The fit, the outliers (source, score) and
+    the notes."""
+    f = fit_artefact(problem, fm, rec)
+    cap = max(1, math.floor(MAX_OUTLIER_SHARE * rec.N))
+    outliers: list[tuple[str, float]] = []
+    while True:
+        score, scale = row_scores(f, problem.sigma_m)
+        beyond = np.flatnonzero(score > threshold)
+        if not beyond.size:
+            return f, outliers, []
+        room = cap - len(outliers)
+        if room <= 0:
+            return f, outliers, [f"{beyond.size} more configuration{'s' * (beyond.size > 1)} lie beyond {threshold:g} x "
+                                 f"the other rows' error (about {np.nanmedian(scale) * 1e3:.3g} mm); at most "
+                                 f"{MAX_OUTLIER_SHARE:.0%} are excluded: so many is the robot's error, not balls unseated"]
+        worst = beyond[np.argsort(-score[beyond], kind="stable")]
+        batch = worst[score[worst] > score[worst[0]] / 2][:room]
+        trial = f.used.copy()
+        trial[batch] = False
+        try:
+            refit = fit_artefact(problem, fm, rec, trial)
+        except (ProblemError, DesignError) as e:
+            return f, outliers, [f"{rec.sources[batch[0]]} kept: the fit without it failed ({e})"]
+        outliers += [(rec.sources[i], float(score[i])) for i in batch]
+        f = refit
+
+
+def cross_validate(f: ArtefactFit) -> tuple[float, float, str]:
+    """The leave-one-configuration-out RMS point error (m) of the fit and its standard error
+    (:mod:`.choice`), the left-out configuration's placement refitted by the rest; NaN and why
+    when a row is needed to identify the model."""
+    used = np.flatnonzero(f.used)
+    e, _, needed = press(f.r[used], leverages(f.J[used], f.information))
+    if e is None:
+        return math.nan, math.nan, f"configuration {needed + 1} is needed to identify it"
+    e = np.linalg.norm(e, axis=1)
+    cv = float(np.sqrt(np.mean(e**2)))
+    return cv, float(np.std(e**2) / (2 * cv * math.sqrt(len(e)))) if cv > 0 else 0.0, ""
+
+
+def scale_of(f: ArtefactFit, sigma: float) -> ErrorScale:
+    """The error per value (m): the seating repeatability ``sigma`` and the robot's unmodelled
+    error, from the PRESS residuals when the chi-square test rejects sigma alone (:mod:`.residuals`)."""
+    from scipy.stats import chi2
+
+    r = f.r[f.used]
+    ssr = float(np.sum(r**2))
+    rejected = ssr / sigma**2 > chi2.ppf(UNMODELLED_CONFIDENCE, max(f.dof, 1))
+    return error_scale(r, leverages(f.J[f.used], f.information), sigma, math.sqrt(ssr / max(f.dof, 1)), rejected)
+
+
+@dataclass(frozen=True)
+class Judged:
+    """Figures of one placement (m): ``consistency`` the mean distance of the FK points to their
+    point's mean, averaged over the points (MUKCa's), ``spacing`` the largest error of the
+    distance between two points' means against the artefact's; ``predicted_*`` the same
+    expected from the fit (:func:`predicted`); ``nominal_*`` of the nominal robot."""
+
+    name: str
+    rows: int
+    consistency_m: float
+    spacing_m: float
+    predicted_consistency_m: float
+    predicted_spacing_m: float
+    nominal_consistency_m: float
+    nominal_spacing_m: float
+
+    def as_dict(self) -> dict:
+        return {"placement": self.name, "configurations": self.rows,
+                **{f"{k}_mm": getattr(self, f"{k}_m") * 1e3 for k in
+                   ("consistency", "spacing", "predicted_consistency", "predicted_spacing", "nominal_consistency",
+                    "nominal_spacing")}}
+
+
+def figures(A: Artefact, p: np.ndarray, k: np.ndarray) -> tuple[float, float]:
+    """Consistency and spacing (m) of the FK points ``p`` (N, 3) of one placement, seated at the
+    points ``k`` (N,) (:class:`Judged`)."""
+    seen = np.unique(k)
+    means = {j: p[k == j].mean(axis=0) for j in seen}
+    consistency = float(np.mean([np.mean(np.linalg.norm(p[k == j] - means[j], axis=1)) for j in seen]))
+    spacing = max((abs(float(np.linalg.norm(means[a] - means[b])) - A.spacings_m[a, b])
+                   for a in seen for b in seen if a < b), default=math.nan)
+    return consistency, spacing
+
+
+def predicted(A: Artefact, k: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+    """The expected consistency and spacing error (m) of one placement's configurations seated
+    at ``k`` (N,) whose FK points err by ``e`` of covariance ``cov`` (3N x 3N, m^2; the seating's
+    noise included): a point's deviation from its point's mean is ``d_i = e_i - mean_k e``, its
+    expected length by a seeded Monte Carlo of its 3 x 3 covariance; the spacing error of two
+    means is a normal of variance ``u^T cov(mean_b e - mean_a e) u``, ``u`` their direction:
+    ``sqrt(2 v / pi)`` its expected size."""
+    N = len(k)
+    seen = np.unique(k)
+    avg = np.zeros((N, N))
+    for j in seen:
+        rows = k == j
+        avg[np.ix_(rows, rows)] = 1.0 / rows.sum()
+    D = np.kron(np.eye(N) - avg, np.eye(3))
+    S = (D @ cov @ D.T).reshape(N, 3, N, 3)[np.arange(N), :, np.arange(N), :]
+    z = np.random.default_rng(DISTANCE_SEED).standard_normal((DISTANCE_DRAWS, 3))
+    w, U = np.linalg.eigh((S + S.transpose(0, 2, 1)) / 2)
+    lengths = np.linalg.norm(np.einsum("kab,kb,zb->kza", U, np.sqrt(np.clip(w, 0.0, None)), z), axis=2)
+    consistency = float(np.mean([lengths[k == j].mean() for j in seen]))
+    spacing = math.nan
+    for a in seen:
+        for b in seen:
+            if a < b:
+                u = (A.points_m[b] - A.points_m[a]) / A.spacings_m[a, b]
+                m = np.zeros(N)
+                m[k == b], m[k == a] = 1.0 / np.sum(k == b), -1.0 / np.sum(k == a)
+                row = np.kron(m, u)
+                spacing = max(0.0 if math.isnan(spacing) else spacing, math.sqrt(2 * float(row @ cov @ row) / math.pi))
+    return consistency, spacing
+
+
+def error_covariance(f: ArtefactFit, Jh: np.ndarray, V: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """The covariance (3N x 3N, m^2) of the errors ``e_h = p(q_h, X_hat) - p_true(q_h) + eps_h``
+    at configurations whose ``dp/dX`` are ``Jh`` (N, 3, L), for the least-squares estimate
+    ``X_hat - X = H^-1 Jp^T (delta + eps)`` of the fit's rows (``Jp`` with the placements
+    projected out): ``W Vtt W^T - W Vth - Vth^T W^T + Vhh``, ``W = Jh H^-1 Jp^T``, with ``V`` the
+    covariances of the rows' errors (delta the robot's unmodelled error, eps the seating's
+    noise): training-training, training-new, new-new."""
+    Vtt, Vth, Vhh = V
+    Jp = f.J[f.used].reshape(-1, f.J.shape[2])
+    W = Jh.reshape(-1, Jh.shape[2]) @ np.linalg.solve(f.information, Jp.T)
+    WV = W @ Vth
+    return W @ Vtt @ W.T - WV - WV.T + Vhh
+
+
+def full_jacobian(problem: Problem, f: ArtefactFit, rec: Recordings) -> np.ndarray:
+    """``d r / d(X, poses)`` of the rows used (n, 3, L + P nP), m per unit: ``dp/dX`` and each
+    placement's columns ``-G``: the fixed effects of the rows."""
+    A = problem.artefact
+    used = np.flatnonzero(f.used)
+    _, J = ball_points(f.fit.model, rec.Q[used], f.X)
+    places = np.unique(rec.placement[used])
+    out = np.zeros((len(used), 3, J.shape[2] + A.nP * len(places)))
+    out[:, :, :J.shape[2]] = J
+    for i, h in enumerate(places):
+        rows = rec.placement[used] == h
+        at = J.shape[2] + i * A.nP
+        out[rows, :, at:at + A.nP] = -A.columns(f.R[h], rec.point[used][rows])
+    return out
+
+
+def unmodelled_field(problem: Problem, f: ArtefactFit, rec: Recordings) -> FieldFit:
+    """The robot's unmodelled error as a field over its configurations, estimated from the fit's
+    residuals by restricted maximum likelihood with X and the placements' poses as fixed effects
+    (:func:`~.field_fit.estimate_field`: the base axes' fields and the joint angles', the lower
+    AIC kept); the seating repeatability is the problem's sigma."""
+    used = f.used
+    Q = rec.Q[used]
+    return estimate_field(f.r[used], full_jacobian(problem, f, rec), Q, AXES, np.eye(3), problem.sigma_m,
+                          f.fit.model.dq_stack(Q))
+
+
+def row_covariances(field: Field | None, s: float, sigma: float, Qt: np.ndarray, dqt: np.ndarray,
+                    Qh: np.ndarray, dqh: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The covariances of the rows' errors (m^2) between the training configurations ``Qt`` and
+    new ones ``Qh`` (their ``dp/dq``: ``dqt``, ``dqh``): with a ``field``, the field's and the
+    seating's ``sigma^2`` per value; without, ``s^2`` per value, uncorrelated."""
+    if field is None:
+        return s**2 * np.eye(3 * len(Qt)), np.zeros((3 * len(Qt), 3 * len(Qh))), s**2 * np.eye(3 * len(Qh))
+    St, Sh = field.sites(Qt, AXES, np.eye(3), dqt), field.sites(Qh, AXES, np.eye(3), dqh)
+    return (value_covariance(field, St, sigma), covariance(field, St, Sh).reshape(3 * len(Qt), 3 * len(Qh)),
+            value_covariance(field, Sh, sigma))
+
+
+def judged(problem: Problem, f: ArtefactFit, rec: Recordings, field: Field | None, s: float,
+           train: Recordings) -> list[Judged]:
+    """:class:`Judged` figures of every placement of ``rec`` with the fit ``f`` of ``train``'s
+    rows, predicted with the unmodelled error's ``field`` (None: ``s`` per value, uncorrelated)."""
+    A, model = problem.artefact, f.fit.model
+    p, J = ball_points(model, rec.Q, f.X)
+    p0, _ = ball_points(model, rec.Q, np.zeros(model.L))
+    Qt = train.Q[f.used]
+    dqt, dqh = model.dq_stack(Qt), model.dq_stack(rec.Q)
+    out = []
+    for g, name in enumerate(rec.names):
+        rows = np.flatnonzero(rec.placement == g)
+        k = rec.point[rows]
+        cov = error_covariance(f, J[rows], row_covariances(field, s, problem.sigma_m, Qt, dqt, rec.Q[rows], dqh[rows]))
+        c, sp = figures(A, p[rows], k)
+        c0, sp0 = figures(A, p0[rows], k)
+        pc, ps = predicted(A, k, cov)
+        out.append(Judged(name, len(rows), c, sp, pc, ps, c0, sp0))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class ArtefactCalibration:
+    """What :func:`calibrate_artefact` found: the chosen model's fit, its parameters' names,
+    covariance ``C`` (SI units) and standard deviations, the error scale, the candidates judged,
+    what the recordings do not tell (``absorbed``), the outliers and notes, and the figures of the
+    training and held-out placements."""
+
+    problem: Problem
+    recordings: Recordings
+    fit: ArtefactFit
+    model: str
+    candidates: tuple[Candidate, ...]
+    absorbed: tuple[tuple[str, str], ...]
+    scale: ErrorScale
+    C: np.ndarray
+    field: Field | None
+    outliers: tuple[tuple[str, float], ...]
+    notes: tuple[str, ...]
+    training: tuple[Judged, ...]
+    validation: tuple[Judged, ...]
+    validation_recordings: Recordings | None
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.fit.fit.model.parameter_names
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.diagonal(self.C))
+
+
+#: The candidate models of an artefact's recordings (module docstring of :mod:`.choice`).
+ARTEFACT_MODELS = ("auto", "offsets", "identifiable")
+
+
+def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | None = None,
+                       model: str = "auto", threshold: float = OUTLIER_SIGMA) -> ArtefactCalibration:
+    """Identify the robot from recordings of an artefact's points (module docstring): the base
+    set, candidates judged by cross-validation (``model``: one of :data:`ARTEFACT_MODELS`),
+    outliers, error scale, covariance, and the figures of the training and ``valid`` placements.
+
+    Raises
+    ------
+    ProblemError, DesignError
+        A model name not allowed; recordings that identify no candidate.
+    """
+    if model not in ARTEFACT_MODELS:
+        raise ProblemError(f"--model {model}: allowed for an artefact's recordings: {', '.join(ARTEFACT_MODELS)}")
+    names, absorbed = artefact_base_set(problem, rec, problem.model.parameter_names)
+    offsets = tuple(n for n in names if n.endswith(".offset") or n.startswith("tool."))
+    found, fits = [], {}
+    for name, chosen in (("offsets", offsets), ("identifiable", names)):
+        if name != "identifiable" and (not chosen or chosen == names):
+            continue
+        fm = fit_model(problem, "base", chosen)
+        try:
+            f = fit_artefact(problem, fm, rec)
+        except DesignError as e:
+            found.append(Candidate(name, fm, math.nan, math.nan, why=str(e)))
+            continue
+        cv, se, why = cross_validate(f)
+        found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why))
+        fits[name] = fm
+    chosen, notes = choose(found, "auto" if model == "auto" else model)
+    f, outliers, more = fit_without_outliers(problem, chosen.fit_model, rec, threshold)
+    scale = scale_of(f, problem.sigma_m)
+    field = unmodelled_field(problem, f, rec).field
+    Qt = rec.Q[f.used]
+    dqt = f.fit.model.dq_stack(Qt)
+    Vtt = row_covariances(field, scale.s_m, problem.sigma_m, Qt, dqt, Qt[:0], dqt[:0])[0]
+    Jp = f.J[f.used].reshape(-1, f.J.shape[2])
+    Hi = np.linalg.inv(f.information)
+    C = Hi @ Jp.T @ Vtt @ Jp @ Hi  # the least squares' covariance under the rows' errors
+    training = judged(problem, f, rec, field, scale.s_m, rec)
+    validation = judged(problem, f, valid, field, scale.s_m, rec) if valid is not None else []
+    return ArtefactCalibration(problem, rec, f, chosen.name, tuple(found), tuple(absorbed), scale, C, field,
+                               tuple(outliers), tuple(notes + more), tuple(training), tuple(validation), valid)

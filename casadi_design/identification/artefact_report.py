@@ -1,0 +1,90 @@
+"""What ``identify`` says and writes of an artefact's recordings (:mod:`.artefact_fit`): the
+summary for people (mm) and ``identification.json`` (SI units; the judged figures in mm, named so)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .artefact_fit import ArtefactCalibration, Judged
+from .report import none_if_nan, parameter_unit
+
+
+def _means(judged: tuple[Judged, ...]) -> dict:
+    """Means over placements of the consistency (measured, predicted, nominal) and the median of
+    the spacing errors, mm (None without placements)."""
+    if not judged:
+        return {}
+    mean = {k: float(np.mean([getattr(j, f"{k}_m") for j in judged])) * 1e3
+            for k in ("consistency", "predicted_consistency", "nominal_consistency")}
+    median = {k: float(np.median([getattr(j, f"{k}_m") for j in judged])) * 1e3
+              for k in ("spacing", "predicted_spacing", "nominal_spacing")}
+    return {"consistency_mm": mean["consistency"], "predicted_consistency_mm": mean["predicted_consistency"],
+            "nominal_consistency_mm": mean["nominal_consistency"], "median_spacing_mm": median["spacing"],
+            "predicted_median_spacing_mm": median["predicted_spacing"],
+            "nominal_median_spacing_mm": median["nominal_spacing"]}
+
+
+def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
+    """``identification.json`` of an artefact's recordings."""
+    f, rec = cal.fit, cal.recordings
+    names = cal.names
+    return {
+        "problem": cal.problem.path,
+        "measurement": "points fixed in an artefact",
+        "artefact_points_m": cal.problem.artefact.points_m.tolist(),
+        "placements": list(rec.names),
+        "configurations": int(rec.N),
+        "sigma_m": cal.problem.sigma_m,
+        "model": cal.model,
+        "model_choice": "leave-one-configuration-out cross-validation, one-standard-error rule",
+        "candidates": [c.as_dict() for c in cal.candidates],
+        "parameters": [{"name": n, "value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
+                       for n, x, s in zip(names, f.X, cal.std)],
+        "covariance": cal.C.tolist(),
+        "covariance_unit": "SI units of the parameters, squared",
+        "absorbed": [{"name": n, "why": why} for n, why in cal.absorbed],
+        "placement_poses": [{"placement": name, "R": f.R[g].tolist(), "t_m": f.t[g].tolist()}
+                            for g, name in enumerate(rec.names)],
+        "error_per_value": cal.scale.as_dict(),
+        "outliers": [{"configuration": where, "score": score} for where, score in cal.outliers],
+        "notes": list(cal.notes),
+        "residual_rms_m": float(np.sqrt(np.mean(np.sum(f.r[f.used] ** 2, axis=1)))),
+        "training": {"placements": [j.as_dict() for j in cal.training], **_means(cal.training)},
+        "validation": ({"placements": [j.as_dict() for j in cal.validation], **_means(cal.validation)}
+                       if cal.validation else None),
+        "files": files,
+    }
+
+
+def artefact_summary(cal: ArtefactCalibration) -> list[str]:
+    """The summary for people: the model, the parameters not told, the error scale, and per
+    placement the consistency and spacing (mm), measured, predicted and nominal."""
+    f, rec = cal.fit, cal.recordings
+    lines = [f"{rec.N} configurations in {rec.P} placement(s) of the artefact ({', '.join(rec.names)}); "
+             f"model {cal.model}: {len(cal.names)} parameters, with {f.placement_parameters} of the placements' poses",
+             "candidates (leave-one-configuration-out RMS point error, mm): " + ", ".join(
+                 f"{c.name} ({c.L}) {c.cv_rms_m * 1e3:.3f}" if not math.isnan(c.cv_rms_m) else f"{c.name} ({c.why})"
+                 for c in cal.candidates)]
+    if cal.absorbed:
+        lines.append(f"not told by the recordings (absorbed): {', '.join(n for n, _ in cal.absorbed)}")
+    s = cal.scale
+    lines.append(f"error per value {s.s_m * 1e3:.4f} mm (seating repeatability {s.sigma_m * 1e3:.4f} mm, "
+                 f"unmodelled {s.tau_m * 1e3:.4f} mm)")
+    if cal.outliers:
+        lines.append(f"outliers (a ball not seated): {', '.join(f'{w} ({z:.1f})' for w, z in cal.outliers)}")
+    lines += cal.notes
+    lines.append("placement        consistency mm (predicted, nominal)   spacing error mm (predicted, nominal)")
+    for title, judged in (("trained on", cal.training), ("held out", cal.validation)):
+        for j in judged:
+            lines.append(f"{j.name[:16]:16s} {j.consistency_m * 1e3:7.3f} ({j.predicted_consistency_m * 1e3:.3f}, "
+                         f"{j.nominal_consistency_m * 1e3:.2f})          {j.spacing_m * 1e3:7.3f} "
+                         f"({none_if_nan(j.predicted_spacing_m * 1e3) or 0:.3f}, {j.nominal_spacing_m * 1e3:.2f})"
+                         f"   {title}")
+    if cal.validation:
+        m = _means(cal.validation)
+        lines.append(f"held out: mean consistency {m['consistency_mm']:.3f} mm (predicted "
+                     f"{m['predicted_consistency_mm']:.3f}, nominal {m['nominal_consistency_mm']:.2f}), median spacing "
+                     f"error {m['median_spacing_mm']:.3f} mm (predicted {m['predicted_median_spacing_mm']:.3f})")
+    return lines

@@ -1,0 +1,90 @@
+"""Which recorded configurations to use, for points fixed in an artefact: the pool engine on rows
+with the placements' poses beside X.
+
+A pool of recordings (configurations with the ball seated at a point of a placement,
+:mod:`casadi_design.identification.recordings`) is priced by the engine of
+:mod:`.pool` with each experiment's rows ``[B_i, -G_i]`` (:func:`~casadi_design.calibration.artefact.artefact_rows`):
+``M`` is then additive over the experiments, and with the test poses' rows zero on the
+placements' columns ``tr(B0 M^-1 B0^T)`` is the test-pose measure of X with every placement
+unknown (the Schur complement). The test poses' error is the one a user sees after registering
+the work in the robot's frame by the robot itself: the rigid motion of the test points
+projected out (:func:`~casadi_design.calibration.artefact.registered`). X is the base set the
+pool tells (:func:`~casadi_design.calibration.artefact.identifiable`: no fixed point tells the
+robot's base). D, A, E and the others judge ``M`` of X and the placements' poses together.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..calibration.artefact import artefact_rows, identifiable, registered
+from ..calibration.identifiability import RANK_RTOL
+from ..errors import ProblemError
+from ..plan.design import Design
+from ..problem.build import Problem
+from .pool import choose_design, kept_postures
+
+
+@dataclass(frozen=True, eq=False)
+class ArtefactPool:
+    """A pool of recordings as the engine sees it: the configurations ``Q`` (k, n), rad, their
+    artefact's ``point`` and ``placement`` (k,), the names of X (``names``, the base set the pool
+    tells), the rows ``B`` (k, 3, L + P nP) and the test poses' ``B0`` (s, 3, L + P nP)."""
+
+    Q: np.ndarray
+    point: np.ndarray
+    placement: np.ndarray
+    names: tuple[str, ...]
+    B: np.ndarray
+    B0: np.ndarray
+
+
+def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray) -> ArtefactPool:
+    """The :class:`ArtefactPool` of configurations ``Q`` seated at ``point`` of ``placement``
+    (module docstring); each placement's pose from the nominal robot's mean point of each of its
+    points (:meth:`~casadi_design.calibration.artefact.Artefact.place`).
+
+    Raises
+    ------
+    ProblemError
+        Test poses that do not require x, y and z.
+    """
+    A, model = problem.artefact, problem.model
+    if tuple(sorted(problem.spec.test_poses.components)) != ("x", "y", "z"):
+        raise ProblemError(f"{problem.path}: [test_poses].components: an artefact's calibration is judged at the "
+                           "test poses' positions after registering the work; give components = [\"x\", \"y\", \"z\"]")
+    F = np.zeros((len(Q), model.nF))
+    B = model.B_stack(Q, F)
+    p = np.stack([np.asarray(model.points(q), dtype=float).reshape(3) for q in Q])
+    places = np.unique(placement)
+    R = np.zeros((len(places), 3, 3))
+    G = np.zeros((len(Q), 3, A.nP))
+    at = np.searchsorted(places, placement)
+    for i, g in enumerate(places):
+        rows = at == i
+        R[i] = A.place({k: p[rows & (point == k)].mean(axis=0) for k in np.unique(point[rows])})[0]
+        G[rows] = A.columns(R[i], point[rows])
+    kept, _ = identifiable(B, p, G, at, RANK_RTOL)
+    rows = artefact_rows(A, B[:, :, kept], R, point, at)
+    B0 = registered(problem.B0[:, :, kept], problem.test_poses.position_m)
+    B0 = np.concatenate([B0, np.zeros((len(B0), 3, rows.shape[2] - B0.shape[2]))], axis=2)
+    names = tuple(n for n, k in zip(model.parameter_names, kept) if k)
+    return ArtefactPool(Q, point, placement, names, rows, B0)
+
+
+def choose_recordings(problem: Problem, pool: ArtefactPool, criterion: str, m: int, starts: int) -> Design:
+    """The m recordings of the pool best by ``criterion`` (:func:`~.pool.choose_design` on the
+    pool's rows; the rows that break a rule of the problem left out). The design's ``Q``; which
+    recordings: :func:`chosen_rows`."""
+    keep, _, _ = kept_postures(problem, pool.Q, np.zeros((len(pool.Q), problem.model.nF)))
+    idx = np.flatnonzero(keep)
+    Q = pool.Q[idx]
+    return choose_design(problem, criterion, m, Q, np.zeros((len(Q), problem.model.nF)), starts,
+                         with_bound=False, rows=(pool.B[idx], pool.B0))
+
+
+def chosen_rows(pool: ArtefactPool, design: Design) -> np.ndarray:
+    """The pool's rows of the design's configurations (m,), in the design's order."""
+    return np.array([int(np.flatnonzero(np.all(pool.Q == q, axis=1))[0]) for q in design.Q])
