@@ -141,7 +141,7 @@ def _folder(problem: Problem, folder: Path, option: str) -> tuple[dict, list[str
             continue
         if rows.shape[1] != n:
             raise ProblemError(f"{f}: {rows.shape[1]} joint values a row, the chain to "
-                               f"'{problem.spec.robot.frame}' has {n} ({', '.join(problem.robot.joint_names)}); "
+                               f"'{problem.spec.robot.frame}' has {n} ({', '.join(problem.robot.joints)}); "
                                "give them in the chain's order")
         if not np.all(np.isfinite(rows)):
             raise ProblemError(f"{f}: a value that is not a finite number; fix or delete its row")

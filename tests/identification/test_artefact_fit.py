@@ -1,0 +1,167 @@
+"""identify and solve for points fixed in an artefact, on a Panda whose recordings are made
+independently of the package's model (tests/artefact_data.py): the fit, the predicted held-out
+consistency against a Monte Carlo of the seating's noise, a ball not seated found, the
+recordings' bad input, and the commands end to end (calibrated.urdf read back by Pinocchio)."""
+
+import json
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from casadi_design.cli import main
+from casadi_design.errors import ProblemError
+from casadi_design.identification.artefact_fit import (
+    artefact_base_set,
+    ball_points,
+    figures,
+    fit_artefact,
+    fit_without_outliers,
+    judged,
+)
+from casadi_design.identification.fit import fit_model
+from casadi_design.identification.recordings import Recordings, read_recordings
+from casadi_design.problem.build import load_problem
+from tests.artefact_data import recordings, true_ball
+from tests.conftest import ROOT
+
+PANDA = ROOT / "examples" / "panda_ball_socket.toml"
+SIGMA = 5e-5
+PER_POINT = 15
+
+
+@pytest.fixture(scope="module")
+def ideal():
+    """The Panda problem, its true robot, 15 configurations per socket of two placements with the
+    ball exactly seated, and each configuration's least-norm IK step (n x 3) of the true robot:
+    ``q + S e`` seats the ball ``e`` off (to first order)."""
+    problem = load_problem(PANDA)
+    true, Q, k, g = recordings(problem, 0, PER_POINT, 0.0)
+    model, data = true.model, true.model.createData()
+    steps = []
+    for q in Q:
+        J = pin.computeFrameJacobian(model, data, problem.robot.full_q(q), true.frame_id, pin.LOCAL_WORLD_ALIGNED)[:3]
+        steps.append(np.linalg.pinv(J[:, [model.joints[j].idx_v for j in problem.robot.joint_ids]]))
+    return problem, true, Q, k, g, np.array(steps)
+
+
+def seated(ideal, rng: np.random.Generator) -> np.ndarray:
+    """The ideal configurations with the seating's noise N(0, SIGMA^2 I) on the ball."""
+    _, _, Q, _, _, steps = ideal
+    return Q + np.einsum("kij,kj->ki", steps, rng.normal(0, SIGMA, (len(Q), 3)))
+
+
+@pytest.fixture(scope="module")
+def simulated(ideal):
+    """The Panda problem, its true robot and one draw of the recordings."""
+    problem, true, _, k, g, _ = ideal
+    return problem, true, seated(ideal, np.random.default_rng(0)), k, g
+
+
+def _split(Q, k, g) -> tuple[Recordings, Recordings]:
+    names = ("front", "side")
+    train = Recordings(Q[g == 0], k[g == 0], np.zeros(int(np.sum(g == 0)), int), names[:1],
+                       tuple(f"front {i}" for i in range(int(np.sum(g == 0)))))
+    valid = Recordings(Q[g == 1], k[g == 1], np.zeros(int(np.sum(g == 1)), int), names[1:],
+                       tuple(f"side {i}" for i in range(int(np.sum(g == 1)))))
+    return train, valid
+
+
+def test_the_fit_recovers_the_robot_and_the_predicted_consistency_is_a_monte_carlos(simulated, ideal):
+    """Trained on one placement, the fit leaves the seating's noise (sigma per value); over 40
+    draws of the seating's noise at both placements, the mean held-out consistency is the
+    predicted one within 5 %."""
+    problem, _, Q, k, g = simulated
+    train, valid = _split(Q, k, g)
+    names, _ = artefact_base_set(problem, train, problem.model.parameter_names)
+    fm = fit_model(problem, "base", names)
+    f = fit_artefact(problem, fm, train)
+    assert np.sqrt(np.sum(f.r**2) / f.dof) == pytest.approx(SIGMA, rel=0.3)
+    predicted = judged(problem, f, valid, None, SIGMA, train)[0].predicted_consistency_m
+    rng = np.random.default_rng(7)
+    seen = []
+    for _ in range(40):
+        tr, va = _split(seated(ideal, rng), k, g)
+        fn = fit_artefact(problem, fm, tr)
+        seen.append(figures(problem.artefact, ball_points(fm.model, va.Q, fn.X)[0], va.point)[0])
+    assert np.mean(seen) == pytest.approx(predicted, rel=0.05)
+
+
+def test_a_ball_not_seated_is_an_outlier(simulated):
+    problem, true, Q, k, g = simulated
+    train, _ = _split(Q, k, g)
+    bad = true_ball(problem, true, train.Q[3:4])  # configuration 3 moved 1 mm: the ball sat 1 mm off
+    data = true.model.createData()
+    qf = problem.robot.full_q(train.Q[3])
+    J = pin.computeFrameJacobian(true.model, data, qf, true.frame_id, pin.LOCAL_WORLD_ALIGNED)[:3]
+    J = J[:, [true.model.joints[j].idx_v for j in problem.robot.joint_ids]]
+    Qb = train.Q.copy()
+    Qb[3] = Qb[3] + np.linalg.pinv(J) @ np.array([1e-3, 0.0, 0.0])
+    assert np.linalg.norm(true_ball(problem, true, Qb[3:4]) - bad) == pytest.approx(1e-3, rel=1e-2)
+    names, _ = artefact_base_set(problem, train, problem.model.parameter_names)
+    f, outliers, _ = fit_without_outliers(problem, fit_model(problem, "base", names),
+                                          Recordings(Qb, train.point, train.placement, train.names, train.sources))
+    assert [where for where, _ in outliers] == ["front 3"]
+    assert not f.used[3] and f.used.sum() == len(Qb) - 1
+
+
+def _folder(path, Q, k):
+    path.mkdir(parents=True, exist_ok=True)
+    for j in np.unique(k):
+        np.savetxt(path / f"hole_{j}.csv", Q[k == j], delimiter=",")
+    return path
+
+
+def test_bad_recordings_get_one_line_naming_the_file_and_the_fix(simulated, tmp_path):
+    problem, _, Q, k, _ = simulated
+    cases = {
+        "joints": (lambda d: np.savetxt(d / "hole_0.csv", Q[:5, :6], delimiter=","), "6 joint values a row"),
+        "point": (lambda d: np.savetxt(d / "hole_5.csv", Q[:5], delimiter=","), "point 5 is not a point"),
+        "one": (lambda d: np.savetxt(d / "hole_0.csv", Q[:1], delimiter=","), "one configuration"),
+        "empty": (lambda d: None, "a folder with no recordings"),
+        "degrees": (lambda d: np.savetxt(d / "hole_0.csv", np.degrees(Q[:5]), delimiter=","), "look like degrees"),
+    }
+    for name, (make, message) in cases.items():
+        folder = tmp_path / name
+        folder.mkdir()
+        make(folder)
+        with pytest.raises(ProblemError, match=message) as info:
+            read_recordings(problem, [str(folder)])
+        assert "\n" not in str(info.value) and str(folder) in str(info.value)
+    with pytest.raises(ProblemError, match="no such file or folder"):
+        read_recordings(problem, [str(tmp_path / "missing.csv")])
+
+
+def test_identify_and_solve_end_to_end(simulated, tmp_path, capsys):
+    """identify on one placement's folder with another held out: identification.json holds the
+    held-out consistency, measured and predicted; Pinocchio evaluating calibrated.urdf's
+    measured_point on the recorded joints gets the consistency identify prints. solve
+    --candidates chooses recordings whose plan CSV identify reads back."""
+    problem, _, Q, k, g = simulated
+    front = _folder(tmp_path / "front", Q[g == 0], k[g == 0])
+    side = _folder(tmp_path / "side", Q[g == 1], k[g == 1])
+    out = tmp_path / "id"
+    assert main(["identify", str(PANDA), "--measurements", str(front), "--validation", str(side),
+                 "--out", str(out), "--quiet"]) == 0
+    record = json.loads((out / "identification.json").read_text())
+    v = record["validation"]
+    assert v["placements"][0]["placement"] == "side"
+    assert 0 < v["consistency_mm"] < 0.2 and 0 < v["predicted_consistency_mm"] < 0.2
+    assert "base.tx" in [a["name"] for a in record["absorbed"]]
+    model = pin.buildModelFromUrdf(str(out / "calibrated.urdf"))
+    data, fid = model.createData(), model.getFrameId("measured_point")
+    P = []
+    for q in Q[g == 1]:
+        full = pin.neutral(model)
+        full[:7] = q
+        pin.framesForwardKinematics(model, data, full)
+        P.append(data.oMf[fid].translation.copy())
+    assert figures(problem.artefact, np.array(P), k[g == 1])[0] * 1e3 == pytest.approx(v["consistency_mm"], rel=1e-9)
+    design = tmp_path / "design"
+    assert main(["solve", str(PANDA), "--candidates", str(front), "--m", "12", "--criteria", "test-pose,D",
+                 "--starts", "2", "--out", str(design), "--quiet"]) == 0
+    designs = json.loads((design / "artefact_design.json").read_text())["designs"]
+    assert [d["criterion"] for d in designs] == ["test-pose", "D"]
+    assert designs[0]["max_rms_error_m"] <= designs[1]["max_rms_error_m"]
+    chosen = read_recordings(problem, [str(design / "plans" / "test-pose_m12.csv")])
+    assert chosen.N == 12 and set(map(tuple, chosen.Q)) <= set(map(tuple, Q[g == 0]))
