@@ -101,26 +101,26 @@ def run(args: argparse.Namespace) -> int:
         an ``--out`` that cannot be written (before anything is computed).
     """
     from ..identification.calibrate import calibrate
-    from ..identification.calibrated_toml import (
+    from ..calibrated.calibrated_toml import (
         calibrated_dh_problem,
         calibrated_problem,
         toml_text,
     )
-    from ..identification.dh_table import calibrated_dh, has_dh_table
+    from ..calibrated.dh_table import calibrated_dh, has_dh_table
     from ..identification.measurements import (
         FileFormat,
         parse_columns,
         read_measurements,
         rounds_of,
     )
-    from ..identification.report import (
+    from ..calibrated.report import (
         compensated_csv,
         identification_record,
         parameter_unit,
         report_markdown,
         summary_lines,
     )
-    from ..identification.urdf import calibrated_chain, urdf_text
+    from ..calibrated.urdf import calibrated_chain, urdf_text
 
     out = prepare_out(args.out, args.force)
     t0 = time.perf_counter()
@@ -194,10 +194,10 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
     ``placement`` columns, each ``--validation`` a placement held out. Writes identification.json,
     calibrated.urdf (``measured_point``: the calibrated ball centre) and calibrated.toml."""
     from ..identification.artefact_fit import calibrate_artefact
-    from ..identification.artefact_report import artefact_record, artefact_summary
-    from ..identification.calibrated_toml import calibrated_problem, toml_text
+    from ..calibrated.artefact_report import artefact_record, artefact_summary
+    from ..calibrated.calibrated_toml import calibrated_problem, toml_text
     from ..identification.recordings import read_recordings
-    from ..identification.urdf import calibrated_chain, urdf_text
+    from ..calibrated.urdf import calibrated_chain, urdf_text
 
     rec = read_recordings(problem, args.measurements)
     valid = None if not args.validation else read_recordings(problem, args.validation, "--validation")

@@ -36,7 +36,7 @@ from ..errors import DesignError, ProblemError
 from ..problem.build import Problem
 from ..robot.mapped import evaluate
 from ..measures.field import Field, covariance, value_covariance
-from .choice import Candidate, choose
+from .choice import NEGATIVE_STD, Candidate, choose, has_weight, negative_compliances
 from .field_fit import FieldFit, estimate_field
 from .fit import FitModel, fit_model
 from .lsq import LSQ_TOL, measurement_jacobian, nominal_poses
@@ -158,7 +158,10 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
         raise DesignError(f"the {int(used.sum())} recordings do not identify the {L} parameters with the "
                           f"{len(places)} placement(s) unknown; record more varied configurations")
     norms = np.linalg.norm(J0, axis=0)
-    found = least_squares(lambda x: at(x)[0], x0, jac=lambda x: at(x)[1], method="lm",
+    # MINPACK's Levenberg-Marquardt, or the trust-region reflective method where the joints
+    # deflect under the robot's weight: there LM's first steps reach compliances whose deflection
+    # fixed point runs away (a Panda: cost 1e5 sigma^2 after 1000 evaluations; trf: 53)
+    found = least_squares(lambda x: at(x)[0], x0, jac=lambda x: at(x)[1], method="trf" if model.gravity else "lm",
                           x_scale=1.0 / np.where(norms > 0, norms, 1.0), ftol=LSQ_TOL, xtol=LSQ_TOL, gtol=LSQ_TOL,
                           max_nfev=MAX_EVALUATIONS)
     if found.status <= 0:
@@ -183,11 +186,13 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
     return ArtefactFit(fm, X, Rall, tall, p - s, Jp, used, int(found.nfev), nP * len(places))
 
 
-def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...]) -> tuple[tuple[str, ...], list[tuple[str, str]]]:
+def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...],
+                      gravity: bool = False) -> tuple[tuple[str, ...], list[tuple[str, str]]]:
     """The parameters of ``names`` the recordings identify with every placement and the robot's
     base unknown (:func:`~casadi_design.calibration.artefact.identifiable` at the nominal
-    robot), and (name, why) of those left out."""
-    fm = fit_model(problem, "base", names)
+    robot; with ``gravity`` the compliances ``k.<joint>`` of ``names`` deflect the joints under
+    the robot's own weight), and (name, why) of those left out."""
+    fm = fit_model(problem, "base", names, gravity=gravity)
     f = nominal_fit(problem, fm, rec)
     p, J = ball_points(fm.model, rec.Q, np.zeros(fm.model.L))
     G = np.zeros((rec.N, 3, problem.artefact.nP))
@@ -452,15 +457,20 @@ class ArtefactCalibration:
         return np.sqrt(np.diagonal(self.C))
 
 
-#: The candidate models of an artefact's recordings (module docstring of :mod:`.choice`).
-ARTEFACT_MODELS = ("auto", "offsets", "identifiable")
+#: The candidate models of an artefact's recordings (module docstring of :mod:`.choice`): the
+#: joint offsets and the measured point, the base set the recordings tell, and with a robot whose
+#: URDF (or ``inertias_urdf``) gives masses the base set with every joint's compliance under the
+#: robot's own weight.
+ARTEFACT_MODELS = ("auto", "offsets", "identifiable", "identifiable + gravity")
 
 
 def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | None = None,
-                       model: str = "auto", threshold: float = OUTLIER_SIGMA) -> ArtefactCalibration:
+                       model: str = "auto", threshold: float = OUTLIER_SIGMA,
+                       with_field: bool = True) -> ArtefactCalibration:
     """Identify the robot from recordings of an artefact's points (module docstring): the base
     set, candidates judged by cross-validation (``model``: one of :data:`ARTEFACT_MODELS`),
-    outliers, error scale, covariance, and the figures of the training and ``valid`` placements.
+    outliers, error scale, the unmodelled error's field (``with_field``; else ``s`` per value,
+    uncorrelated), covariance, and the figures of the training and ``valid`` placements.
 
     Raises
     ------
@@ -471,23 +481,31 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
         raise ProblemError(f"--model {model}: allowed for an artefact's recordings: {', '.join(ARTEFACT_MODELS)}")
     names, absorbed = artefact_base_set(problem, rec, problem.model.parameter_names)
     offsets = tuple(n for n in names if n.endswith(".offset") or n.startswith("tool."))
-    found, fits = [], {}
-    for name, chosen in (("offsets", offsets), ("identifiable", names)):
-        if name != "identifiable" and (not chosen or chosen == names):
+    wanted = [("offsets", offsets, False), ("identifiable", names, False)]
+    if has_weight(problem):  # + every joint's compliance under the robot's own weight, those the rows tell
+        told = artefact_base_set(problem, rec, names + tuple(f"k.{j}" for j in problem.robot.joints), True)[0]
+        wanted.append(("identifiable + gravity", told, True))
+    found = []
+    for name, chosen, gravity in wanted:
+        if name == "offsets" and (not chosen or chosen == names) or model not in ("auto", name):
             continue
-        fm = fit_model(problem, "base", chosen)
+        fm = fit_model(problem, "base", chosen, gravity=gravity)
         try:
             f = fit_artefact(problem, fm, rec)
         except DesignError as e:
             found.append(Candidate(name, fm, math.nan, math.nan, why=str(e)))
             continue
         cv, se, why = cross_validate(f)
-        found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why))
-        fits[name] = fm
-    chosen, notes = choose(found, "auto" if model == "auto" else model)
+        negative = negative_compliances(f, np.sqrt(np.sum(f.r**2) / max(f.dof, 1)) *
+                                        np.sqrt(np.diagonal(np.linalg.inv(f.information)))) if gravity else []
+        refused = (f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in negative)}): no "
+                   "joint yields against its weight" if negative else "")
+        found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why,
+                               refused=refused))
+    chosen, notes = choose(found, "auto")
     f, outliers, more = fit_without_outliers(problem, chosen.fit_model, rec, threshold)
     scale = scale_of(f, problem.sigma_m)
-    field = unmodelled_field(problem, f, rec).field
+    field = unmodelled_field(problem, f, rec).field if with_field else None
     Qt = rec.Q[f.used]
     dqt = f.fit.model.dq_stack(Qt)
     Vtt = row_covariances(field, scale.s_m, problem.sigma_m, Qt, dqt, Qt[:0], dqt[:0])[0]

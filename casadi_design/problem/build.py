@@ -449,6 +449,8 @@ def build_robot(r: RobotSpec) -> Robot:
         model = planar_arm(r.planar_links_m)
     elif r.source == "urdf":
         model = load_urdf(r.urdf)
+        if r.inertias_urdf:
+            with_inertias(model, load_urdf(r.inertias_urdf), r.inertias_urdf)
     else:
         rows = [DHJoint(j.name, j.kind, j.theta_offset_rad, j.d_m, j.a_m, j.alpha_rad, j.lower, j.upper, j.beta_rad)
                 for j in r.dh_rows]
@@ -458,6 +460,23 @@ def build_robot(r: RobotSpec) -> Robot:
     if r.tool_xyz_m is not None:
         frame = add_tool_frame(model, frame, placement_from_xyz_rpy(r.tool_xyz_m, r.tool_rpy_rad))
     return make_robot(model, frame, {j: (lo, hi) for j, lo, hi in r.joint_limits_rad})
+
+
+def with_inertias(model: pin.Model, source: pin.Model, name: str) -> None:
+    """Give ``model``'s joints the inertias (mass, centre of mass, rotational inertia: the bodies
+    each carries) of ``source``'s joints of the same names, in place.
+
+    Raises
+    ------
+    ProblemError
+        When no joint of ``model`` is in ``source``.
+    """
+    shared = [j for j in model.names[1:] if source.existJointName(j)]
+    if not shared:
+        raise ProblemError(f"[robot].inertias_urdf: {name} has none of the joints of [robot].urdf "
+                           f"({', '.join(model.names[1:])}); give a URDF of the same robot")
+    for j in shared:
+        model.inertias[model.getJointId(j)] = source.inertias[source.getJointId(j)]
 
 
 def _test_poses(path: str, tp: TestPoseSpec, robot: Robot, model: CalibrationModel) -> TestPoses:

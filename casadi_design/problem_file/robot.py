@@ -19,7 +19,7 @@ MAX_BETA_DEG = 90.0
 #: The keys allowed in each table of this section (None: any key).
 KEYS: dict[str, set[str] | None] = {
     "robot": {"planar_links_m", "urdf", "dh", "frame", "tool_xyz_m", "tool_rpy_deg", "joint_limits_rad",
-              "joint_speeds_deg_s", "controller"},
+              "joint_speeds_deg_s", "controller", "inertias_urdf"},
     "robot.controller": {"signs", "offsets_deg", "acceleration_time_s"},
     "robot.dh": {"convention", "joints", "base_xyz_m", "base_rpy_deg", "flange_xyz_m", "flange_rpy_deg"},
     "robot.dh.joints": {"name", "type", "theta_offset_deg", "d_m", "a_m", "alpha_deg", "beta_deg", "limits_deg"},
@@ -65,6 +65,9 @@ class RobotSpec:
     frame 0 sits at (``base_xyz_m``, ``base_rpy_rad``) in the world, its frame ``flange`` at
     (``flange_xyz_m``, ``flange_rpy_rad``) after the last row.
     ``joint_limits_rad`` overrides limits as (joint, lower, upper), rad or m.
+    ``inertias_urdf``: a URDF of the same robot (same joint names) whose links' masses and
+    inertias replace those of ``urdf`` (a kinematic URDF without them), for the joints' load
+    under the robot's own weight; "" for none.
     ``joint_speeds_deg_s`` (one per joint, deg/s or mm/s as in the file; None: the URDF's
     velocity limits) and
     ``controller`` (None: identity, acceleration time ``ControllerSpec.acceleration_time_s``)
@@ -82,6 +85,7 @@ class RobotSpec:
     flange_rpy_rad: Vec = (0.0, 0.0, 0.0)
     tool_xyz_m: Vec | None = None
     tool_rpy_rad: Vec | None = None
+    inertias_urdf: str = ""
     joint_limits_rad: tuple[tuple[str, float, float], ...] = ()
     joint_speeds_deg_s: Vec | None = None
     controller: ControllerSpec | None = None
@@ -110,6 +114,10 @@ def read_robot(r: TableReader) -> RobotSpec:
         if not urdf.startswith("example-robot-data:") and not Path(urdf).is_absolute():
             urdf = str(Path(r.path).parent / urdf)
         spec["urdf"] = urdf
+        inertias = r.get("inertias_urdf", str, "", hint="a URDF of the same robot whose links carry masses")
+        if inertias and not inertias.startswith("example-robot-data:") and not Path(inertias).is_absolute():
+            inertias = str(Path(r.path).parent / inertias)
+        spec["inertias_urdf"] = inertias
     else:
         spec.update(_dh(r.sub("dh")))
     if "tool_xyz_m" in r.table or "tool_rpy_deg" in r.table:

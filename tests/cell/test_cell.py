@@ -374,7 +374,7 @@ def test_a_calibrated_problem_file_names_the_srdf_from_where_it_is_written(tmp_p
     """identify's calibrated.toml is written in its output folder: a relative ``srdf`` of the
     problem file is rewritten relative to that folder (it was copied as written, and the
     calibrated file could not be read)."""
-    from casadi_design.identification.calibrated_toml import calibrated_problem
+    from casadi_design.calibrated.calibrated_toml import calibrated_problem
     from casadi_design.robot.robots import urdf_file
 
     (tmp_path / "robot").mkdir()

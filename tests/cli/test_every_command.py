@@ -21,7 +21,7 @@ import pytest
 from casadi_design.cli import main
 from casadi_design.execution.campaign import approximate_designs
 from casadi_design.identification.fit import model_points
-from casadi_design.identification.urdf import MEASURED_POINT
+from casadi_design.calibrated.urdf import MEASURED_POINT
 from casadi_design.measures.measures import information_matrix
 from casadi_design.optimisation.bound import bound
 from casadi_design.plan.rules import FEASIBILITY_TOL

@@ -16,8 +16,8 @@ import pinocchio as pin
 import pytest
 
 from casadi_design.cli import main
-from casadi_design.identification.dh_table import calibrated_dh, is_hayati
-from casadi_design.identification.urdf import MEASURED_POINT, CalibratedChain, calibrated_model
+from casadi_design.calibrated.dh_table import calibrated_dh, is_hayati
+from casadi_design.calibrated.urdf import MEASURED_POINT, CalibratedChain, calibrated_model
 from casadi_design.plan.sampling import random_plan
 from casadi_design.problem.build import build_robot, load_problem
 from casadi_design.problem_file.read import parse_problem, read_problem

@@ -17,7 +17,7 @@ from casadi_design.identification import lsq
 from casadi_design.identification.calibrate import calibrate
 from casadi_design.identification.fit import model_points
 from casadi_design.identification.measurements import read_measurements
-from casadi_design.identification.report import identification_record, tracker_std
+from casadi_design.calibrated.report import identification_record, tracker_std
 from casadi_design.plan.sampling import random_plan
 from casadi_design.robot.robots import frame_placement, make_robot
 from casadi_design.virtual import identify as virtual_identify
@@ -204,7 +204,7 @@ def test_abb_markers_loads_and_a_hidden_marker(tmp_path):
     assert cal.noise_consistent and not cal.outliers
     # the DH robot's kinematic calibrated.urdf: its marker frames where the calibrated model
     # puts the markers (unloaded)
-    from casadi_design.identification.urdf import calibrated_chain, urdf_text
+    from casadi_design.calibrated.urdf import calibrated_chain, urdf_text
 
     (tmp_path / "calibrated.urdf").write_text(urdf_text(problem, calibrated_chain(
         problem, cal.names, cal.fit.robot_X)))

@@ -27,7 +27,7 @@ import pinocchio as pin
 from ..problem.build import Problem
 from ..robot.robots import Robot, urdf_file
 from ..robot.symbolic import joint_axis
-from .fit import error_placement
+from ..identification.fit import error_placement
 
 #: Name of the fixed frame at the identified measured point; markers are ``marker_<i>``.
 MEASURED_POINT = "measured_point"

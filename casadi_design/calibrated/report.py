@@ -8,9 +8,9 @@ import math
 import numpy as np
 
 from ..records.export import CONVERGED_COLUMN, change_columns, csv_text, is_prismatic, joint_scales, plan_table
-from .calibrate import CORRELATION_LIMIT, Calibration
-from .fit import ABSORB_SEED, FRAME_PARAMETERS, error_placement
-from .measurements import file_sha256
+from ..identification.calibrate import CORRELATION_LIMIT, Calibration
+from ..identification.fit import ABSORB_SEED, FRAME_PARAMETERS, error_placement
+from ..identification.measurements import file_sha256
 
 #: Step (m, rad) of the finite differences of the tracker frame's entries in its parameters.
 FRAME_STEP = 1e-7

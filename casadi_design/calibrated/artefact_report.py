@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from .artefact_fit import ArtefactCalibration, Judged
+from ..identification.artefact_fit import ArtefactCalibration, Judged
 from .report import none_if_nan, parameter_unit
 
 

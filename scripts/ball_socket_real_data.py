@@ -1,0 +1,91 @@
+"""identify on MUKCa's real ball-in-socket recordings: every robot trained on one placement, every
+other placement held out; the figures docs/ball-socket.md gives.
+
+    python scripts/ball_socket_real_data.py [--data ../shared/real_data/mukca] [--robots panda_2,panda_4]
+
+For each robot (the problem file of its kind in examples/, the placement trained on: panda_2's
+``front_center`` and panda_4's ``front`` as the authors', the first folder for the others):
+held-out consistency and median spacing error (mm) of the nominal model, of the calibration
+(what ``casadi-design identify`` prints, the same function) and its prediction, and where the
+authors' calibrated URDF is published, theirs on the same placements (Pinocchio, their
+``ball_link``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from casadi_design.identification.artefact_fit import calibrate_artefact, figures  # noqa: E402
+from casadi_design.identification.recordings import read_recordings  # noqa: E402
+from casadi_design.problem.build import load_problem  # noqa: E402
+
+#: robot folder -> (problem file, placement trained on)
+ROBOTS = {"panda_2": ("panda_ball_socket", "front_center"), "panda_4": ("panda_ball_socket", "front"),
+          "panda_1_with_sensor": ("panda_bota_ball_socket", None), "kuka_14": ("iiwa14_ball_socket", None),
+          "dinova_1": ("gen3lite_ball_socket", None), "dinova_2": ("gen3lite_ball_socket", None)}
+
+
+def authors(urdf: Path, problem, rec) -> tuple[float, float]:
+    """Mean consistency and median spacing error (m) of the authors' calibrated URDF on ``rec``'s
+    placements (their ``ball_link``, the chain's joints first)."""
+    model = pin.buildModelFromUrdf(str(urdf))
+    data, fid = model.createData(), model.getFrameId("ball_link")
+    out = []
+    for g in range(rec.P):
+        rows = rec.placement == g
+        P = []
+        for q in rec.Q[rows]:
+            full = pin.neutral(model)
+            full[:len(q)] = q
+            pin.framesForwardKinematics(model, data, full)
+            P.append(data.oMf[fid].translation.copy())
+        out.append(figures(problem.artefact, np.array(P), rec.point[rows]))
+    out = np.array(out)
+    return float(out[:, 0].mean()), float(np.median(out[:, 1]))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default=str(ROOT.parent / "shared" / "real_data" / "mukca"))
+    parser.add_argument("--robots", default=",".join(ROBOTS))
+    args = parser.parse_args()
+    data = Path(args.data)
+    print("robot                train          held out  nominal  calibrated (predicted)  authors | "
+          "median spacing: calibrated  authors   model  time")
+    for robot in args.robots.split(","):
+        name, train = ROBOTS[robot]
+        problem = load_problem(ROOT / "examples" / f"{name}.toml")
+        places = sorted(p.name for p in (data / "data" / robot).iterdir() if p.is_dir())
+        train = train or places[0]
+        t0 = time.perf_counter()
+        rec = read_recordings(problem, [str(data / "data" / robot / train)])
+        valid = read_recordings(problem, [str(data / "data" / robot / p) for p in places if p != train], "--validation")
+        cal = calibrate_artefact(problem, rec, valid)
+        wall = time.perf_counter() - t0
+        v = cal.validation
+        mean = {k: float(np.mean([getattr(j, f"{k}_m") for j in v])) * 1e3
+                for k in ("consistency", "predicted_consistency", "nominal_consistency")}
+        spacing = float(np.median([j.spacing_m for j in v])) * 1e3
+        theirs = data / "calibrated_urdf" / robot / "panda.urdf"
+        a = authors(theirs, problem, valid) if theirs.exists() else None
+        print(f"{robot:20s} {train:14s} {len(v):8d}  {mean['nominal_consistency']:7.3f}  {mean['consistency']:10.3f} "
+              f"({mean['predicted_consistency']:.3f})      " + (f"{a[0] * 1e3:7.3f}" if a else "      -")
+              + f" | {spacing:26.3f}  " + (f"{a[1] * 1e3:7.3f}" if a else "      -")
+              + f"   {cal.model} ({len(cal.names)}){'' if cal.field is None else ', field'}  {wall:.0f} s")
+        for j in v:
+            print(f"    {j.name:16s} consistency {j.consistency_m * 1e3:.3f} (predicted {j.predicted_consistency_m * 1e3:.3f},"
+                  f" nominal {j.nominal_consistency_m * 1e3:.2f})  spacing {j.spacing_m * 1e3:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
