@@ -163,7 +163,7 @@ def _limits(problem: Problem, Q: np.ndarray, sources: list[str]) -> None:
     past = np.maximum(robot.q_min - Q, Q - robot.q_max)
     i, j = np.unravel_index(int(np.argmax(past)), past.shape)
     if past[i, j] > LIMIT_TOL:
-        raise ProblemError(f"{sources[i]}: {robot.joint_names[j]} = {Q[i, j]:.6g} is outside its limits "
+        raise ProblemError(f"{sources[i]}: {robot.joints[j]} = {Q[i, j]:.6g} is outside its limits "
                            f"[{robot.q_min[j]:.6g}, {robot.q_max[j]:.6g}] rad; check the joint order and units")
 
 
