@@ -532,5 +532,10 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     C = Hi @ Jp.T @ Vtt @ Jp @ Hi  # the least squares' covariance under the rows' errors
     training = judged(problem, f, rec, field, scale.s_m, rec)
     validation = judged(problem, f, valid, field, scale.s_m, rec) if valid is not None else []
+    worse = [j.name for j in validation if j.predicted_consistency_m > j.nominal_consistency_m]
+    if worse:
+        more.append(f"at {', '.join(worse)} the predicted consistency is above the nominal robot's: the recordings "
+                    f"of {', '.join(rec.names)} do not tell the robot well enough to calibrate it there (their error "
+                    f"{scale.s_m * 1e3:.3g} mm per value); record more varied configurations, or check the seating")
     return ArtefactCalibration(problem, rec, f, chosen.name, tuple(found), tuple(absorbed), scale, C, field,
                                tuple(outliers), tuple(notes + more), tuple(training), tuple(validation), valid)
