@@ -39,9 +39,9 @@ from ..measures.field import Field, covariance, value_covariance
 from .choice import NEGATIVE_STD, Candidate, choose, has_weight, negative_compliances
 from .field_fit import FieldFit, estimate_field
 from .fit import FitModel, fit_model
-from .lsq import LSQ_TOL, measurement_jacobian, nominal_poses
+from .lsq import LSQ_TOL, measurement_jacobian, nominal_poses, remembered
 from .recordings import Recordings
-from .residuals import ErrorScale, deleted_scores, error_scale, leverages, press
+from .residuals import ErrorScale, deleted_scores, error_scale, leverages, press, without_outliers
 
 #: Outlier test: a configuration whose externally studentized residual exceeds this many of the
 #: other rows' errors is a ball not seated; at most this share of the rows is excluded.
@@ -143,14 +143,7 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
             jac[rows, :, L + i * nP:L + (i + 1) * nP] = -A.columns(R[i], k[rows])
         return (p - s).reshape(-1) / sigma, jac.reshape(-1, jac.shape[2]) / sigma
 
-    last: dict = {}
-
-    def at(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        key = x.tobytes()
-        if key not in last:
-            last.clear()
-            last[key] = residuals(x)
-        return last[key]
+    at = remembered(residuals)
 
     x0 = np.zeros(L + nP * len(places))
     J0 = at(x0)[1]
@@ -251,29 +244,17 @@ def fit_without_outliers(problem: Problem, fm: FitModel, rec: Recordings,
     worst first, and refit, at most :data:`MAX_OUTLIER_SHARE` of the rows: a ball that was not
     seated stands out against the other rows' error. The fit, the outliers (source, score) and
     the notes."""
-    f = fit_artefact(problem, fm, rec)
-    cap = max(1, math.floor(MAX_OUTLIER_SHARE * rec.N))
-    outliers: list[tuple[str, float]] = []
-    while True:
-        score, scale = row_scores(f, problem.sigma_m)
-        beyond = np.flatnonzero(score > threshold)
-        if not beyond.size:
-            return f, outliers, []
-        room = cap - len(outliers)
-        if room <= 0:
-            return f, outliers, [f"{beyond.size} more configuration{'s' * (beyond.size > 1)} lie beyond {threshold:g} x "
-                                 f"the other rows' error (about {np.nanmedian(scale) * 1e3:.3g} mm); at most "
-                                 f"{MAX_OUTLIER_SHARE:.0%} are excluded: so many is the robot's error, not balls unseated"]
-        worst = beyond[np.argsort(-score[beyond], kind="stable")]
-        batch = worst[score[worst] > score[worst[0]] / 2][:room]
-        trial = f.used.copy()
-        trial[batch] = False
-        try:
-            refit = fit_artefact(problem, fm, rec, trial)
-        except (ProblemError, DesignError) as e:
-            return f, outliers, [f"{rec.sources[batch[0]]} kept: the fit without it failed ({e})"]
-        outliers += [(rec.sources[i], float(score[i])) for i in batch]
-        f = refit
+    f, excluded, stopped = without_outliers(lambda used: fit_artefact(problem, fm, rec, used),
+                                            lambda f: row_scores(f, problem.sigma_m), rec.N, threshold,
+                                            MAX_OUTLIER_SHARE)
+    outliers = [(rec.sources[i], score) for i, score, _ in excluded]
+    if stopped is None:
+        return f, outliers, []
+    if stopped.error is None:
+        return f, outliers, [f"{stopped.beyond} more configuration{'s' * (stopped.beyond > 1)} lie beyond {threshold:g} x "
+                             f"the other rows' error (about {stopped.scale_m * 1e3:.3g} mm); at most "
+                             f"{MAX_OUTLIER_SHARE:.0%} are excluded: so many is the robot's error, not balls unseated"]
+    return f, outliers, [f"{rec.sources[stopped.row]} kept: the fit without it failed ({stopped.error})"]
 
 
 def cross_validate(f: ArtefactFit) -> tuple[float, float, str]:

@@ -80,7 +80,7 @@ from .fit import (
 from .lsq import check_loss, nominal_poses
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
-from .residuals import ErrorScale, deleted_scores, error_scale, leverages
+from .residuals import ErrorScale, deleted_scores, error_scale, leverages, without_outliers
 
 #: A row whose externally studentized residual exceeds this many times the other rows' error
 #: (at least sigma) is an outlier (default of ``--outlier-sigma``; :func:`row_scores`).
@@ -277,34 +277,21 @@ def fit_without_outliers(problem: Problem, fm: FitModel, meas: Measurements, T0:
     identify X, or it does not converge) keeps the last good fit, and the notes say so.
 
     Returns the fit, the outliers (line, score, scale m) and the notes."""
-    used = np.ones(meas.m, dtype=bool)
-    f = fit(problem, fm, meas, T0, used, loss)
-    cap = max(1, math.floor(MAX_OUTLIER_SHARE * meas.m))
-    outliers: list[tuple[int, float, float]] = []
-    while True:
-        score, scale = row_scores(f, problem.sigma_m)
-        beyond = np.flatnonzero(score > threshold)
-        if not beyond.size:
-            return f, outliers, []
-        room = cap - len(outliers)
-        if room <= 0:
-            return f, outliers, [
-                f"{beyond.size} more row{'s' * (beyond.size > 1)} lie beyond {threshold:g} x the other rows' "
-                f"error (about {np.nanmedian(scale) * 1e3:.4g} mm per value); at most {MAX_OUTLIER_SHARE:.0%} of the rows are excluded as bad "
-                "shots: so many far out is the robot's error the model misses, not bad shots (their "
-                "residuals: identification.png)"]
-        worst = beyond[np.argsort(-score[beyond], kind="stable")]
-        batch = worst[score[worst] > score[worst[0]] / 2][:room]
-        trial = used.copy()
-        trial[batch] = False
-        try:
-            refit = fit(problem, fm, meas, T0, trial, loss)
-        except (ProblemError, DesignError) as e:  # keep the rows and the last good fit
-            why = str(e).split(": ", 1)[-1]
-            return f, outliers, [f"row {meas.lines[batch[0]]} ({score[batch[0]]:.1f} x the other rows' error) kept: "
-                                 f"the fit without it failed ({why}); the fit with it is reported"]
-        outliers += [(meas.lines[i], float(score[i]), float(scale[i])) for i in batch]
-        used, f = trial, refit
+    f, excluded, stopped = without_outliers(lambda used: fit(problem, fm, meas, T0, used, loss),
+                                            lambda f: row_scores(f, problem.sigma_m), meas.m, threshold,
+                                            MAX_OUTLIER_SHARE)
+    outliers = [(meas.lines[i], score, scale) for i, score, scale in excluded]
+    if stopped is None:
+        return f, outliers, []
+    if stopped.error is None:
+        return f, outliers, [
+            f"{stopped.beyond} more row{'s' * (stopped.beyond > 1)} lie beyond {threshold:g} x the other rows' "
+            f"error (about {stopped.scale_m * 1e3:.4g} mm per value); at most {MAX_OUTLIER_SHARE:.0%} of the rows are excluded as bad "
+            "shots: so many far out is the robot's error the model misses, not bad shots (their "
+            "residuals: identification.png)"]
+    why = str(stopped.error).split(": ", 1)[-1]
+    return f, outliers, [f"row {meas.lines[stopped.row]} ({stopped.score:.1f} x the other rows' error) kept: "
+                         f"the fit without it failed ({why}); the fit with it is reported"]
 
 
 def design_rows(f: Fit, meas: Measurements) -> np.ndarray:

@@ -28,7 +28,9 @@ residuals are always the exact model's. The Jacobian is
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import casadi as ca
 import numpy as np
@@ -38,6 +40,7 @@ from ..errors import ProblemError
 from ..robot.mapped import EXACT, Stacked, evaluate
 from ..runtime.cache import memoised
 
+T = TypeVar("T")
 #: Losses of ``--loss``: scipy.optimize.least_squares's names.
 LOSSES = ("linear", "soft_l1", "huber", "cauchy")
 #: A robust loss treats residuals beyond this many sigma as bad shots (scipy's ``f_scale``).
@@ -134,6 +137,21 @@ def contracted(J: np.ndarray, rounds: np.ndarray, nf: int, P: int) -> np.ndarray
     return out
 
 
+def remembered(f: Callable[[np.ndarray], T]) -> Callable[[np.ndarray], T]:
+    """``f`` keeping its last value: scipy's least squares asks for the residuals and the
+    Jacobian at the same x one after the other, and one evaluation gives both."""
+    last: dict = {}
+
+    def at(x: np.ndarray) -> T:
+        key = x.tobytes()
+        if key not in last:
+            last.clear()
+            last[key] = f(x)
+        return last[key]
+
+    return at
+
+
 def check_loss(loss: str) -> str:
     if loss not in LOSSES:
         raise ProblemError(f"--loss {loss}: allowed: {', '.join(LOSSES)}")
@@ -221,14 +239,7 @@ def identify_nonlinear(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, re
     X = np.empty((trials, P))
     evaluations, stopped = 0, 0
     for t in range(trials):
-        target, last = y[t] / s, {}
-
-        def at(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            key = x.tobytes()
-            if key not in last:
-                last.clear()
-                last[key] = model_at(x)
-            return last[key]
+        target, at = y[t] / s, remembered(model_at)
 
         found = least_squares(lambda x: at(x)[0] - target, X0[t], jac=lambda x: at(x)[1],
                               method=method, x_scale=x_scale, loss=loss, f_scale=LOSS_SCALE_SIGMA,

@@ -34,9 +34,15 @@ value), Jacobian ``J`` (m, d, L) and ``H = J^T J`` (plus a MAP fit's prior):
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
+
+from ..errors import DesignError, ProblemError
+
+F = TypeVar("F")
 
 #: A value whose ``1 - h`` (or a row whose ``I - P_i`` has a smallest singular value) below
 #: this is needed to identify the model: its left-out error is not defined.
@@ -119,3 +125,50 @@ def error_scale(r: np.ndarray, P: np.ndarray, sigma: float, sigma_hat: float,
         return ErrorScale(sigma, 0.0, s_cv)
     s = sigma_hat if math.isnan(s_cv) else s_cv
     return ErrorScale(sigma, math.sqrt(max(0.0, s**2 - sigma**2)), s_cv)
+
+
+@dataclass(frozen=True)
+class Stopped:
+    """Why :func:`without_outliers` stopped with rows still beyond the threshold: ``beyond``
+    rows left at the cap (``scale_m`` the median scale they were judged against), or the refit
+    without row ``row`` (score ``score``) failed with ``error``."""
+
+    beyond: int = 0
+    scale_m: float = math.nan
+    row: int = -1
+    score: float = math.nan
+    error: Exception | None = None
+
+
+def without_outliers(fit_rows: Callable[[np.ndarray], F], scores: Callable[[F], tuple[np.ndarray, np.ndarray]],
+                     m: int, threshold: float, max_share: float
+                     ) -> tuple[F, list[tuple[int, float, float]], Stopped | None]:
+    """Fit the ``m`` rows (``fit_rows(used)``, a bool mask), then exclude the rows whose score
+    (``scores(fit)``: each row's score and the scale, m, it was judged against) exceeds
+    ``threshold`` and half the worst row's, the worst first, and refit, while rows exceed it; at
+    most ``max_share`` of the rows (at least one). A bad shot stands out against the residual
+    scale; what many rows share is the model's error. A refit that fails (the rest do not
+    identify X, or it does not converge) keeps the last good fit. Returns the fit, the rows
+    excluded (index, score, scale m) and why it stopped early (None: no row left beyond)."""
+    used = np.ones(m, dtype=bool)
+    f = fit_rows(used)
+    cap = max(1, math.floor(max_share * m))
+    excluded: list[tuple[int, float, float]] = []
+    while True:
+        score, scale = scores(f)
+        beyond = np.flatnonzero(score > threshold)
+        if not beyond.size:
+            return f, excluded, None
+        room = cap - len(excluded)
+        if room <= 0:
+            return f, excluded, Stopped(beyond.size, float(np.nanmedian(scale)))
+        worst = beyond[np.argsort(-score[beyond], kind="stable")]
+        batch = worst[score[worst] > score[worst[0]] / 2][:room]
+        trial = used.copy()
+        trial[batch] = False
+        try:
+            refit = fit_rows(trial)
+        except (ProblemError, DesignError) as e:  # keep the rows and the last good fit
+            return f, excluded, Stopped(row=int(batch[0]), score=float(score[batch[0]]), error=e)
+        excluded += [(int(i), float(score[i]), float(scale[i])) for i in batch]
+        used, f = trial, refit
