@@ -47,6 +47,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from ..identification.calibrate import OUTLIER_SIGMA
+    from ..identification.artefact_fit import ARTEFACT_MODELS
     from ..identification.choice import MODELS
     from ..identification.fit import FRAMES
     from ..identification.lsq import LOSS_SCALE_SIGMA, LOSSES
@@ -67,10 +68,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--outlier-sigma", type=number("--outlier-sigma", "a positive number"), default=OUTLIER_SIGMA, metavar="S",
                    help=f"a row whose residual exceeds S sigma is excluded and the rest refitted "
                         f"(default {OUTLIER_SIGMA:g})")
-    p.add_argument("--model", choices=MODELS, default="auto",
+    p.add_argument("--model", choices=tuple(dict.fromkeys(MODELS + ARTEFACT_MODELS)), default="auto",
                    help="the model identified: registration (frame and measured point), offsets (+ joint "
                         "offsets), identifiable (the problem's parameters), prior (those, MAP under the "
-                        "problem's [calibration.prior]) or auto (default: chosen by cross-validation on the rows)")
+                        "problem's [calibration.prior]) or auto (default: chosen by cross-validation on the rows); "
+                        "of an artefact's recordings: ball (the ball located), offsets, identifiable (the base set "
+                        "they tell), 'identifiable + gravity' or auto")
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help=f"least-squares loss: linear (default) or a robust loss that down-weights residuals "
                         f"beyond {LOSS_SCALE_SIGMA:g} sigma (bad shots)")

@@ -454,6 +454,8 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     DesignError
         A fit that does not converge.
     """
+    if model not in MODELS:
+        raise ProblemError(f"--model {model}: allowed for tracker measurements: {', '.join(MODELS)}")
     from scipy.stats import chi2  # imported here: scipy.stats takes ~1 s to import
 
     if not threshold > 0:

@@ -165,3 +165,17 @@ def test_identify_and_solve_end_to_end(simulated, tmp_path, capsys):
     assert designs[0]["max_rms_error_m"] <= designs[1]["max_rms_error_m"]
     chosen = read_recordings(problem, [str(design / "plans" / "test-pose_m12.csv")])
     assert chosen.N == 12 and set(map(tuple, chosen.Q)) <= set(map(tuple, Q[g == 0]))
+
+
+def test_a_model_named_is_the_one_fitted(simulated):
+    """--model ball fits the nominal robot with its ball located (the ball's parameters alone),
+    and a tracker's model name is refused for an artefact's recordings in one line."""
+    from casadi_design.identification.artefact_fit import calibrate_artefact
+
+    problem, _, Q, k, g = simulated
+    train, valid = _split(Q, k, g)
+    cal = calibrate_artefact(problem, train, valid, model="ball", with_field=False)
+    assert cal.model == "ball" and all(n.startswith("tool.") for n in cal.names)
+    assert [c.name for c in cal.candidates] == ["ball"]
+    with pytest.raises(ProblemError, match="--model registration: allowed for an artefact"):
+        calibrate_artefact(problem, train, valid, model="registration")
