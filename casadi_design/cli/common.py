@@ -14,7 +14,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
-from ..errors import OutputError
+from ..errors import OutputError, ProblemError
 from ..execution.campaign import Campaign, Settings
 from ..execution.study import Study, run_study
 from ..execution.sweep import Sweep
@@ -238,13 +238,23 @@ def say(args: argparse.Namespace, *lines: str) -> None:
         print(*lines, sep="\n")
 
 
-def read_spec(args: argparse.Namespace) -> ProblemSpec:
+def read_spec(args: argparse.Namespace, artefact: bool = False) -> ProblemSpec:
     """Read and check the problem file of ``args`` (:func:`casadi_design.problem_file.read.read_problem`,
     no robot built yet), with the ``--ipopt`` options over its [solver.ipopt]. A command that
-    starts worker processes reads it first, so a malformed file fails before any worker starts."""
+    starts worker processes reads it first, so a malformed file fails before any worker starts.
+
+    Raises
+    ------
+    ProblemError
+        A problem measured at an artefact's points (``[measurement.artefact]``) for a command
+        that does not handle them (not ``artefact``): its plans would be a tracker's."""
     from ..problem_file.read import read_problem
 
     spec = read_problem(args.problem)
+    if spec.measurement.artefact is not None and not artefact:
+        raise ProblemError(f"{spec.path}: [measurement.artefact]: this command does not handle an artefact's points "
+                           "yet (its plans would be a tracker's); solve --candidates DIR chooses which recordings to "
+                           "use and identify identifies the robot from them (docs/ball-socket.md)")
     if getattr(args, "ipopt", None):
         options = {**dict(spec.solver.ipopt), **dict(args.ipopt)}
         spec = replace(spec, solver=replace(spec.solver, ipopt=tuple(sorted(options.items()))))

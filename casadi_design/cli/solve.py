@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 
             check_format(problem, args.program, "--program")
 
-    spec = common.read_spec(args)
+    spec = common.read_spec(args, artefact=True)
     if spec.measurement.artefact is not None:
         return run_artefact(args, spec, out, t0)
     study, done, fig_m = common.design(args, "solve", out / PARTIAL_NAME if out else None, check=check)
