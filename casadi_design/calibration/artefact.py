@@ -31,25 +31,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 #: Points closer than this (m) to the line through the first two are on that line; a turn is
 #: told when its points leave the line by more.
 COLLINEAR_M = 1e-6
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """``[v]_x`` (3 x 3): ``[v]_x w = v x w``."""
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def rotation(w: np.ndarray) -> np.ndarray:
-    """``exp([w]_x)`` (Rodrigues), rad."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-12:
-        return np.eye(3) + skew(w)
-    K = skew(np.asarray(w) / angle)
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,12 +74,12 @@ class Artefact:
         G = np.zeros((len(k), 3, self.nP))
         G[:, :, :3] = np.eye(3)
         if self.turns.shape[1]:
-            G[:, :, 3:] = np.stack([-R @ skew(self.points_m[j]) @ self.turns for j in k])
+            G[:, :, 3:] = np.stack([-R @ pin.skew(self.points_m[j]) @ self.turns for j in k])
         return G
 
     def moved(self, R: np.ndarray, t: np.ndarray, dP: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The placement ``(R, t)`` corrected by ``dP`` (nP,): ``(R exp([E theta]), t + dt)``."""
-        return R @ rotation(self.turns @ dP[3:]), t + dP[:3]
+        return R @ pin.exp3(self.turns @ dP[3:]), t + dP[:3]
 
     def place(self, centres: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """A first placement ``(R, t)`` from the mean measured point of each artefact point
@@ -114,6 +100,14 @@ class Artefact:
             R = least_turn(u, v)
         return R, c0 - R @ a0
 
+    def placed(self, p: np.ndarray, point: np.ndarray, placement: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The first poses ``R`` (P, 3, 3), ``t`` (P, 3) of the placements 0..P-1 of points ``p``
+        (N, 3) recorded at ``point`` of ``placement`` (N,): :meth:`place` of each placement's
+        mean point per artefact point."""
+        poses = [self.place({k: p[(placement == g) & (point == k)].mean(axis=0)
+                             for k in np.unique(point[placement == g])}) for g in range(int(placement.max()) + 1)]
+        return np.array([R for R, _ in poses]), np.array([t for _, t in poses])
+
 
 def line_direction(D: np.ndarray, along: np.ndarray | None = None) -> np.ndarray:
     """The unit direction of the points ``D`` (N, 3) about their mean, signed towards
@@ -132,8 +126,8 @@ def least_turn(u: np.ndarray, v: np.ndarray) -> np.ndarray:
         if c > 0:
             return np.eye(3)
         axis = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
-        return rotation(np.pi * axis / np.linalg.norm(axis))
-    return rotation(w / s * np.arctan2(s, c))
+        return pin.exp3(np.pi * axis / np.linalg.norm(axis))
+    return pin.exp3(w / s * np.arctan2(s, c))
 
 
 def artefact(points_m: np.ndarray) -> Artefact:
@@ -152,27 +146,38 @@ def artefact(points_m: np.ndarray) -> Artefact:
 
 def rigid_columns(p: np.ndarray) -> np.ndarray:
     """``d(p + dt + dw x p) / d(dt, dw) = [I, -[p]_x]`` of points ``p`` (N, 3): (N, 3, 6), how
-    a rigid motion of the whole robot moves them."""
-    return np.concatenate([np.tile(np.eye(3), (len(p), 1, 1)), -np.stack([skew(v) for v in p])], axis=2)
+    a rigid motion moves them."""
+    return np.concatenate([np.tile(np.eye(3), (len(p), 1, 1)), -np.stack([pin.skew(v) for v in p])], axis=2)
 
 
-def identifiable(J: np.ndarray, p: np.ndarray, G: np.ndarray, placement: np.ndarray,
-                 rtol: float) -> tuple[np.ndarray, np.ndarray]:
-    """Which columns of ``J`` (N, 3, L) recordings at the points ``p`` (N, 3) of the placements
-    ``placement`` (N,; columns ``G`` (N, 3, nP)) tell, with every placement and the robot's base
-    unknown: each placement's columns and a rigid motion of the whole robot
+def projected_out(J: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The rows ``J`` (N, 3, L) less their least-squares part in the columns ``T`` (N, 3, c):
+    ``(I - T T^+) J`` stacked, (N, 3, L)."""
+    S, C = J.reshape(-1, J.shape[2]), T.reshape(-1, T.shape[2])
+    return (S - C @ np.linalg.lstsq(C, S, rcond=None)[0]).reshape(J.shape)
+
+
+def placement_columns(A: Artefact, R: np.ndarray, point: np.ndarray, placement: np.ndarray) -> np.ndarray:
+    """Each recording's placement columns ``G_i`` (:meth:`Artefact.columns`) in its placement's
+    block: (N, 3, P nP) for points ``point`` (N,) of ``placement`` (N,; 0..P-1, of rotations ``R``
+    (P, 3, 3))."""
+    out = np.zeros((len(point), 3, len(R) * A.nP))
+    for g in range(len(R)):
+        rows = placement == g
+        out[rows, :, g * A.nP:(g + 1) * A.nP] = A.columns(R[g], point[rows])
+    return out
+
+
+def identifiable(J: np.ndarray, p: np.ndarray, G: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which columns of ``J`` (N, 3, L) recordings at the points ``p`` (N, 3) of placements of
+    columns ``G`` (N, 3, P nP, :func:`placement_columns`) tell, with every placement and the
+    robot's base unknown: the placements' columns and a rigid motion of the whole robot
     (:func:`rigid_columns`) projected out, the columns of unit norm, QR with column pivoting
     (``|R_ii| > rtol |R_00|``). Returns (kept, live): kept the base set (bool, L), live the
     columns with any effect left (bool, L)."""
     import scipy.linalg
 
-    places = np.unique(placement)
-    fixed = np.zeros((len(J), 3, 6 + G.shape[2] * len(places)))
-    fixed[:, :, :6] = rigid_columns(p)
-    for i, g in enumerate(places):
-        fixed[placement == g, :, 6 + i * G.shape[2]:6 + (i + 1) * G.shape[2]] = G[placement == g]
-    S, T = J.reshape(-1, J.shape[2]), fixed.reshape(-1, fixed.shape[2])
-    Jp = S - T @ np.linalg.lstsq(T, S, rcond=None)[0]
+    Jp = projected_out(J, np.concatenate([rigid_columns(p), G], axis=2)).reshape(-1, J.shape[2])
     scale = np.linalg.norm(J.reshape(-1, J.shape[2]), axis=0)
     norms = np.linalg.norm(Jp, axis=0)
     live = norms > rtol * np.maximum(scale, np.finfo(float).tiny)
@@ -184,44 +189,26 @@ def identifiable(J: np.ndarray, p: np.ndarray, G: np.ndarray, placement: np.ndar
     return kept, live
 
 
-def placement_projected(J: np.ndarray, G: np.ndarray, placement: np.ndarray) -> np.ndarray:
-    """The rows ``J`` (N, 3, L) of X with each placement's columns ``G`` (N, 3, nP) projected
-    out, ``(I - P_g) J_g`` per placement g (``placement`` (N,)): their ``J^T J`` is the Schur
-    complement of the placements, the information of X with every placement unknown
-    (module docstring). (N, 3, L)."""
-    out = np.empty_like(J)
-    for g in np.unique(placement):
-        rows = placement == g
-        A = J[rows].reshape(-1, J.shape[2])
-        Gg = G[rows].reshape(-1, G.shape[2])
-        coef = np.linalg.lstsq(Gg, A, rcond=None)[0]
-        out[rows] = (A - Gg @ coef).reshape(-1, 3, J.shape[2])
-    return out
+def placement_projected(J: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """The rows ``J`` (N, 3, L) of X with the placements' columns ``G`` (N, 3, P nP,
+    :func:`placement_columns`) projected out: their ``J^T J`` is the Schur complement of the
+    placements, the information of X with every placement unknown (module docstring)."""
+    return projected_out(J, G)
 
 
 def artefact_rows(A: Artefact, B: np.ndarray, R: np.ndarray, point: np.ndarray, placement: np.ndarray) -> np.ndarray:
     """The rows of experiments seated at ``point`` (N,) of ``placement`` (N,; 0..P-1, of rotations
     ``R`` (P, 3, 3)) with the placements' poses beside X: ``[B_i, 0 .. -G_i .. 0]`` (N, 3, L + P
-    nP), ``G_i`` in its placement's columns (:meth:`Artefact.columns`). Their ``sum B^T B`` is
-    additive over the experiments, and the Schur complement of its placements' block is X's
-    information with every placement unknown: with the test poses' rows zero on the placements'
-    columns, ``tr(B0 M^-1 B0^T)`` is the test-pose measure of the Schur complement."""
-    N, _, L = B.shape
-    P = len(R)
-    out = np.zeros((N, 3, L + P * A.nP))
-    out[:, :, :L] = B
-    for g in range(P):
-        rows = placement == g
-        out[rows, :, L + g * A.nP:L + (g + 1) * A.nP] = -A.columns(R[g], point[rows])
-    return out
+    nP) (:func:`placement_columns`): the residuals' Jacobian in X and the poses. Their ``sum
+    B^T B`` is additive over the experiments, and the Schur complement of its placements' block
+    is X's information with every placement unknown: with the test poses' rows zero on the
+    placements' columns, ``tr(B0 M^-1 B0^T)`` is the test-pose measure of the Schur complement."""
+    return np.concatenate([B, -placement_columns(A, R, point, placement)], axis=2)
 
 
 def registered(B0: np.ndarray, p0: np.ndarray) -> np.ndarray:
     """The test poses' rows ``B0`` (s, 3, L) of their positions ``p0`` (s, 3), m, with the rigid
-    motions of those points projected out: the error a user sees after registering the work in
-    the robot's frame by the robot itself (nothing here measures the base): ``(I - P_T) B0``
-    stacked, ``P_T`` the projector on ``[I, -[p_j]_x]`` (3s x 6)."""
-    s, r, L = B0.shape
-    T = np.concatenate([np.tile(np.eye(3), (s, 1, 1)), -np.stack([skew(p) for p in p0])], axis=2).reshape(3 * s, 6)
-    S = B0.reshape(3 * s, L)
-    return (S - T @ np.linalg.lstsq(T, S, rcond=None)[0]).reshape(s, r, L)
+    motions of those points projected out (:func:`rigid_columns`): the error a user sees after
+    registering the work in the robot's frame by the robot itself (nothing here measures the
+    base)."""
+    return projected_out(B0, rigid_columns(p0))

@@ -211,8 +211,7 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
     print("\n".join(artefact_summary(cal)))
     say(args, f"identification time {time.perf_counter() - t0:.2f} s")
     f = cal.fit
-    geometric = tuple(n for n in cal.names if not n.startswith("k."))
-    chain = calibrated_chain(problem, geometric, f.X[[cal.names.index(n) for n in geometric]])
+    chain = calibrated_chain(problem, cal.names, f.X)  # the geometric errors; compliances have no place in it
     header = (f"calibrated by casadi-design identify from {', '.join(rec.names)} ({problem.path}, the artefact's "
               f"points, {cal.model} model)")
     texts = {"calibrated.urdf": urdf_text(problem, chain),

@@ -113,6 +113,7 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
     from ..errors import ProblemError
     from ..identification.recordings import read_recordings
     from ..optimisation.artefact_pool import artefact_pool, choose_recordings, chosen_rows
+    from ..records.export import csv_text
     from ..records.files import write_json
 
     if not getattr(args, "candidates", None):
@@ -138,12 +139,11 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
         joints = [f"{j}_rad" for j in problem.robot.joints]
         files = []
         for (c, m), idx in rows.items():
-            lines = [",".join([*joints, "point", "placement"])]
-            lines += [",".join([*(repr(float(v)) for v in rec.Q[i]), str(int(rec.point[i])), str(int(rec.placement[i]))])
-                      for i in idx]
+            rows_text = csv_text([*joints, "point", "placement"],
+                                 [[*map(float, rec.Q[i]), int(rec.point[i]), int(rec.placement[i])] for i in idx])
             name = f"plans/{c}_m{m}.csv"
             (out / "plans").mkdir(parents=True, exist_ok=True)
-            write_atomic(out / name, ("\n".join(lines) + "\n").encode())
+            write_atomic(out / name, rows_text.encode())
             files.append(name)
         record = {"problem": problem.path, "measurement": "points fixed in an artefact", "seed": problem.solver.seed,
                   "candidates": args.candidates, "placements": list(rec.names), "parameters": list(pool.names),

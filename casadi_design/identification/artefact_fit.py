@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration.artefact import Artefact, identifiable, placement_projected
+from ..calibration.artefact import Artefact, artefact_rows, identifiable, placement_columns, placement_projected
 from ..calibration.identifiability import RANK_RTOL
 from ..calibration.models import CalibrationModel
 from ..errors import DesignError, ProblemError
@@ -122,31 +122,23 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
     used = np.ones(rec.N, dtype=bool) if used is None else used
     Q, k, g = rec.Q[used], rec.point[used], rec.placement[used]
     places = np.unique(g)
-    p0, _ = ball_points(model, Q, np.zeros(model.L))
-    R0, t0 = zip(*(A.place({j: p0[(g == h) & (k == j)].mean(axis=0) for j in np.unique(k[g == h])})
-                   for h in places))
+    at = np.searchsorted(places, g)  # each row's placement among those used
+    R0, t0 = A.placed(ball_points(model, Q, np.zeros(model.L))[0], k, at)
     L, nP = model.L, A.nP
 
-    def poses(x: np.ndarray) -> tuple[list, list]:
+    def poses(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         moved = [A.moved(R0[i], t0[i], x[L + i * nP:L + (i + 1) * nP]) for i in range(len(places))]
-        return [m[0] for m in moved], [m[1] for m in moved]
+        return np.array([m[0] for m in moved]), np.array([m[1] for m in moved])
 
     def residuals(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         R, t = poses(x)
         p, J = ball_points(model, Q, x[:L])
-        at = np.searchsorted(places, g)
-        s = np.array([t[i] + R[i] @ A.points_m[j] for i, j in zip(at, k)])
-        jac = np.zeros((len(Q), 3, L + nP * len(places)))
-        jac[:, :, :L] = J
-        for i in range(len(places)):
-            rows = at == i
-            jac[rows, :, L + i * nP:L + (i + 1) * nP] = -A.columns(R[i], k[rows])
-        return (p - s).reshape(-1) / sigma, jac.reshape(-1, jac.shape[2]) / sigma
+        s = t[at] + np.einsum("kab,kb->ka", R[at], A.points_m[k])
+        return (p - s).reshape(-1) / sigma, artefact_rows(A, J, R, k, at).reshape(3 * len(Q), -1) / sigma
 
-    at = remembered(residuals)
-
+    evaluated = remembered(residuals)
     x0 = np.zeros(L + nP * len(places))
-    J0 = at(x0)[1]
+    J0 = evaluated(x0)[1]
     if 3 * len(Q) < len(x0) or np.linalg.matrix_rank(J0, tol=RANK_RTOL * np.linalg.norm(J0, 2)) < len(x0):
         raise DesignError(f"the {int(used.sum())} recordings do not identify the {L} parameters with the "
                           f"{len(places)} placement(s) unknown; record more varied configurations")
@@ -154,7 +146,7 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
     # MINPACK's Levenberg-Marquardt, or the trust-region reflective method where the joints
     # deflect under the robot's weight: there LM's first steps reach compliances whose deflection
     # fixed point runs away (a Panda: cost 1e5 sigma^2 after 1000 evaluations; trf: 53)
-    found = least_squares(lambda x: at(x)[0], x0, jac=lambda x: at(x)[1], method="trf" if model.gravity else "lm",
+    found = least_squares(lambda x: evaluated(x)[0], x0, jac=lambda x: evaluated(x)[1], method="trf" if model.gravity else "lm",
                           x_scale=1.0 / np.where(norms > 0, norms, 1.0), ftol=LSQ_TOL, xtol=LSQ_TOL, gtol=LSQ_TOL,
                           max_nfev=MAX_EVALUATIONS)
     if found.status <= 0:
@@ -164,18 +156,11 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
     # every row's residual and Jacobian at the estimate; the placements projected out over the rows used
     Rall = np.zeros((len(rec.names), 3, 3))
     tall = np.full((len(rec.names), 3), np.nan)
-    for i, h in enumerate(places):
-        Rall[h], tall[h] = R[i], t[i]
+    Rall[places], tall[places] = R, t
     p, J = ball_points(model, rec.Q, X)
-    seen = np.isin(rec.placement, places)
-    s = np.full((rec.N, 3), np.nan)
-    s[seen] = tall[rec.placement[seen]] + np.einsum("kab,kb->ka", Rall[rec.placement[seen]], A.points_m[rec.point[seen]])
-    G = np.zeros((rec.N, 3, nP))
-    for h in places:
-        rows = rec.placement == h
-        G[rows] = A.columns(Rall[h], rec.point[rows])
+    s = tall[rec.placement] + np.einsum("kab,kb->ka", Rall[rec.placement], A.points_m[rec.point])
     Jp = np.array(J)
-    Jp[used] = placement_projected(J[used], G[used], rec.placement[used])
+    Jp[used] = placement_projected(J[used], placement_columns(A, R, k, at))
     return ArtefactFit(fm, X, Rall, tall, p - s, Jp, used, int(found.nfev), nP * len(places))
 
 
@@ -186,33 +171,13 @@ def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...],
     robot; with ``gravity`` the compliances ``k.<joint>`` of ``names`` deflect the joints under
     the robot's own weight), and (name, why) of those left out."""
     fm = fit_model(problem, "base", names, gravity=gravity)
-    f = nominal_fit(problem, fm, rec)
     p, J = ball_points(fm.model, rec.Q, np.zeros(fm.model.L))
-    G = np.zeros((rec.N, 3, problem.artefact.nP))
-    for h in range(rec.P):
-        rows = rec.placement == h
-        G[rows] = problem.artefact.columns(f.R[h], rec.point[rows])
-    kept, live = identifiable(J, p, G, rec.placement, RANK_RTOL)
+    R, _ = problem.artefact.placed(p, rec.point, rec.placement)
+    kept, live = identifiable(J, p, placement_columns(problem.artefact, R, rec.point, rec.placement), RANK_RTOL)
     why = {False: "a rigid motion of the whole robot or of a placement (the base, which no fixed point tells)",
            True: "acts as a combination of the parameters kept"}
     return (tuple(n for n, k in zip(fm.model.parameter_names, kept) if k),
             [(n, why[bool(live[i])]) for i, n in enumerate(fm.model.parameter_names) if not kept[i]])
-
-
-def nominal_fit(problem: Problem, fm: FitModel, rec: Recordings) -> ArtefactFit:
-    """The rows' Jacobian at the nominal robot with the placements projected out (no fit):
-    what the recordings can tell, before any least squares."""
-    A, model = problem.artefact, fm.model
-    p, J = ball_points(model, rec.Q, np.zeros(model.L))
-    G = np.zeros((rec.N, 3, A.nP))
-    R = np.zeros((rec.P, 3, 3))
-    t = np.zeros((rec.P, 3))
-    for h in range(rec.P):
-        rows = rec.placement == h
-        R[h], t[h] = A.place({j: p[rows & (rec.point == j)].mean(axis=0) for j in np.unique(rec.point[rows])})
-        G[rows] = A.columns(R[h], rec.point[rows])
-    return ArtefactFit(fm, np.zeros(model.L), R, t, np.zeros((rec.N, 3)),
-                       placement_projected(J, G, rec.placement), np.ones(rec.N, dtype=bool), 0, A.nP * rec.P)
 
 
 def row_scores(f: ArtefactFit, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -363,17 +328,10 @@ def error_covariance(f: ArtefactFit, Jh: np.ndarray, V: tuple[np.ndarray, np.nda
 def full_jacobian(problem: Problem, f: ArtefactFit, rec: Recordings) -> np.ndarray:
     """``d r / d(X, poses)`` of the rows used (n, 3, L + P nP), m per unit: ``dp/dX`` and each
     placement's columns ``-G``: the fixed effects of the rows."""
-    A = problem.artefact
     used = np.flatnonzero(f.used)
     _, J = ball_points(f.fit.model, rec.Q[used], f.X)
     places = np.unique(rec.placement[used])
-    out = np.zeros((len(used), 3, J.shape[2] + A.nP * len(places)))
-    out[:, :, :J.shape[2]] = J
-    for i, h in enumerate(places):
-        rows = rec.placement[used] == h
-        at = J.shape[2] + i * A.nP
-        out[rows, :, at:at + A.nP] = -A.columns(f.R[h], rec.point[used][rows])
-    return out
+    return artefact_rows(problem.artefact, J, f.R[places], rec.point[used], np.searchsorted(places, rec.placement[used]))
 
 
 def unmodelled_field(problem: Problem, f: ArtefactFit, rec: Recordings) -> FieldFit:

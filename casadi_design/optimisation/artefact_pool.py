@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration.artefact import artefact_rows, identifiable, registered
+from ..calibration.artefact import artefact_rows, identifiable, placement_columns, registered
 from ..calibration.identifiability import RANK_RTOL
 from ..errors import ProblemError
 from ..plan.design import Design
@@ -31,7 +31,9 @@ from .pool import choose_design, kept_postures
 class ArtefactPool:
     """A pool of recordings as the engine sees it: the configurations ``Q`` (k, n), rad, their
     artefact's ``point`` and ``placement`` (k,), the names of X (``names``, the base set the pool
-    tells), the rows ``B`` (k, 3, L + P nP) and the test poses' ``B0`` (s, 3, L + P nP)."""
+    tells), the rows ``B`` (k, 3, L + P nP), the test poses' ``B0`` (s, 3, L + P nP) and which
+    configurations a plan may use (``kept`` (k,): those that keep the problem's rules,
+    :func:`~.pool.kept_postures`)."""
 
     Q: np.ndarray
     point: np.ndarray
@@ -39,6 +41,7 @@ class ArtefactPool:
     names: tuple[str, ...]
     B: np.ndarray
     B0: np.ndarray
+    kept: np.ndarray
 
 
 def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray) -> ArtefactPool:
@@ -58,28 +61,20 @@ def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     F = np.zeros((len(Q), model.nF))
     B = model.B_stack(Q, F)
     p = np.stack([np.asarray(model.points(q), dtype=float).reshape(3) for q in Q])
-    places = np.unique(placement)
-    R = np.zeros((len(places), 3, 3))
-    G = np.zeros((len(Q), 3, A.nP))
-    at = np.searchsorted(places, placement)
-    for i, g in enumerate(places):
-        rows = at == i
-        R[i] = A.place({k: p[rows & (point == k)].mean(axis=0) for k in np.unique(point[rows])})[0]
-        G[rows] = A.columns(R[i], point[rows])
-    kept, _ = identifiable(B, p, G, at, RANK_RTOL)
+    at = np.searchsorted(np.unique(placement), placement)
+    R, _ = A.placed(p, point, at)
+    kept, _ = identifiable(B, p, placement_columns(A, R, point, at), RANK_RTOL)
     rows = artefact_rows(A, B[:, :, kept], R, point, at)
     B0 = registered(problem.B0[:, :, kept], problem.test_poses.position_m)
     B0 = np.concatenate([B0, np.zeros((len(B0), 3, rows.shape[2] - B0.shape[2]))], axis=2)
     names = tuple(n for n, k in zip(model.parameter_names, kept) if k)
-    return ArtefactPool(Q, point, placement, names, rows, B0)
+    return ArtefactPool(Q, point, placement, names, rows, B0, kept_postures(problem, Q, F)[0])
 
 
 def choose_recordings(problem: Problem, pool: ArtefactPool, criterion: str, m: int, starts: int) -> Design:
     """The m recordings of the pool best by ``criterion`` (:func:`~.pool.choose_design` on the
-    pool's rows; the rows that break a rule of the problem left out). The design's ``Q``; which
-    recordings: :func:`chosen_rows`."""
-    keep, _, _ = kept_postures(problem, pool.Q, np.zeros((len(pool.Q), problem.model.nF)))
-    idx = np.flatnonzero(keep)
+    pool's rows kept). The design's ``Q``; which recordings: :func:`chosen_rows`."""
+    idx = np.flatnonzero(pool.kept)
     Q = pool.Q[idx]
     return choose_design(problem, criterion, m, Q, np.zeros((len(Q), problem.model.nF)), starts,
                          with_bound=False, rows=(pool.B[idx], pool.B0))

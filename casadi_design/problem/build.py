@@ -127,7 +127,7 @@ class Problem:
     def sigma_m(self) -> float:
         return self.spec.measurement.sigma_m
 
-    @property
+    @functools.cached_property
     def artefact(self) -> Artefact | None:
         """The artefact whose points the measured point is seated at (``[measurement.artefact]``,
         :mod:`casadi_design.calibration.artefact`); None: a tracker measures."""

@@ -6,15 +6,16 @@ test poses and the base set of a Panda's recordings (the tracker's base set less
 
 import numpy as np
 import pytest
+from pinocchio import exp3 as rotation
 
 from casadi_design.calibration.artefact import (
     artefact,
     artefact_rows,
     identifiable,
+    placement_columns,
     placement_projected,
     registered,
     rigid_columns,
-    rotation,
 )
 from casadi_design.calibration.identifiability import RANK_RTOL
 from casadi_design.problem.build import load_problem
@@ -65,12 +66,11 @@ def test_projected_rows_give_the_schur_complement_and_the_rows_beside_x_its_test
     J = rng.normal(size=(N, 3, L))
     k, g = rng.integers(0, 2, N), np.repeat([0, 1], N // 2)
     R = np.stack([rotation(rng.normal(size=3)) for _ in range(P)])
-    G = np.stack([A.columns(R[g[i]], [k[i]])[0] for i in range(N)])
     # the Schur complement of the placements' block of the normal matrix, by numpy
     full = artefact_rows(A, J, R, k, g).reshape(-1, L + P * A.nP)
     Mf = full.T @ full
     S = Mf[:L, :L] - Mf[:L, L:] @ np.linalg.solve(Mf[L:, L:], Mf[L:, :L])
-    Jp = placement_projected(J, G, g).reshape(-1, L)
+    Jp = placement_projected(J, placement_columns(A, R, k, g)).reshape(-1, L)
     assert np.allclose(Jp.T @ Jp, S, rtol=1e-10, atol=1e-10)
     B0 = rng.normal(size=(4, 3, L))
     B0f = np.concatenate([B0, np.zeros((4, 3, P * A.nP))], axis=2)
@@ -103,9 +103,8 @@ def test_a_pandas_recordings_tell_its_tracker_base_set_less_a_rigid_motion():
     B = model.B_stack(Q, np.zeros((len(Q), 0)))
     p = np.stack([np.asarray(model.points(q)).reshape(3) for q in Q])
     A = problem.artefact
-    R = [A.place({j: p[(g == h) & (k == j)].mean(axis=0) for j in (0, 1)})[0] for h in (0, 1)]
-    G = np.stack([A.columns(R[g[i]], [k[i]])[0] for i in range(len(Q))])
-    kept, live = identifiable(B, p, G, g, RANK_RTOL)
+    R = np.array([A.place({j: p[(g == h) & (k == j)].mean(axis=0) for j in (0, 1)})[0] for h in (0, 1)])
+    kept, live = identifiable(B, p, placement_columns(A, R, k, g), RANK_RTOL)
     left = {n for n, keep in zip(model.parameter_names, kept) if not keep}
     assert kept.sum() == 25
     assert left == {"base.tx", "base.ty", "base.tz", "base.rz", "panda_joint1.rx", "panda_joint1.ry"}
