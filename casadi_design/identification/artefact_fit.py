@@ -456,6 +456,9 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
                                          np.sqrt(np.diagonal(np.linalg.inv(f.information))))
         found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why))
     chosen, notes = choose(found, "auto")
+    if problem.spec.calibration.prior is not None:
+        notes.append(f"{problem.path}: [calibration.prior] is not used with an artefact's recordings: the fits are "
+                     "least squares")
     if chosen.fit_model.model.gravity and signs:
         notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in signs)}): the "
                      "encoders read the angle after the joint's yield (a Panda's are on the links), so the term "

@@ -52,9 +52,13 @@ def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     Raises
     ------
     ProblemError
-        Test poses that do not require x, y and z.
+        Test poses that do not require x, y and z; information held before the plan (a prior,
+        measured experiments), which the rows with the placements' poses do not hold yet.
     """
     A, model = problem.artefact, problem.model
+    if problem.M_held is not None:
+        raise ProblemError(f"{problem.path}: [calibration.prior] (or --measured, --prior): a design from an "
+                           "artefact's recordings does not hold information before the plan yet; remove them")
     if tuple(sorted(problem.spec.test_poses.components)) != ("x", "y", "z"):
         raise ProblemError(f"{problem.path}: [test_poses].components: an artefact's calibration is judged at the "
                            "test poses' positions after registering the work; give components = [\"x\", \"y\", \"z\"]")
