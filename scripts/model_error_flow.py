@@ -23,6 +23,7 @@ import json
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,16 +72,26 @@ def identify(out: Path, problem: Path, files: list[Path], valid: Path) -> dict:
     return json.loads((out / "identification.json").read_text())
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--m", default="10,20", help="round 2's new experiments, comma-separated")
-    p.add_argument("--first", type=int, default=20, help="round 1's random rows of the pool")
-    p.add_argument("--random", type=int, default=5, help="random subsets of the pool per m")
-    p.add_argument("--pool", type=int, default=500, help="rows of the pool (outside the test region)")
-    p.add_argument("--out", default="out/model_error_flow", help="folder of the files")
-    args = p.parse_args(argv)
-    t0 = time.perf_counter()
-    out = Path(args.out)
+@dataclass(frozen=True)
+class Flow:
+    """The flow's files and rows: the problem of the test region, the series (``series``, its CSV
+    ``lines``), round 1's CSV, the rows held out near the region and their CSV, the pool's rows
+    (``rest``, written to ``pool.csv``) and the seeded generator the random plans draw from."""
+
+    base: object
+    series: object
+    lines: list[str]
+    problem: Path
+    r1: Path
+    near: np.ndarray
+    near_csv: Path
+    rest: np.ndarray
+    rng: np.random.Generator
+
+
+def set_up(out: Path, first: int, pool: int) -> Flow:
+    """The test region, its problem file, the pool (``pool`` rows outside the region, less
+    round 1's ``first``) and round 1's rows, written to ``out`` (module docstring)."""
     out.mkdir(parents=True, exist_ok=True)
     lines = (DATA / "measurements_random_poses_xyz.csv").read_text().splitlines()
     base = load_without_cell(str(DATA / "ipa_ur10.toml"))
@@ -92,9 +103,9 @@ def main(argv: list[str] | None = None) -> int:
     region = rng.permutation(region)
     test, near = np.sort(region[:TEST_POSES]), np.sort(region[TEST_POSES:])
     others = np.setdiff1d(np.arange(series.m), region)
-    pool = np.sort(rng.choice(others, args.pool, replace=False))
-    first = np.sort(rng.choice(pool, args.first, replace=False))
-    rest = np.setdiff1d(pool, first)
+    chosen = np.sort(rng.choice(others, pool, replace=False))
+    r1 = np.sort(rng.choice(chosen, first, replace=False))
+    rest = np.setdiff1d(chosen, r1)
     text = (DATA / "ipa_ur10.toml").read_text()
     joints = "joints_rad = [\n" + "".join("  [" + ", ".join(f"{v:.6f}" for v in series.Q[i]) + "],\n" for i in test) + "]"
     start = text.index("joints_rad = [")
@@ -102,15 +113,32 @@ def main(argv: list[str] | None = None) -> int:
     text = text[:start] + joints + text[end:]
     problem = out / "ipa_region.toml"
     problem.write_text(text.replace('name = "ipa_ur10"', 'name = "ipa_ur10_region"'))
-    r1, near_csv = rows_csv(out / "r1.csv", lines, first), rows_csv(out / "near.csv", lines, near)
     header = ",".join(f"{j}_rad" for j in base.robot.joints)
     (out / "pool.csv").write_text("\n".join([header, *(",".join(f"{v:.9g}" for v in series.Q[i]) for i in rest)]) + "\n")
+    return Flow(base, series, lines, problem, rows_csv(out / "r1.csv", lines, r1), near,
+                rows_csv(out / "near.csv", lines, near), rest, rng)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--m", default="10,20", help="round 2's new experiments, comma-separated")
+    p.add_argument("--first", type=int, default=20, help="round 1's random rows of the pool")
+    p.add_argument("--random", type=int, default=5, help="random subsets of the pool per m")
+    p.add_argument("--pool", type=int, default=500, help="rows of the pool (outside the test region)")
+    p.add_argument("--out", default="out/model_error_flow", help="folder of the files")
+    args = p.parse_args(argv)
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    flow = set_up(out, args.first, args.pool)
+    base, series, lines, problem, r1, near, near_csv, rest, rng = (
+        flow.base, flow.series, flow.lines, flow.problem, flow.r1, flow.near, flow.near_csv, flow.rest, flow.rng)
+    first = args.first
     identify(out / "id1", problem, [r1], near_csv)
     record = json.loads((out / "id1" / "identification.json").read_text())
     without_field = out / "id1" / "identification_without_field.json"
     without_field.write_text(json.dumps({**record, "model_error": None}))
-    print(f"test region: {len(region)} rows in a 200 mm cube ({TEST_POSES} test poses, {len(near)} held out near "
-          f"it); pool {len(rest)} rows outside it; round 1: {len(first)} random rows of the pool", flush=True)
+    print(f"test region: {TEST_POSES + len(near)} rows in a 200 mm cube ({TEST_POSES} test poses, {len(near)} held "
+          f"out near it); pool {len(rest)} rows outside it; round 1: {first} random rows of the pool", flush=True)
     # the floor of a geometric model: the problem's base set fitted to the held-out rows themselves
     region_problem = load_without_cell(str(problem))
     floor_cal = calibrate(region_problem, read_measurements(region_problem, str(near_csv), FORMAT), model="identifiable",

@@ -48,6 +48,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_solve, solve_triangular
 
 from .criteria import CRITERIA
 
@@ -224,8 +225,13 @@ def value_covariance(field: Field, S: Sites, sigma: float) -> np.ndarray:
     """``V`` (N x N), N = m d, m^2: the covariance of the whitened values of the sites ``S``
     (module docstring)."""
     m, d = S.G.shape[:2]
-    return (covariance(field, S, S).reshape(m * d, m * d) + np.kron(field.nugget_m**2 * np.eye(m), S.A)
-            + sigma**2 * np.eye(m * d))
+    return covariance(field, S, S).reshape(m * d, m * d) + np.kron(np.eye(m), noise(field, S, sigma))
+
+
+def noise(field: Field, S: Sites, sigma: float) -> np.ndarray:
+    """The part of a site's own covariance (d x d), m^2, that no other site shares: the nugget's
+    ``nugget^2 A`` and the tracker's ``sigma^2 I``."""
+    return field.nugget_m**2 * S.A + sigma**2 * np.eye(len(S.A))
 
 
 def cross_covariance(field: Field, S: Sites, S0: Sites) -> np.ndarray:
@@ -271,41 +277,83 @@ def kriging_mean(field: Field, sigma: float, r: np.ndarray, S: Sites, S0: Sites)
 def kriging_rho_added(field: Field, sigma: float, B: np.ndarray, S: Sites, Bc: np.ndarray, Sc: Sites,
                       B0: np.ndarray, S0: Sites, P: np.ndarray | None = None) -> np.ndarray:
     """``rho`` (k, s), m^2, of the campaigns ``S`` (m sites, rows ``B``) plus one candidate each,
-    ``Sc`` (k sites) with rows ``Bc`` (k, d, L): :func:`kriging_rho` of every campaign at once, by
-    bordering. With ``Cv Cv^T = V`` of ``S`` and a candidate's covariance with them ``v`` (N x
-    d), its own ``v_cc``: the Schur complement ``s_c = v_cc - v^T V^-1 v`` brings in the rank-d
-    updates ``H + u^T s_c^-1 u`` (``u = B_c - v^T V^-1 S``), ``k0^T V^-1 k0 + w^T s_c^-1 w`` and
-    ``k0^T V^-1 S + w^T s_c^-1 u`` (``w = k0_c - v^T V^-1 k0``): O(N^2 (k d + L + s r)) for all
-    k, instead of k Cholesky factorisations of (N + d)^2."""
+    ``Sc`` (k sites) with rows ``Bc`` (k, d, L): :func:`kriging_rho` of every campaign at once
+    (:func:`bordered_rho` of their covariances)."""
     m, d, L = B.shape
-    k, s, r = len(Sc), len(S0), S0.G.shape[1]
-    Cv = np.linalg.cholesky(value_covariance(field, S, sigma))
-    k0 = cross_covariance(field, S, S0)  # (s, N, r)
-    v = covariance(field, S, Sc).transpose(2, 0, 1, 3).reshape(k, m * d, d)
-    Y = np.linalg.solve(Cv, np.concatenate([B.reshape(m * d, L), k0.transpose(1, 0, 2).reshape(m * d, s * r),
-                                            v.transpose(1, 0, 2).reshape(m * d, k * d)], axis=1))
-    YS, Yk = Y[:, :L], Y[:, L:L + s * r].reshape(m * d, s, r)
-    Yv = Y[:, L + s * r:].reshape(m * d, k, d)
-    G = YS.T @ YS + (0.0 if P is None else P)
-    T = np.einsum("nsr,nl->srl", Yk, YS)  # k0^T V^-1 S
-    KK = np.einsum("nsr,nsr->s", Yk, Yk)  # tr(k0^T V^-1 k0)
-    vcc = (np.einsum("cvp,p,cwp->cvw", Sc.G, field.variances, Sc.G) + field.nugget_m**2 * Sc.A
-           + sigma**2 * np.eye(d))
-    Sch = vcc - np.einsum("nca,ncb->cab", Yv, Yv)
-    u = Bc - (Yv.reshape(m * d, k * d).T @ YS).reshape(k, d, L)
-    k0c = covariance(field, Sc, S0).transpose(0, 2, 1, 3)  # (k, s, d, r)
-    w = k0c - (Yv.reshape(m * d, k * d).T @ Yk.reshape(m * d, s * r)).reshape(k, d, s, r).transpose(0, 2, 1, 3)
-    Lc = np.linalg.cholesky(Sch)
-    ut = np.linalg.solve(Lc, u)  # (k, d, L)
-    wt = np.linalg.solve(Lc[:, None], w)  # (k, s, d, r)
-    H = G + np.einsum("cal,cak->clk", ut, ut)
-    R = B0[None] - (T[None] + np.matmul(wt.transpose(0, 1, 3, 2), ut[:, None]))  # (k, s, r, L)
+    k = len(Sc)
+    return bordered_rho(value_covariance(field, S, sigma), B.reshape(m * d, L),
+                        covariance(field, S, S0).reshape(m * d, -1), covariance(field, S, Sc).reshape(m * d, k * d),
+                        own_blocks(field, Sc, sigma), Bc, covariance(field, Sc, S0).reshape(k, d, -1), B0,
+                        own_variance(field, S0), P)
+
+
+def own_blocks(field: Field, S: Sites, sigma: float) -> np.ndarray:
+    """The covariance of each site's own whitened values (m, d, d), m^2: the diagonal blocks of
+    :func:`value_covariance`."""
+    return np.einsum("cvp,p,cwp->cvw", S.G, field.variances, S.G) + noise(field, S, sigma)
+
+
+def bordered_rho(V: np.ndarray, Bm: np.ndarray, k0: np.ndarray, v: np.ndarray, vcc: np.ndarray, Bc: np.ndarray,
+                 k0c: np.ndarray, B0: np.ndarray, own: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
+    """``rho`` (k, s), m^2, at s test poses of rows ``B0`` (s, r, L) and own variance ``own``
+    (s,) of a campaign of covariance ``V`` (N x N), rows ``Bm`` (N x L) and cross covariance
+    ``k0`` (N x s r) plus one candidate each: its covariance with the campaign ``v`` (N x k d),
+    its own ``vcc`` (k, d, d), rows ``Bc`` (k, d, L) and cross covariance ``k0c`` (k, d, s r);
+    ``P`` the prior information (L x L; None: none): :func:`added_rho` of the campaign's
+    products with ``V^-1`` (one Cholesky factor ``Cv``, ``Cv Cv^T = V``)."""
+    k, d, L = Bc.shape
+    s, r = B0.shape[0], B0.shape[1]
+    Y = solve_triangular(np.linalg.cholesky(V), np.concatenate([Bm, k0, v], axis=1), lower=True, check_finite=False)
+    YS, Yk, Yv = Y[:, :L], Y[:, L:L + s * r], Y[:, L + s * r:]
+    Yvb = Yv.reshape(-1, k, d)
+    return added_rho(YS.T @ YS + (0.0 if P is None else P), B0 - (Yk.T @ YS).reshape(s, r, L),
+                     np.sum(Yk.reshape(-1, s, r) ** 2, axis=(0, 2)), vcc - np.einsum("nca,ncb->cab", Yvb, Yvb),
+                     Bc - (Yv.T @ YS).reshape(k, d, L), k0c - (Yv.T @ Yk).reshape(k, d, s * r), own)
+
+
+def added_rho(G: np.ndarray, R: np.ndarray, KK: np.ndarray, Sch: np.ndarray, u: np.ndarray, w: np.ndarray,
+              own: np.ndarray) -> np.ndarray:
+    """``rho`` (k, s), m^2, of a campaign plus one candidate each, by bordering its kriging
+    system: from the campaign's ``G = S^T V^-1 S + P`` (L x L), ``R = B0 - k0^T V^-1 S`` (s, r,
+    L) and ``KK = tr(k0^T V^-1 k0)`` per test pose (s,), and per candidate the Schur complement
+    ``Sch = v_cc - v^T V^-1 v`` (k, d, d), ``u = B_c - v^T V^-1 S`` (k, d, L) and ``w =
+    k0_c - v^T V^-1 k0`` (k, d, s r); ``own`` the test poses' own variance (s,).
+
+    The candidate brings in rank-d updates: ``H_c = G + u^T Sch^-1 u``, ``KK + tr(w^T Sch^-1 w)``
+    and ``R - y^T u`` (``y = Sch^-1 w``), and ``rho = own - KK - tr(w^T y) + tr(R_c H_c^-1
+    R_c^T)``. Where G is regular, Woodbury's ``H_c^-1 = G^-1 - G^-1 u^T M^-1 u G^-1`` (``M = Sch
+    + u G^-1 u^T``, the candidate's variance after the campaign's kriging) collapses it to the
+    campaign's own rho less the candidate's share,
+
+        rho_c = own - KK + tr(R G^-1 R^T) - tr(E^T M^-1 E),  E = w + u G^-1 R^T (d x r per test pose),
+
+    a d x d inverse and products of d x s r blocks per candidate; else each H_c is factored.
+    Infinite where a campaign does not identify X."""
+    k, d, L = u.shape
+    s, r = R.shape[0], R.shape[1]
+
+    def per_pose(X: np.ndarray) -> np.ndarray:  # (k, d, s r) summed over d and r: (k, s)
+        return X.sum(axis=1).reshape(len(X), s, r).sum(axis=2)
+
+    lam = np.linalg.eigvalsh(G)
+    if lam[0] > 1e-12 * max(lam[-1], np.finfo(float).tiny):  # Woodbury over G
+        Gi = cho_solve((np.linalg.cholesky(G), True), np.eye(L), check_finite=False)
+        R2 = R.reshape(s * r, L)
+        GiR = Gi @ R2.T  # (L, s r)
+        u2 = u.reshape(k * d, L)
+        E = w + (u2 @ GiR).reshape(k, d, s * r)
+        M = Sch + (u2 @ Gi).reshape(k, d, L) @ u.transpose(0, 2, 1)  # (k, d, d)
+        RGR = np.sum(R2 * GiR.T, axis=1).reshape(s, r).sum(axis=1)
+        return (own - KK + RGR)[None] - per_pose(E * (np.linalg.inv(M) @ E))
+    Schi = np.linalg.inv(Sch)
+    y = Schi @ w  # (k, d, s r)
+    H = G + u.transpose(0, 2, 1) @ (Schi @ u)
+    Rc = R[None] - np.einsum("casr,cal->csrl", y.reshape(k, d, s, r), u)  # (k, s, r, L)
     out = np.full((k, s), np.inf)
     lam = np.linalg.eigvalsh(H)
     ok = lam[:, 0] > 1e-12 * np.maximum(lam[:, -1], np.finfo(float).tiny)
     if ok.any():
         Ch = np.linalg.cholesky(H[ok])
-        Z = np.linalg.solve(Ch, R[ok].transpose(0, 3, 1, 2).reshape(int(ok.sum()), L, s * r))
-        out[ok] = (own_variance(field, S0)[None] - KK[None] - np.einsum("csar,csar->cs", wt[ok], wt[ok])
-                   + np.sum(Z.reshape(-1, L, s, r) ** 2, axis=(1, 3)))
+        Zc = np.linalg.solve(Ch, Rc[ok].transpose(0, 3, 1, 2).reshape(int(ok.sum()), L, s * r))
+        out[ok] = (own - KK)[None] - per_pose((w * y)[ok]) + np.sum(Zc.reshape(-1, L, s, r) ** 2, axis=(1, 3))
     return out

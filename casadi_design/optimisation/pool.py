@@ -5,7 +5,7 @@ information ``A_i = B_i^T B_i``, a plan of m of them (each at most once) has ``M
 sum_{i in S} A_i``. Every candidate is priced at once by the pool engine
 (:class:`~casadi_design.optimisation.engine.PoolEngine`: low-rank updates of the plan's
 ``M^-1``; with the problem's field, the bordered kriging of
-:func:`~casadi_design.measures.field.kriging_rho_added`). The choice:
+:class:`~casadi_design.optimisation.field_pool.FieldPool`). The choice:
 
 1. starts: the greedy plan (one experiment at a time, the one that improves the criterion most;
    while M is singular, the one that raises ``log det(M + eps I)`` most), the m heaviest
@@ -35,13 +35,14 @@ import numpy as np
 from ..cell.cell import clearances
 from ..errors import ProblemError
 from ..measures.criteria import BOUND_CRITERIA, CRITERIA, PlanSpectrum
-from ..measures.field import field_measure, kriging_rho_added
+from ..measures.field import field_measure
 from ..measures.measures import Scores
 from ..plan.design import EXCHANGE_ENDED, Design, StartRecord
 from ..plan.rules import START_MARGIN_M, plan_violations
 from ..plan.sampling import random_plan
 from ..problem.build import Problem
 from .bound import bound, pool_design
+from .field_pool import KrigingState, field_pool
 from .engine import PlanState, PoolEngine, key, score
 from .ipopt import QUIET, ipopt_call
 from .nlp import build_nlp
@@ -80,26 +81,25 @@ EXCHANGE_RTOL = 1e-6
 
 def _scores(problem: Problem, pool: tuple, S: list[int],
             criterion: str | None = None) -> Scores:
-    """The scores of the postures ``S`` of the pool ``(Q, F, B, sites, B0)`` (their B precomputed,
-    (k, d, L), their field's sites where the search weighs it, else None, and the test poses'
-    rows): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
+    """The scores of the postures ``S`` of the pool ``(Q, F, B, kriging, B0)`` (their B
+    precomputed, (k, d, L), their :class:`~casadi_design.optimisation.field_pool.FieldPool` where
+    the search weighs the field, else None, and the test poses' rows): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
     ``criterion`` (None: every score as reported) the field only where it weighs it."""
     Q, F, B, _, B0 = pool
     return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion), B0)
 
 
-def _field_keys(problem: Problem, criterion: str, pool: tuple, rest: list[int], cands: np.ndarray,
-                power: float | None = None) -> np.ndarray:
-    """The score key of the plan ``rest`` plus each posture of ``cands`` (pool indices) for a
-    criterion that weighs the problem's field: every plan at once by bordering the kriging
-    system (:func:`~casadi_design.measures.field.kriging_rho_added`), scored by the criterion's
+def _field_keys(problem: Problem, criterion: str, pool: tuple, plan: list[int], a: int | None, cands: np.ndarray,
+                power: float | None = None, state: KrigingState | None = None) -> np.ndarray:
+    """The score key of the plan less its position ``a`` (None: the whole plan) plus each
+    posture of ``cands`` (pool indices) for a criterion that weighs the problem's field: every
+    plan at once by bordering the kriging system of ``state`` (that of ``plan``; None: made
+    here) (:class:`~casadi_design.optimisation.field_pool.FieldPool`), scored by the criterion's
     own score of rho (with ``power``: its smooth surrogate)."""
-    _, _, B, S, _ = pool
-    Br, Sr = problem.field_campaign(B[rest], S[rest])
-    if not len(Sr):  # the first posture of a plan without held poses: each on its own
+    kriging = pool[3]
+    if not kriging.h and len(plan) == (a is not None):  # a plan's first posture, no held poses: each on its own
         return np.array([_plan_key(problem, criterion, pool, [c], power) for c in cands])
-    rho = kriging_rho_added(problem.field, problem.sigma_m, Br, Sr, B[cands], S[cands], problem.B0,
-                            problem.field_test_sites, problem.field_prior)
+    rho = kriging.priced(kriging.state(plan) if state is None else state, a, cands)
     finite = np.all(np.isfinite(rho), axis=1)
     spectrum = PlanSpectrum(None, None, np.where(finite[:, None], rho, 1.0), None, finite)
     return np.where(finite, key(criterion, score(criterion, spectrum, power)), np.inf)
@@ -131,7 +131,7 @@ def _greedy(problem: Problem, criterion: str, m: int, pool: tuple, engine: PoolE
         cands = np.flatnonzero(free)
         state = engine.state(chosen, reads)
         if state is not None and state.regular:
-            keys = (_field_keys(problem, criterion, pool, chosen, cands) if field
+            keys = (_field_keys(problem, criterion, pool, chosen, None, cands) if field
                     else engine.keys(criterion, state, cands))
         else:
             keys = -engine.priced(engine.state(chosen, "log_det", _eps(engine)), cands, "log_det").log_det
@@ -153,18 +153,23 @@ def _passes(S: list[int], chosen: np.ndarray, state: PlanState | None, restate: 
     the pool): each position a in turn takes the posture of the least ``keys_at(state, a)`` (a
     key per posture of the pool) when it is below ``current`` by more than
     :data:`EXCHANGE_RTOL`, and ``restate(S)`` is the state after a swap; until a pass swaps
-    nothing, ``stop(state)`` holds when a pass would start, or ``budget`` passes. The passes and
-    the swaps."""
+    nothing, ``stop(state)`` holds when a pass would start, or ``budget`` passes. A pass without
+    a swap ends at the position of the last swap: that position and those after it were priced
+    with this plan and kept it, so the rest of the pass would swap nothing. The passes and the
+    swaps."""
     passes = swaps = 0
+    last = None  # the position of the last swap
     while passes < budget and not stop(state):
         passes += 1
         swapped = False
         for a in range(len(S)):
+            if a == last and not swapped:  # no swap since a's: a and the positions after it were priced
+                return passes, swaps      # with this plan and kept it (a keeps the best of its rest)
             keys = np.where(chosen, np.inf, keys_at(state, a))
             i = int(np.argmin(keys))
             if keys[i] < current - EXCHANGE_RTOL * abs(current):
                 chosen[S[a]], chosen[i] = False, True
-                S[a], current, swapped, swaps = i, float(keys[i]), True, swaps + 1
+                S[a], current, swapped, swaps, last = i, float(keys[i]), True, swaps + 1, a
                 state = restate(S)
         if not swapped:
             break
@@ -191,14 +196,16 @@ def _exchange(problem: Problem, criterion: str, S: list[int], pool: tuple,
                             lambda state, a: -engine.priced(state, None, "log_det", S[a]).log_det,
                             -state.log_det, lambda state: state.regular, MAX_PASSES)
 
-    def field_keys(state: PlanState, a: int, power: float | None) -> np.ndarray:
+    def field_keys(state: KrigingState, a: int, power: float | None) -> np.ndarray:
         keys = np.full(len(chosen), np.inf)
-        keys[~chosen] = _field_keys(problem, criterion, pool, S[:a] + S[a + 1:], np.flatnonzero(~chosen), power)
+        keys[~chosen] = _field_keys(problem, criterion, pool, S, a, np.flatnonzero(~chosen), power, state)
         return keys
 
     for power in ((POOL_POWER,) if CRITERIA[criterion].smoothed else ()) + (None,):
         state = _regular_state(engine, S, reads)
-        done = _passes(S, chosen, state, (lambda S, state=state: state) if field else (lambda S: engine.state(S, reads)),
+        if field and state is not None:
+            state = pool[3].state(S)
+        done = _passes(S, chosen, state, pool[3].state if field else (lambda S: engine.state(S, reads)),
                        (lambda state, a, power=power: field_keys(state, a, power)) if field else
                        (lambda state, a, power=power: engine.keys(criterion, state, None, S[a], power)),
                        _plan_key(problem, criterion, pool, S, power), lambda state: state is None,
@@ -254,7 +261,7 @@ def choose_design(problem: Problem, criterion: str, m: int, Q: np.ndarray, F: np
                            f"m = {m}; give m <= {k} or more postures")
     B, B0 = (problem.model.B_stack(Q, F), problem.B0) if rows is None else rows
     engine = PoolEngine(B, B0, problem.sigma_m, problem.M_held)
-    pool = (Q, F, B, problem.field_sites(Q, F) if field_measure(problem, criterion) else None, B0)
+    pool = (Q, F, B, field_pool(problem, Q, F, B) if field_measure(problem, criterion) else None, B0)
     approx = (pool_design(problem, criterion, Q, F, engine.A, m) if with_bound and rows is None and
               criterion in BOUND_CRITERIA and not field_measure(problem, criterion) else None)
     rng = start_rng(problem.solver.seed, criterion, m)

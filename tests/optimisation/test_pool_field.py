@@ -49,17 +49,55 @@ def test_all_candidates_at_once_are_each_campaign_s_kriging_variance(case):
     problem, Q, F = case
     model = problem.model
     B = model.B_stack(Q, F)
-    rest, cands = list(range(10)), list(range(10, 30))
     tp = problem.test_poses
-    for field in (problem.field, JOINTS):  # of the base axes, of the joint angles
+    # 10 postures identify X (Woodbury over G); 8 do not (24 rows, L = 27), one candidate more may
+    for rest, cands in ((list(range(10)), list(range(10, 30))), (list(range(8)), list(range(40, 87)))):
+        for field in (problem.field, JOINTS):  # of the base axes, of the joint angles
+            joints = field.through_joints
+            S = field.sites(Q, axes_of(model.measured_rows), np.eye(3), model.dq_stack(Q, F) if joints else None)
+            S0 = field.sites(tp.q, axes_of(model.accuracy_rows), np.eye(3),
+                             model.dq_stack(tp.q, tp.F, "accuracy") if joints else None)
+            added = kriging_rho_added(field, problem.sigma_m, B[rest], S[rest], B[cands], S[cands], problem.B0, S0)
+            one_by_one = np.array([kriging_rho(field, problem.sigma_m, B[rest + [c]], S[rest + [c]], problem.B0, S0)
+                                   for c in cands])
+            finite = np.isfinite(one_by_one)
+            assert model.L == 27 and 0 < finite.sum() and np.array_equal(np.isfinite(added), finite)
+            np.testing.assert_allclose(added[finite], one_by_one[finite], rtol=1e-8)
+
+
+
+def test_the_pool_s_kriging_is_each_campaign_s_with_the_held_poses_and_prior(case):
+    """FieldPool (its covariance rows kept across pricings) prices the held poses plus a plan
+    plus each candidate as kriging_rho of that campaign, with a prior information, twice (the
+    second time from the rows it kept) and with a row cache too small to keep them."""
+    from casadi_design.optimisation import field_pool
+
+    problem, Q, F = case
+    model, tp = problem.model, problem.test_poses
+    B = model.B_stack(Q, F)
+    P = np.diag(np.random.default_rng(2).uniform(0.5, 2.0, model.L)) * 1e6
+    held, plan, cands = list(range(4)), [4, 9, 17, 30, 55], np.arange(60, 87) - 4
+    for field in (problem.field, JOINTS):
         joints = field.through_joints
         S = field.sites(Q, axes_of(model.measured_rows), np.eye(3), model.dq_stack(Q, F) if joints else None)
         S0 = field.sites(tp.q, axes_of(model.accuracy_rows), np.eye(3),
                          model.dq_stack(tp.q, tp.F, "accuracy") if joints else None)
-        added = kriging_rho_added(field, problem.sigma_m, B[rest], S[rest], B[cands], S[cands], problem.B0, S0)
-        one_by_one = [kriging_rho(field, problem.sigma_m, B[rest + [c]], S[rest + [c]], problem.B0, S0) for c in cands]
-        np.testing.assert_allclose(added, one_by_one, rtol=1e-9)
-
+        kriging = field_pool.FieldPool(field, problem.sigma_m, B[held], S[held], B[4:], S[4:], problem.B0, S0, P)
+        rows = [held + [4 + i for i in plan] + [4 + c] for c in cands]
+        one_by_one = np.array([kriging_rho(field, problem.sigma_m, B[r], S[r], problem.B0, S0, P) for r in rows])
+        for _ in range(2):
+            np.testing.assert_allclose(kriging.rho_added(plan, cands), one_by_one, rtol=1e-9)
+        state = kriging.state(plan)
+        for a in (0, 3):  # the plan less its position a (a rank-d downdate of the state's inverse)
+            rest = held + [4 + i for j, i in enumerate(plan) if j != a]
+            np.testing.assert_allclose(kriging.priced(state, a, cands), [
+                kriging_rho(field, problem.sigma_m, B[rest + [4 + c]], S[rest + [4 + c]], problem.B0, S0, P)
+                for c in cands], rtol=1e-8)
+        kriging.keep = 1
+        np.testing.assert_allclose(kriging.rho_added(plan[1:], cands), [
+            kriging_rho(field, problem.sigma_m, B[r[:4] + r[5:]], S[r[:4] + r[5:]], problem.B0, S0, P) for r in rows],
+            rtol=1e-9)
+        assert len(kriging.rows) == 1
 
 def draws(field: Field, model, Q: np.ndarray, Q0: np.ndarray, rng, k: int) -> np.ndarray:
     """``k`` draws of the field (k, poses, 3) at the measured frame of the poses ``Q`` and the
