@@ -73,15 +73,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| round 2, {d['criterion']} (m = 20) | {d['solver']['wall_s']:.1f} | {ex['passes']} passes, "
                   f"{ex['swaps']} swaps; max sqrt(rho) with the field {d['max_rms_error_m'] * 1e3:.4f} mm |")
         print(f"| round 2, the command | {wall:.1f} | both designs, results, plots and viewer |", flush=True)
-    rng = flow.rng
+    rows = rows_csv(out / "r300.csv", flow.lines, sorted(flow.rng.choice(flow.rest, 300, replace=False)))
+    r100 = rows_csv(out / "r100.csv", flow.lines, sorted(flow.rng.choice(flow.rest, 100, replace=False)))
     if "identify" not in skip:
-        rows = rows_csv(out / "r300.csv", flow.lines, sorted(rng.choice(flow.rest, 300, replace=False)))
         wall = timed(lambda: identify(out / "id300", flow.problem, [rows], flow.near_csv))
         field = json.loads((out / "id300" / "identification.json").read_text())["model_error"]
         print(f"| identify, the field on 300 rows | {wall:.1f} | restricted log-likelihood "
               f"{field['restricted_log_likelihood']:.2f} |", flush=True)
     if "nlp" not in skip:
-        r100 = rows_csv(out / "r100.csv", flow.lines, sorted(rng.choice(flow.rest, 100, replace=False)))
         identify(out / "id100", flow.problem, [r100], flow.near_csv)
         solved = out / "free"
         wall = timed(lambda: run(["solve", str(flow.problem), "--prior", str(out / "id100" / "identification.json"),

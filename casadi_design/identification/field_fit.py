@@ -29,6 +29,8 @@ are as good as of thousands, at a cubic cost.
 from __future__ import annotations
 
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +59,10 @@ LENGTH_BOUNDS = (0.02, 50.0)
 #: its bound).
 ADDITIVE_LENGTH_BOUNDS = (0.02, 1.0)
 SCALE_LOW = 1e-3
+#: L-BFGS-B's relative change of the log-likelihood at which it stops.
+FTOL = 1e-7
+#: ... or its largest projected slope in log-hyperparameters.
+GTOL = 1e-2
 
 
 @dataclass(frozen=True)
@@ -73,19 +79,27 @@ class FieldFit:
                 "estimated_from_rows": self.rows}
 
 
+def squared_differences(Q: np.ndarray) -> np.ndarray:
+    """``(q_il - q_kl)^2`` (m, m, n) of the poses ``Q`` (m, n): the kernels' distances before
+    their lengths, once per estimate."""
+    return (Q[:, None, :] - Q[None, :, :]) ** 2
+
+
 def restricted_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, Q: np.ndarray, A: np.ndarray,
-                              sigma: float, additive: bool = False) -> tuple[float, np.ndarray]:
+                              sigma: float, additive: bool = False,
+                              D0: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """``l(theta)`` and its gradient (module docstring) for residuals ``r`` (m, d), ``J`` (m, d,
     L), poses ``Q`` (m, n), the coupling ``A`` (d, d) of a pose's values; ``additive``: the
     field additive over the joints, ``theta = log(s_1 .. s_n, length_1 .. length_n, nugget)``
-    with ``K = sum_l s_l^2 exp(-1/2 ((q_l - q'_l) / length_l)^2)``.
+    with ``K = sum_l s_l^2 exp(-1/2 ((q_l - q'_l) / length_l)^2)``; ``D0``: the poses'
+    :func:`squared_differences` (None: computed here).
 
     With ``A = U diag(a) U^T`` the values rotated by ``U`` have ``V = blockdiag_c(a_c Kt +
     sigma^2 I)`` (``Kt = K + nugget^2 I``, m x m): d blocks of m x m instead of one of m d."""
     m, n = Q.shape
     nugget, scales = np.exp(theta[-1]), np.exp(theta[:n] if additive else theta[:1])
     ell = np.exp(theta[len(scales):len(scales) + n])
-    D = (Q[:, None, :] - Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
+    D = (squared_differences(Q) if D0 is None else D0) / ell**2  # (m, m, n)
     if additive:
         s2 = scales**2
         E = np.exp(-0.5 * D)
@@ -101,15 +115,14 @@ def restricted_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, Q
     Kt = K + nugget**2 * np.eye(m)
     Vi, logdet = [], 0.0
     for ac in a:
-        C = np.linalg.cholesky(ac * Kt + sigma**2 * np.eye(m))
-        Ci = np.linalg.inv(C)
-        Vi.append(Ci.T @ Ci)
-        logdet += 2 * np.sum(np.log(np.diag(C)))
+        Vc, logdet_c = _inverse(ac * Kt + sigma**2 * np.eye(m))
+        Vi.append(Vc)
+        logdet += logdet_c
     Vi = np.array(Vi)  # (d, m, m)
     L = J.shape[2]
     Vr = np.einsum("cij,jc->ci", Vi, rc)  # V^-1 r per block
     if L:
-        VJ = np.einsum("cij,cjl->cil", Vi, Jc)
+        VJ = Vi @ Jc
         G = np.einsum("cil,cik->lk", Jc, VJ)
         T = VJ @ np.linalg.inv(G)  # (d, m, L)
         alpha = Vr - T @ np.einsum("cil,ci->l", Jc, Vr)  # Pi r per block
@@ -124,8 +137,23 @@ def restricted_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, Q
     return float(value), grad
 
 
+def _inverse(V: np.ndarray) -> tuple[np.ndarray, float]:
+    """``V^-1`` and ``log|V|`` of a covariance by its Cholesky factor (LAPACK's potrf, potri).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        V not positive definite."""
+    C, info = dpotrf(V, lower=1)
+    if info:
+        raise np.linalg.LinAlgError("the field's covariance is not positive definite")
+    Vi = np.tril(dpotri(C, lower=1)[0])
+    Vi += np.tril(Vi, -1).T
+    return Vi, 2 * float(np.sum(np.log(np.diag(C))))
+
+
 def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Sites,
-                          sigma: float) -> tuple[float, np.ndarray]:
+                          sigma: float, D0: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """``l(theta)`` and its gradient (module docstring) of the field of the joints' angle errors
     for residuals ``r`` (m, d), ``J`` (m, d, L) at the sites ``S`` (their loads ``dy/dq``),
     ``theta = log(angle_1 .. angle_n, length_1 .. length_n, nugget)``. ``V`` is dense (m d x m
@@ -135,15 +163,9 @@ def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Si
     m, d = r.shape
     n, N, L = S.Q.shape[1], m * d, J.shape[2]
     s2, ell, nug2 = np.exp(2 * theta[:n]), np.exp(theta[n:2 * n]), np.exp(2 * theta[-1])
-    D = (S.Q[:, None, :] - S.Q[None, :, :]) ** 2 / ell**2  # (m, m, n)
+    D = (squared_differences(S.Q) if D0 is None else D0) / ell**2  # (m, m, n)
     K = s2 * np.exp(-0.5 * D)  # k_c(q_i, q_k)
-    V = loaded(S.G, K, S.G).reshape(N, N) + np.kron(nug2 * np.eye(m), S.A) + sigma**2 * np.eye(N)
-    C, info = dpotrf(V, lower=1)
-    if info:
-        raise np.linalg.LinAlgError("the field's covariance is not positive definite")
-    Vi = dpotri(C, lower=1)[0]
-    Vi = np.tril(Vi) + np.tril(Vi, -1).T
-    logdet = 2 * np.sum(np.log(np.diag(C)))
+    Vi, logdet = _inverse(loaded(S.G, K, S.G).reshape(N, N) + np.kron(nug2 * np.eye(m), S.A) + sigma**2 * np.eye(N))
     if L:
         Sx = J.reshape(N, L)
         VS = Vi @ Sx
@@ -184,18 +206,17 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
         dq = None if dq is None else dq[keep]
         m = FIELD_ROWS
     A = Wh @ coupling(axes, axes) @ Wh.T
-    n = Q.shape[1]
+    n, D0 = Q.shape[1], squared_differences(Q)
     seen = r[:, axes >= 0] if np.any(axes >= 0) else r  # positions; an orientation's only without them
     spread = max(float(np.sqrt(max(np.mean(seen**2) - sigma**2, sigma**2))), sigma)
     low, high = math.log(SCALE_LOW * sigma), math.log(100 * spread)
     width = np.maximum(np.std(Q, axis=0), 0.1)
     nugget0 = [math.log(max(0.3 * spread, SCALE_LOW * sigma))]
-    kinds = ("axes", "additive") + (() if dq is None else ("joints alike", "joints"))
     if dq is not None:  # an angle (rad) moves a value by |dy/dq| (m per rad)
         sites = Sites(Q, dq, A)
         lever = max(float(np.sqrt(np.mean(np.sum(dq**2, axis=1)))), 1e-9)
-    fits, alike_theta = [], None
-    for kind in kinds:
+    def fit(kind: str, alike_theta: np.ndarray | None = None) -> tuple[float, FieldFit, np.ndarray]:
+        """The kind's field of the highest restricted likelihood, its AIC and hyperparameters."""
         if kind.startswith("joints"):
             k = 1 if kind == "joints alike" else n  # one angle and one length for every joint, or each its own
             scales, scale_bounds = [math.log(spread / lever / math.sqrt(n))] * k, (low - math.log(lever),
@@ -203,16 +224,18 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
             E = np.zeros((2 * n + 1, 2 * k + 1))  # theta = E t
             E[np.arange(n), np.arange(n) % k] = E[n + np.arange(n), k + np.arange(n) % k] = E[-1, -1] = 1.0
 
-            def minus_l(t: np.ndarray, E: np.ndarray = E) -> tuple[float, np.ndarray]:
-                value, grad = joints_log_likelihood(E @ t, r, J, sites, sigma)
+            def minus_l(t: np.ndarray) -> tuple[float, np.ndarray]:
+                if stop.is_set():  # the other thread was interrupted (Ctrl-C) or failed
+                    raise InterruptedError
+                value, grad = joints_log_likelihood(E @ t, r, J, sites, sigma, D0)
                 return -value, -E.T @ grad
         else:
             additive = kind == "additive"
             scales = [math.log(spread / math.sqrt(n))] * n if additive else [math.log(spread)]
             scale_bounds = (low, high)
 
-            def minus_l(t: np.ndarray, additive: bool = additive) -> tuple[float, np.ndarray]:
-                value, grad = restricted_log_likelihood(t, r, J, Q, A, sigma, additive)
+            def minus_l(t: np.ndarray) -> tuple[float, np.ndarray]:
+                value, grad = restricted_log_likelihood(t, r, J, Q, A, sigma, additive, D0)
                 return -value, -grad
 
         ell = LENGTH_BOUNDS if kind == "axes" else ADDITIVE_LENGTH_BOUNDS
@@ -221,14 +244,12 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
         # likelihood is at least that one's); the others from two starts
         starts = ([alike_theta] if kind == "joints" else
                   [np.concatenate([scales, np.log(np.clip(w0 / shrink, *ell)), nugget0]) for shrink in (1.0, 3.0)])
-        found = min((minimize(minus_l, t0, jac=True, method="L-BFGS-B",
+        found = min((minimize(minus_l, t0, jac=True, method="L-BFGS-B", options={"ftol": FTOL, "gtol": GTOL},
                               bounds=[scale_bounds] * len(scales) + [tuple(map(math.log, ell))] * len(w0)
                               + [(low, high)])
                      for t0 in starts),
                     key=lambda f: f.fun)
         theta = E @ found.x if kind.startswith("joints") else found.x  # the joints': one entry per joint
-        if kind == "joints alike":
-            alike_theta = theta
         first = n if kind.startswith("joints") else len(scales)
         lengths, nugget = tuple(float(v) for v in np.exp(theta[first:first + n])), float(np.exp(theta[-1]))
         if kind.startswith("joints"):
@@ -238,7 +259,23 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
             field = Field(float(np.sqrt(s2.sum())), lengths, nugget, tuple(float(v) for v in s2 / s2.sum()))
         else:
             field = Field(float(np.exp(theta[0])), lengths, nugget)
-        fits.append((2 * len(found.x) + 2 * found.fun, FieldFit(field, float(-found.fun), m)))
+        return 2 * len(found.x) + 2 * found.fun, FieldFit(field, float(-found.fun), m), theta
+
+    def joints() -> list[tuple[float, FieldFit, np.ndarray]]:
+        alike = fit("joints alike")
+        return [alike, fit("joints", alike[2])]
+
+    # the base axes' kinds here and the joint angles' on a thread (LAPACK and numpy release the
+    # GIL; each optimisation runs as it would alone, so the estimate does not depend on it)
+    stop, pool = threading.Event(), ThreadPoolExecutor(max_workers=1)
+    try:
+        angles = pool.submit(joints) if dq is not None else None
+        fits = [fit("axes"), fit("additive")] + ([] if angles is None else angles.result())
+    except BaseException:  # Ctrl-C stops the thread at its next evaluation
+        stop.set()
+        raise
+    finally:
+        pool.shutdown(wait=True)
     return min(fits, key=lambda f: f[0])[1]  # the lower AIC: 2 hyperparameters - 2 l
 
 

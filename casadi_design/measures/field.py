@@ -48,7 +48,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_solve, solve_triangular
+from scipy.linalg import cho_solve
 
 from .criteria import CRITERIA
 
@@ -274,41 +274,10 @@ def kriging_mean(field: Field, sigma: float, r: np.ndarray, S: Sites, S0: Sites)
     return np.einsum("snc,n->sc", cross_covariance(field, S, S0), alpha)
 
 
-def kriging_rho_added(field: Field, sigma: float, B: np.ndarray, S: Sites, Bc: np.ndarray, Sc: Sites,
-                      B0: np.ndarray, S0: Sites, P: np.ndarray | None = None) -> np.ndarray:
-    """``rho`` (k, s), m^2, of the campaigns ``S`` (m sites, rows ``B``) plus one candidate each,
-    ``Sc`` (k sites) with rows ``Bc`` (k, d, L): :func:`kriging_rho` of every campaign at once
-    (:func:`bordered_rho` of their covariances)."""
-    m, d, L = B.shape
-    k = len(Sc)
-    return bordered_rho(value_covariance(field, S, sigma), B.reshape(m * d, L),
-                        covariance(field, S, S0).reshape(m * d, -1), covariance(field, S, Sc).reshape(m * d, k * d),
-                        own_blocks(field, Sc, sigma), Bc, covariance(field, Sc, S0).reshape(k, d, -1), B0,
-                        own_variance(field, S0), P)
-
-
 def own_blocks(field: Field, S: Sites, sigma: float) -> np.ndarray:
     """The covariance of each site's own whitened values (m, d, d), m^2: the diagonal blocks of
     :func:`value_covariance`."""
     return np.einsum("cvp,p,cwp->cvw", S.G, field.variances, S.G) + noise(field, S, sigma)
-
-
-def bordered_rho(V: np.ndarray, Bm: np.ndarray, k0: np.ndarray, v: np.ndarray, vcc: np.ndarray, Bc: np.ndarray,
-                 k0c: np.ndarray, B0: np.ndarray, own: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
-    """``rho`` (k, s), m^2, at s test poses of rows ``B0`` (s, r, L) and own variance ``own``
-    (s,) of a campaign of covariance ``V`` (N x N), rows ``Bm`` (N x L) and cross covariance
-    ``k0`` (N x s r) plus one candidate each: its covariance with the campaign ``v`` (N x k d),
-    its own ``vcc`` (k, d, d), rows ``Bc`` (k, d, L) and cross covariance ``k0c`` (k, d, s r);
-    ``P`` the prior information (L x L; None: none): :func:`added_rho` of the campaign's
-    products with ``V^-1`` (one Cholesky factor ``Cv``, ``Cv Cv^T = V``)."""
-    k, d, L = Bc.shape
-    s, r = B0.shape[0], B0.shape[1]
-    Y = solve_triangular(np.linalg.cholesky(V), np.concatenate([Bm, k0, v], axis=1), lower=True, check_finite=False)
-    YS, Yk, Yv = Y[:, :L], Y[:, L:L + s * r], Y[:, L + s * r:]
-    Yvb = Yv.reshape(-1, k, d)
-    return added_rho(YS.T @ YS + (0.0 if P is None else P), B0 - (Yk.T @ YS).reshape(s, r, L),
-                     np.sum(Yk.reshape(-1, s, r) ** 2, axis=(0, 2)), vcc - np.einsum("nca,ncb->cab", Yvb, Yvb),
-                     Bc - (Yv.T @ YS).reshape(k, d, L), k0c - (Yv.T @ Yk).reshape(k, d, s * r), own)
 
 
 def added_rho(G: np.ndarray, R: np.ndarray, KK: np.ndarray, Sch: np.ndarray, u: np.ndarray, w: np.ndarray,

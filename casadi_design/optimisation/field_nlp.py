@@ -31,9 +31,10 @@ from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from ..calibration.models import joint_jacobians
-from ..measures.field import coupling, own_variance
+from ..measures.field import coupling, covariance, noise, own_variance, value_covariance
 from ..problem.build import Problem
 from .reduced import ReducedNLP, callbacks
 
@@ -45,7 +46,13 @@ def kriging_graph(problem: Problem, m: int) -> ca.Function:
     """``Z -> (rows, d rows / d vec(Z))``: ``rho_j / sigma^2`` (s,) at the test poses of the
     campaign of the held poses and the plan of variables ``Z`` (n + nv x m) with the problem's
     field (module docstring), and its Jacobian (s x (n + nv) m, ``vec`` column-major: experiment
-    i's variable a at ``i (n + nv) + a``); p below is the field's number of components."""
+    i's variable a at ``i (n + nv) + a``); p below is the field's number of components.
+
+    The held poses (h, their values y_h) do not move: their covariance ``V_hh = C_h C_h^T``, rows
+    and cross covariance are numbers, eliminated once. With ``T = V_ph C_h^-T`` (the plan's
+    covariance with them, whitened), ``x^T V^-1 y = (C_h^-1 x_h)^T (C_h^-1 y_h) + e_x^T D^-1
+    e_y``, ``e_x = x_p - T C_h^-1 x_h`` and ``D = V_pp - T T^T``: the graph's solves are of the
+    plan's m d values alone."""
     fld, model, loads = problem.field, problem.model, problem.rules.loads
     n, nv, d, L = model.n, loads.nv, model.d, model.L
     axes = problem.field_axes[0]
@@ -57,46 +64,48 @@ def kriging_graph(problem: Problem, m: int) -> ca.Function:
     Z = ca.MX.sym("Z", n + nv, m)
     Bm, Gm = one.map(m)(Z)  # (d, L m), (d, p m)
     p = Gm.shape[1] // m
-    Bh, Sh = problem.field_held_rows
-    k = len(Sh)
-    S = ca.vertcat(ca.DM(Bh.reshape(k * d, L)), *(Bm[:, i * L:(i + 1) * L] for i in range(m)))
-    g = [ca.vertcat(ca.DM(Sh.G[:, :, c].reshape(-1)), *(Gm[:, i * p + c] for i in range(m))) for c in range(p)]
-    Qall = ca.vertcat(ca.DM(Sh.Q), Z[:n, :].T)  # (k + m, n)
+    S = ca.vertcat(*(Bm[:, i * L:(i + 1) * L] for i in range(m)))  # the plan's rows (m d, L)
+    g = [ca.vertcat(*(Gm[:, i * p + c] for i in range(m))) for c in range(p)]  # its loads (m d,) per component
+    Qp = Z[:n, :].T  # (m, n)
     S0 = problem.field_test_sites
-    Kc, K0c = _components(fld, Qall, S0.Q)
-    Mx = k + m
-    ones = ca.DM.ones(d, d)
-    V = sum(ca.kron(Kc[c], ones) * (g[c] @ g[c].T) for c in range(p))
-    V = V + ca.DM(np.kron(fld.nugget_m**2 * np.eye(Mx), Sh.A) + sigma**2 * np.eye(Mx * d))
     s, r = S0.G.shape[:2]
+    ones = ca.DM.ones(d, d)
+    Kc, K0c = _components(fld, Qp, Qp), _components(fld, Qp, ca.DM(S0.Q))
+    Bh, Sh = problem.field_held_rows  # (its sites' A, the nugget's coupling, with no held pose too)
+    D = sum(ca.kron(Kc[c], ones) * (g[c] @ g[c].T) for c in range(p)) + ca.DM(np.kron(np.eye(m), noise(fld, Sh, sigma)))
     k0 = sum((g[c] * ca.kron(K0c[c], ca.DM.ones(d, 1))) @ ca.DM(_spread(S0.G[:, :, c])) for c in range(p))
-    W = ca.solve(V, ca.horzcat(S, k0), "ldl")
+    H = 0.0 if problem.field_prior is None else ca.DM(problem.field_prior)
+    R, KK = ca.DM(problem.B0.reshape(s * r, L)), 0.0
+    if len(Sh):  # the held poses, eliminated (docstring)
+        Ch = np.linalg.cholesky(value_covariance(fld, Sh, sigma))
+        US, Uk = np.split(solve_triangular(Ch, np.concatenate([Bh.reshape(-1, L), covariance(fld, Sh, S0).reshape(
+            len(Sh) * d, s * r)], axis=1), lower=True), [L], axis=1)
+        Kh = _components(fld, Qp, ca.DM(Sh.Q))
+        Vph = sum(ca.kron(Kh[c], ones) * (g[c] @ ca.DM(Sh.G[:, :, c].reshape(1, -1))) for c in range(p))
+        T = Vph @ ca.DM(np.linalg.inv(Ch).T)
+        D, S, k0 = D - T @ T.T, S - T @ ca.DM(US), k0 - T @ ca.DM(Uk)
+        H, R, KK = H + ca.DM(US.T @ US), R - ca.DM(Uk.T @ US), ca.DM(np.sum(Uk**2, axis=0).reshape(s, r).sum(axis=1))
+    W = ca.solve(D, ca.horzcat(S, k0), "ldl")
     WS, Wk = W[:, :L], W[:, L:]
-    H = S.T @ WS + (0.0 if problem.field_prior is None else ca.DM(problem.field_prior))
-    R = ca.DM(problem.B0.reshape(s * r, L)) - k0.T @ WS
+    H = H + S.T @ WS
+    R = R - k0.T @ WS
     Y = ca.solve(H, R.T, "ldl")
-    KK = ca.sum1(ca.reshape(ca.sum1(k0 * Wk), r, s))
+    KK = KK + ca.sum1(ca.reshape(ca.sum1(k0 * Wk), r, s)).T
     RR = ca.sum1(ca.reshape(ca.sum2(R * Y.T).T, r, s))
-    rows = (ca.DM(own_variance(fld, S0)).T - KK + RR).T / sigma**2
+    rows = (ca.DM(own_variance(fld, S0)) - KK + RR.T) / sigma**2
     return ca.Function("kriging", [Z], [rows, ca.jacobian(rows, ca.vec(Z))], ["Z"], ["rows", "drows"])
 
 
-def _components(fld, Qall: ca.MX, Q0: np.ndarray) -> tuple[list, list]:
-    """The components' kernels ``k_c`` among the campaign's poses (MX, k + m square) and with
-    the test poses (k + m, s), as :meth:`~casadi_design.measures.field.Field.components`."""
-    M, s = Qall.shape[0], len(Q0)
-    D2 = [((ca.repmat(Qall[:, l], 1, M) - ca.repmat(Qall[:, l].T, M, 1)) / ell) ** 2 for l, ell in enumerate(fld.lengths)]
-    D02 = [((ca.repmat(Qall[:, l], 1, s) - ca.repmat(ca.DM(Q0[:, l]).T, M, 1)) / ell) ** 2
-           for l, ell in enumerate(fld.lengths)]
+def _components(fld, Qa: ca.MX, Qb: ca.MX | ca.DM) -> tuple[list, list]:
+    """The components' kernels ``k_c`` (MX, len(Qa) x len(Qb)) between the poses ``Qa`` and
+    ``Qb`` (rows), as :meth:`~casadi_design.measures.field.Field.components`."""
+    ma, mb = Qa.shape[0], Qb.shape[0]
+    D2 = [((ca.repmat(Qa[:, l], 1, mb) - ca.repmat(Qb[:, l].T, ma, 1)) / ell) ** 2 for l, ell in enumerate(fld.lengths)]
     if fld.through_joints:
-        return ([a**2 * ca.exp(-0.5 * D) for a, D in zip(fld.angles_rad, D2)],
-                [a**2 * ca.exp(-0.5 * D) for a, D in zip(fld.angles_rad, D02)])
+        return [a**2 * ca.exp(-0.5 * D) for a, D in zip(fld.angles_rad, D2)]
     if fld.shares:
-        K = fld.scale_m**2 * sum(w * ca.exp(-0.5 * D) for w, D in zip(fld.shares, D2))
-        K0 = fld.scale_m**2 * sum(w * ca.exp(-0.5 * D) for w, D in zip(fld.shares, D02))
-    else:
-        K, K0 = fld.scale_m**2 * ca.exp(-0.5 * sum(D2)), fld.scale_m**2 * ca.exp(-0.5 * sum(D02))
-    return [K] * 3, [K0] * 3
+        return [fld.scale_m**2 * sum(w * ca.exp(-0.5 * D) for w, D in zip(fld.shares, D2))] * 3
+    return [fld.scale_m**2 * ca.exp(-0.5 * sum(D2))] * 3
 
 
 def _spread(G0c: np.ndarray) -> np.ndarray:

@@ -1,12 +1,20 @@
 """The kriging of plans drawn from a pool, for the exchange with the field: what every pricing
 shares, computed once.
 
-The exchange prices, at each position of a plan, every posture of the pool as the one that
-takes it (:func:`~casadi_design.measures.field.bordered_rho`). Its inputs are blocks of one
-covariance over the held poses and the pool's postures that never change: each site's own
-block, its cross covariance with the test poses, and its covariance with every other site (a
-row of d x (h + k) d, computed the first time a plan holds the site and kept, least recently
-used first out beyond :data:`ROW_BYTES`). A pricing gathers its plan's blocks from them.
+The exchange prices, at each position a of a plan, every posture of the pool as the one that
+takes it: the kriging variance rho of the held poses, the plan less a and the candidate
+(:func:`~casadi_design.measures.field.added_rho`, a candidate's share in closed form). Its
+inputs are products ``X^T V_r^-1 Y`` of the campaign less a (X, Y: the rows B, the cross
+covariance k0 with the test poses, the covariance v with the pool's postures). Computed per
+pricing they cost O(N^2 (k d + L + s r)); here:
+
+- :meth:`FieldPool.state`: once per plan (after each swap), ``V^-1`` of the whole campaign
+  (N = (h + m) d values) and its products with B, k0 and v;
+- :meth:`FieldPool.priced`: per position, the campaign less a by a rank-d downdate of those
+  products (``V_r^-1 = Vi_rr - Vi_rA Vi_AA^-1 Vi_Ar``, A the d values of a): O(k d (L + s r) d);
+- the covariance of each site with every other (a row of d x (h + k) d, computed the first time
+  a plan holds the site and kept, least recently used out beyond :data:`ROW_BYTES`), each
+  site's own block and its cross covariance with the test poses, once.
 """
 
 from __future__ import annotations

@@ -3,26 +3,37 @@
 measures/field.py, its first derivatives central finite differences, on the paper's
 arm (loads as variables) with a field of the base axes and one of the joint angles."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from casadi_design.optimisation.nlp import build_nlp
 from casadi_design.optimisation.solve import field_rho
 from casadi_design.plan.sampling import random_plan
-from casadi_design.problem.build import load_problem
+from casadi_design.problem.build import build_problem, load_problem
+from casadi_design.problem_file.read import HeldSpec
 from tests.conftest import ROOT
 
 FIELDS = {"base axes": "scale_m = 5e-4\nlength_rad = 0.5", "joint angles": "angle_rad = [8e-4, 5e-4]\nlength_rad = [0.4, 0.6]"}
 
 
-@pytest.fixture(scope="module", params=list(FIELDS))
+@pytest.fixture(scope="module", params=[(name, held) for name in FIELDS for held in (0, 4)])
 def paper(request, tmp_path_factory):
+    """The paper's arm with a field, and with ``held`` experiments measured before the plan (the
+    graph eliminates their part numerically)."""
+    name, held = request.param
     text = (ROOT / "problems" / "paper_planar_2r.toml").read_text().replace(
-        "[measurement]", f"[calibration.model_error]\n{FIELDS[request.param]}\n\n[measurement]")
+        "[measurement]", f"[calibration.model_error]\n{FIELDS[name]}\n\n[measurement]")
     path = tmp_path_factory.mktemp("field") / "paper_field.toml"
     path.write_text(text)
     problem = load_problem(path)
-    Q, F = random_plan(problem, 3, np.random.default_rng(1))
+    rng = np.random.default_rng(1)
+    if held:
+        Qh, Fh = random_plan(problem, held, rng)
+        problem = build_problem(dataclasses.replace(problem.spec, held=HeldSpec(q=Qh.tolist(), F=Fh.tolist())))
+        assert len(problem.field_held_rows[1]) == held
+    Q, F = random_plan(problem, 3, rng)
     return problem, Q, F
 
 

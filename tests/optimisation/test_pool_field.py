@@ -13,7 +13,6 @@ from casadi_design.measures.field import (
     axes_of,
     kriging_mean,
     kriging_rho,
-    kriging_rho_added,
 )
 from casadi_design.optimisation.pool import choose_design
 from casadi_design.plan.sampling import random_plan
@@ -46,24 +45,28 @@ def case():
 
 
 def test_all_candidates_at_once_are_each_campaign_s_kriging_variance(case):
+    """FieldPool prices a plan plus each candidate as kriging_rho of that campaign: where the
+    plan identifies X (Woodbury over G) and where only the candidate makes it do so."""
+    from casadi_design.optimisation.field_pool import FieldPool
+
     problem, Q, F = case
     model = problem.model
     B = model.B_stack(Q, F)
     tp = problem.test_poses
-    # 10 postures identify X (Woodbury over G); 8 do not (24 rows, L = 27), one candidate more may
+    none = np.zeros((0,) + B.shape[1:])
+    # 10 postures identify X; 8 do not (24 rows, L = 27), one candidate more may
     for rest, cands in ((list(range(10)), list(range(10, 30))), (list(range(8)), list(range(40, 87)))):
         for field in (problem.field, JOINTS):  # of the base axes, of the joint angles
             joints = field.through_joints
             S = field.sites(Q, axes_of(model.measured_rows), np.eye(3), model.dq_stack(Q, F) if joints else None)
             S0 = field.sites(tp.q, axes_of(model.accuracy_rows), np.eye(3),
                              model.dq_stack(tp.q, tp.F, "accuracy") if joints else None)
-            added = kriging_rho_added(field, problem.sigma_m, B[rest], S[rest], B[cands], S[cands], problem.B0, S0)
+            added = FieldPool(field, problem.sigma_m, none, S[[]], B, S, problem.B0, S0).rho_added(rest, cands)
             one_by_one = np.array([kriging_rho(field, problem.sigma_m, B[rest + [c]], S[rest + [c]], problem.B0, S0)
                                    for c in cands])
             finite = np.isfinite(one_by_one)
             assert model.L == 27 and 0 < finite.sum() and np.array_equal(np.isfinite(added), finite)
             np.testing.assert_allclose(added[finite], one_by_one[finite], rtol=1e-8)
-
 
 
 def test_the_pool_s_kriging_is_each_campaign_s_with_the_held_poses_and_prior(case):
