@@ -8,13 +8,14 @@ inputs are products ``X^T V_r^-1 Y`` of the campaign less a (X, Y: the rows B, t
 covariance k0 with the test poses, the covariance v with the pool's postures). Computed per
 pricing they cost O(N^2 (k d + L + s r)); here:
 
-- :meth:`FieldPool.state`: once per plan (after each swap), ``V^-1`` of the whole campaign
-  (N = (h + m) d values) and its products with B, k0 and v;
+- the held poses, conditioned on once (:class:`FieldPool`);
+- :meth:`FieldPool.state`: once per plan (after each swap), ``V^-1`` of the plan's m d values
+  and its products with B, k0 and v;
 - :meth:`FieldPool.priced`: per position, the campaign less a by a rank-d downdate of those
   products (``V_r^-1 = Vi_rr - Vi_rA Vi_AA^-1 Vi_Ar``, A the d values of a): O(k d (L + s r) d);
-- the covariance of each site with every other (a row of d x (h + k) d, computed the first time
-  a plan holds the site and kept, least recently used out beyond :data:`ROW_BYTES`), each
-  site's own block and its cross covariance with the test poses, once.
+- the covariance of each posture with every other (a row of d x k d, computed the first time
+  a plan holds the posture and kept, least recently used out beyond :data:`ROW_BYTES`), each
+  posture's own block and its cross covariance with the test poses, once.
 """
 
 from __future__ import annotations
@@ -23,77 +24,96 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
-from ..measures.field import Field, Sites, added_rho, covariance, noise, own_blocks, own_variance
+from ..measures.field import Field, Sites, added_rho, covariance, noise, own_blocks, own_variance, value_covariance
 
 #: Memory the covariance rows of the sites kept may take (bytes).
 ROW_BYTES = 256 * 2**20
 
 
 class FieldPool:
-    """The held poses (h sites, rows ``Bh`` (h, d, L)) and a pool (k sites ``S``, rows ``B``
-    (k, d, L)) of a ``field`` with the tracker's ``sigma`` (m), the test poses' rows ``B0`` (s,
-    r, L) and sites ``S0``, the prior information ``P`` (L x L or None). Sites are numbered
-    held first: pool posture i is site h + i."""
+    """The held poses (h sites ``Sh``, rows ``Bh`` (h, d, L)) and a pool (k sites ``S``, rows
+    ``B`` (k, d, L)) of a ``field`` with the tracker's ``sigma`` (m), the test poses' rows ``B0``
+    (s, r, L) and sites ``S0``, the prior information ``P`` (L x L or None).
+
+    The held poses never leave a plan: they are conditioned on once. With ``V_hh = C_h C_h^T``
+    and ``W = C_h^-1 V_h.`` (their whitened covariance with the pool), a pool's kriging is that
+    of the covariance ``V - W^T W`` given them, its rows ``B - W^T C_h^-1 B_h`` and cross
+    covariance ``k0 - W^T C_h^-1 k0_h``, and G, R and tr(k0^T V^-1 k0) start from the held
+    poses' own ``(C_h^-1 B_h)^T C_h^-1 B_h + P``, ``B0 - (C_h^-1 k0_h)^T C_h^-1 B_h`` and
+    ``|C_h^-1 k0_h|^2``: a plan's system holds its own m d values alone."""
 
     def __init__(self, field: Field, sigma: float, Bh: np.ndarray, Sh: Sites, B: np.ndarray, S: Sites,
                  B0: np.ndarray, S0: Sites, P: np.ndarray | None = None):
-        self.field, self.sigma, self.P = field, sigma, P
-        self.h = len(Sh)
-        self.sites = Sh + S
-        self.B = np.concatenate([Bh, B])
-        self.B0, self.own = B0, own_variance(field, S0)
-        n, d = len(self.sites), self.B.shape[1]
-        self.d = d
-        self.k0 = covariance(field, self.sites, S0).reshape(n, d, -1)  # (h + k, d, s r)
-        self.vcc = own_blocks(field, self.sites, sigma)  # (h + k, d, d)
-        self.noise = noise(field, self.sites, sigma)  # (d, d)
+        self.field, self.sites, self.h = field, S, len(Sh)
+        k, d, L = B.shape
+        s, r = B0.shape[:2]
+        self.d, self.own, self.noise = d, own_variance(field, S0), noise(field, S, sigma)  # noise (d, d)
+        self.k0 = covariance(field, S, S0).reshape(k, d, s * r)
+        self.B, self.vcc = B, own_blocks(field, S, sigma)  # (k, d, L), (k, d, d)
+        self.G0, self.R0, self.KK0 = 0.0 if P is None else P, B0, np.zeros(s)
+        self.W = None
+        if len(Sh):
+            Ch = np.linalg.cholesky(value_covariance(field, Sh, sigma))
+            W, UB, Uk = np.split(solve_triangular(Ch, np.concatenate([
+                covariance(field, Sh, S).reshape(-1, k * d), Bh.reshape(-1, L), covariance(field, Sh, S0).reshape(
+                    -1, s * r)], axis=1), lower=True, check_finite=False), [k * d, k * d + L], axis=1)
+            self.W = W  # (h d, k d)
+            self.B = B - (W.T @ UB).reshape(k, d, L)
+            self.k0 = self.k0 - (W.T @ Uk).reshape(k, d, s * r)
+            self.vcc = self.vcc - _blocks(W, W, d)
+            self.G0, self.R0 = self.G0 + UB.T @ UB, B0 - (Uk.T @ UB).reshape(B0.shape)
+            self.KK0 = np.sum(Uk**2, axis=0).reshape(s, r).sum(axis=1)
         self.rows: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.keep = max(64, ROW_BYTES // (8 * d * n * d))
+        self.keep = max(64, ROW_BYTES // (8 * d * k * d))
 
-    def _rows(self, sites: np.ndarray) -> np.ndarray:
-        """The covariance of the ``sites`` with every site (len(sites), d, h + k, d)."""
-        new = [int(i) for i in sites if int(i) not in self.rows]
+    def _rows(self, plan: np.ndarray) -> np.ndarray:
+        """The covariance of the postures ``plan`` with every posture of the pool given the held
+        poses (len(plan), d, k, d)."""
+        new = [int(i) for i in plan if int(i) not in self.rows]
         if new:
             block = covariance(self.field, self.sites[new], self.sites)
+            if self.W is not None:
+                cols = (self.d * np.asarray(new)[:, None] + np.arange(self.d)).ravel()
+                block = block - (self.W[:, cols].T @ self.W).reshape(block.shape)
             for i, row in zip(new, block):
                 self.rows[i] = row
-        out = np.stack([self.rows[int(i)] for i in sites])
-        for i in sites:
+        out = np.stack([self.rows[int(i)] for i in plan]) if len(plan) else np.zeros((0, self.d, len(self.B), self.d))
+        for i in plan:
             self.rows.move_to_end(int(i))
         while len(self.rows) > self.keep:
             self.rows.popitem(last=False)
         return out
 
     def state(self, plan: list[int]) -> KrigingState:
-        """The kriging system of the held poses plus the pool's postures ``plan``: its inverse
+        """The kriging system of the pool's postures ``plan`` given the held poses: its inverse
         and its products with the rows, the test poses and every posture of the pool."""
-        sites = np.concatenate([np.arange(self.h), self.h + np.asarray(plan, dtype=int)])
-        m, d, L = len(sites), self.d, self.B.shape[2]
-        R = self._rows(sites)  # (m, d, h + k, d)
-        V = R[:, :, sites, :].reshape(m * d, m * d) + np.kron(np.eye(m), self.noise)
-        Vi = cho_solve(cho_factor(V, lower=True, check_finite=False), np.eye(m * d), check_finite=False)
-        X = {"B": self.B[sites].reshape(m * d, L), "k0": self.k0[sites].reshape(m * d, -1),
-             "v": R[:, :, self.h:, :].reshape(m * d, -1)}
+        plan = np.asarray(plan, dtype=int)
+        m, d, L = len(plan), self.d, self.B.shape[2]
+        R = self._rows(plan)  # (m, d, k, d)
+        V = R[:, :, plan, :].reshape(m * d, m * d) + np.kron(np.eye(m), self.noise)
+        Vi = cho_solve(cho_factor(V, lower=True, check_finite=False), np.eye(m * d), check_finite=False) if m \
+            else V
+        X = {"B": self.B[plan].reshape(m * d, L), "k0": self.k0[plan].reshape(m * d, -1), "v": R.reshape(m * d, -1)}
         PX = {name: Vi @ x for name, x in X.items()}
         grams = {("B", "B"): X["B"].T @ PX["B"], ("k0", "B"): X["k0"].T @ PX["B"],
                  ("k0", "k0"): _blocks(X["k0"], PX["k0"], 1), ("v", "v"): _blocks(X["v"], PX["v"], d),
                  ("v", "B"): X["v"].T @ PX["B"], ("v", "k0"): X["v"].T @ PX["k0"]}
-        return KrigingState(self.h, d, Vi, X, PX, grams)
+        return KrigingState(d, Vi, X, PX, grams)
 
     def priced(self, state: KrigingState, a: int | None, cands: np.ndarray) -> np.ndarray:
-        """``rho`` (len(cands), s), m^2, of ``state``'s campaign less its plan's position ``a``
-        (None: none) plus each posture of ``cands`` (pool indices):
+        """``rho`` (len(cands), s), m^2, of the held poses, ``state``'s plan less its position
+        ``a`` (None: none) and each posture of ``cands`` (pool indices):
         :func:`~casadi_design.measures.field.added_rho` of the products with ``V^-1`` of that
         campaign (:meth:`KrigingState.products`)."""
-        cands = np.asarray(cands, dtype=int)
-        k, d, L = len(cands), self.d, self.B.shape[2]
-        gram, c = state.products(a, cands), self.h + cands
-        return added_rho(gram("B", "B") + (0.0 if self.P is None else self.P), self.B0 - gram("k0", "B").reshape(self.B0.shape),
-                         gram("k0", "k0").reshape(-1, self.B0.shape[1]).sum(axis=1), self.vcc[c] - gram("v", "v"),
-                         self.B[c] - gram("v", "B").reshape(k, d, L), self.k0[c] - gram("v", "k0").reshape(k, d, -1),
-                         self.own)
+        c = np.asarray(cands, dtype=int)
+        k, d, L = len(c), self.d, self.B.shape[2]
+        gram = state.products(a, c)
+        return added_rho(self.G0 + gram("B", "B"), self.R0 - gram("k0", "B").reshape(self.R0.shape),
+                         self.KK0 + gram("k0", "k0").reshape(-1, self.R0.shape[1]).sum(axis=1),
+                         self.vcc[c] - gram("v", "v"), self.B[c] - gram("v", "B").reshape(k, d, L),
+                         self.k0[c] - gram("v", "k0").reshape(k, d, -1), self.own)
 
     def rho_added(self, plan: list[int], cands: np.ndarray) -> np.ndarray:
         """``rho`` (len(cands), s), m^2, of the held poses plus the pool's postures ``plan`` plus
@@ -103,13 +123,12 @@ class FieldPool:
 
 @dataclass(frozen=True, eq=False)
 class KrigingState:
-    """The kriging system of a campaign (h held sites, then the plan's, d values each): ``Vi =
+    """The kriging system of a plan given the held poses (d values a posture): ``Vi =
     V^-1`` (N x N), its blocks ``X`` (the rows ``"B"`` N x L, the cross covariance with the test
     poses ``"k0"`` N x s r, the covariance with every posture of the pool ``"v"`` N x k d), ``PX =
     V^-1 X`` and the products ``grams[x, y] = X_x^T V^-1 X_y`` (of k0 with itself the diagonal
     (s r,), of v the d x d blocks of each posture (k, d, d))."""
 
-    h: int
     d: int
     Vi: np.ndarray
     X: dict
@@ -124,7 +143,7 @@ class KrigingState:
         d = self.d
         cols = (d * np.asarray(cands)[:, None] + np.arange(d)).ravel()
         if a is not None:
-            A = slice((self.h + a) * d, (self.h + a + 1) * d)
+            A = slice(a * d, (a + 1) * d)
             Vaa = self.Vi[A, A]
             Vaa_inv = np.linalg.inv(Vaa)
             xA = {"B": self.X["B"][A], "k0": self.X["k0"][A], "v": self.X["v"][A][:, cols]}
