@@ -102,14 +102,15 @@ class FieldPool:
                  ("v", "B"): X["v"].T @ PX["B"], ("v", "k0"): X["v"].T @ PX["k0"]}
         return KrigingState(d, Vi, X, PX, grams)
 
-    def priced(self, state: KrigingState, a: int | None, cands: np.ndarray) -> np.ndarray:
+    def priced(self, state: KrigingState, a: int | None, cands: np.ndarray | None = None) -> np.ndarray:
         """``rho`` (len(cands), s), m^2, of the held poses, ``state``'s plan less its position
-        ``a`` (None: none) and each posture of ``cands`` (pool indices):
+        ``a`` (None: none) and each posture of ``cands`` (pool indices; None: every posture, a
+        plan's own too, in the pool's order):
         :func:`~casadi_design.measures.field.added_rho` of the products with ``V^-1`` of that
         campaign (:meth:`KrigingState.products`)."""
-        c = np.asarray(cands, dtype=int)
-        k, d, L = len(c), self.d, self.B.shape[2]
-        gram = state.products(a, c)
+        c = slice(None) if cands is None else np.asarray(cands, dtype=int)
+        k, d, L = len(self.B[c]), self.d, self.B.shape[2]
+        gram = state.products(a, None if cands is None else c)
         return added_rho(self.G0 + gram("B", "B"), self.R0 - gram("k0", "B").reshape(self.R0.shape),
                          self.KK0 + gram("k0", "k0").reshape(-1, self.R0.shape[1]).sum(axis=1),
                          self.vcc[c] - gram("v", "v"), self.B[c] - gram("v", "B").reshape(k, d, L),
@@ -135,13 +136,15 @@ class KrigingState:
     PX: dict
     grams: dict
 
-    def products(self, a: int | None, cands: np.ndarray):
+    def products(self, a: int | None, cands: np.ndarray | None):
         """``gram(x, y)``: :attr:`grams` over the campaign's values r less the plan's position
-        ``a`` (A: its d values; None: none), the columns of v those of the postures ``cands``:
+        ``a`` (A: its d values; None: none), the columns of v those of the postures ``cands``
+        (None: all):
         with ``V_rr^-1 = Vi_rr - Vi_rA Vi_AA^-1 Vi_Ar``, ``x^T Vi y - x_A^T z_y - (Vi x)_A^T y_A
         - z_x^T Vi_AA^-1 z_y``, ``z = (Vi x)_A - Vi_AA x_A``."""
         d = self.d
-        cols = (d * np.asarray(cands)[:, None] + np.arange(d)).ravel()
+        cols = slice(None) if cands is None else (d * np.asarray(cands)[:, None] + np.arange(d)).ravel()
+        cands = slice(None) if cands is None else cands
         if a is not None:
             A = slice(a * d, (a + 1) * d)
             Vaa = self.Vi[A, A]
@@ -154,7 +157,7 @@ class KrigingState:
         def gram(x: str, y: str) -> np.ndarray:
             full = self.grams[x, y]
             if x == "v":
-                full = full[cands] if y == "v" else full[cols]
+                full = full[cands] if y == "v" else full[cols]  # (a view where cands is every posture)
             if a is None:
                 return full
             if (x, y) == ("v", "v") or (x, y) == ("k0", "k0"):

@@ -89,16 +89,17 @@ def _scores(problem: Problem, pool: tuple, S: list[int],
     return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion), B0)
 
 
-def _field_keys(problem: Problem, criterion: str, pool: tuple, plan: list[int], a: int | None, cands: np.ndarray,
-                power: float | None = None, state: KrigingState | None = None) -> np.ndarray:
+def _field_keys(problem: Problem, criterion: str, pool: tuple, plan: list[int], a: int | None,
+                cands: np.ndarray | None, power: float | None = None, state: KrigingState | None = None) -> np.ndarray:
     """The score key of the plan less its position ``a`` (None: the whole plan) plus each
-    posture of ``cands`` (pool indices) for a criterion that weighs the problem's field: every
+    posture of ``cands`` (pool indices; None: every posture) for a criterion that weighs the problem's field: every
     plan at once by bordering the kriging system of ``state`` (that of ``plan``; None: made
     here) (:class:`~casadi_design.optimisation.field_pool.FieldPool`), scored by the criterion's
     own score of rho (with ``power``: its smooth surrogate)."""
     kriging = pool[3]
     if not kriging.h and len(plan) == (a is not None):  # a plan's first posture, no held poses: each on its own
-        return np.array([_plan_key(problem, criterion, pool, [c], power) for c in cands])
+        return np.array([_plan_key(problem, criterion, pool, [c], power)
+                         for c in (range(len(pool[0])) if cands is None else cands)])
     rho = kriging.priced(kriging.state(plan) if state is None else state, a, cands)
     finite = np.all(np.isfinite(rho), axis=1)
     spectrum = PlanSpectrum(None, None, np.where(finite[:, None], rho, 1.0), None, finite)
@@ -197,9 +198,7 @@ def _exchange(problem: Problem, criterion: str, S: list[int], pool: tuple,
                             -state.log_det, lambda state: state.regular, MAX_PASSES)
 
     def field_keys(state: KrigingState, a: int, power: float | None) -> np.ndarray:
-        keys = np.full(len(chosen), np.inf)
-        keys[~chosen] = _field_keys(problem, criterion, pool, S, a, np.flatnonzero(~chosen), power, state)
-        return keys
+        return _field_keys(problem, criterion, pool, S, a, None, power, state)  # the plan's own: _passes masks them
 
     for power in ((POOL_POWER,) if CRITERIA[criterion].smoothed else ()) + (None,):
         state = _regular_state(engine, S, reads)

@@ -96,6 +96,7 @@ def test_the_pool_s_kriging_is_each_campaign_s_with_the_held_poses_and_prior(cas
             np.testing.assert_allclose(kriging.priced(state, a, cands), [
                 kriging_rho(field, problem.sigma_m, B[rest + [4 + c]], S[rest + [4 + c]], problem.B0, S0, P)
                 for c in cands], rtol=1e-8)
+            np.testing.assert_allclose(kriging.priced(state, a)[cands], kriging.priced(state, a, cands), rtol=1e-12)
         kriging.keep = 1
         np.testing.assert_allclose(kriging.rho_added(plan[1:], cands), [
             kriging_rho(field, problem.sigma_m, B[r[:4] + r[5:]], S[r[:4] + r[5:]], problem.B0, S0, P) for r in rows],
