@@ -168,7 +168,8 @@ def test_a_free_design_with_a_field_is_exchanged_with_it_and_has_no_bound(tmp_pa
         '[measurement]', '[calibration.model_error]\nscale_m = 5e-4\nlength_rad = 0.5\n\n[measurement]')
     (tmp_path / "paper_field.toml").write_text(text)
     assert main(["solve", str(tmp_path / "paper_field.toml"), "--m", "3", "--criteria", "test-pose,D",
-                 "--starts", "2", "--out", str(tmp_path / "out"), "-q"]) == 0
+                 "--starts", "2", "--jobs", "1", "--bound-pool", "50", "--bound-steps", "1",
+                 "--out", str(tmp_path / "out"), "-q"]) == 0
     printed = capsys.readouterr().out
     assert "model error: test-pose and I weigh the robot's unmodelled error" in printed
     record = json.loads((tmp_path / "out" / "results.json").read_text())
@@ -193,6 +194,6 @@ def test_the_bound_command_refuses_a_field(tmp_path, capsys):
     text = (ROOT / "problems" / "paper_planar_2r.toml").read_text().replace(
         '[measurement]', '[calibration.model_error]\nscale_m = 5e-4\nlength_rad = 0.5\n\n[measurement]')
     (tmp_path / "paper_field.toml").write_text(text)
-    assert main(["bound", str(tmp_path / "paper_field.toml"), "--m", "3"]) == 2
+    assert main(["bound", str(tmp_path / "paper_field.toml"), "--m", "3", "--jobs", "1"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "does not hold; bound the paper's measure without the field" in err
