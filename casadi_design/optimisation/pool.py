@@ -369,7 +369,10 @@ def field_nlp(problem: Problem, design: Design) -> tuple[StartRecord, np.ndarray
     with ipopt_call():
         sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=nlp.lbg, ubg=nlp.ubg)
     Q, F = (np.asarray(v, dtype=float) for v in nlp.plan(sol["x"]))
-    Q = problem.rules.limits.wrap(Q)
+    # within the box of a plan that keeps the limits: not wrapped by whole turns, which the field's
+    # kernel over the joint angles tells apart (IPA: -4.87 rad wrapped to 1.41 rad left the held poses)
+    limits = problem.rules.limits
+    Q = np.clip(Q, limits.lower, limits.upper)
     scores = plan_scores(problem, Q, F)
     stats = solver.stats()
     rec = StartRecord(str(stats["return_status"]), int(stats.get("iter_count", 0)), scores.value(design.criterion),

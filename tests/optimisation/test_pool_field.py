@@ -197,3 +197,25 @@ def test_the_bound_command_refuses_a_field(tmp_path, capsys):
     assert main(["bound", str(tmp_path / "paper_field.toml"), "--m", "3", "--jobs", "1"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "does not hold; bound the paper's measure without the field" in err
+
+
+def test_the_nlp_with_the_field_keeps_its_plan_s_turns():
+    """The NLP with the field refines a plan within a box of the field's length and returns it
+    as it is: a periodic joint's angle past pi is not wrapped by a whole turn, which the kernel
+    over the joint angles tells apart (the same pose, another angle of the gears)."""
+    from casadi_design.optimisation.pool import FIELD_NLP_BOX, field_nlp
+    from casadi_design.optimisation.solve import plan_scores
+    from casadi_design.plan.design import Design
+
+    problem, Q, F = with_field(ModelErrorSpec(0.0, (0.2,), 0.0, (), JOINTS.angles_rad))
+    limits = problem.rules.limits
+    assert limits.periodic[0] and limits.upper[0] - limits.lower[0] > 2 * np.pi
+    Q = Q[:10].copy()
+    q, lower, upper = Q[:, 0].copy(), limits.lower[0], limits.upper[0]
+    Q[:, 0] = np.where(q - 2 * np.pi >= lower, q - 2 * np.pi, np.where(q + 2 * np.pi <= upper, q + 2 * np.pi, q))
+    assert np.sum(np.abs(Q[:, 0] - q) > np.pi) >= 8  # most on their other turn, past pi from the middle
+    F = F[:10]
+    scores = plan_scores(problem, Q, F)
+    rec, Qn, Fn, after = field_nlp(problem, Design("test-pose", 10, Q, F, scores, "start", (), 0.0, 1))
+    assert np.max(np.abs(Qn - Q)) <= FIELD_NLP_BOX * min(problem.field.lengths) + 1e-6  # IPOPT relaxes bounds by 1e-8
+    assert rec.converged and after.max_rms_error_m <= scores.max_rms_error_m
