@@ -65,8 +65,6 @@ ADDITIVE_LENGTH_BOUNDS = (0.02, 1.0)
 SCALE_LOW = 1e-3
 #: L-BFGS-B's relative change of the log-likelihood at which it stops.
 FTOL = 1e-7
-#: ... or its largest projected slope in log-hyperparameters.
-GTOL = 1e-2
 
 
 @dataclass(frozen=True)
@@ -258,7 +256,7 @@ def estimate_field(r: np.ndarray, J: np.ndarray, Q: np.ndarray, axes: np.ndarray
 
         def search(rows: slice | np.ndarray, starts: list[np.ndarray]):
             return min((minimize(minus_l, t0, args=(rows,), jac=True, method="L-BFGS-B", bounds=bounds,
-                                 options={"ftol": FTOL, "gtol": GTOL}) for t0 in starts), key=lambda f: f.fun)
+                                 options={"ftol": FTOL}) for t0 in starts), key=lambda f: f.fun)
 
         if pre is not None:  # the starts searched on PRE_ROWS of the rows, the best refined on all
             starts = [search(pre, starts).x]

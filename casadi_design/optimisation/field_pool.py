@@ -176,10 +176,6 @@ def _blocks(X: np.ndarray, Y: np.ndarray, b: int) -> np.ndarray:
     return np.einsum("nja,njb->jab", X.reshape(N, c // b, b), Y.reshape(N, c // b, b), optimize=True)
 
 
-def per_block(diag: np.ndarray, r: int) -> np.ndarray:
-    """Sums of ``r`` consecutive entries (len / r,): a trace per test pose of its r components."""
-    return diag.reshape(-1, r).sum(axis=1)
-
 def field_pool(problem, Q: np.ndarray, F: np.ndarray, B: np.ndarray) -> FieldPool:
     """The :class:`FieldPool` of the pool ``Q`` (k, n), rad, ``F`` (k, nF), N, of rows ``B`` (k,
     d, L) for ``problem`` (:class:`~casadi_design.problem.build.Problem`): its field, held poses,
