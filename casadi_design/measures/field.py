@@ -48,9 +48,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_solve
+from scipy.linalg import cho_solve, solve_triangular
 
 from .criteria import CRITERIA
+from .measures import SINGULAR_RTOL
 
 
 @dataclass(frozen=True)
@@ -245,6 +246,12 @@ def own_variance(field: Field, S0: Sites) -> np.ndarray:
     return np.einsum("c,svc->s", field.variances, S0.G**2) + field.nugget_m**2 * np.trace(S0.A)
 
 
+def _regular(lam: np.ndarray) -> np.ndarray:
+    """Whether each matrix of ascending eigenvalues ``lam`` (..., L) identifies X: its smallest
+    above :data:`~casadi_design.measures.measures.SINGULAR_RTOL` of its largest."""
+    return lam[..., 0] > SINGULAR_RTOL * np.maximum(lam[..., -1], np.finfo(float).tiny)
+
+
 def kriging_rho(field: Field, sigma: float, B: np.ndarray, S: Sites, B0: np.ndarray, S0: Sites,
                 P: np.ndarray | None = None) -> np.ndarray:
     """``rho(q0)`` (s,), m^2, at the test poses ``S0`` (s sites) of rows ``B0`` (s, r, L) after a
@@ -260,7 +267,7 @@ def kriging_rho(field: Field, sigma: float, B: np.ndarray, S: Sites, B0: np.ndar
     WS, Wk = W[:, :L], W[:, L:].reshape(m * d, len(S0), -1).transpose(1, 0, 2)  # Cv^-1 S, Cv^-1 k0
     H = WS.T @ WS + (0.0 if P is None else P)
     lam = np.linalg.eigvalsh(H)
-    if not lam[0] > 1e-12 * max(lam[-1], np.finfo(float).tiny):
+    if not _regular(lam):
         return np.full(len(S0), np.inf)
     R = B0 - np.einsum("snc,nl->scl", Wk, WS)  # B0 - k0^T V^-1 B
     Y = np.linalg.solve(np.linalg.cholesky(H), R.transpose(0, 2, 1))
@@ -272,6 +279,39 @@ def kriging_mean(field: Field, sigma: float, r: np.ndarray, S: Sites, S0: Sites)
     residuals ``r`` (m, d) of the sites ``S`` (regression kriging, module docstring)."""
     alpha = np.linalg.solve(value_covariance(field, S, sigma), np.asarray(r, dtype=float).reshape(-1))
     return np.einsum("snc,n->sc", cross_covariance(field, S, S0), alpha)
+
+
+@dataclass(frozen=True, eq=False)
+class Held:
+    """The held poses' part of every campaign's kriging, eliminated once (they never leave a
+    campaign): ``Ch`` (h d x h d, ``V_hh = Ch Ch^T``), their whitened rows ``UB = Ch^-1 B_h``
+    (h d x L) and cross covariance with the test poses ``Uk = Ch^-1 k0_h`` (h d x s r), and what
+    G, R and ``tr(k0^T V^-1 k0)`` of every campaign start from: ``G = P + UB^T UB`` (L x L), ``R =
+    B0 - Uk^T UB`` (s, r, L), ``KK = |Uk|^2`` per test pose (s,). A campaign's other values y_p
+    then enter through ``x^T V^-1 y = (Ch^-1 x_h)^T (Ch^-1 y_h) + e_x^T D^-1 e_y`` with ``T = V_ph
+    Ch^-T``, ``e_x = x_p - T Ch^-1 x_h`` and ``D = V_pp - T T^T``."""
+
+    Ch: np.ndarray
+    UB: np.ndarray
+    Uk: np.ndarray
+    G: np.ndarray
+    R: np.ndarray
+    KK: np.ndarray
+
+
+def held_part(field: Field, sigma: float, Bh: np.ndarray, Sh: Sites, B0: np.ndarray, S0: Sites,
+              P: np.ndarray | None = None) -> Held:
+    """The :class:`Held` part of the held poses ``Sh`` (h sites, rows ``Bh`` (h, d, L), none
+    allowed) for the test poses ``S0`` of rows ``B0`` (s, r, L), with the prior information ``P``
+    (L x L; None: none)."""
+    s, r, L = B0.shape
+    Ch, UB, Uk = np.zeros((0, 0)), np.zeros((0, L)), np.zeros((0, s * r))
+    if len(Sh):
+        Ch = np.linalg.cholesky(value_covariance(field, Sh, sigma))
+        UB, Uk = np.split(solve_triangular(Ch, np.concatenate([Bh.reshape(-1, L), covariance(field, Sh, S0).reshape(
+            -1, s * r)], axis=1), lower=True, check_finite=False), [L], axis=1)
+    return Held(Ch, UB, Uk, (np.zeros((L, L)) if P is None else P) + UB.T @ UB, B0 - (Uk.T @ UB).reshape(s, r, L),
+                np.sum(Uk**2, axis=0).reshape(s, r).sum(axis=1))
 
 
 def own_blocks(field: Field, S: Sites, sigma: float) -> np.ndarray:
@@ -305,7 +345,7 @@ def added_rho(G: np.ndarray, R: np.ndarray, KK: np.ndarray, Sch: np.ndarray, u: 
         return X.sum(axis=1).reshape(len(X), s, r).sum(axis=2)
 
     lam = np.linalg.eigvalsh(G)
-    if lam[0] > 1e-12 * max(lam[-1], np.finfo(float).tiny):  # Woodbury over G
+    if _regular(lam):  # Woodbury over G
         Gi = cho_solve((np.linalg.cholesky(G), True), np.eye(L), check_finite=False)
         R2 = R.reshape(s * r, L)
         GiR = Gi @ R2.T  # (L, s r)
@@ -320,7 +360,7 @@ def added_rho(G: np.ndarray, R: np.ndarray, KK: np.ndarray, Sch: np.ndarray, u: 
     Rc = R[None] - np.einsum("casr,cal->csrl", y.reshape(k, d, s, r), u)  # (k, s, r, L)
     out = np.full((k, s), np.inf)
     lam = np.linalg.eigvalsh(H)
-    ok = lam[:, 0] > 1e-12 * np.maximum(lam[:, -1], np.finfo(float).tiny)
+    ok = _regular(lam)
     if ok.any():
         Ch = np.linalg.cholesky(H[ok])
         Zc = np.linalg.solve(Ch, Rc[ok].transpose(0, 3, 1, 2).reshape(int(ok.sum()), L, s * r))

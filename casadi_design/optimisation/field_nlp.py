@@ -31,10 +31,9 @@ from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
-from scipy.linalg import solve_triangular
 
 from ..calibration.models import joint_jacobians
-from ..measures.field import coupling, covariance, noise, own_variance, value_covariance
+from ..measures.field import coupling, held_part, noise, own_variance
 from ..problem.build import Problem
 from .reduced import ReducedNLP, callbacks
 
@@ -48,11 +47,9 @@ def kriging_graph(problem: Problem, m: int) -> ca.Function:
     field (module docstring), and its Jacobian (s x (n + nv) m, ``vec`` column-major: experiment
     i's variable a at ``i (n + nv) + a``); p below is the field's number of components.
 
-    The held poses (h, their values y_h) do not move: their covariance ``V_hh = C_h C_h^T``, rows
-    and cross covariance are numbers, eliminated once. With ``T = V_ph C_h^-T`` (the plan's
-    covariance with them, whitened), ``x^T V^-1 y = (C_h^-1 x_h)^T (C_h^-1 y_h) + e_x^T D^-1
-    e_y``, ``e_x = x_p - T C_h^-1 x_h`` and ``D = V_pp - T T^T``: the graph's solves are of the
-    plan's m d values alone."""
+    The held poses do not move: their part is numbers, eliminated once
+    (:func:`~casadi_design.measures.field.held_part`), and the graph's solves are of the plan's m
+    d values alone (``D = V_pp - T T^T``, ``T = V_ph C_h^-T``)."""
     fld, model, loads = problem.field, problem.model, problem.rules.loads
     n, nv, d, L = model.n, loads.nv, model.d, model.L
     axes = problem.field_axes[0]
@@ -74,17 +71,13 @@ def kriging_graph(problem: Problem, m: int) -> ca.Function:
     Bh, Sh = problem.field_held_rows  # (its sites' A, the nugget's coupling, with no held pose too)
     D = sum(ca.kron(Kc[c], ones) * (g[c] @ g[c].T) for c in range(p)) + ca.DM(np.kron(np.eye(m), noise(fld, Sh, sigma)))
     k0 = sum((g[c] * ca.kron(K0c[c], ca.DM.ones(d, 1))) @ ca.DM(_spread(S0.G[:, :, c])) for c in range(p))
-    H = 0.0 if problem.field_prior is None else ca.DM(problem.field_prior)
-    R, KK = ca.DM(problem.B0.reshape(s * r, L)), 0.0
+    held = held_part(fld, sigma, Bh, Sh, problem.B0, S0, problem.field_prior)
+    H, R, KK = ca.DM(held.G), ca.DM(held.R.reshape(s * r, L)), ca.DM(held.KK)
     if len(Sh):  # the held poses, eliminated (docstring)
-        Ch = np.linalg.cholesky(value_covariance(fld, Sh, sigma))
-        US, Uk = np.split(solve_triangular(Ch, np.concatenate([Bh.reshape(-1, L), covariance(fld, Sh, S0).reshape(
-            len(Sh) * d, s * r)], axis=1), lower=True), [L], axis=1)
         Kh = _components(fld, Qp, ca.DM(Sh.Q))
         Vph = sum(ca.kron(Kh[c], ones) * (g[c] @ ca.DM(Sh.G[:, :, c].reshape(1, -1))) for c in range(p))
-        T = Vph @ ca.DM(np.linalg.inv(Ch).T)
-        D, S, k0 = D - T @ T.T, S - T @ ca.DM(US), k0 - T @ ca.DM(Uk)
-        H, R, KK = H + ca.DM(US.T @ US), R - ca.DM(Uk.T @ US), ca.DM(np.sum(Uk**2, axis=0).reshape(s, r).sum(axis=1))
+        T = Vph @ ca.DM(np.linalg.inv(held.Ch).T)
+        D, S, k0 = D - T @ T.T, S - T @ ca.DM(held.UB), k0 - T @ ca.DM(held.Uk)
     W = ca.solve(D, ca.horzcat(S, k0), "ldl")
     WS, Wk = W[:, :L], W[:, L:]
     H = H + S.T @ WS

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
-from ..measures.field import Field, Sites, added_rho, covariance, noise, own_blocks, own_variance, value_covariance
+from ..measures.field import Field, Sites, added_rho, covariance, held_part, noise, own_blocks, own_variance
 
 #: Memory the covariance rows of the sites kept may take (bytes).
 ROW_BYTES = 256 * 2**20
@@ -37,12 +37,12 @@ class FieldPool:
     ``B`` (k, d, L)) of a ``field`` with the tracker's ``sigma`` (m), the test poses' rows ``B0``
     (s, r, L) and sites ``S0``, the prior information ``P`` (L x L or None).
 
-    The held poses never leave a plan: they are conditioned on once. With ``V_hh = C_h C_h^T``
-    and ``W = C_h^-1 V_h.`` (their whitened covariance with the pool), a pool's kriging is that
-    of the covariance ``V - W^T W`` given them, its rows ``B - W^T C_h^-1 B_h`` and cross
-    covariance ``k0 - W^T C_h^-1 k0_h``, and G, R and tr(k0^T V^-1 k0) start from the held
-    poses' own ``(C_h^-1 B_h)^T C_h^-1 B_h + P``, ``B0 - (C_h^-1 k0_h)^T C_h^-1 B_h`` and
-    ``|C_h^-1 k0_h|^2``: a plan's system holds its own m d values alone."""
+    The held poses never leave a plan: they are conditioned on once
+    (:func:`~casadi_design.measures.field.held_part`). With their whitened covariance with the
+    pool ``W = C_h^-1 V_h.``, a pool's kriging is that of the covariance ``V - W^T W`` given them,
+    its rows ``B - W^T C_h^-1 B_h`` and cross covariance ``k0 - W^T C_h^-1 k0_h``, and G, R and
+    tr(k0^T V^-1 k0) start from the held poses' own: a plan's system holds its own m d values
+    alone."""
 
     def __init__(self, field: Field, sigma: float, Bh: np.ndarray, Sh: Sites, B: np.ndarray, S: Sites,
                  B0: np.ndarray, S0: Sites, P: np.ndarray | None = None):
@@ -52,19 +52,15 @@ class FieldPool:
         self.d, self.own, self.noise = d, own_variance(field, S0), noise(field, S, sigma)  # noise (d, d)
         self.k0 = covariance(field, S, S0).reshape(k, d, s * r)
         self.B, self.vcc = B, own_blocks(field, S, sigma)  # (k, d, L), (k, d, d)
-        self.G0, self.R0, self.KK0 = 0.0 if P is None else P, B0, np.zeros(s)
+        held = held_part(field, sigma, Bh, Sh, B0, S0, P)
+        self.G0, self.R0, self.KK0 = held.G, held.R, held.KK
         self.W = None
         if len(Sh):
-            Ch = np.linalg.cholesky(value_covariance(field, Sh, sigma))
-            W, UB, Uk = np.split(solve_triangular(Ch, np.concatenate([
-                covariance(field, Sh, S).reshape(-1, k * d), Bh.reshape(-1, L), covariance(field, Sh, S0).reshape(
-                    -1, s * r)], axis=1), lower=True, check_finite=False), [k * d, k * d + L], axis=1)
-            self.W = W  # (h d, k d)
-            self.B = B - (W.T @ UB).reshape(k, d, L)
-            self.k0 = self.k0 - (W.T @ Uk).reshape(k, d, s * r)
+            self.W = W = solve_triangular(held.Ch, covariance(field, Sh, S).reshape(-1, k * d), lower=True,
+                                          check_finite=False)  # (h d, k d)
+            self.B = B - (W.T @ held.UB).reshape(k, d, L)
+            self.k0 = self.k0 - (W.T @ held.Uk).reshape(k, d, s * r)
             self.vcc = self.vcc - _blocks(W, W, d)
-            self.G0, self.R0 = self.G0 + UB.T @ UB, B0 - (Uk.T @ UB).reshape(B0.shape)
-            self.KK0 = np.sum(Uk**2, axis=0).reshape(s, r).sum(axis=1)
         self.rows: OrderedDict[int, np.ndarray] = OrderedDict()
         self.keep = max(64, ROW_BYTES // (8 * d * k * d))
 

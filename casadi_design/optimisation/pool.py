@@ -83,8 +83,9 @@ def _scores(problem: Problem, pool: tuple, S: list[int],
             criterion: str | None = None) -> Scores:
     """The scores of the postures ``S`` of the pool ``(Q, F, B, kriging, B0)`` (their B
     precomputed, (k, d, L), their :class:`~casadi_design.optimisation.field_pool.FieldPool` where
-    the search weighs the field, else None, and the test poses' rows): :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by
-    ``criterion`` (None: every score as reported) the field only where it weighs it."""
+    the search weighs the field, else None, and the test poses' rows):
+    :func:`~casadi_design.optimisation.solve.plan_scores`; for the search by ``criterion`` (None:
+    every score as reported) the field only where it weighs it."""
     Q, F, B, _, B0 = pool
     return plan_scores(problem, Q[S], F[S], B[S], criterion is None or field_measure(problem, criterion), B0)
 
@@ -92,10 +93,10 @@ def _scores(problem: Problem, pool: tuple, S: list[int],
 def _field_keys(problem: Problem, criterion: str, pool: tuple, plan: list[int], a: int | None,
                 cands: np.ndarray | None, power: float | None = None, state: KrigingState | None = None) -> np.ndarray:
     """The score key of the plan less its position ``a`` (None: the whole plan) plus each
-    posture of ``cands`` (pool indices; None: every posture) for a criterion that weighs the problem's field: every
-    plan at once by bordering the kriging system of ``state`` (that of ``plan``; None: made
-    here) (:class:`~casadi_design.optimisation.field_pool.FieldPool`), scored by the criterion's
-    own score of rho (with ``power``: its smooth surrogate)."""
+    posture of ``cands`` (pool indices; None: every posture) for a criterion that weighs the
+    problem's field: every plan at once by bordering the kriging system of ``state`` (that of
+    ``plan``; None: made here) (:class:`~casadi_design.optimisation.field_pool.FieldPool`),
+    scored by the criterion's own score of rho (with ``power``: its smooth surrogate)."""
     kriging = pool[3]
     if not kriging.h and len(plan) == (a is not None):  # a plan's first posture, no held poses: each on its own
         return np.array([_plan_key(problem, criterion, pool, [c], power)
