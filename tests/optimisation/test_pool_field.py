@@ -8,12 +8,7 @@ import numpy as np
 import pytest
 
 from casadi_design.cli.identify import load_without_cell
-from casadi_design.measures.field import (
-    Field,
-    axes_of,
-    kriging_mean,
-    kriging_rho,
-)
+from casadi_design.measures.field import Field, kriging_mean, kriging_rho, model_sites
 from casadi_design.optimisation.pool import choose_design
 from casadi_design.plan.sampling import random_plan
 from casadi_design.problem.build import build_problem
@@ -57,10 +52,7 @@ def test_all_candidates_at_once_are_each_campaign_s_kriging_variance(case):
     # 10 postures identify X; 8 do not (24 rows, L = 27), one candidate more may
     for rest, cands in ((list(range(10)), list(range(10, 30))), (list(range(8)), list(range(40, 87)))):
         for field in (problem.field, JOINTS):  # of the base axes, of the joint angles
-            joints = field.through_joints
-            S = field.sites(Q, axes_of(model.measured_rows), np.eye(3), model.dq_stack(Q, F) if joints else None)
-            S0 = field.sites(tp.q, axes_of(model.accuracy_rows), np.eye(3),
-                             model.dq_stack(tp.q, tp.F, "accuracy") if joints else None)
+            S, S0 = model_sites(field, model, np.eye(3), Q, F), model_sites(field, model, np.eye(3), tp.q, tp.F, "accuracy")
             added = FieldPool(field, problem.sigma_m, none, S[[]], B, S, problem.B0, S0).rho_added(rest, cands)
             one_by_one = np.array([kriging_rho(field, problem.sigma_m, B[rest + [c]], S[rest + [c]], problem.B0, S0)
                                    for c in cands])
@@ -81,10 +73,7 @@ def test_the_pool_s_kriging_is_each_campaign_s_with_the_held_poses_and_prior(cas
     P = np.diag(np.random.default_rng(2).uniform(0.5, 2.0, model.L)) * 1e6
     held, plan, cands = list(range(4)), [4, 9, 17, 30, 55], np.arange(60, 87) - 4
     for field in (problem.field, JOINTS):
-        joints = field.through_joints
-        S = field.sites(Q, axes_of(model.measured_rows), np.eye(3), model.dq_stack(Q, F) if joints else None)
-        S0 = field.sites(tp.q, axes_of(model.accuracy_rows), np.eye(3),
-                         model.dq_stack(tp.q, tp.F, "accuracy") if joints else None)
+        S, S0 = model_sites(field, model, np.eye(3), Q, F), model_sites(field, model, np.eye(3), tp.q, tp.F, "accuracy")
         kriging = field_pool.FieldPool(field, problem.sigma_m, B[held], S[held], B[4:], S[4:], problem.B0, S0, P)
         rows = [held + [4 + i for i in plan] + [4 + c] for c in cands]
         one_by_one = np.array([kriging_rho(field, problem.sigma_m, B[r], S[r], problem.B0, S0, P) for r in rows])
