@@ -106,53 +106,85 @@ def write_solve(out: Path, problem: Problem, done: Campaign, fig_m: list[int]) -
 
 def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) -> int:
     """``solve`` of a problem measured at points fixed in an artefact
-    (:mod:`casadi_design.optimisation.artefact_pool`): the m recordings of ``--candidates`` (a
-    placement's folder of ``hole_<k>.csv``, or a CSV with point and placement columns) best by
-    each criterion; prints Table 4's table and writes ``artefact_design.json`` and
-    ``plans/<criterion>_m<m>.csv`` (joints in rad, point, placement: what ``identify`` reads)."""
-    from ..errors import ProblemError
+    (:mod:`casadi_design.optimisation.artefact_pool`): the m configurations best by each
+    criterion among the recordings of ``--candidates`` (a placement's folder of
+    ``hole_<k>.csv``, or a CSV with point and placement columns), or, without it, among
+    configurations seated by the nominal robot at the problem file's placements
+    (:mod:`casadi_design.plan.seated`), recorded at the best ``clamps`` of them (where to clamp
+    the tool). Prints Table 4's table and each set of placements' max error; writes
+    ``artefact_design.json``, ``plans/<criterion>_m<m>.csv`` (joints in rad, point, placement:
+    what ``identify`` reads) and ``viewer.html``."""
     from ..identification.recordings import read_recordings
-    from ..optimisation.artefact_pool import artefact_pool, choose_recordings, chosen_rows
+    from ..optimisation.artefact_pool import choose_clamps
+    from ..plan.seated import seated_configurations
     from ..records.export import csv_text
     from ..records.files import write_json
+    from ..reports.viewer import write_viewer
 
-    if not getattr(args, "candidates", None):
-        raise ProblemError(f"{spec.path}: [measurement.artefact]: its designs choose from recorded configurations; "
-                           "give them as --candidates DIR (a placement's folder of hole_0.csv, hole_1.csv, ...) "
-                           "(configurations planned with the ball seated are not designed yet)")
     problem = common.load(args, check_solver=False, spec=spec)
-    rec = read_recordings(problem, [args.candidates], "--candidates")
-    pool = artefact_pool(problem, rec.Q, rec.point, rec.placement)
+    if getattr(args, "candidates", None):
+        pool = read_recordings(problem, [args.candidates], "--candidates")
+        names, sources, clamps = pool.names, pool.sources, len(pool.names)
+        where = f"{pool.N} recorded configurations of {', '.join(names)}"
+    else:
+        pool = seated_configurations(problem)
+        names, clamps = pool.names, spec.measurement.artefact.clamps
+        sources = tuple(f"seated at point {k} of {names[g]}" for k, g in zip(pool.point, pool.placement))
+        where = (f"{len(pool.Q)} configurations seated by the nominal robot at {', '.join(names)}, "
+                 f"recorded at the best {common.count(clamps, 'placement')}")
     criteria = tuple(args.criteria or problem.criteria)
-    designs, rows = [], {}
-    for m in args.m or sorted(problem.m_values):
-        for c in criteria:
-            d = choose_recordings(problem, pool, c, m, args.starts or problem.solver.starts_for(c))
-            designs.append(d)
-            rows[(c, m)] = chosen_rows(pool, d)
-    print(f"{problem.name}: {rec.N} recorded configurations of {', '.join(rec.names)} ({len(pool.names)} parameters "
-          f"the pool tells, with the placements' poses); {problem.test_poses.s} test poses, registered; "
-          f"sigma = {problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
+    choices = {(c, m): choose_clamps(problem, pool.Q, pool.point, pool.placement, c, m,
+                                     args.starts or problem.solver.starts_for(c), clamps)
+               for m in args.m or sorted(problem.m_values) for c in criteria}
+    designs = [ch.design for ch in choices.values()]
+    print(f"{problem.name}: {where}; {problem.test_poses.s} test poses, registered; sigma = "
+          f"{problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
     print(format_table(designs))
+    clamping = clamp_table(choices, names)
+    if clamping:
+        print(clamping)
     common.say(args, f"total {time.perf_counter() - t0:.2f} s for {common.count(len(designs), 'design')} (after imports)")
     if out:
         joints = [f"{j}_rad" for j in problem.robot.joints]
         files = []
-        for (c, m), idx in rows.items():
-            rows_text = csv_text([*joints, "point", "placement"],
-                                 [[*map(float, rec.Q[i]), int(rec.point[i]), int(rec.placement[i])] for i in idx])
-            name = f"plans/{c}_m{m}.csv"
-            (out / "plans").mkdir(parents=True, exist_ok=True)
-            write_atomic(out / name, rows_text.encode())
-            files.append(name)
+        (out / "plans").mkdir(parents=True, exist_ok=True)
+        for (c, m), ch in choices.items():
+            text = csv_text([*joints, "point", "placement"], [[*map(float, pool.Q[i]), int(pool.point[i]),
+                                                               int(pool.placement[i])] for i in ch.rows])
+            write_atomic(out / f"plans/{c}_m{m}.csv", text.encode())
+            files.append(f"plans/{c}_m{m}.csv")
         record = {"problem": problem.path, "measurement": "points fixed in an artefact", "seed": problem.solver.seed,
-                  "candidates": args.candidates, "placements": list(rec.names), "parameters": list(pool.names),
+                  "candidates": getattr(args, "candidates", None), "placements": list(names),
                   "test_pose_measure": "sqrt(rho) of the test poses' positions after registering the work "
                                        "(their rigid motion projected out), every placement's pose unknown",
-                  "designs": [{"criterion": d.criterion, "m": d.m, "max_rms_error_m": d.scores.max_rms_error_m,
-                               "rms_error_m": d.scores.rms_error_m.tolist(), "scores": d.scores.values,
-                               "recordings": [rec.sources[i] for i in rows[(d.criterion, d.m)]],
-                               "plan": f"plans/{d.criterion}_m{d.m}.csv"} for d in designs]}
+                  "designs": [{"criterion": c, "m": m, "max_rms_error_m": ch.design.scores.max_rms_error_m,
+                               "rms_error_m": ch.design.scores.rms_error_m.tolist(), "scores": ch.design.scores.values,
+                               "placements_used": [names[g] for g in ch.placements],
+                               "by_placements": [{"placements": [names[g] for g in S],
+                                                  "max_rms_error_m": None if d is None else d.scores.max_rms_error_m,
+                                                  "value": None if d is None else d.scores.value(c)}
+                                                 for S, d in ch.by_set],
+                               "recordings": [sources[i] for i in ch.rows],
+                               "plan": f"plans/{c}_m{m}.csv"} for (c, m), ch in choices.items()]}
         write_json(out / "artefact_design.json", record)
-        common.say(args, f"wrote artefact_design.json and {common.count(len(files), 'plan')} in {out / 'plans'}")
+        files += write_viewer(out, problem, designs)
+        common.say(args, f"wrote artefact_design.json, viewer.html and {common.count(len(designs), 'plan')} in "
+                         f"{out / 'plans'}")
     return 0
+
+
+def clamp_table(choices: dict, names: tuple[str, ...]) -> str:
+    """Where to clamp: the max error at the test poses (mm) of each set of placements' best
+    plan, a column per design; empty when every design had one set to judge."""
+    keys = list(choices)
+    sets = [S for S, _ in choices[keys[0]].by_set]
+    if len(sets) < 2:
+        return ""
+    head = ["placements"] + [f"{c} m={m}" for c, m in keys]
+    rows = [[" + ".join(names[g] for g in S)] + [
+        "-" if d is None else f"{d.scores.max_rms_error_m * 1e3:.4f}" + ("*" if S == choices[k].placements else "")
+        for k in keys for S2, d in choices[k].by_set if S2 == S] for S in sets]
+    width = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+    lines = ["where to clamp: max error along the test poses (mm) of each placement's best plan (* chosen)"]
+    lines += ["  ".join([r[0].ljust(width[0])] + [v.rjust(w) for v, w in zip(r[1:], width[1:])]) for r in [head, *rows]]
+    return "\n".join(lines)

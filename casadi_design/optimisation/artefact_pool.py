@@ -87,3 +87,51 @@ def choose_recordings(problem: Problem, pool: ArtefactPool, criterion: str, m: i
 def chosen_rows(pool: ArtefactPool, design: Design) -> np.ndarray:
     """The pool's rows of the design's configurations (m,), in the design's order."""
     return np.array([int(np.flatnonzero(np.all(pool.Q == q, axis=1))[0]) for q in design.Q])
+
+
+@dataclass(frozen=True, eq=False)
+class ClampChoice:
+    """Where to clamp the artefact: the best plan of one criterion and m over every set of
+    ``clamps`` placements of the pool (``design``; ``rows``, its configurations' indices in the
+    pool, in the design's order; ``placements``, its set), and each set's best plan (``by_set``:
+    (set, design), None where no plan of the set identifies X)."""
+
+    design: Design
+    rows: np.ndarray
+    placements: tuple[int, ...]
+    by_set: tuple[tuple[tuple[int, ...], Design | None], ...]
+
+
+def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray, criterion: str,
+                  m: int, starts: int, clamps: int) -> ClampChoice:
+    """The m configurations ``Q`` (k, n), rad, seated at ``point`` of ``placement`` (k,) best by
+    ``criterion``, recorded at ``clamps`` of the placements: for every set of ``clamps``
+    placements, the pool of its configurations (:func:`artefact_pool`) and its best plan
+    (:func:`choose_recordings`); the best set's plan. The measure judges the sets as it judges
+    plans: each placement recorded is a pose more to absorb.
+
+    Raises
+    ------
+    ProblemError
+        No set of ``clamps`` placements whose configurations identify X with m of them.
+    """
+    from itertools import combinations
+
+    from ..measures.criteria import CRITERIA
+
+    better, by_set, best = CRITERIA[criterion].better, [], None
+    for S in combinations(np.unique(placement).tolist(), clamps):
+        idx = np.flatnonzero(np.isin(placement, S))
+        try:
+            pool = artefact_pool(problem, Q[idx], point[idx], placement[idx])
+            d = choose_recordings(problem, pool, criterion, m, starts)
+        except ProblemError:  # too few configurations, or none of m identifies X there
+            by_set.append((tuple(S), None))
+            continue
+        by_set.append((tuple(S), d))
+        if best is None or better(d.scores.value(criterion), best[0].scores.value(criterion)):
+            best = (d, idx[chosen_rows(pool, d)], tuple(S))
+    if best is None:
+        raise ProblemError(f"{problem.path}: [measurement.artefact]: no {clamps} of the placements give m = {m} "
+                           "configurations that identify the parameters; give a larger m, more placements or raise clamps")
+    return ClampChoice(*best, tuple(by_set))

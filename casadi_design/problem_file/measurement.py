@@ -20,11 +20,15 @@ MAX_SIGMA_M = 1.0
 #: The keys allowed in each table of this section (None: any key).
 KEYS: dict[str, set[str] | None] = {
     "measurement": {"components", "sigma_m", "sigma_rad", "sigma_axes_m", "covariance", "markers_m", "artefact"},
-    "measurement.artefact": {"points_m", "placements"},
+    "measurement.artefact": {"points_m", "placements", "tilt_max_deg", "clamps"},
     "measurement.artefact.placements": {"name", "xyz_m", "rpy_deg"},
 }
 #: Largest distance (m) of an artefact's point from its first: beyond it the value is in mm.
 MAX_ARTEFACT_M = 5.0
+#: The largest tilt (deg) of the measured frame's z axis from the artefact's -z (into the
+#: socket) a seated configuration may have, by default: MUKCa's Panda recordings reach 54 deg
+#: (the hand's stem leaves the socket's rim beyond).
+TILT_MAX_DEG = 55.0
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,12 @@ class ArtefactSpec:
 
     points_m: Mat
     placements: tuple[PlacementSpec, ...] = ()
+    #: the largest tilt of the measured frame's z axis from the artefact's -z, rad, of a
+    #: configuration planned with the ball seated
+    tilt_max_rad: float = float(np.radians(TILT_MAX_DEG))
+    #: how many of the placements the plans record at (where to clamp: the best set of
+    #: ``clamps`` placements)
+    clamps: int = 1
 
 
 @dataclass(frozen=True)
@@ -115,7 +125,13 @@ def _artefact(meas: TableReader, measured: tuple[str, ...], markers) -> Artefact
         xyz = r.array("xyz_m", (3,), hint="the artefact frame's origin in the robot's base frame, m")
         rpy = r.array("rpy_deg", (3,), np.zeros(3), hint="roll, pitch, yaw of the artefact frame in deg")
         placements.append(PlacementSpec(name, to_vec(xyz), to_vec(np.radians(rpy))))
-    return ArtefactSpec(to_mat(points), tuple(placements))
+    tilt = table.number("tilt_max_deg", TILT_MAX_DEG, hint="the largest angle in deg between the measured frame's z "
+                        "axis and the artefact's -z, e.g. 55", positive=True)
+    if tilt > 180:
+        raise table.error(f"is {tilt:g} deg", "give an angle in deg up to 180", "tilt_max_deg")
+    clamps = table.integer("clamps", 1, hint="how many placements the plans record at, e.g. 1", low=1,
+                           high=max(1, len(placements)))
+    return ArtefactSpec(to_mat(points), tuple(placements), float(np.radians(tilt)), clamps)
 
 
 def _whitening(meas: TableReader, measured: tuple[str, ...], markers, sigma: float) -> np.ndarray | None:

@@ -61,15 +61,15 @@ def sample_path(kind: str, points: np.ndarray, nodes: int) -> tuple[np.ndarray, 
 
 
 def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool = False,
-             limits: bool = True) -> tuple[np.ndarray, float]:
+             limits: bool = True, max_iter: int = IK_MAX_ITER) -> tuple[np.ndarray, float]:
     """Configuration reaching ``target`` with the tool frame, from ``q0``, within the joint
-    limits (``limits``; else anywhere); and the residual |e|."""
+    limits (``limits``; else anywhere), in at most ``max_iter`` steps; and the residual |e|."""
     model, data = robot.model, robot.model.createData()
     low, high = (robot.q_min, robot.q_max) if limits else (-np.inf, np.inf)
     q = np.clip(np.asarray(q0, dtype=float), low, high)
     rows = slice(0, 3) if position_only else slice(0, 6)
     err = np.inf
-    for _ in range(IK_MAX_ITER):
+    for _ in range(max_iter):
         pin.framesForwardKinematics(model, data, robot.full_q(q))
         M = data.oMf[robot.frame_id]
         e = np.r_[target.translation - M.translation, pin.log3(target.rotation @ M.rotation.T)][rows]
