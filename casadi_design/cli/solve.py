@@ -114,28 +114,12 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
     the tool). Prints Table 4's table and each set of placements' max error; writes
     ``artefact_design.json``, ``plans/<criterion>_m<m>.csv`` (joints in rad, point, placement:
     what ``identify`` reads) and ``viewer.html``."""
-    from ..identification.recordings import read_recordings
-    from ..optimisation.artefact_pool import choose_clamps
-    from ..plan.seated import seated_configurations
     from ..records.export import csv_text
     from ..records.files import write_json
     from ..reports.viewer import write_viewer
 
     problem = common.load(args, check_solver=False, spec=spec)
-    if getattr(args, "candidates", None):
-        pool = read_recordings(problem, [args.candidates], "--candidates")
-        names, sources, clamps = pool.names, pool.sources, len(pool.names)
-        where = f"{pool.N} recorded configurations of {', '.join(names)}"
-    else:
-        pool = seated_configurations(problem)
-        names, clamps = pool.names, spec.measurement.artefact.clamps
-        sources = tuple(f"seated at point {k} of {names[g]}" for k, g in zip(pool.point, pool.placement))
-        where = (f"{len(pool.Q)} configurations seated by the nominal robot at {', '.join(names)}, "
-                 f"recorded at the best {common.count(clamps, 'placement')}")
-    criteria = tuple(args.criteria or problem.criteria)
-    choices = {(c, m): choose_clamps(problem, pool.Q, pool.point, pool.placement, c, m,
-                                     args.starts or problem.solver.starts_for(c), clamps)
-               for m in args.m or sorted(problem.m_values) for c in criteria}
+    pool, names, sources, where, choices = artefact_designs(args, problem)
     designs = [ch.design for ch in choices.values()]
     print(f"{problem.name}: {where}; {problem.test_poses.s} test poses, registered; sigma = "
           f"{problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
@@ -171,6 +155,33 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
         common.say(args, f"wrote artefact_design.json, viewer.html and {common.count(len(designs), 'plan')} in "
                          f"{out / 'plans'}")
     return 0
+
+
+def artefact_designs(args: argparse.Namespace, problem: Problem) -> tuple:
+    """The designs of ``solve`` for an artefact's points (:func:`run_artefact`): the pool (the
+    recordings of ``--candidates`` or the configurations seated at the problem file's
+    placements), the placements' names, each configuration's source, a line saying where they
+    come from, and the :class:`~casadi_design.optimisation.artefact_pool.ClampChoice` of each
+    (criterion, m)."""
+    from ..identification.recordings import read_recordings
+    from ..optimisation.artefact_pool import choose_clamps
+    from ..plan.seated import seated_configurations
+
+    if getattr(args, "candidates", None):
+        pool = read_recordings(problem, [args.candidates], "--candidates")
+        names, sources, clamps = pool.names, pool.sources, len(pool.names)
+        where = f"{pool.N} recorded configurations of {', '.join(names)}"
+    else:
+        pool = seated_configurations(problem)
+        names, clamps = pool.names, problem.spec.measurement.artefact.clamps
+        sources = tuple(f"seated at point {k} of {names[g]}" for k, g in zip(pool.point, pool.placement))
+        where = (f"{len(pool.Q)} configurations seated by the nominal robot at {', '.join(names)}, "
+                 f"recorded at the best {common.count(clamps, 'placement')}")
+    criteria = tuple(args.criteria or problem.criteria)
+    choices = {(c, m): choose_clamps(problem, pool.Q, pool.point, pool.placement, c, m,
+                                     args.starts or problem.solver.starts_for(c), clamps)
+               for m in args.m or sorted(problem.m_values) for c in criteria}
+    return pool, names, sources, where, choices
 
 
 def clamp_table(choices: dict, names: tuple[str, ...]) -> str:

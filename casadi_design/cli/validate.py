@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
+
+import numpy as np
+
+from ..errors import ProblemError
 
 from ..records.files import prepare_out
 from ..virtual import (
@@ -88,6 +91,45 @@ def run(args: argparse.Namespace) -> int:
     spreads = ErrorSpreads(args.length_mm * 1e-3, math.radians(args.angle_deg), args.k, args.k_log_spread)
     # our files in --out are replaced (as `plot` does); its other files are left alone
     out = None if args.out is None else prepare_out(args.out, force=True)
+    spec = common.read_spec(args, artefact=True)
+    if spec.measurement.artefact is not None:
+        validation, study = _artefact(args, spec, spreads)
+    else:
+        validation, study = _tracker(args, spreads)
+    print(format_report(validation, study))
+    print(f"total simulation time {validation.wall_s + sum(v.wall_s for _, v in study):.2f} s")
+    if out is not None:
+        from ..reports.plotting import save_figures, validation_figure
+
+        write_validation(out / "validation.json", validation, study)
+        save_figures(validation_figure(validation), [out / f"validation.{suffix}" for suffix in ("png", "pdf")])
+        print(f"wrote {out / 'validation.json'}, {out / 'validation.png'}, {out / 'validation.pdf'}")
+    return 0
+
+
+def _artefact(args: argparse.Namespace, spec, spreads: ErrorSpreads) -> tuple:
+    """The virtual calibration of an artefact's plans (:mod:`casadi_design.virtual.artefact`):
+    those of ``--results`` (an artefact_design.json) or solved now as ``solve`` does."""
+    from ..virtual.artefact import artefact_plans, validate_artefact
+    from ..virtual.simulate import Plan
+    from .solve import artefact_designs
+
+    if args.scales:
+        raise ProblemError(f"{spec.path}: --scales: the linearisation study of an artefact's plans is not built; "
+                           "run validate with --length-mm and --angle-deg at each scale instead")
+    problem = common.load(args, check_solver=False, spec=spec)
+    if args.results:
+        plans, source = artefact_plans(problem, args.results), str(args.results)
+    else:
+        pool, _, _, _, choices = artefact_designs(args, problem)
+        plans = [(Plan(c, m, pool.Q[ch.rows], np.zeros((m, problem.model.nF))), pool.point[ch.rows],
+                  pool.placement[ch.rows]) for (c, m), ch in choices.items()]
+        source = "solved as casadi-design solve does"
+    return validate_artefact(problem, plans, args.trials, args.seed, spreads, source), []
+
+
+def _tracker(args: argparse.Namespace, spreads: ErrorSpreads) -> tuple:
+    """The virtual calibration of a tracker's plans (:func:`casadi_design.virtual.validate`)."""
     if args.results:
         problem = common.load(args, check_solver=False)
         plans, source = plans_from_results(problem, args.results), str(args.results)
@@ -102,16 +144,7 @@ def run(args: argparse.Namespace) -> int:
     if problem.field is not None:
         common.say(args, "note: the field of unmodelled error is not simulated: each trial's robot differs from its "
                          "model by the parameters and the tracker's noise alone, and sqrt(rho) is the paper's measure")
-    t0 = time.perf_counter()
     validation = validate(problem, plans, args.trials, args.seed, spreads, source)
     study = (linearisation_study(problem, plans, args.scales, args.trials, args.seed, spreads, source)
              if args.scales else [])
-    print(format_report(validation, study))
-    print(f"total simulation time {time.perf_counter() - t0:.2f} s")
-    if out is not None:
-        from ..reports.plotting import save_figures, validation_figure
-
-        write_validation(out / "validation.json", validation, study)
-        save_figures(validation_figure(validation), [out / f"validation.{suffix}" for suffix in ("png", "pdf")])
-        print(f"wrote {out / 'validation.json'}, {out / 'validation.png'}, {out / 'validation.pdf'}")
-    return 0
+    return validation, study
