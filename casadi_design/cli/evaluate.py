@@ -44,14 +44,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cell.cell import clearances
     from ..identification.measurements import read_experiments
     from ..optimisation.solve import plan_scores
-    from ..plan.rules import plan_violations
-    from ..records.results import design_from_record, experiment_records
+    from ..records.results import design_from_record
+    from ..reports.plotting import Band
 
     out = common.output_folder(args, "evaluate")
-    problem = common.load(args, check_solver=False)
+    spec = common.read_spec(args, artefact=True)
+    if spec.measurement.artefact is not None:
+        return run_artefact(args, spec, out)
+    problem = common.load(args, check_solver=False, spec=spec)
     Q, F, plan = read_experiments(problem, args.plan, limits=False)  # outside the limits: told below
     if problem.m_held:  # a campaign's plan CSV: its measured rows are those of --measured
         new = ~plan.measured
@@ -80,12 +82,61 @@ def run(args: argparse.Namespace) -> int:
 
     home = home_pose(problem, args.home) if args.moves else None  # refused before anything is printed
     scores = plan_scores(problem, Q, F)
-    violations = plan_violations(problem, Q, F)
     print(common.case_line(problem, args.quiet))
+    report(args, problem, out, Q, F, scores, [(f"{d.criterion} m={d.m}", Band.of(d), d.scores) for d in others], home)
+    return 0
+
+
+def run_artefact(args: argparse.Namespace, spec, out: Path | None) -> int:
+    """``evaluate`` of a plan of configurations seated at an artefact's points (a CSV with point
+    and placement columns, as ``solve`` writes and ``identify`` reads): its measures with the
+    placements' poses beside X
+    (:func:`~casadi_design.optimisation.artefact_pool.artefact_scores`); ``--compare`` an
+    ``artefact_design.json``."""
+    from ..identification.recordings import read_recordings
+    from ..optimisation.artefact_pool import artefact_scores
+    from ..records.artefact_design import artefact_plans
+    from ..measures.criteria import CRITERIA
+    from ..reports.plotting import Band
+    from .program import home_pose
+
+    problem = common.load(args, check_solver=False, spec=spec)
+    rec = read_recordings(problem, [args.plan], "--plan")
+    others = []
+    if args.compare:
+        for p in artefact_plans(problem, args.compare, "--compare"):
+            if len(p.Q) == rec.N:
+                s = artefact_scores(problem, p.Q, p.point, p.placement)
+                crit = CRITERIA[p.criterion]
+                others.append((f"{p.criterion} m={rec.N}", Band(crit.legend, crit.style, s.rms_error_m), s))
+        if not others:
+            raise OutputError(f"--compare {args.compare}: no design with m = {rec.N} configurations (the plan's rows); "
+                              "solve that m first")
+    home = home_pose(problem, args.home) if args.moves else None
+    scores = artefact_scores(problem, rec.Q, rec.point, rec.placement)
+    print(f"{problem.name}: configurations seated at {', '.join(rec.names)}; {problem.test_poses.s} test poses, "
+          f"registered; sigma = {problem.sigma_m * 1e3:g} mm")
+    report(args, problem, out, rec.Q, np.zeros((rec.N, problem.model.nF)), scores, others, home,
+           {"point": rec.point.tolist(), "placement": [rec.names[g] for g in rec.placement]})
+    return 0
+
+
+def report(args: argparse.Namespace, problem, out: Path | None, Q: np.ndarray, F: np.ndarray, scores, others: list,
+           home: np.ndarray | None, seated: dict | None = None) -> None:
+    """Print a plan's measures beside ``others`` ((label, band, scores) each), the rules it
+    breaks, its moves (``home``: with ``--moves``) and clearances; with ``out`` write
+    evaluation.json (``seated``: each experiment's artefact point and placement) and the error
+    bands."""
+    from ..cell.cell import clearances
+    from ..plan.rules import plan_violations
+    from ..records.results import experiment_records
+    from ..reports.plotting import USER_STYLE, Band, bands_figure, write_figures
+
+    m = len(Q)
+    violations = plan_violations(problem, Q, F)
     print(f"plan {args.plan}: {m} experiment{'s' if m > 1 else ''}"
           + ("" if scores.identifiable else "; M is singular: the parameters are NOT identifiable"))
-    print(format_measures(["your plan"] + [f"{d.criterion} m={d.m}" for d in others],
-                          [scores] + [d.scores for d in others]))
+    print(format_measures(["your plan"] + [label for label, _, _ in others], [scores] + [s for _, _, s in others]))
     if violations:
         print(f"the plan breaks {len(violations)} constraint(s) of the problem:")
         for v in violations:
@@ -101,18 +152,16 @@ def run(args: argparse.Namespace) -> int:
               + f"; smallest {min(c.distance_m for c in near) * 1e3:.1f} mm between "
               + " and ".join(min(near, key=lambda c: c.distance_m).between))
     if out:
-        from ..reports.plotting import USER_STYLE, Band, bands_figure, write_figures
-
         write_json(out / "evaluation.json", {
             "problem": problem.name, "problem_file": problem.path, "plan_file": str(args.plan),
             "m": m, "units": {"q": "rad", "force": "N (N m for moments)", "errors": "m"},
-            "experiments": experiment_records(Q, F, near),
+            "experiments": experiment_records(Q, F, near), **({"seated": seated} if seated else {}),
             **scores.as_dict(), "violations": violations,
             **({"moves": moves} if args.moves else {}),
         })
         # a singular plan has no finite error band: draw the others, or no figure at all
         bands = ([Band(f"Your plan ({Path(args.plan).name})", USER_STYLE, scores.rms_error_m)]
-                 if scores.identifiable else []) + others
+                 if scores.identifiable else []) + [band for _, band, _ in others]
         files = [out / "evaluation.json"]
         if bands:
             write_figures(out, "evaluation", bands_figure(
@@ -120,7 +169,6 @@ def run(args: argparse.Namespace) -> int:
             files += [out / "evaluation.png", out / "evaluation.pdf"]
         common.say(args, "wrote " + ", ".join(map(str, files))
                    + ("" if scores.identifiable else " (no error band of your plan: M is singular)"))
-    return 0
 
 
 def checked_moves(problem, Q, home) -> list[dict]:

@@ -114,6 +114,7 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
     the tool). Prints Table 4's table and each set of placements' max error; writes
     ``artefact_design.json``, ``plans/<criterion>_m<m>.csv`` (joints in rad, point, placement:
     what ``identify`` reads) and ``viewer.html``."""
+    from ..records.artefact_design import ARTEFACT_DESIGN, KIND
     from ..records.export import csv_text
     from ..records.files import write_json
     from ..reports.viewer import write_viewer
@@ -137,7 +138,7 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
                                                                int(pool.placement[i])] for i in ch.rows])
             write_atomic(out / f"plans/{c}_m{m}.csv", text.encode())
             files.append(f"plans/{c}_m{m}.csv")
-        record = {"problem": problem.path, "measurement": "points fixed in an artefact", "seed": problem.solver.seed,
+        record = {"problem": problem.path, "measurement": KIND, "seed": problem.solver.seed,
                   "candidates": getattr(args, "candidates", None), "placements": list(names),
                   "test_pose_measure": "sqrt(rho) of the test poses' positions after registering the work "
                                        "(their rigid motion projected out), every placement's pose unknown",
@@ -150,7 +151,7 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
                                                  for S, d in ch.by_set],
                                "recordings": [sources[i] for i in ch.rows],
                                "plan": f"plans/{c}_m{m}.csv"} for (c, m), ch in choices.items()]}
-        write_json(out / "artefact_design.json", record)
+        write_json(out / ARTEFACT_DESIGN, record)
         files += write_viewer(out, problem, designs)
         common.say(args, f"wrote artefact_design.json, viewer.html and {common.count(len(designs), 'plan')} in "
                          f"{out / 'plans'}")

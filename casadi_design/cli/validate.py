@@ -6,8 +6,6 @@ from __future__ import annotations
 import argparse
 import math
 
-import numpy as np
-
 from ..errors import ProblemError
 
 from ..records.files import prepare_out
@@ -110,8 +108,8 @@ def run(args: argparse.Namespace) -> int:
 def _artefact(args: argparse.Namespace, spec, spreads: ErrorSpreads) -> tuple:
     """The virtual calibration of an artefact's plans (:mod:`casadi_design.virtual.artefact`):
     those of ``--results`` (an artefact_design.json) or solved now as ``solve`` does."""
-    from ..virtual.artefact import artefact_plans, validate_artefact
-    from ..virtual.simulate import Plan
+    from ..records.artefact_design import ArtefactPlan, artefact_plans
+    from ..virtual.artefact import validate_artefact
     from .solve import artefact_designs
 
     if args.scales:
@@ -122,8 +120,8 @@ def _artefact(args: argparse.Namespace, spec, spreads: ErrorSpreads) -> tuple:
         plans, source = artefact_plans(problem, args.results), str(args.results)
     else:
         pool, _, _, _, choices = artefact_designs(args, problem)
-        plans = [(Plan(c, m, pool.Q[ch.rows], np.zeros((m, problem.model.nF))), pool.point[ch.rows],
-                  pool.placement[ch.rows]) for (c, m), ch in choices.items()]
+        plans = [ArtefactPlan(c, pool.Q[ch.rows], pool.point[ch.rows], pool.placement[ch.rows])
+                 for (c, _), ch in choices.items()]
         source = "solved as casadi-design solve does"
     return validate_artefact(problem, plans, args.trials, args.seed, spreads, source), []
 

@@ -135,3 +135,13 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
         raise ProblemError(f"{problem.path}: [measurement.artefact]: no {clamps} of the placements give m = {m} "
                            "configurations that identify the parameters; give a larger m, more placements or raise clamps")
     return ClampChoice(*best, tuple(by_set))
+
+
+def artefact_scores(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray):
+    """The scores of a plan of configurations ``Q`` (m, n), rad, seated at ``point`` of
+    ``placement`` (m,): :func:`~.solve.plan_scores` of its rows with the placements' poses beside
+    X (:func:`artefact_pool` of the plan alone: X the base set it tells)."""
+    from .solve import plan_scores
+
+    pool = artefact_pool(problem, Q, point, placement)
+    return plan_scores(problem, Q, np.zeros((len(Q), problem.model.nF)), pool.B, False, pool.B0)

@@ -22,19 +22,18 @@ with the predicted ``sqrt(rho_j)`` of the plan's rows
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 
 from ..calibration.artefact import projected_out, rigid_columns
-from ..errors import DesignError, ProblemError
+from ..errors import DesignError
 from ..identification.artefact_fit import ball_points, fit_artefact
 from ..identification.fit import fit_model, model_points
 from ..identification.lsq import Identification
 from ..identification.recordings import Recordings
 from ..measures.measures import information_matrix
-from ..optimisation.artefact_pool import artefact_pool
-from ..optimisation.solve import plan_scores
+from ..optimisation.artefact_pool import artefact_pool, artefact_scores
+from ..records.artefact_design import ArtefactPlan
 from ..problem.build import Problem
 from ..robot.robots import frame_jacobian
 from .simulate import ErrorSpreads, Plan, draw_true_parameters
@@ -86,7 +85,7 @@ def simulate_artefact_plan(problem: Problem, plan: Plan, point: np.ndarray, plac
     model, A, sigma, tp = problem.model, problem.artefact, problem.sigma_m, problem.test_poses
     m, s = plan.m, tp.s
     pool = artefact_pool(problem, plan.Q, point, placement)
-    scores = plan_scores(problem, plan.Q, np.zeros((m, model.nF)), pool.B, False, pool.B0)
+    scores = artefact_scores(problem, plan.Q, point, placement)
     if not scores.identifiable:
         raise DesignError(f"virtual calibration of the {plan.criterion} plan, m = {m}: its configurations do not "
                           "identify the parameters with the placements unknown; give a solved plan")
@@ -129,41 +128,12 @@ def simulate_artefact_plan(problem: Problem, plan: Plan, point: np.ndarray, plac
                           time.perf_counter() - t0)
 
 
-def artefact_plans(problem: Problem, path: str | Path) -> list[tuple[Plan, np.ndarray, np.ndarray]]:
-    """The plans of an ``artefact_design.json`` of ``casadi-design solve`` (its plan CSVs, beside
-    it): (plan, point, placement) each.
-
-    Raises
-    ------
-    ProblemError
-        A missing or unreadable file, or one not of an artefact's design.
-    """
-    import json
-
-    from ..identification.recordings import read_recordings
-
-    path = Path(path)
-    if path.is_dir():
-        path = path / "artefact_design.json"
-    try:
-        record = json.loads(path.read_text())
-        designs = record["designs"]
-        assert record.get("measurement") == "points fixed in an artefact"
-    except (OSError, ValueError, KeyError, TypeError, AssertionError):
-        raise ProblemError(f"--results: {path} is not the artefact_design.json of casadi-design solve {problem.path}; "
-                           f"solve first: casadi-design solve {problem.path} --out DIR") from None
-    out = []
-    for d in designs:
-        rec = read_recordings(problem, [str(path.parent / d["plan"])], "--results")
-        out.append((Plan(d["criterion"], rec.N, rec.Q, np.zeros((rec.N, problem.model.nF))), rec.point, rec.placement))
-    return out
-
-
-def validate_artefact(problem: Problem, plans: list[tuple[Plan, np.ndarray, np.ndarray]], trials: int, seed: int,
+def validate_artefact(problem: Problem, plans: list[ArtefactPlan], trials: int, seed: int,
                       spreads: ErrorSpreads, source: str) -> Validation:
-    """Virtual calibration of each plan (plan, point, placement): :func:`simulate_artefact_plan`
-    with the generator of its m (common random numbers, :func:`~.validation.plan_rng`)."""
+    """Virtual calibration of each plan: :func:`simulate_artefact_plan` with the generator of its
+    m (common random numbers, :func:`~.validation.plan_rng`)."""
     t0 = time.perf_counter()
-    results = tuple(simulate_artefact_plan(problem, plan, point, placement, spreads, trials, plan_rng(seed, plan.m))
-                    for plan, point, placement in plans)
+    results = tuple(simulate_artefact_plan(problem, Plan(p.criterion, len(p.Q), p.Q, np.zeros((len(p.Q), problem.model.nF))),
+                                           p.point, p.placement, spreads, trials, plan_rng(seed, len(p.Q)))
+                    for p in plans)
     return Validation(problem, source, trials, seed, spreads, results, time.perf_counter() - t0)
