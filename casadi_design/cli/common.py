@@ -437,3 +437,27 @@ def fig_m(requested: list[int] | None, available: list[int], preferred: tuple[in
         return requested
     chosen = [m for m in preferred if m in available][:2]
     return chosen or sorted({available[0], available[-1]})
+
+
+def seated_designs(problem: Problem, path: str, option: str) -> list:
+    """The designs of a results.json or sweep.json (or its folder) that ``solve`` or ``sweep``
+    wrote for ``problem``, a problem measured at an artefact's points: each with its
+    experiments' points and placements (:attr:`~casadi_design.plan.design.Design.seated`).
+
+    Raises
+    ------
+    ProblemError
+        An unreadable file, another problem's results, or designs without their points.
+    """
+    from ..records.files import read_results
+    from ..records.results import design_from_record
+
+    try:
+        record = read_results(Path(path))
+    except OutputError as exc:
+        raise ProblemError(f"{option}: {exc}") from None
+    designs = [design_from_record(d) for d in record["designs"]]
+    if record.get("problem") != problem.name or any(d.seated is None for d in designs):
+        raise ProblemError(f"{option}: {record['_path']} is not the results of casadi-design solve {problem.path} "
+                           "(its experiments carry no artefact's point and placement); solve this problem first")
+    return designs

@@ -95,8 +95,6 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None) -> int:
     ``artefact_design.json``."""
     from ..identification.recordings import read_recordings
     from ..optimisation.artefact_pool import artefact_scores
-    from ..records.artefact_design import artefact_plans
-    from ..measures.criteria import CRITERIA
     from ..reports.plotting import Band
     from .program import home_pose
 
@@ -104,11 +102,8 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None) -> int:
     rec = read_recordings(problem, [args.plan], "--plan")
     others = []
     if args.compare:
-        for p in artefact_plans(problem, args.compare, "--compare"):
-            if len(p.Q) == rec.N:
-                s = artefact_scores(problem, p.Q, p.point, p.placement)
-                crit = CRITERIA[p.criterion]
-                others.append((f"{p.criterion} m={rec.N}", Band(crit.legend, crit.style, s.rms_error_m), s))
+        others = [(f"{d.criterion} m={d.m}", Band.of(d), d.scores)
+                  for d in common.seated_designs(problem, args.compare, "--compare") if d.m == rec.N]
         if not others:
             raise OutputError(f"--compare {args.compare}: no design with m = {rec.N} configurations (the plan's rows); "
                               "solve that m first")

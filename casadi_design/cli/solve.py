@@ -112,13 +112,8 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
     configurations seated by the nominal robot at the problem file's placements
     (:mod:`casadi_design.plan.seated`), recorded at the best ``clamps`` of them (where to clamp
     the tool). Prints Table 4's table and each set of placements' max error; writes
-    ``artefact_design.json``, ``plans/<criterion>_m<m>.csv`` (joints in rad, point, placement:
-    what ``identify`` reads) and ``viewer.html``."""
-    from ..records.artefact_design import ARTEFACT_DESIGN, KIND
-    from ..records.export import csv_text
-    from ..records.files import write_json
-    from ..reports.viewer import write_viewer
-
+    results.json, fig1, ``plans/<criterion>_m<m>.csv`` (with point and placement columns: what
+    ``identify`` reads) and ``viewer.html`` (:func:`write_artefact`)."""
     problem = common.load(args, check_solver=False, spec=spec)
     pool, names, sources, where, choices = artefact_designs(args, problem)
     designs = [ch.design for ch in choices.values()]
@@ -130,32 +125,47 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
         print(clamping)
     common.say(args, f"total {time.perf_counter() - t0:.2f} s for {common.count(len(designs), 'design')} (after imports)")
     if out:
-        joints = [f"{j}_rad" for j in problem.robot.joints]
-        files = []
-        (out / "plans").mkdir(parents=True, exist_ok=True)
-        for (c, m), ch in choices.items():
-            text = csv_text([*joints, "point", "placement"], [[*map(float, pool.Q[i]), int(pool.point[i]),
-                                                               int(pool.placement[i])] for i in ch.rows])
-            write_atomic(out / f"plans/{c}_m{m}.csv", text.encode())
-            files.append(f"plans/{c}_m{m}.csv")
-        record = {"problem": problem.path, "measurement": KIND, "seed": problem.solver.seed,
-                  "candidates": getattr(args, "candidates", None), "placements": list(names),
-                  "test_pose_measure": "sqrt(rho) of the test poses' positions after registering the work "
-                                       "(their rigid motion projected out), every placement's pose unknown",
-                  "designs": [{"criterion": c, "m": m, "max_rms_error_m": ch.design.scores.max_rms_error_m,
-                               "rms_error_m": ch.design.scores.rms_error_m.tolist(), "scores": ch.design.scores.values,
-                               "placements_used": [names[g] for g in ch.placements],
-                               "by_placements": [{"placements": [names[g] for g in S],
-                                                  "max_rms_error_m": None if d is None else d.scores.max_rms_error_m,
-                                                  "value": None if d is None else d.scores.value(c)}
-                                                 for S, d in ch.by_set],
-                               "recordings": [sources[i] for i in ch.rows],
-                               "plan": f"plans/{c}_m{m}.csv"} for (c, m), ch in choices.items()]}
-        write_json(out / ARTEFACT_DESIGN, record)
-        files += write_viewer(out, problem, designs)
-        common.say(args, f"wrote artefact_design.json, viewer.html and {common.count(len(designs), 'plan')} in "
-                         f"{out / 'plans'}")
+        files = write_artefact(out, problem, choices, names, sources, where)
+        common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} and "
+                         f"{common.count(len(designs), 'plan')} in {out / 'plans'}")
     return 0
+
+
+def write_artefact(out: Path, problem: Problem, choices: dict, names: tuple[str, ...], sources: tuple[str, ...],
+                   where: str) -> list[str]:
+    """results.json (the designs, each experiment with its point and placement, and where to
+    clamp: each set of placements' best plan), fig1, the plans (with their point and placement
+    columns, as identify reads them) and viewer.html."""
+    from ..records.export import write_plans
+    from ..records.files import write_json
+    from ..records.results import results_dict
+    from ..reports.plotting import fig1, write_figures
+    from ..reports.viewer import write_viewer
+
+    designs = [ch.design for ch in choices.values()]
+    write_json(out / "results.json", results_dict(problem, designs) | {"artefact": artefact_record(choices, names, sources,
+                                                                                                  where)})
+    files = ["results.json"]
+    files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, sorted({d.m for d in designs})[-1:]))
+    files += write_plans(out, problem, designs)
+    files += write_viewer(out, problem, designs)
+    return files
+
+
+def artefact_record(choices: dict, names: tuple[str, ...], sources: tuple[str, ...], where: str) -> dict:
+    """The ``artefact`` section of results.json and sweep.json: where the pool came from, the
+    placements, what the test-pose measure is, and per design the placements used, the
+    recordings chosen and each set of placements' best plan (where to clamp)."""
+    return {
+        "pool": where, "placements": list(names),
+        "test_pose_measure": "sqrt(rho) of the test poses' positions after registering the work (their rigid "
+                             "motion projected out), every placement's pose unknown",
+        "designs": [{"criterion": c, "m": m, "placements_used": [names[g] for g in ch.placements],
+                     "recordings": [sources[i] for i in ch.rows],
+                     "by_placements": [{"placements": [names[g] for g in S],
+                                        "max_rms_error_m": None if d is None else d.scores.max_rms_error_m,
+                                        "value": None if d is None else d.scores.value(c)} for S, d in ch.by_set]}
+                    for (c, m), ch in choices.items()]}
 
 
 def artefact_designs(args: argparse.Namespace, problem: Problem) -> tuple:
@@ -179,7 +189,7 @@ def artefact_designs(args: argparse.Namespace, problem: Problem) -> tuple:
         where = (f"{len(pool.Q)} configurations seated by the nominal robot at {', '.join(names)}, "
                  f"recorded at the best {common.count(clamps, 'placement')}")
     criteria = tuple(args.criteria or problem.criteria)
-    choices = {(c, m): choose_clamps(problem, pool.Q, pool.point, pool.placement, c, m,
+    choices = {(c, m): choose_clamps(problem, pool.Q, pool.point, pool.placement, names, c, m,
                                      args.starts or problem.solver.starts_for(c), clamps)
                for m in args.m or sorted(problem.m_values) for c in criteria}
     return pool, names, sources, where, choices

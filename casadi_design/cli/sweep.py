@@ -7,6 +7,7 @@ import math
 import time
 from pathlib import Path
 
+from ..errors import ProblemError
 from ..execution.study import writing
 from ..execution.sweep import PARTIAL_NAME, RESUME_FILES, Sweep
 from ..problem.build import Problem
@@ -42,6 +43,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = common.output_folder(args, "sweep", RESUME_FILES)
+    spec = common.read_spec(args, artefact=True)
+    if spec.measurement.artefact is not None:
+        return run_artefact(args, spec, out, t0)
     study, sweep, fig_m = common.design(args, "sweep", out / PARTIAL_NAME if out else None, sweep=True)
     problem = study.problem
     wall = time.perf_counter() - t0
@@ -64,10 +68,47 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) -> int:
+    """``sweep`` of a problem measured at an artefact's points: the designs of ``solve``
+    (:func:`~.solve.artefact_designs`: configurations seated at the problem file's placements,
+    recorded at the best ``clamps`` of them) for every m of the range, the paper's table of this
+    kind (max error along the test poses against m, each criterion) and where to clamp."""
+    from .solve import artefact_designs, clamp_table
+
+    if getattr(args, "resume", False) or getattr(args, "target_mm", None) is not None:
+        raise ProblemError(f"{spec.path}: --resume and --target-mm are not built for an artefact's points; "
+                           "sweep the range of m without them")
+    problem = common.load(args, check_solver=False, spec=spec)
+    if not args.m:  # the smallest m with as many values as X and one placement's pose, to the largest asked
+        args.m = list(range(problem.m_min, max(problem.m_values) + 1))
+    pool, names, sources, where, choices = artefact_designs(args, problem)
+    criteria = tuple(dict.fromkeys(c for c, _ in choices))
+    m_values = tuple(sorted({m for _, m in choices}))
+    starts = args.starts or problem.solver.starts
+    sweep = Sweep(m_values, criteria, {k: ch.design for k, ch in choices.items()}, starts, False,
+                  choices["test-pose", m_values[0]].design if "test-pose" in criteria else None)
+    print(f"{problem.name}: {where}; {problem.test_poses.s} test poses, registered; sigma = "
+          f"{problem.sigma_m * 1e3:g} mm; seed {problem.solver.seed}")
+    print(format_sweep_table(sweep))
+    clamping = clamp_table(choices, names)
+    if clamping:
+        print(clamping)
+    common.say(args, f"total {time.perf_counter() - t0:.2f} s for {len(choices)} designs (after imports)")
+    if out:
+        from .solve import artefact_record
+
+        files = write_sweep(out, problem, sweep, [m_values[0], m_values[-1]], args.log, {"starts": starts}, {},
+                            extra={"artefact": artefact_record(choices, names, sources, where)})
+        common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} "
+                         f"and {common.count(sum(f.startswith('plans/') for f in files), 'plan')} in {out / 'plans'}")
+    return 0
+
+
 def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log: bool, key: dict,
-                approx: dict, target=None) -> list[str]:
+                approx: dict, target=None, extra: dict | None = None) -> list[str]:
     """sweep.json, sweep.csv, the figures, the plans and report.md (``target``: the
-    :class:`~casadi_design.execution.target.TargetAnswer` of ``--target-mm``)."""
+    :class:`~casadi_design.execution.target.TargetAnswer` of ``--target-mm``; ``extra``: more
+    keys of sweep.json)."""
     from ..execution.sweep import COLUMNS, sweep_record, sweep_rows
     from ..records.export import report_markdown, write_plans, write_table_csv
     from ..records.files import write_json
@@ -77,7 +118,7 @@ def write_sweep(out: Path, problem: Problem, sweep: Sweep, fig_m: list[int], log
     record = sweep_record(problem, sweep, key, approx)
     if target is not None:
         record["target"] = target.as_dict()
-    write_json(out / "sweep.json", record)
+    write_json(out / "sweep.json", record | (extra or {}))
     write_table_csv(out / "sweep.csv", COLUMNS, sweep_rows(sweep))
     files = ["sweep.json", "sweep.csv"]
     files += write_figures(out, "sweep_max_error", sweep_figure(sweep, log))

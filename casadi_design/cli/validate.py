@@ -107,8 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _artefact(args: argparse.Namespace, spec, spreads: ErrorSpreads) -> tuple:
     """The virtual calibration of an artefact's plans (:mod:`casadi_design.virtual.artefact`):
-    those of ``--results`` (an artefact_design.json) or solved now as ``solve`` does."""
-    from ..records.artefact_design import ArtefactPlan, artefact_plans
+    those of ``--results`` or solved now as ``solve`` does."""
     from ..virtual.artefact import validate_artefact
     from .solve import artefact_designs
 
@@ -117,13 +116,10 @@ def _artefact(args: argparse.Namespace, spec, spreads: ErrorSpreads) -> tuple:
                            "run validate with --length-mm and --angle-deg at each scale instead")
     problem = common.load(args, check_solver=False, spec=spec)
     if args.results:
-        plans, source = artefact_plans(problem, args.results), str(args.results)
+        designs, source = common.seated_designs(problem, args.results, "--results"), str(args.results)
     else:
-        pool, _, _, _, choices = artefact_designs(args, problem)
-        plans = [ArtefactPlan(c, pool.Q[ch.rows], pool.point[ch.rows], pool.placement[ch.rows])
-                 for (c, _), ch in choices.items()]
-        source = "solved as casadi-design solve does"
-    return validate_artefact(problem, plans, args.trials, args.seed, spreads, source), []
+        designs, source = [ch.design for ch in artefact_designs(args, problem)[4].values()], "solved as casadi-design solve does"
+    return validate_artefact(problem, designs, args.trials, args.seed, spreads, source), []
 
 
 def _tracker(args: argparse.Namespace, spreads: ErrorSpreads) -> tuple:

@@ -25,8 +25,10 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..problem.build import Problem
-from ..records.export import LIMIT_TOL, check_joint_limits, read_plan_file, read_plan_table
+from ..records.export import LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_cells, read_plan_file, read_plan_table
 
+#: The column of a plan CSV that names each placement number.
+PLACEMENT_NAME = SEATED_COLUMNS[2]
 #: The file name of a point's recordings in a placement's folder.
 POINT_FILE = re.compile(r"hole_(\d+)\.csv")
 #: Joint values all within this many rad of 0 with some beyond 2 pi look like degrees.
@@ -185,11 +187,25 @@ def _csv(problem: Problem, path: str, option: str) -> tuple[dict, list[str]]:
             raise ProblemError(f"{path}: row {lines[bad[0]]}, column '{c}': {v[bad[0]]!r} is not an integer; "
                                "give the number")
     notes = list(check_joint_limits(problem, plan, Q, lines))
+    named = _placement_names(plan, values["placement"])
     out = {}
     for g in np.unique(values["placement"]).astype(int):
         rows = values["placement"] == g
         sources = [f"{path}: row {line}" for line, r in zip(lines, rows) if r]
         k = values["point"][rows].astype(int)
         _checked(problem, f"{path}: placement {g}", Q[rows], k, sources)
-        out[f"{Path(path).stem}:{g}"] = (Q[rows], k, sources)
+        out[named.get(g, f"{Path(path).stem}:{g}")] = (Q[rows], k, sources)
     return out, notes
+
+
+def _placement_names(plan, placement: np.ndarray) -> dict[int, str]:
+    """The name of each placement number of a plan CSV with a ``placement_name`` column (as
+    ``solve`` writes it), where every row of a number gives it one name; else none."""
+    if PLACEMENT_NAME not in plan.header:
+        return {}
+    c = plan.header.index(PLACEMENT_NAME)
+    names: dict[int, set[str]] = {}
+    for (_, line), g in zip(plan.lines[1:], placement.astype(int)):
+        cells = csv_cells(line, plan.separator)
+        names.setdefault(int(g), set()).add(cells[c].strip() if c < len(cells) else "")
+    return {g: n.pop() for g, n in names.items() if len(n) == 1 and "" not in n}

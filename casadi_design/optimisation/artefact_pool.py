@@ -15,14 +15,14 @@ robot's base). D, A, E and the others judge ``M`` of X and the placements' poses
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..calibration.artefact import artefact_rows, identifiable, placement_columns, registered
 from ..calibration.identifiability import RANK_RTOL
 from ..errors import ProblemError
-from ..plan.design import Design
+from ..plan.design import Design, Seating
 from ..problem.build import Problem
 from .pool import choose_design, kept_postures
 
@@ -102,13 +102,14 @@ class ClampChoice:
     by_set: tuple[tuple[tuple[int, ...], Design | None], ...]
 
 
-def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray, criterion: str,
-                  m: int, starts: int, clamps: int) -> ClampChoice:
-    """The m configurations ``Q`` (k, n), rad, seated at ``point`` of ``placement`` (k,) best by
-    ``criterion``, recorded at ``clamps`` of the placements: for every set of ``clamps``
-    placements, the pool of its configurations (:func:`artefact_pool`) and its best plan
-    (:func:`choose_recordings`); the best set's plan. The measure judges the sets as it judges
-    plans: each placement recorded is a pose more to absorb.
+def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray, names: tuple[str, ...],
+                  criterion: str, m: int, starts: int, clamps: int) -> ClampChoice:
+    """The m configurations ``Q`` (k, n), rad, seated at ``point`` of ``placement`` (k,; indices
+    into the placements' ``names``) best by ``criterion``, recorded at ``clamps`` of the
+    placements: for every set of ``clamps`` placements, the pool of its configurations
+    (:func:`artefact_pool`) and its best plan (:func:`choose_recordings`); the best set's plan,
+    its :attr:`~casadi_design.plan.design.Design.seated` set. The measure judges the sets as it
+    judges plans: each placement recorded is a pose more to absorb.
 
     Raises
     ------
@@ -128,9 +129,11 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
         except ProblemError:  # too few configurations, or none of m identifies X there
             by_set.append((tuple(S), None))
             continue
+        rows = idx[chosen_rows(pool, d)]
+        d = replace(d, seated=Seating(point[rows], placement[rows], names))
         by_set.append((tuple(S), d))
         if best is None or better(d.scores.value(criterion), best[0].scores.value(criterion)):
-            best = (d, idx[chosen_rows(pool, d)], tuple(S))
+            best = (d, rows, tuple(S))
     if best is None:
         raise ProblemError(f"{problem.path}: [measurement.artefact]: no {clamps} of the placements give m = {m} "
                            "configurations that identify the parameters; give a larger m, more placements or raise clamps")

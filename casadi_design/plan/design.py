@@ -75,6 +75,21 @@ class Bound:
 
 
 @dataclass(frozen=True, eq=False)
+class Seating:
+    """Where each experiment of a plan of an artefact's points seats the ball
+    (:mod:`casadi_design.calibration.artefact`): its ``point`` (m,) of the artefact and its
+    ``placement`` (m,), an index into ``names`` (the placements' names)."""
+
+    point: np.ndarray
+    placement: np.ndarray
+    names: tuple[str, ...]
+
+    def as_records(self) -> list[dict]:
+        """Each experiment's ``{"point": k, "placement": name}``."""
+        return [{"point": int(k), "placement": self.names[g]} for k, g in zip(self.point, self.placement)]
+
+
+@dataclass(frozen=True, eq=False)
 class Design:
     """The best plan found for one criterion and number of experiments.
 
@@ -93,6 +108,8 @@ class Design:
         (:func:`casadi_design.cell.cell.clearances`), else None.
     kept_starts : how many of ``starts`` were read back from the disk, computed by an earlier
         run (:func:`casadi_design.optimisation.solve.solve_start`; not in results files).
+    seated : for a problem measured at an artefact's points, the point and placement of each
+        experiment (:class:`Seating`), else None.
     """
 
     criterion: str
@@ -107,6 +124,7 @@ class Design:
     bound: Bound | None = None
     clearances: tuple[Clearance, ...] | None = None
     kept_starts: int = 0
+    seated: Seating | None = None
 
     @property
     def gap_percent(self) -> float | None:

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..cell.cell import Clearance
 from ..errors import ProblemError
-from ..plan.design import Design
+from ..plan.design import Design, Seating
 from ..problem.build import Problem
 from ..problem_file.fields import WRENCH_ROWS
 from .files import write_atomic
@@ -44,6 +44,9 @@ MEASURED_COLUMN = "measured"
 #: Columns written for people with a [cell] and ignored when read: the experiment's clearance on
 #: the real geometry (mm) and the two closest bodies.
 CLEARANCE_COLUMNS = ("clearance_mm", "closest_bodies")
+#: The columns of a plan of an artefact's points: the point the ball is seated at, the
+#: placement (an integer, as :mod:`casadi_design.identification.recordings` reads it) and its name.
+SEATED_COLUMNS = ("point", "placement", "placement_name")
 #: Columns of ``identify``'s compensated_test_poses.csv beside a plan's, ignored when read (the
 #: file is a plan: program and evaluate take it): whether the compensation converged, and each
 #: joint's change from the test pose (``<joint>_change_<unit>``, :func:`change_columns`).
@@ -78,12 +81,13 @@ def force_columns(problem: Problem) -> list[str]:
 
 
 def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray,
-               near: tuple[Clearance, ...] | None = None) -> tuple[list[str], list[list]]:
+               near: tuple[Clearance, ...] | None = None, seated: Seating | None = None) -> tuple[list[str], list[list]]:
     """Header and rows of a plan: ``Q`` shape (m, n), rad (m); ``F`` shape (m, nF), N (N m).
 
     With a ``[cell]`` and ``near`` (:attr:`casadi_design.plan.design.Design.clearances`), each row
     also gives the experiment's clearance on the real geometry (mm) and the two bodies at that
-    distance.
+    distance. With ``seated`` (a plan of an artefact's points), each row gives the artefact's
+    ``point``, the ``placement`` (an integer, as identify reads it) and its name.
     """
     joints = problem.robot.joints
     units = [joint_units(problem, k) for k in range(len(joints))]
@@ -99,6 +103,9 @@ def plan_table(problem: Problem, Q: np.ndarray, F: np.ndarray,
         p = np.asarray(problem.model.position(q), dtype=float).ravel() * 1e3
         rows.append([i + 1] + [qk / u[2] for qk, u in zip(q, units)] + list(q) + list(f) + list(p)
                     + ([c.distance_m * 1e3, " / ".join(c.between)] if c else blank))
+    if seated is not None:
+        header += list(SEATED_COLUMNS)
+        rows = [r + [int(k), int(g), seated.names[g]] for r, k, g in zip(rows, seated.point, seated.placement)]
     return header, rows
 
 
@@ -109,7 +116,7 @@ def design_table(problem: Problem, design: Design) -> tuple[list[str], list[list
     Q, F, measured = problem.campaign(design.Q, design.F)
     k = int(measured.sum())
     near = None if design.clearances is None else (None,) * k + tuple(design.clearances)
-    header, rows = plan_table(problem, Q, F, near)
+    header, rows = plan_table(problem, Q, F, near, design.seated)
     if not k:
         return header, rows
     return header + [MEASURED_COLUMN], [r + ["yes" if flag else "no"] for r, flag in zip(rows, measured)]
@@ -190,7 +197,7 @@ def _plan_text(path: str) -> str:
                            f"{exc.start}); save it as 'CSV UTF-8 (comma delimited)'") from None
 
 
-def _csv_cells(line: str, separator: str = ",") -> list[str]:
+def csv_cells(line: str, separator: str = ",") -> list[str]:
     """The cells of one CSV line separated by ``separator``, blanks around them stripped."""
     return [c.strip() for c in next(csv.reader([line], delimiter=separator))]
 
@@ -230,7 +237,7 @@ class PlanFile:
     @property
     def header(self) -> list[str]:
         """The column names as the file spells them (trailing empty names dropped)."""
-        header = _csv_cells(self.lines[0][1], self.separator)
+        header = csv_cells(self.lines[0][1], self.separator)
         while header and not header[-1]:
             header.pop()
         return header
@@ -244,7 +251,7 @@ class PlanFile:
             return np.zeros(len(body), dtype=bool)
         c = header.index(MEASURED_COLUMN)
         return np.array([len(cells) > c and cells[c].lower() in ("yes", "true", "1")
-                         for cells in (_csv_cells(ln, self.separator) for _, ln in body)], dtype=bool)
+                         for cells in (csv_cells(ln, self.separator) for _, ln in body)], dtype=bool)
 
 
 def read_plan_file(path: Path | str) -> PlanFile:
@@ -304,7 +311,7 @@ def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[
     spelled = plan.header
     rename = rename or {}
     header = [rename.get(h, h) for h in spelled]
-    rows = [(i, _csv_cells(ln, sep)) for i, ln in body]
+    rows = [(i, csv_cells(ln, sep)) for i, ln in body]
     if not rows:
         raise ProblemError(f"{path}: no experiments below the header; give one row per experiment")
     robot = problem.robot

@@ -19,7 +19,7 @@ from ..cell.cell import Clearance
 from ..measures.criteria import CRITERIA
 from ..measures.measures import Scores
 from ..optimisation.bound import ApproximateDesign
-from ..plan.design import Bound, Design, StartRecord
+from ..plan.design import Bound, Design, Seating, StartRecord
 from ..problem.build import Problem
 from ..runtime.threads import blas_kernels
 
@@ -37,7 +37,10 @@ def campaign_records(problem: Problem | None, design: Design) -> list[dict]:
     """The experiments of a design's campaign (:meth:`~casadi_design.problem.build.Problem.campaign`):
     the measured ones first, marked ``"measured": true``, then the plan's."""
     held = [] if problem is None else experiment_records(*problem.measured, None)
-    return [e | {"measured": True} for e in held] + experiment_records(design.Q, design.F, design.clearances)
+    new = experiment_records(design.Q, design.F, design.clearances)
+    if design.seated is not None:
+        new = [e | s for e, s in zip(new, design.seated.as_records())]
+    return [e | {"measured": True} for e in held] + new
 
 
 def design_record(design: Design, problem: Problem | None = None) -> dict:
@@ -193,7 +196,18 @@ def design_from_record(record: dict) -> Design:
             record["criterion"], m, record["bound"]["value"], record["bound"]["relaxation"],
             record["bound"]["L"]),
         clearances=tuple(near) if len(near) == m else None,
+        seated=_seating(exps),
     )
+
+
+def _seating(exps: list[dict]) -> Seating | None:
+    """The :class:`~casadi_design.plan.design.Seating` of a design's experiments (records with
+    ``point`` and ``placement``), None when they have none."""
+    if not exps or "point" not in exps[0]:
+        return None
+    names = tuple(dict.fromkeys(e["placement"] for e in exps))
+    return Seating(np.array([e["point"] for e in exps], dtype=int),
+                   np.array([names.index(e["placement"]) for e in exps], dtype=int), names)
 
 
 #: Numeric fields of a design's ``scores`` (finite: a design's plan is identifiable).

@@ -33,7 +33,7 @@ from ..identification.lsq import Identification
 from ..identification.recordings import Recordings
 from ..measures.measures import information_matrix
 from ..optimisation.artefact_pool import artefact_pool, artefact_scores
-from ..records.artefact_design import ArtefactPlan
+from ..plan.design import Design
 from ..problem.build import Problem
 from ..robot.robots import frame_jacobian
 from .simulate import ErrorSpreads, Plan, draw_true_parameters
@@ -128,12 +128,13 @@ def simulate_artefact_plan(problem: Problem, plan: Plan, point: np.ndarray, plac
                           time.perf_counter() - t0)
 
 
-def validate_artefact(problem: Problem, plans: list[ArtefactPlan], trials: int, seed: int,
+def validate_artefact(problem: Problem, designs: list[Design], trials: int, seed: int,
                       spreads: ErrorSpreads, source: str) -> Validation:
-    """Virtual calibration of each plan: :func:`simulate_artefact_plan` with the generator of its
-    m (common random numbers, :func:`~.validation.plan_rng`)."""
+    """Virtual calibration of each design's plan (its configurations and their
+    :attr:`~casadi_design.plan.design.Design.seated`): :func:`simulate_artefact_plan` with the
+    generator of its m (common random numbers, :func:`~.validation.plan_rng`)."""
     t0 = time.perf_counter()
-    results = tuple(simulate_artefact_plan(problem, Plan(p.criterion, len(p.Q), p.Q, np.zeros((len(p.Q), problem.model.nF))),
-                                           p.point, p.placement, spreads, trials, plan_rng(seed, len(p.Q)))
-                    for p in plans)
+    results = tuple(simulate_artefact_plan(problem, Plan(d.criterion, d.m, d.Q, d.F), d.seated.point,
+                                           d.seated.placement, spreads, trials, plan_rng(seed, d.m))
+                    for d in designs)
     return Validation(problem, source, trials, seed, spreads, results, time.perf_counter() - t0)
