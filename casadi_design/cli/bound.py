@@ -31,7 +31,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    spec = common.read_spec(args)  # a malformed file fails before any worker starts
+    spec = common.read_spec(args, artefact=True)  # a malformed file fails before any worker starts
+    if spec.measurement.artefact is not None:
+        return run_artefact(args, spec)
     with common.executor(args) as ex:  # the two approximate designs at the same time, one per worker
         problem = common.load(args, check_solver=False, spec=spec)
         if problem.field is not None:
@@ -52,4 +54,41 @@ def run(args: argparse.Namespace) -> int:
                          f"{common.count(len(a.history), 'exchange step')}, {common.count(len(a.checked), 'independent check')}, "
                          f"{a.wall_s:.2f} s" + (" (read back from the cache: the time of the run that "
                                                 "computed it)" if a.kept else ""))
+    return 0
+
+
+def run_artefact(args: argparse.Namespace, spec) -> int:
+    """``bound`` of a problem measured at an artefact's points: for every set of ``clamps``
+    placements of the problem file (where the plans record), the approximate design over the
+    configurations seated there (:func:`~casadi_design.plan.seated.seated_configurations`), each
+    at most once, with those placements' poses beside X
+    (:func:`~casadi_design.optimisation.artefact_pool.artefact_pool`). Each bounds every choice
+    of m of its configurations; the least test-pose bound and the largest log det bound over the
+    sets bound every plan ``solve`` can choose."""
+    from itertools import combinations
+
+    import numpy as np
+
+    from ..measures.measures import information_matrices
+    from ..optimisation.artefact_pool import artefact_pool
+    from ..optimisation.bound import pool_design
+    from ..plan.seated import seated_configurations
+
+    problem = common.load(args, check_solver=False, spec=spec)
+    seated = seated_configurations(problem)
+    ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
+    check_m_values(problem, ms)
+    clamps = spec.measurement.artefact.clamps
+    per_set = []
+    for S in combinations(range(len(seated.names)), clamps):
+        rows = np.flatnonzero(np.isin(seated.placement, S))
+        pool = artefact_pool(problem, seated.Q[rows], seated.point[rows], seated.placement[rows])
+        idx = rows[pool.kept]
+        A, F = information_matrices(pool.B[pool.kept]), np.zeros((len(idx), problem.model.nF))
+        per_set.append({c: [bound(problem, m, pool_design(problem, c, seated.Q[idx], F, A, m, pool.B0), pool.B.shape[2])
+                            for m in ms] for c in ("test-pose", "D")})
+    print(f"{problem.name}: {len(seated.Q)} configurations seated by the nominal robot at {', '.join(seated.names)}, "
+          f"each at most once, recorded at {common.count(clamps, 'placement')}: the bounds over every set")
+    print(format_bounds([min((b["test-pose"][i] for b in per_set), key=lambda b: b.value) for i in range(len(ms))],
+                        [max((b["D"][i] for b in per_set), key=lambda b: b.value) for i in range(len(ms))]))
     return 0

@@ -77,10 +77,19 @@ def run(args: argparse.Namespace) -> int:
     from ..program.sequence import make_program
 
     out = common.output_folder(args, "program")
-    problem = common.load(args, check_solver=False)
-    Q, F, plan = read_experiments(problem, args.plan)  # a plan of another robot names the plan
-    new = ~plan.measured  # a campaign's measured experiments are not measured again
-    Q, F = Q[new], F[new]
+    problem = common.load(args, check_solver=False, spec=common.read_spec(args, artefact=True))
+    if problem.artefact is not None:  # seated configurations: the program visits their approaches
+        from ..identification.recordings import read_recordings
+        from ..plan.seated import APPROACH_M, approaches
+
+        Q = approaches(problem, read_recordings(problem, [args.plan], "--plan").Q)
+        F = np.zeros((len(Q), problem.model.nF))
+        common.say(args, f"note: each experiment is programmed {APPROACH_M * 1e3:g} mm back along the hand's axis from "
+                         "its seated configuration: hand-guide the ball into its socket there, then record")
+    else:
+        Q, F, plan = read_experiments(problem, args.plan)  # a plan of another robot names the plan
+        new = ~plan.measured  # a campaign's measured experiments are not measured again
+        Q, F = Q[new], F[new]
     robot = problem.robot
     past = int(np.sum((Q < robot.q_min) | (Q > robot.q_max)))  # within the reading's tolerance
     if past:  # a controller refuses a target past a limit, however little

@@ -115,11 +115,12 @@ class ApproximateDesign:
     m: int = 0
 
 
-def bound(problem: Problem, m: int, approx: ApproximateDesign) -> Bound:
+def bound(problem: Problem, m: int, approx: ApproximateDesign, L: int | None = None) -> Bound:
     """The bound for ``m`` experiments in the units of the criterion's score
     (:attr:`casadi_design.measures.criteria.BoundForm.score`): ``sqrt(sigma^2 t / m)`` (m) for
     test-pose and I, ``t / m`` for A, ``L log m + log det W + d_max - L`` for D (see the
-    module docstring). An approximate design made for one m (``approx.m``) bounds that m only.
+    module docstring; ``L`` the pool's parameters when they are not the problem's model's: an
+    artefact's rows). An approximate design made for one m (``approx.m``) bounds that m only.
 
     Raises
     ------
@@ -128,7 +129,7 @@ def bound(problem: Problem, m: int, approx: ApproximateDesign) -> Bound:
     if approx.m and approx.m != m:
         raise DesignError(f"the approximate design of {approx.criterion} was made for m = {approx.m} new "
                           f"experiments, not {m}")
-    L, score = problem.model.L, CRITERIA[approx.criterion].bound.score
+    L, score = L or problem.model.L, CRITERIA[approx.criterion].bound.score
     return Bound(approx.criterion, m, score(approx.certified, m, problem.sigma_m, L),
                  score(approx.value, m, problem.sigma_m, L), L)
 
@@ -149,9 +150,10 @@ class Scaled(NamedTuple):
     Hj: np.ndarray | None
 
 
-def scaled_pool(problem: Problem, criterion: str, A: np.ndarray, m: int) -> Scaled:
+def scaled_pool(problem: Problem, criterion: str, A: np.ndarray, m: int, B0: np.ndarray | None = None) -> Scaled:
     """:class:`Scaled` of the information ``A`` (k, L, L) of a pool, for ``m`` new experiments
-    when the problem holds information (module docstring).
+    when the problem holds information (module docstring); ``B0`` the test poses' rows when they
+    are not the problem's (an artefact's, :mod:`~casadi_design.optimisation.artefact_pool`).
 
     Raises
     ------
@@ -162,7 +164,7 @@ def scaled_pool(problem: Problem, criterion: str, A: np.ndarray, m: int) -> Scal
     form = CRITERIA[criterion].bound
     c = problem.model.L / np.mean(np.trace(A, axis1=1, axis2=2))
     return Scaled(c, c * A, None if problem.M_held is None else c * problem.M_held / m,
-                  None if form.log_det else c * form.rows(problem.B0))
+                  None if form.log_det else c * form.rows(problem.B0 if B0 is None else B0))
 
 
 def check_m(problem: Problem, m: int) -> None:
@@ -189,7 +191,7 @@ def top_mean(d: np.ndarray, m: int) -> float:
 
 
 def pool_design(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, A: np.ndarray,
-                m: int = 0) -> ApproximateDesign:
+                m: int = 0, B0: np.ndarray | None = None) -> ApproximateDesign:
     """The approximate design of a finite pool of experiments ``Q`` (k, n), ``F`` (k, nF) of
     information ``A`` (k, L, L) for plans of ``m`` distinct postures (each weight at most 1 / m;
     0: repeats allowed): the convex problem on the pool (:func:`pool_optimum`) and its
@@ -200,9 +202,10 @@ def pool_design(problem: Problem, criterion: str, Q: np.ndarray, F: np.ndarray, 
     generation: the convex problem on the candidates of the largest d at the pool's mean
     information, then on those and the :data:`POOL_ADDED` of the largest d outside them, until
     no candidate outside has d above the support's or the certificate meets the relaxation
-    within :data:`EXCHANGE_RTOL`."""
+    within :data:`EXCHANGE_RTOL`. ``B0``: the test poses' rows when not the problem's
+    (:func:`scaled_pool`)."""
     t0 = time.perf_counter()
-    s = scaled_pool(problem, criterion, A, m)
+    s = scaled_pool(problem, criterion, A, m, B0)
     k, L = A.shape[:2]
     w_max = 1.0 / m if m else 1.0
     first = linearised(np.mean(s.A, axis=0), np.full(1 if s.Hj is None else len(s.Hj), 1.0), s.Hj, s.F0)

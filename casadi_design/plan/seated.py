@@ -26,6 +26,7 @@ from ..calibration.artefact import least_turn
 from ..errors import ProblemError
 from ..problem.build import Problem
 from ..robot.ik import IK_ACCEPT, solve_ik
+from ..robot.robots import frame_placement
 from .rules import plan_violations
 
 #: Seated configurations drawn per point of each placement, by default.
@@ -36,6 +37,9 @@ SEATED_PER_POINT = 30
 #: configurations of one socket; 100 steps find as many in twice the time).
 SEATED_TRIES = 10
 SEATED_IK_STEPS = 30
+#: How far back along the hand's z axis from the seated configuration a robot program stops
+#: (m): the ball clear of the socket's rim, the operator seats it by hand.
+APPROACH_M = 0.02
 #: The seed's stream of the seated configurations (beside the designs' starts').
 SEATED_STREAM = 67
 
@@ -111,3 +115,27 @@ def seated_configurations(problem: Problem, per_point: int = SEATED_PER_POINT) -
                     f"and a tilt of {np.degrees(spec.tilt_max_rad):g} deg; move the placement within the robot's "
                     "reach or raise tilt_max_deg")
     return Seated(np.array(Q), np.array(point), np.array(placement), tuple(p.name for p in spec.placements))
+
+
+def approaches(problem: Problem, Q: np.ndarray) -> np.ndarray:
+    """The configurations (m, n), rad, that hold the hand of each seated configuration ``Q``
+    (m, n) in its orientation with the measured point :data:`APPROACH_M` back along the hand's z
+    axis (out of the socket), by inverse kinematics from it: where a robot program stops before
+    the operator seats the ball.
+
+    Raises
+    ------
+    ProblemError
+        A configuration whose approach the robot cannot reach within its limits.
+    """
+    robot, out = problem.robot, []
+    for i, q in enumerate(np.asarray(Q, dtype=float)):
+        M = frame_placement(robot, q)
+        target = pin.SE3(M.rotation, M.translation - APPROACH_M * M.rotation[:, 2])
+        qa, err = solve_ik(robot, target, q)
+        if not err <= IK_ACCEPT:
+            raise ProblemError(f"experiment {i + 1}: the hand cannot be held {APPROACH_M * 1e3:g} mm back from its "
+                               "socket within the joint limits; leave the experiment out or seat it by hand from "
+                               "another configuration")
+        out.append(qa)
+    return np.array(out)
