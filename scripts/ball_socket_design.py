@@ -7,7 +7,7 @@ m-subsets.
     python scripts/ball_socket_design.py [--data ../shared/real_data/mukca] [--m 16] [--random 20]
 
 Cases: panda_2 from ``front_center``, test poses at ``mid_left`` (those of
-examples/panda_ball_socket.toml); panda_4 from ``front``, test poses at ``right`` (every third
+problems/panda_ball_socket.toml); panda_4 from ``front``, test poses at ``right`` (every third
 recording there).
 """
 
@@ -50,7 +50,7 @@ def main() -> int:
     data = Path(args.data) / "data"
     print(f"m = {args.m}: consistency (mm) at the test poses' placement after identifying each plan")
     for robot, (cand, test, shipped) in CASES.items():
-        spec = read_problem(ROOT / "examples" / "panda_ball_socket.toml")
+        spec = read_problem(ROOT / "problems" / "panda_ball_socket.toml")
         problem = build_problem(spec)
         trec = read_recordings(problem, [str(data / robot / test)], "--validation")
         if not shipped:

@@ -63,7 +63,7 @@ def main() -> int:
           "median spacing: calibrated  authors   model  time")
     for robot in args.robots.split(","):
         name, train = ROBOTS[robot]
-        problem = load_problem(ROOT / "examples" / f"{name}.toml")
+        problem = load_problem(ROOT / ("problems" if name == "panda_ball_socket" else "examples") / f"{name}.toml")
         places = sorted(p.name for p in (data / "data" / robot).iterdir() if p.is_dir())
         train = train or places[0]
         t0 = time.perf_counter()

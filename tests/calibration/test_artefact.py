@@ -21,7 +21,7 @@ from casadi_design.calibration.identifiability import RANK_RTOL
 from casadi_design.problem.build import load_problem
 from tests.conftest import ROOT
 
-PANDA = ROOT / "examples" / "panda_ball_socket.toml"
+PANDA = ROOT / "problems" / "panda_ball_socket.toml"
 
 
 @pytest.mark.parametrize("points, r", [([[0, 0, 0]], 0), ([[0, 0, 0], [0.05, 0, 0]], 2),

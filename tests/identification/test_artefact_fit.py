@@ -25,7 +25,7 @@ from casadi_design.problem.build import load_problem
 from tests.artefact_data import recordings, true_ball
 from tests.conftest import ROOT
 
-PANDA = ROOT / "examples" / "panda_ball_socket.toml"
+PANDA = ROOT / "problems" / "panda_ball_socket.toml"
 SIGMA = 5e-5
 PER_POINT = 15
 
