@@ -216,9 +216,16 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
               f"points, {cal.model} model)")
     texts = {"calibrated.urdf": urdf_text(problem, chain),
              "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header)}
-    files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml"}
+    names = ["identification.json", "identification.md", *texts, "viewer.html"]
+    texts["identification.md"] = "\n".join([f"# Identification of {problem.name} from an artefact's recordings", "",
+                                            header, "", "```", *artefact_summary(cal), "```", "",
+                                            "Files: " + ", ".join(f"`{n}`" for n in names), ""])
+    files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml", "report": "identification.md"}
     for name, text in texts.items():
         write_atomic(out / name, text.encode())
     write_json(out / "identification.json", artefact_record(cal, files))
-    say(args, f"wrote identification.json, {', '.join(texts)} in {out}")
+    from ..reports.viewer import write_identification_viewer
+
+    write_identification_viewer(out, cal)  # the recordings, the sockets and the calibrated ball centres
+    say(args, f"wrote {', '.join(names)} in {out}")
     return 0

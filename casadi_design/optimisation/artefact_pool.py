@@ -56,12 +56,7 @@ def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
         measured experiments), which the rows with the placements' poses do not hold yet.
     """
     A, model = problem.artefact, problem.model
-    if problem.M_held is not None:
-        raise ProblemError(f"{problem.path}: [calibration.prior] (or --measured, --prior): a design from an "
-                           "artefact's recordings does not hold information before the plan yet; remove them")
-    if tuple(sorted(problem.spec.test_poses.components)) != ("x", "y", "z"):
-        raise ProblemError(f"{problem.path}: [test_poses].components: an artefact's calibration is judged at the "
-                           "test poses' positions after registering the work; give components = [\"x\", \"y\", \"z\"]")
+    check_designable(problem)
     F = np.zeros((len(Q), model.nF))
     B = model.B_stack(Q, F)
     p = np.stack([np.asarray(model.points(q), dtype=float).reshape(3) for q in Q])
@@ -73,6 +68,24 @@ def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     B0 = np.concatenate([B0, np.zeros((len(B0), 3, rows.shape[2] - B0.shape[2]))], axis=2)
     names = tuple(n for n, k in zip(model.parameter_names, kept) if k)
     return ArtefactPool(Q, point, placement, names, rows, B0, kept_postures(problem, Q, F)[0])
+
+
+def check_designable(problem: Problem) -> None:
+    """Refuse what a design of an artefact's configurations does not hold.
+
+    Raises
+    ------
+    ProblemError
+        Information held before the plan (a prior, measured experiments: a second round);
+        test poses that do not require x, y and z.
+    """
+    if problem.M_held is not None:
+        raise ProblemError(f"{problem.path}: [calibration.prior] (or --measured, --prior): a design of an artefact's "
+                           "configurations does not hold information before the plan (a second round) yet; remove "
+                           "them, and identify the recordings of every round together")
+    if tuple(sorted(problem.spec.test_poses.components)) != ("x", "y", "z"):
+        raise ProblemError(f"{problem.path}: [test_poses].components: an artefact's calibration is judged at the "
+                           "test poses' positions after registering the work; give components = [\"x\", \"y\", \"z\"]")
 
 
 def choose_recordings(problem: Problem, pool: ArtefactPool, criterion: str, m: int, starts: int) -> Design:
@@ -120,6 +133,7 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
 
     from ..measures.criteria import CRITERIA
 
+    check_designable(problem)
     better, by_set, best = CRITERIA[criterion].better, [], None
     for S in combinations(np.unique(placement).tolist(), clamps):
         idx = np.flatnonzero(np.isin(placement, S))

@@ -497,6 +497,44 @@ def identification_view(calibration, scene: Scene) -> dict:
                           "text": f"residual arrows x {scale:g} (1 mm drawn as {scale * 1e-3:g} m)"}}
 
 
+def artefact_identification_view(calibration, scene: Scene) -> dict:
+    """The view of an identification from an artefact's recordings (a
+    :class:`casadi_design.identification.artefact_fit.ArtefactCalibration`): the robot at each
+    recording of the fit, the sockets where the fit puts them (each placement's fitted pose,
+    drawn as the measured points), the calibrated robot's ball centres, the residuals ``ball -
+    socket`` as arrows scaled by :func:`arrow_scale`, and the predicted error at the test poses
+    after registering the work: ``sqrt(tr(J0_j C J0_j^T))`` with ``J0`` the test points' rows of
+    X, their rigid motion projected out
+    (:func:`~casadi_design.calibration.artefact.registered`)."""
+    from ..calibration.artefact import registered
+    from ..identification.artefact_fit import ball_points
+
+    c = calibration
+    problem, rec, f = c.problem, c.recordings, c.fit
+    A = problem.artefact
+    sockets = f.t[rec.placement] + np.einsum("kab,kb->ka", f.R[rec.placement], A.points_m[rec.point])
+    ball = sockets + f.r
+    scale = arrow_scale(float(np.max(np.linalg.norm(f.r, axis=1))) if len(f.r) else 0.0)
+    scales = np.array([joint_units(problem, k)[2] for k in range(problem.robot.n)])
+    tp = problem.test_poses
+    J0 = registered(ball_points(f.fit.model, tp.q, f.X)[1], tp.position_m)
+    rms = np.sqrt(np.einsum("sil,lk,sik->s", J0, c.C, J0))
+    poses = [{"number": i + 1, "frame": i, "q": [float(v) for v in rec.Q[i] / scales], "measured": False,
+              "clearance_mm": None, "closest": None, "load": [], "load_text": "", "arrow": None,
+              "used": bool(f.used[i]), "residual_rms_mm": _number(np.linalg.norm(f.r[i]) / np.sqrt(3) * 1e3),
+              "residual_max_mm": _number(np.max(np.abs(f.r[i])) * 1e3)} for i in range(rec.N)]
+    return {"kind": "identification",
+            "label": f"identification ({c.model} model): {rec.N} recordings at {', '.join(rec.names)}",
+            "poses": poses, "frames": robot_frames(problem, scene, rec.Q).record(),
+            "rms_mm": [_number(v * 1e3) for v in rms],
+            "rms_label": "predicted error after calibration and registering the work, mm",
+            "residuals": {"measured_m": [[p.tolist()] for p in sockets], "model_m": [[p.tolist()] for p in ball],
+                          "arrows_m": [[p.tolist()] for p in sockets + scale * f.r], "scale": scale,
+                          "tracker_m": None,
+                          "text": f"sockets (the fitted placements) and the calibrated ball centres; residual arrows x "
+                                  f"{scale:g} (1 mm drawn as {scale * 1e-3:g} m)"}}
+
+
 # --------------------------------------------------------------------------- the page
 
 
@@ -604,10 +642,12 @@ def write_program_viewer(out: Path, problem: Problem, Q: np.ndarray, F: np.ndarr
 
 
 def write_identification_viewer(out: Path, calibration) -> list[str]:
-    """``out/viewer.html`` of an identification (:func:`identification_view`)."""
+    """``out/viewer.html`` of an identification (:func:`identification_view`; from an artefact's
+    recordings :func:`artefact_identification_view`)."""
     problem = calibration.problem
     scene = problem_scene(problem)
-    views = [identification_view(calibration, scene)]
+    view = artefact_identification_view if hasattr(calibration, "recordings") else identification_view
+    views = [view(calibration, scene)]
     write_atomic(Path(out) / VIEWER_NAME,
                  viewer_html(problem, scene, views, f"{problem.name}: identification").encode())
     return [VIEWER_NAME]

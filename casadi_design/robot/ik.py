@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..errors import ProblemError
-from .robots import Robot, frame_jacobian
+from .robots import Robot
 
 #: Convergence threshold on |e| (m and rad).
 IK_TOL = 1e-10
@@ -64,19 +64,20 @@ def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool 
              limits: bool = True, max_iter: int = IK_MAX_ITER) -> tuple[np.ndarray, float]:
     """Configuration reaching ``target`` with the tool frame, from ``q0``, within the joint
     limits (``limits``; else anywhere), in at most ``max_iter`` steps; and the residual |e|."""
-    model, data = robot.model, robot.model.createData()
+    model, data, fid = robot.model, robot.model.createData(), robot.frame_id
     low, high = (robot.q_min, robot.q_max) if limits else (-np.inf, np.inf)
     q = np.clip(np.asarray(q0, dtype=float), low, high)
     rows = slice(0, 3) if position_only else slice(0, 6)
     err = np.inf
     for _ in range(max_iter):
-        pin.framesForwardKinematics(model, data, robot.full_q(q))
-        M = data.oMf[robot.frame_id]
+        pin.computeJointJacobians(model, data, robot.full_q(q))  # the joints' placements and Jacobians at once
+        pin.updateFramePlacements(model, data)
+        M = data.oMf[fid]
         e = np.r_[target.translation - M.translation, pin.log3(target.rotation @ M.rotation.T)][rows]
         err = float(np.linalg.norm(e))
         if err < IK_TOL:
             break
-        J = frame_jacobian(robot, q)[rows]
+        J = pin.getFrameJacobian(model, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[rows][:, robot.v_index]
         lam2 = LAMBDA0**2 + err**2
         q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + lam2 * np.eye(J.shape[0]), e), low, high)
     return q, err

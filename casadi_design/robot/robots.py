@@ -15,6 +15,7 @@ import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -72,13 +73,27 @@ class Robot:
         """Number of joints in the chain."""
         return len(self.joints)
 
-    @property
+    @cached_property
     def frame_id(self) -> int:
         return self.model.getFrameId(self.frame)
 
-    @property
+    @cached_property
     def joint_ids(self) -> tuple[int, ...]:
         return tuple(self.model.getJointId(j) for j in self.joints)
+
+    @cached_property
+    def q_index(self) -> np.ndarray:
+        """Where the chain's joints sit in Pinocchio's configuration (n,)."""
+        return np.array([self.model.joints[j].idx_q for j in self.joint_ids], dtype=int)
+
+    @cached_property
+    def v_index(self) -> np.ndarray:
+        """Where the chain's joints sit in Pinocchio's velocity, the Jacobian's columns (n,)."""
+        return np.array([self.model.joints[j].idx_v for j in self.joint_ids], dtype=int)
+
+    @cached_property
+    def _neutral(self) -> np.ndarray:
+        return pin.neutral(self.model)
 
     def is_prismatic(self, k: int) -> bool:
         """Whether joint ``k`` of the chain is prismatic (its value in m, not rad)."""
@@ -86,9 +101,11 @@ class Robot:
 
     def full_q(self, q: np.ndarray) -> np.ndarray:
         """Pinocchio configuration of the whole model with the chain at ``q`` (others neutral)."""
-        q_full = pin.neutral(self.model)
-        for jid, qj in zip(self.joint_ids, np.asarray(q, dtype=float), strict=True):
-            q_full[self.model.joints[jid].idx_q] = qj
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.n,):
+            raise ValueError(f"full_q: {q.shape} joint values for a chain of {self.n}")
+        q_full = self._neutral.copy()
+        q_full[self.q_index] = q
         return q_full
 
 
@@ -383,8 +400,7 @@ def frame_jacobian(robot: Robot, q: np.ndarray) -> np.ndarray:
     J = pin.computeFrameJacobian(
         robot.model, data, robot.full_q(q), robot.frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
     )
-    cols = [robot.model.joints[j].idx_v for j in robot.joint_ids]
-    return np.asarray(J[:, cols])
+    return np.asarray(J[:, robot.v_index])
 
 
 def planar_2r_ik(robot: Robot, point_m: np.ndarray, elbow: str) -> np.ndarray:

@@ -160,7 +160,7 @@ def test_identify_and_solve_end_to_end(simulated, tmp_path, capsys):
     design = tmp_path / "design"
     assert main(["solve", str(PANDA), "--candidates", str(front), "--m", "12", "--criteria", "test-pose,D",
                  "--starts", "2", "--out", str(design), "--quiet"]) == 0
-    designs = json.loads((design / "artefact_design.json").read_text())["designs"]
+    designs = json.loads((design / "results.json").read_text())["designs"]
     assert [d["criterion"] for d in designs] == ["test-pose", "D"]
     assert designs[0]["max_rms_error_m"] <= designs[1]["max_rms_error_m"]
     chosen = read_recordings(problem, [str(design / "plans" / "test-pose_m12.csv")])
@@ -179,17 +179,3 @@ def test_a_model_named_is_the_one_fitted(simulated):
     assert [c.name for c in cal.candidates] == ["ball"]
     with pytest.raises(ProblemError, match="--model registration: allowed for an artefact"):
         calibrate_artefact(problem, train, valid, model="registration")
-
-
-def test_commands_that_plan_for_a_tracker_refuse_an_artefacts_problem(tmp_path, capsys):
-    """sweep, bound, evaluate, validate and program would plan or score for a tracker: on a
-    problem of an artefact's points each says so in one line and which commands do handle it;
-    solve without recordings says to give them."""
-    plan, results = tmp_path / "plan.csv", tmp_path / "results.json"
-    for argv in (["sweep", str(PANDA), "--m", "16"], ["bound", str(PANDA), "--m", "16"],
-                 ["evaluate", str(PANDA), "--plan", str(plan)], ["validate", str(PANDA), "--results", str(results)],
-                 ["program", str(PANDA), "--plan", str(plan), "--format", "yaml", "--out", str(tmp_path / "p")],
-                 ["solve", str(PANDA), "--m", "16"]):
-        assert main(argv) == 2, argv
-        lines = capsys.readouterr().err.strip().splitlines()
-        assert len(lines) == 1 and "[measurement.artefact]" in lines[0] and "--candidates" in lines[0], (argv, lines)
