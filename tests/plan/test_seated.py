@@ -1,0 +1,103 @@
+"""Configurations planned with the ball seated (plan/seated.py) and where to clamp the tool
+(optimisation/artefact_pool.choose_clamps), on MUKCa's Panda of problems/panda_ball_socket.toml:
+the nominal ball at its socket (Pinocchio's own kinematics against the placement's pose
+composed here with scipy's rotations), the hand within the tilt, the seed's plans the same, the
+hand's orientations uniform over the cone, an unreachable placement named in one line, the
+approach of a robot program, and the choice of the placement by the measure (the best set's plan,
+scored again by the one scorer, and the certified bound below each set's plan)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from casadi_design.errors import ProblemError
+from casadi_design.measures.measures import information_matrices
+from casadi_design.optimisation.artefact_pool import artefact_pool, artefact_scores, choose_clamps
+from casadi_design.optimisation.bound import bound, pool_design
+from casadi_design.plan.seated import APPROACH_M, seated_configurations, tilted
+from casadi_design.problem.build import load_problem
+from casadi_design.problem_file.measurement import PlacementSpec
+from casadi_design.robot.robots import frame_placement
+from tests.conftest import ROOT
+
+PANDA = ROOT / "problems" / "panda_ball_socket.toml"
+#: Seated configurations per point in these tests (the command draws 30).
+PER_POINT = 8
+
+
+@pytest.fixture(scope="module")
+def panda():
+    problem = load_problem(PANDA)
+    return problem, seated_configurations(problem, PER_POINT)
+
+
+def test_every_seated_configuration_puts_the_nominal_ball_in_its_socket(panda):
+    problem, s = panda
+    spec = problem.spec.measurement.artefact
+    assert s.Q.shape == (len(spec.placements) * problem.artefact.K * PER_POINT, problem.robot.n)
+    for q, k, g in zip(s.Q, s.point, s.placement):
+        place = spec.placements[g]
+        R = Rotation.from_euler("xyz", place.rpy_rad).as_matrix()  # roll, pitch, yaw: R = Rz Ry Rx
+        socket = np.array(place.xyz_m) + R @ problem.artefact.points_m[k]
+        M = frame_placement(problem.robot, q)
+        assert np.linalg.norm(M.translation - socket) < 1e-7
+        tilt = np.arccos(np.clip(-M.rotation[:, 2] @ R[:, 2], -1, 1))
+        assert tilt <= spec.tilt_max_rad + 1e-9
+        assert np.all(q >= problem.robot.q_min) and np.all(q <= problem.robot.q_max)
+    # many postures per socket (a 7-joint arm keeps 4 degrees of freedom there), the same from the same seed
+    one = s.Q[(s.point == 0) & (s.placement == 0)]
+    assert np.min(np.std(one, axis=0)) > 0.05
+    assert np.array_equal(seated_configurations(problem, PER_POINT).Q, s.Q)
+
+
+def test_the_hand_s_orientations_are_uniform_over_the_cone():
+    rng = np.random.default_rng(3)
+    axis = np.array([0.2, -0.3, -0.9]) / np.linalg.norm([0.2, -0.3, -0.9])
+    c = np.array([tilted(axis, np.radians(55), rng)[:, 2] @ axis for _ in range(4000)])
+    assert c.min() >= np.cos(np.radians(55)) - 1e-12
+    # uniform in solid angle: cos(tilt) uniform on [cos 55 deg, 1]
+    assert np.mean(c) == pytest.approx((1 + np.cos(np.radians(55))) / 2, abs=0.01)
+    assert np.std(c) == pytest.approx((1 - np.cos(np.radians(55))) / np.sqrt(12), abs=0.01)
+
+
+def test_an_unreachable_placement_is_named_in_one_line():
+    problem = load_problem(PANDA)
+    far = replace(problem.spec.measurement.artefact, placements=(PlacementSpec("far", (3.0, 0.0, 0.0)),))
+    problem = replace(problem, spec=replace(problem.spec, measurement=replace(problem.spec.measurement, artefact=far)))
+    with pytest.raises(ProblemError) as info:
+        seated_configurations(problem, 2)
+    assert "'far'" in str(info.value) and "point 0" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_program_stops_back_along_the_hand_s_axis(panda):
+    from casadi_design.plan.seated import approaches
+
+    problem, s = panda
+    Q = s.Q[:4]
+    for q, qa in zip(Q, approaches(problem, Q)):
+        M, Ma = frame_placement(problem.robot, q), frame_placement(problem.robot, qa)
+        assert np.allclose(Ma.rotation, M.rotation, atol=1e-7)
+        assert np.allclose(Ma.translation, M.translation - APPROACH_M * M.rotation[:, 2], atol=1e-7)
+
+
+def test_the_placement_is_chosen_by_the_measure(panda):
+    problem, s = panda
+    m = 12
+    ch = choose_clamps(problem, s.Q, s.point, s.placement, s.names, "test-pose", m, 1, 1)
+    values = {S: d.scores.max_rms_error_m for S, d in ch.by_set if d is not None}
+    assert len(values) == len(s.names) and values[ch.placements] == min(values.values())
+    d = ch.design
+    assert set(d.seated.placement) == set(ch.placements) and np.array_equal(d.Q, s.Q[ch.rows])
+    # the one scorer: the plan scored alone gives the design's error at every test pose
+    again = artefact_scores(problem, d.Q, d.seated.point, d.seated.placement)
+    assert np.allclose(again.rms_error_m, d.scores.rms_error_m, rtol=1e-9)
+    # no plan of m configurations of a set beats the set's certified bound
+    for S, plan in ch.by_set:
+        rows = np.isin(s.placement, S)
+        pool = artefact_pool(problem, s.Q[rows], s.point[rows], s.placement[rows])
+        A = information_matrices(pool.B[pool.kept])
+        approx = pool_design(problem, "test-pose", s.Q[rows][pool.kept], np.zeros((int(pool.kept.sum()), 0)), A, m,
+                             pool.B0)
+        assert bound(problem, m, approx, pool.B.shape[2]).value <= plan.scores.max_rms_error_m * (1 + 1e-9)
