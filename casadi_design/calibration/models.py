@@ -50,6 +50,11 @@ def row_indices(names: tuple[str, ...] | list[str], allowed: tuple[str, ...], fi
     return tuple(allowed.index(c) for c in names)
 
 
+#: The axes of a joint's placement a tilt compliance may turn about (``k.<joint>.rx``, ``.ry``,
+#: ``.rz``): those across the joint's own axis (rx and ry for a joint about z).
+TILT_AXES = ("rx", "ry", "rz")
+
+
 @dataclass(frozen=True, eq=False)
 class CalibrationModel:
     """The measurement model of a calibration case and its linearisation.
@@ -220,7 +225,9 @@ def calibration_model(
         Scales of the parameters (see :class:`CalibrationModel`); ones by default.
     gravity : the compliant joints deflect under the robot's own weight too:
         ``dq = diag(k) (J(q + dq)^T W - g(q + dq))`` (an elasto-static case without loads then
-        needs no ``force``).
+        needs no ``force``). A compliance ``<joint>.rx`` (``.ry``, ``.rz``) of ``compliant`` tilts
+        the joint's placement about its x (y, z) axis under the moment its bearing carries,
+        ``dPi = kt (J_Pi^T W - dV/dPi)`` (:attr:`SymbolicKinematics.gravity_moments`), rad/(N m).
     """
     if case not in CASES:
         raise ProblemError(f"[calibration].case: '{case}'; allowed: {', '.join(CASES)}")
@@ -247,22 +254,25 @@ def calibration_model(
             raise ProblemError(f"[calibration].parameters: repeated names in {list(geometric)}; list each once")
         geo_idx = [kinematics.parameter_names.index(g) for g in geometric]
         names += list(geometric)
-    comp_idx: list[int] = []
+    comp_idx: list[int] = []  # per compliance of X: the joint (axial) or the geometric error (tilt) it loads
+    tilted: list[bool] = []
     f_rows: tuple[int, ...] = ()
     if case in ("elastostatic", "both"):
         compliant = tuple(robot.joints if compliant is None else compliant)
         for j in compliant:
-            if j not in robot.joints:
+            joint, _, axis = j.partition(".")
+            if joint not in robot.joints or axis not in ("", *TILT_AXES):
                 raise ProblemError(
                     f"[calibration].compliant_joints: unknown joint '{j}'; the chain has: "
-                    + ", ".join(robot.joints)
+                    + ", ".join(robot.joints) + f" (a tilt compliance: <joint>.{'/'.join(TILT_AXES)})"
                 )
+            tilted.append(bool(axis))
+            comp_idx.append(kinematics.parameter_names.index(j) if axis else robot.joints.index(joint))
         if not compliant or len(set(compliant)) != len(compliant):
             raise ProblemError(
                 f"[calibration].compliant_joints: has {list(compliant)}; list distinct joints among "
                 + ", ".join(robot.joints)
             )
-        comp_idx = [robot.joints.index(j) for j in compliant]
         names += [f"k.{j}" for j in compliant]
         f_rows = row_indices(tuple(force), WRENCH_ROWS, "[calibration].wrench_components") \
             if force or not gravity else ()
@@ -282,24 +292,35 @@ def calibration_model(
     Pi = ca.SX.zeros(len(kinematics.parameter_names))
     for i, g in enumerate(geo_idx):
         Pi[g] = X[i]
-    k = ca.SX.zeros(robot.n)
-    for i, j in enumerate(comp_idx):
-        k[j] = X[len(geo_idx) + i]
+    k, kt = ca.SX.zeros(robot.n), ca.SX.zeros(Pi.numel())
+    for i, (j, tilt) in enumerate(zip(comp_idx, tilted)):
+        (kt if tilt else k)[j] = X[len(geo_idx) + i]
     wrench = ca.SX.zeros(6)
     for i, r in enumerate(f_rows):
         wrench[r] = F[i]
     qs, Pis = ca.SX.sym("qs", robot.n), ca.SX.sym("Pis", Pi.numel())
     jacobian = ca.Function("J", [qs, Pis], [twist_jacobian(*kinematics.placement(qs, Pis), qs)])
+    tilts = any(tilted)
+    bending = ca.Function("J_Pi", [qs, Pis], [twist_jacobian(*kinematics.placement(qs, Pis), Pis)]) \
+        if tilts and f_rows else None
 
     def deflected(W: ca.SX, iterations: int) -> tuple[ca.SX, ca.SX, ca.SX]:
-        """Pose (R, p) of robot X deflected by W and the last fixed-point update."""
-        dq, step = ca.SX.zeros(robot.n), ca.SX(0)
+        """Pose (R, p) of robot X deflected by W and the last fixed-point update: the joints by
+        ``dq = k (J^T W - g)``, the tilts by ``dPi = kt (J_Pi^T W - dV/dPi)`` (``g``, ``dV/dPi``
+        with ``gravity`` only)."""
+        dq, dPi, step = ca.SX.zeros(robot.n), ca.SX.zeros(Pi.numel()), ca.SX(0)
         if comp_idx:
             for _ in range(iterations):
                 tau = jacobian(q + dq, Pi).T @ W
                 new = k * (tau - kinematics.gravity_torque(q + dq) if gravity else tau)
-                dq, step = new, ca.mmax(ca.fabs(new - dq))
-        R, p = kinematics.placement(q + dq, Pi)
+                step = ca.mmax(ca.fabs(new - dq))
+                if tilts:
+                    moment = bending(q + dq, Pi).T @ W if bending is not None else ca.SX.zeros(Pi.numel())
+                    bent = kt * (moment - kinematics.gravity_moments(q + dq) if gravity else moment)
+                    step = ca.fmax(step, ca.mmax(ca.fabs(bent - dPi)))
+                    dPi = bent
+                dq = new
+        R, p = kinematics.placement(q + dq, Pi + dPi)
         return R, p, step
 
     def deviation(R: ca.SX, p: ca.SX, rows: tuple[int, ...], points: np.ndarray) -> ca.SX:

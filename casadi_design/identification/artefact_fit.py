@@ -203,6 +203,22 @@ def loaded_joints(problem: Problem, Q: np.ndarray) -> tuple[str, ...]:
     return tuple(j for j, r in zip(problem.robot.joints, rms) if r > 0 and r >= LOADED_SHARE * rms.max())
 
 
+def bent_joints(problem: Problem, Q: np.ndarray) -> tuple[str, ...]:
+    """The tilts ``<joint>.<axis>`` (axes across the joint's own) whose bending moment under the
+    robot's own weight at the configurations ``Q`` is loaded (:data:`LOADED_SHARE` of the most
+    loaded tilt's RMS)."""
+    from ..calibration.models import TILT_AXES
+    from ..robot.symbolic import joint_axis
+
+    kin, robot = problem.model.kinematics, problem.robot
+    names = [f"{j}.{a}" for j, jid in zip(robot.joints, robot.joint_ids) for a, u in zip(TILT_AXES, np.eye(3))
+             if abs(joint_axis(robot.model.joints[jid])[0] @ u) < 0.5]
+    cols = [kin.parameter_names.index(n) for n in names]
+    G = np.stack([np.asarray(kin.gravity_moments(q), dtype=float).ravel()[cols] for q in Q])
+    rms = np.sqrt(np.mean(G**2, axis=0))
+    return tuple(n for n, r in zip(names, rms) if r > 0 and r >= LOADED_SHARE * rms.max())
+
+
 def fit_without_outliers(problem: Problem, fm: FitModel, rec: Recordings,
                          threshold: float = OUTLIER_SIGMA) -> tuple[ArtefactFit, list[tuple[str, float]], list[str]]:
     """Fit, then exclude the rows scoring beyond ``threshold`` (and half the worst one's), the
@@ -413,7 +429,7 @@ class ArtefactCalibration:
 #: nominal robot with its ball (the measured point) located, the joint offsets and the ball, the base set the recordings tell, and with a robot whose
 #: URDF (or ``inertias_urdf``) gives masses the base set with every joint's compliance under the
 #: robot's own weight.
-ARTEFACT_MODELS = ("auto", "ball", "offsets", "identifiable", "identifiable + gravity")
+ARTEFACT_MODELS = ("auto", "ball", "offsets", "identifiable", "identifiable + gravity", "identifiable + gravity + tilt")
 
 
 def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | None = None,
@@ -439,6 +455,9 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     if loaded:  # + the compliances of the joints the robot's own weight loads, those the rows tell
         told = artefact_base_set(problem, rec, names + tuple(f"k.{j}" for j in loaded), True)[0]
         wanted.append(("identifiable + gravity", told, True))
+        # + the tilts of the joints' bearings under the moments they carry
+        bent = artefact_base_set(problem, rec, told + tuple(f"k.{j}" for j in bent_joints(problem, rec.Q)), True)[0]
+        wanted.append(("identifiable + gravity + tilt", bent, True))
     found, signs = [], []
     for name, chosen, gravity in wanted:
         same = [c for n, c, _ in wanted if n != name and (n, name) in (("ball", "offsets"), ("identifiable", "offsets"))]

@@ -55,6 +55,11 @@ class SymbolicKinematics:
         weight at ``Pi = 0``, ``g = dV/dq`` with ``V = -sum_b m_b g0 . c_b(q)`` over the bodies the
         chain moves (the URDF's inertias; the other joints at their neutral values) and ``g0``
         the model's gravity: Pinocchio's ``computeGeneralizedGravity`` for the chain's joints.
+    gravity_moments : casadi.Function
+        ``q -> G``: ``dV/dPi`` at ``Pi = 0`` (len(Pi)): the load the robot's own weight puts on
+        each geometric error, e.g. at ``<joint>.rx`` and ``.ry`` the moment (N m) the joint's
+        bearing carries about the x and y axes of its placement (the virtual work of a small
+        tilt there), at ``<joint>.offset`` the joint's torque ``g``.
     """
 
     robot: Robot
@@ -66,6 +71,7 @@ class SymbolicKinematics:
     frame_origins: ca.Function
     frame_names: tuple[str, ...]
     gravity_torque: ca.Function
+    gravity_moments: ca.Function
 
 
 def rotation_about(axis: np.ndarray, angle: ca.SX) -> ca.SX:
@@ -161,6 +167,8 @@ def symbolic_kinematics(robot: Robot) -> SymbolicKinematics:
         frame_names=tuple(carried_names) + (robot.frame,),
         gravity_torque=ca.Function("gravity_torque", [q], [ca.substitute(ca.gradient(V, q), Pi, zero)],
                                    ["q"], ["g"]),
+        gravity_moments=ca.Function("gravity_moments", [q], [ca.substitute(ca.gradient(V, Pi), Pi, zero)],
+                                    ["q"], ["G"]),
     )
 
 

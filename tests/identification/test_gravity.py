@@ -1,5 +1,6 @@
-"""Joint compliance under the robot's own weight: the symbolic gravity torques against
-Pinocchio's, and a UR10 that sags under its weight (simulated with Pinocchio) identified by the
+"""Joint compliance under the robot's own weight: the symbolic gravity torques and the moments
+each joint's bearing carries against Pinocchio's, a tilt compliance bending the joint's placement
+by them, and a UR10 that sags under its weight (simulated with Pinocchio) identified by the
 gravity candidate of identify, its compliances within 3 standard deviations."""
 
 import math
@@ -35,6 +36,50 @@ def test_gravity_torques_are_pinocchios(path):
         expected = pin.computeGeneralizedGravity(robot.model, data, robot.full_q(q))[cols]
         assert np.abs(expected).max() > 1.0  # N m: the arm has weight
         np.testing.assert_allclose(np.asarray(g_fn(q)).ravel(), expected, atol=1e-9)
+
+
+@pytest.mark.parametrize("path", [UR10, ROOT / "problems" / "panda_ball_socket.toml"])
+def test_the_moments_on_each_joint_are_pinocchios(path):
+    """``dV/dPi`` at a joint's placement errors (rx, ry, rz, offset) is the moment its bearing
+    carries: Pinocchio's recursive Newton-Euler force across the joint, in the joint's placement
+    frame (its own rotation undone)."""
+    problem = load_without_cell(str(path))
+    robot, kin = problem.robot, problem.model.kinematics
+    data = robot.model.createData()
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        q = rng.uniform(np.maximum(robot.q_min, -math.pi), np.minimum(robot.q_max, math.pi))
+        G = np.asarray(kin.gravity_moments(q)).ravel()
+        pin.rnea(robot.model, data, robot.full_q(q), np.zeros(robot.model.nv), np.zeros(robot.model.nv))
+        for k, (joint, jid) in enumerate(zip(robot.joints, robot.joint_ids)):
+            axis = np.asarray(robot.model.joints[jid].extract().axis if "Unaligned" in
+                              robot.model.joints[jid].shortname() else np.eye(3)["XYZ".index(
+                                  robot.model.joints[jid].shortname()[-1])])
+            moment = pin.exp3(axis * q[k]) @ data.f[jid].angular
+            i = kin.parameter_names.index(f"{joint}.rx")
+            np.testing.assert_allclose(G[i:i + 3], moment, atol=1e-9)
+            assert G[kin.parameter_names.index(f"{joint}.offset")] == pytest.approx(moment @ axis, abs=1e-9)
+
+
+def test_a_tilt_compliance_bends_the_joint_s_placement_by_its_moment():
+    """X = k on ``k.<joint>.rx`` puts the measured frame where the kinematics put it with the
+    joint's placement turned by ``-k dV/drx`` (no joint deflects, so the fixed point is exact)."""
+    from casadi_design.calibration.models import calibration_model
+
+    problem = load_without_cell(str(ROOT / "problems" / "panda_ball_socket.toml"))
+    kin = problem.model.kinematics
+    model = calibration_model(kin, "elastostatic", measured=("x", "y", "z"), compliant=("panda_joint3.rx",),
+                              gravity=True)
+    assert model.parameter_names == ("k.panda_joint3.rx",)
+    q, k = np.array([0.3, 0.5, -0.2, -2.0, 0.4, 1.8, 0.7]), 2e-5
+    i = kin.parameter_names.index("panda_joint3.rx")
+    Pi = np.zeros(len(kin.parameter_names))
+    Pi[i] = -k * float(np.asarray(kin.gravity_moments(q)).ravel()[i])
+    assert abs(Pi[i]) > 1e-5  # rad: a real bend
+    R, p = (np.asarray(v) for v in kin.placement(q, Pi))
+    pose = np.asarray(model.pose(q, np.zeros(0), np.array([k]))).ravel()
+    np.testing.assert_allclose(pose[9:12], p.ravel(), atol=1e-12)
+    np.testing.assert_allclose(pose[:9].reshape(3, 3).T, R, atol=1e-12)
 
 
 @pytest.fixture(scope="module")
