@@ -189,8 +189,9 @@ def artefact_designs(args: argparse.Namespace, problem: Problem) -> tuple:
         where = (f"{len(pool.Q)} configurations seated by the nominal robot at {', '.join(names)}, "
                  f"recorded at the best {common.count(clamps, 'placement')}")
     criteria = tuple(args.criteria or problem.criteria)
+    seated = not getattr(args, "candidates", None)
     choices = {(c, m): choose_clamps(problem, pool.Q, pool.point, pool.placement, names, c, m,
-                                     args.starts or problem.solver.starts_for(c), clamps)
+                                     args.starts or problem.solver.starts_for(c), clamps, seated)
                for m in args.m or sorted(problem.m_values) for c in criteria}
     return pool, names, sources, where, choices
 

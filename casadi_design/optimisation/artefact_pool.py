@@ -31,9 +31,10 @@ from .pool import choose_design, kept_postures
 class ArtefactPool:
     """A pool of recordings as the engine sees it: the configurations ``Q`` (k, n), rad, their
     artefact's ``point`` and ``placement`` (k,), the names of X (``names``, the base set the pool
-    tells), the rows ``B`` (k, 3, L + P nP), the test poses' ``B0`` (s, 3, L + P nP) and which
+    tells), the rows ``B`` (k, 3, L + P nP), the test poses' ``B0`` (s, 3, L + P nP), which
     configurations a plan may use (``kept`` (k,): those that keep the problem's rules,
-    :func:`~.pool.kept_postures`)."""
+    :func:`~.pool.kept_postures`) and the placements' nominal poses ``R`` (P, 3, 3), ``t``
+    (P, 3), m, in the order of their numbers."""
 
     Q: np.ndarray
     point: np.ndarray
@@ -42,6 +43,8 @@ class ArtefactPool:
     B: np.ndarray
     B0: np.ndarray
     kept: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
 
 
 def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray) -> ArtefactPool:
@@ -61,13 +64,13 @@ def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     B = model.B_stack(Q, F)
     p = np.stack([np.asarray(model.points(q), dtype=float).reshape(3) for q in Q])
     at = np.searchsorted(np.unique(placement), placement)
-    R, _ = A.placed(p, point, at)
+    R, t = A.placed(p, point, at)
     kept, _ = identifiable(B, p, placement_columns(A, R, point, at), RANK_RTOL)
     rows = artefact_rows(A, B[:, :, kept], R, point, at)
     B0 = registered(problem.B0[:, :, kept], problem.test_poses.position_m)
     B0 = np.concatenate([B0, np.zeros((len(B0), 3, rows.shape[2] - B0.shape[2]))], axis=2)
     names = tuple(n for n, k in zip(model.parameter_names, kept) if k)
-    return ArtefactPool(Q, point, placement, names, rows, B0, kept_postures(problem, Q, F)[0])
+    return ArtefactPool(Q, point, placement, names, rows, B0, kept_postures(problem, Q, F)[0], R, t)
 
 
 def check_designable(problem: Problem) -> None:
@@ -116,13 +119,16 @@ class ClampChoice:
 
 
 def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement: np.ndarray, names: tuple[str, ...],
-                  criterion: str, m: int, starts: int, clamps: int) -> ClampChoice:
+                  criterion: str, m: int, starts: int, clamps: int, seated: bool = False) -> ClampChoice:
     """The m configurations ``Q`` (k, n), rad, seated at ``point`` of ``placement`` (k,; indices
     into the placements' ``names``) best by ``criterion``, recorded at ``clamps`` of the
     placements: for every set of ``clamps`` placements, the pool of its configurations
     (:func:`artefact_pool`) and its best plan (:func:`choose_recordings`); the best set's plan,
     its :attr:`~casadi_design.plan.design.Design.seated` set. The measure judges the sets as it
-    judges plans: each placement recorded is a pose more to absorb.
+    judges plans: each placement recorded is a pose more to absorb. ``seated``: the configurations
+    are seated by the nominal robot at the problem file's placements
+    (:mod:`casadi_design.plan.seated`), and each set's test-pose plan is then moved along them by
+    IPOPT (:func:`~.seated_nlp.seated_nlp`) before the sets are compared.
 
     Raises
     ------
@@ -145,6 +151,10 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
             continue
         rows = idx[chosen_rows(pool, d)]
         d = replace(d, seated=Seating(point[rows], placement[rows], names))
+        if seated and criterion == "test-pose":
+            from .seated_nlp import seated_nlp
+
+            d = seated_nlp(problem, d)
         by_set.append((tuple(S), d))
         if best is None or better(d.scores.value(criterion), best[0].scores.value(criterion)):
             best = (d, rows, tuple(S))

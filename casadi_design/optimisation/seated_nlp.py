@@ -1,0 +1,120 @@
+"""The NLP of a plan of configurations seated at an artefact's points: the exchange's plan moved
+along the seated configurations by IPOPT.
+
+Each experiment i keeps its socket ``c_i = t_g + R_g a_k`` (point k of placement g of the problem
+file, :func:`~casadi_design.plan.seated.socket_positions`) and moves its joints ``q_i``
+(rad) within the joint limits, its nominal ball held in the socket and its hand within the tilt:
+
+    minimise  (mean_j rho_j^r)^(1/r),   rho_j = tr(B0_j M(Q)^-1 B0_j^T)   (j = 1..s),
+    subject to  p(q_i) = c_i,   z(q_i) . (-R_g e_z) >= cos(tilt_max),
+
+with ``M(Q) = sum_i [B_i(q_i), -G_i]^T [B_i(q_i), -G_i]`` the information of X (the base set the
+exchange's pool tells) and every placement's pose, ``B0`` the test poses' registered rows
+(:func:`~casadi_design.calibration.artefact.artefact_rows`,
+:func:`~casadi_design.calibration.artefact.registered`): the test-pose measure of the pool engine,
+here a CasADi graph of the plan (its values equal the engine's, a test checks them to 1e-7), so
+IPOPT gets its exact gradient; a limited-memory Hessian. The r-mean is the test-pose criterion's
+smooth surrogate, the max as r grows (:data:`SEATED_NLP_POWERS`). The plan is kept where IPOPT
+converges to a plan that keeps every rule and scores better by the max itself
+(:func:`~.artefact_pool.artefact_scores`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import casadi as ca
+import numpy as np
+
+from ..calibration.artefact import placement_columns
+from ..plan.design import Design, StartRecord
+from ..plan.seated import socket_positions
+from ..plan.rules import plan_violations
+from ..problem.build import Problem
+from .artefact_pool import artefact_pool, artefact_scores
+from .ipopt import QUIET, ipopt_call
+
+#: The powers of the smooth surrogate IPOPT minimises in turn, each from the last's plan: the
+#: p-mean of rho (the exchange's surrogate, :data:`~.pool.POOL_POWER`, then a sharper one). The
+#: epigraph of the max with a limited-memory Hessian stalls on these equality rows (the Panda of
+#: problems/panda_ball_socket.toml, m = 16: 200 iterations, worse than its start; the exact
+#: Hessian takes 45 s); the 8- then 32-mean converge in about 1 s each (0.0721 -> 0.0526 mm).
+SEATED_NLP_POWERS = (8.0, 32.0)
+SEATED_NLP_ITERATIONS = 500
+SEATED_NLP_OPTIONS = {"ipopt.hessian_approximation": "limited-memory"}
+#: How far (m) a refined plan's nominal ball may be from its socket, and its hand past the tilt
+#: (in the cosine: IPOPT holds a row to its tolerance, 1e-8).
+SEATED_TOL_M = 1e-7
+TILT_TOL = 1e-6
+SEATED_NLP = "NLP along the seated configurations, from the exchange's plan"
+
+
+def seated_graph(problem: Problem, design: Design) -> tuple[ca.Function, ca.Function, np.ndarray, np.ndarray]:
+    """The CasADi functions of the plan ``Q`` (n x m, rad) of ``design`` (its seating fixed):
+    ``rho(Q)`` (s,), ``tr(B0_j M^-1 B0_j^T)``, and ``seat(Q)`` (4m,): each experiment's ball
+    minus its socket (m) then the cosine of its tilt; with the sockets (m, 3) and the pool's
+    parameters' columns in the problem's model."""
+    model, A = problem.model, problem.artefact
+    s = design.seated
+    pool = artefact_pool(problem, design.Q, s.point, s.placement)
+    kept = [model.parameter_names.index(n) for n in pool.names]
+    at = np.searchsorted(np.unique(s.placement), s.placement)
+    G = -placement_columns(A, pool.R, s.point, at)  # (m, 3, P nP), constant
+    # the sockets and their axes where the problem file clamps the tool (the plan's placements by name)
+    Rs, cs = socket_positions(problem)
+    names = [p.name for p in problem.spec.measurement.artefact.placements]
+    g = np.array([names.index(s.names[j]) for j in s.placement])
+    sockets, into = cs[g, s.point], -Rs[g][:, :, 2]  # the artefact's -z: into the socket
+    m, n = design.Q.shape
+    Q = ca.MX.sym("Q", n, m)
+    F0 = ca.DM.zeros(model.nF)
+    rows, seat, tilt = [], [], []
+    for i in range(m):
+        B = model.B(Q[:, i], F0)[:, kept]
+        rows.append(ca.horzcat(B, ca.DM(G[i])))
+        R, p = model.kinematics.placement(Q[:, i], ca.DM.zeros(len(model.kinematics.parameter_names)))
+        seat.append(p - ca.DM(sockets[i]))
+        tilt.append(ca.dot(R[:, 2], ca.DM(into[i])))
+    J = ca.vertcat(*rows)
+    B0 = pool.B0.reshape(-1, pool.B0.shape[2])  # (3s, L'), the registered test poses' rows
+    X = ca.solve(J.T @ J, ca.DM(B0.T))
+    rho = ca.reshape(ca.sum1(ca.DM(B0.T) * X), 3, -1)  # each row's B0_r M^-1 B0_r^T, three a pose
+    return (ca.Function("rho", [Q], [ca.sum1(rho).T]), ca.Function("seat", [Q], [ca.vertcat(*seat, *tilt)]),
+            sockets, np.array(kept))
+
+
+def seated_nlp(problem: Problem, design: Design) -> Design:
+    """IPOPT on the NLP of the module docstring from ``design``'s plan (the test-pose criterion),
+    on the p-mean of rho for each power of :data:`SEATED_NLP_POWERS` in turn; the design with the
+    best refined plan that is seated, keeps every rule and scores better by the max, and with the
+    NLP's records among its starts either way."""
+    m, n = design.Q.shape
+    rho, seat, _, _ = seated_graph(problem, design)
+    x = ca.MX.sym("x", n * m)
+    r, seated = rho(ca.reshape(x, n, m)), seat(ca.reshape(x, n, m))
+    cos_max = float(np.cos(problem.spec.measurement.artefact.tilt_max_rad))
+    lower, upper = problem.rules.limits.bounds()
+    bounds = {"lbx": np.tile(lower, m), "ubx": np.tile(upper, m),
+              "lbg": np.concatenate([np.zeros(3 * m), np.full(m, cos_max)]),
+              "ubg": np.concatenate([np.zeros(3 * m), np.full(m, np.inf)])}
+    best, Q0 = design, design.Q
+    for power in SEATED_NLP_POWERS:
+        f = ca.log(ca.sum1(r**power) / r.numel()) / power
+        solver = ca.nlpsol("seated", "ipopt", {"x": x, "f": f, "g": seated},
+                           {**QUIET, **SEATED_NLP_OPTIONS, "ipopt.max_iter": SEATED_NLP_ITERATIONS,
+                            "ipopt.tol": problem.solver.tol})
+        with ipopt_call():
+            sol = solver(x0=Q0.ravel(), **bounds)
+        Q = np.clip(np.asarray(sol["x"], dtype=float).ravel().reshape(m, n), lower, upper)
+        values = np.asarray(seat(Q.T), dtype=float).ravel()
+        feasible = (float(np.max(np.abs(values[:3 * m]))) <= SEATED_TOL_M and bool(np.all(values[3 * m:] >= cos_max - TILT_TOL))
+                    and not plan_violations(problem, Q, design.F))
+        scores = artefact_scores(problem, Q, design.seated.point, design.seated.placement)
+        stats = solver.stats()
+        rec = StartRecord(str(stats["return_status"]), int(stats.get("iter_count", 0)), scores.value(design.criterion),
+                          scores.max_rms_error_m, feasible and scores.identifiable, f"{SEATED_NLP} ({power:g}-mean)")
+        if rec.converged and scores.value(design.criterion) < best.scores.value(design.criterion):
+            best = replace(best, Q=Q, scores=scores, status=rec.status)
+        best = replace(best, starts=best.starts + (rec,))
+        Q0 = Q if rec.feasible else Q0
+    return best
