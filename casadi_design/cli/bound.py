@@ -64,7 +64,9 @@ def run_artefact(args: argparse.Namespace, spec) -> int:
     at most once, with those placements' poses beside X
     (:func:`~casadi_design.optimisation.artefact_pool.artefact_pool`). Each bounds every choice
     of m of its configurations; the least test-pose bound and the largest log det bound over the
-    sets bound every plan ``solve`` can choose."""
+    sets bound every choice of m of these configurations (the exchange's plans of ``solve``; the
+    NLP that then moves a plan along the seated configurations,
+    :mod:`~casadi_design.optimisation.seated_nlp`, leaves them and is not bound by them)."""
     from itertools import combinations
 
     import numpy as np
@@ -88,7 +90,8 @@ def run_artefact(args: argparse.Namespace, spec) -> int:
         per_set.append({c: [bound(problem, m, pool_design(problem, c, seated.Q[idx], F, A, m, pool.B0), pool.B.shape[2])
                             for m in ms] for c in ("test-pose", "D")})
     print(f"{problem.name}: {len(seated.Q)} configurations seated by the nominal robot at {', '.join(seated.names)}, "
-          f"each at most once, recorded at {common.count(clamps, 'placement')}: the bounds over every set")
+          f"each at most once, recorded at {common.count(clamps, 'placement')}: the bounds of any m of them over every "
+          "set (the NLP that moves solve's plan along the seated configurations is not bound by them)")
     print(format_bounds([min((b["test-pose"][i] for b in per_set), key=lambda b: b.value) for i in range(len(ms))],
                         [max((b["D"][i] for b in per_set), key=lambda b: b.value) for i in range(len(ms))]))
     return 0
