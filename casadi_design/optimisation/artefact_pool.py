@@ -127,8 +127,8 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     its :attr:`~casadi_design.plan.design.Design.seated` set. The measure judges the sets as it
     judges plans: each placement recorded is a pose more to absorb. ``seated``: the configurations
     are seated by the nominal robot at the problem file's placements
-    (:mod:`casadi_design.plan.seated`), and each set's test-pose plan is then moved along them by
-    IPOPT (:func:`~.seated_nlp.seated_nlp`) before the sets are compared.
+    (:mod:`casadi_design.plan.seated`), and each set's plan is then moved along them by IPOPT
+    (:func:`~.seated_nlp.seated_nlp`: test-pose and D) before the sets are compared.
 
     Raises
     ------
@@ -151,7 +151,7 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
             continue
         rows = idx[chosen_rows(pool, d)]
         d = replace(d, seated=Seating(point[rows], placement[rows], names))
-        if seated and criterion == "test-pose":
+        if seated:
             from .seated_nlp import seated_nlp
 
             d = seated_nlp(problem, d)

@@ -5,7 +5,8 @@ Each experiment i keeps its socket ``c_i = t_g + R_g a_k`` (point k of placement
 file, :func:`~casadi_design.plan.seated.socket_positions`) and moves its joints ``q_i``
 (rad) within the joint limits, its nominal ball held in the socket and its hand within the tilt:
 
-    minimise  (mean_j rho_j^r)^(1/r),   rho_j = tr(B0_j M(Q)^-1 B0_j^T)   (j = 1..s),
+    minimise  (mean_j rho_j^r)^(1/r),   rho_j = tr(B0_j M(Q)^-1 B0_j^T)   (j = 1..s)
+              (test-pose; D: -log det M(Q))
     subject to  p(q_i) = c_i,   z(q_i) . (-R_g e_z) >= cos(tilt_max),
 
 with ``M(Q) = sum_i [B_i(q_i), -G_i]^T [B_i(q_i), -G_i]`` the information of X (the base set the
@@ -27,6 +28,7 @@ import casadi as ca
 import numpy as np
 
 from ..calibration.artefact import placement_columns
+from ..measures.criteria import CRITERIA
 from ..plan.design import Design, StartRecord
 from ..plan.seated import socket_positions
 from ..plan.rules import plan_violations
@@ -40,6 +42,8 @@ from .ipopt import QUIET, ipopt_call
 #: problems/panda_ball_socket.toml, m = 16: 200 iterations, worse than its start; the exact
 #: Hessian takes 45 s); the 8- then 32-mean converge in about 1 s each (0.0721 -> 0.0526 mm).
 SEATED_NLP_POWERS = (8.0, 32.0)
+#: The criteria the NLP is built for: test-pose (the surrogates above) and D (``-log det M``).
+SEATED_CRITERIA = ("test-pose", "D")
 SEATED_NLP_ITERATIONS = 500
 SEATED_NLP_OPTIONS = {"ipopt.hessian_approximation": "limited-memory"}
 #: How far (m) a refined plan's nominal ball may be from its socket, and its hand past the tilt
@@ -49,11 +53,12 @@ TILT_TOL = 1e-6
 SEATED_NLP = "NLP along the seated configurations, from the exchange's plan"
 
 
-def seated_graph(problem: Problem, design: Design) -> tuple[ca.Function, ca.Function, np.ndarray, np.ndarray]:
+def seated_graph(problem: Problem, design: Design) -> tuple[ca.Function, ca.Function, ca.Function, np.ndarray,
+                                                             np.ndarray]:
     """The CasADi functions of the plan ``Q`` (n x m, rad) of ``design`` (its seating fixed):
-    ``rho(Q)`` (s,), ``tr(B0_j M^-1 B0_j^T)``, and ``seat(Q)`` (4m,): each experiment's ball
-    minus its socket (m) then the cosine of its tilt; with the sockets (m, 3) and the pool's
-    parameters' columns in the problem's model."""
+    ``rho(Q)`` (s,), ``tr(B0_j M^-1 B0_j^T)``; ``log_det(Q)``, ``log det M`` (D's score); and
+    ``seat(Q)`` (4m,): each experiment's ball minus its socket (m) then the cosine of its tilt;
+    with the sockets (m, 3) and the pool's parameters' columns in the problem's model."""
     model, A = problem.model, problem.artefact
     s = design.seated
     pool = artefact_pool(problem, design.Q, s.point, s.placement)
@@ -77,29 +82,34 @@ def seated_graph(problem: Problem, design: Design) -> tuple[ca.Function, ca.Func
         tilt.append(ca.dot(R[:, 2], ca.DM(into[i])))
     J = ca.vertcat(*rows)
     B0 = pool.B0.reshape(-1, pool.B0.shape[2])  # (3s, L'), the registered test poses' rows
-    X = ca.solve(J.T @ J, ca.DM(B0.T))
+    M = J.T @ J
+    X = ca.solve(M, ca.DM(B0.T))
     rho = ca.reshape(ca.sum1(ca.DM(B0.T) * X), 3, -1)  # each row's B0_r M^-1 B0_r^T, three a pose
-    return (ca.Function("rho", [Q], [ca.sum1(rho).T]), ca.Function("seat", [Q], [ca.vertcat(*seat, *tilt)]),
-            sockets, np.array(kept))
+    return (ca.Function("rho", [Q], [ca.sum1(rho).T]), ca.Function("log_det", [Q], [ca.log(ca.det(M))]),
+            ca.Function("seat", [Q], [ca.vertcat(*seat, *tilt)]), sockets, np.array(kept))
 
 
 def seated_nlp(problem: Problem, design: Design) -> Design:
-    """IPOPT on the NLP of the module docstring from ``design``'s plan (the test-pose criterion),
-    on the p-mean of rho for each power of :data:`SEATED_NLP_POWERS` in turn; the design with the
-    best refined plan that is seated, keeps every rule and scores better by the max, and with the
-    NLP's records among its starts either way."""
+    """IPOPT on the NLP of the module docstring from ``design``'s plan: for the test-pose
+    criterion on the p-mean of rho for each power of :data:`SEATED_NLP_POWERS` in turn, for D
+    on ``-log det M``; the design with the best refined plan that is seated, keeps every rule and
+    scores better by the criterion itself, and with the NLP's records among its starts either
+    way. Other criteria: ``design`` as it is."""
+    if design.criterion not in SEATED_CRITERIA:
+        return design
     m, n = design.Q.shape
-    rho, seat, _, _ = seated_graph(problem, design)
+    rho, log_det, seat, _, kept = seated_graph(problem, design)
     x = ca.MX.sym("x", n * m)
     r, seated = rho(ca.reshape(x, n, m)), seat(ca.reshape(x, n, m))
+    stages = ([(f"{p:g}-mean", ca.log(ca.sum1(r**p) / r.numel()) / p) for p in SEATED_NLP_POWERS]
+              if design.criterion == "test-pose" else [("log det M", -log_det(ca.reshape(x, n, m)) / len(kept))])  # per parameter of X: IPOPT diverges on the unscaled sum
     cos_max = float(np.cos(problem.spec.measurement.artefact.tilt_max_rad))
     lower, upper = problem.rules.limits.bounds()
     bounds = {"lbx": np.tile(lower, m), "ubx": np.tile(upper, m),
               "lbg": np.concatenate([np.zeros(3 * m), np.full(m, cos_max)]),
               "ubg": np.concatenate([np.zeros(3 * m), np.full(m, np.inf)])}
-    best, Q0 = design, design.Q
-    for power in SEATED_NLP_POWERS:
-        f = ca.log(ca.sum1(r**power) / r.numel()) / power
+    best, Q0, better = design, design.Q, CRITERIA[design.criterion].better
+    for stage, f in stages:
         solver = ca.nlpsol("seated", "ipopt", {"x": x, "f": f, "g": seated},
                            {**QUIET, **SEATED_NLP_OPTIONS, "ipopt.max_iter": SEATED_NLP_ITERATIONS,
                             "ipopt.tol": problem.solver.tol})
@@ -112,8 +122,8 @@ def seated_nlp(problem: Problem, design: Design) -> Design:
         scores = artefact_scores(problem, Q, design.seated.point, design.seated.placement)
         stats = solver.stats()
         rec = StartRecord(str(stats["return_status"]), int(stats.get("iter_count", 0)), scores.value(design.criterion),
-                          scores.max_rms_error_m, feasible and scores.identifiable, f"{SEATED_NLP} ({power:g}-mean)")
-        if rec.converged and scores.value(design.criterion) < best.scores.value(design.criterion):
+                          scores.max_rms_error_m, feasible and scores.identifiable, f"{SEATED_NLP} ({stage})")
+        if rec.converged and better(scores.value(design.criterion), best.scores.value(design.criterion)):
             best = replace(best, Q=Q, scores=scores, status=rec.status)
         best = replace(best, starts=best.starts + (rec,))
         Q0 = Q if rec.feasible else Q0

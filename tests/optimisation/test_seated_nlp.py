@@ -26,10 +26,11 @@ def exchanged():
 
 def test_the_graph_is_the_engine_s_measure(exchanged):
     problem, d = exchanged
-    rho, seat, sockets, _ = seated_graph(problem, d)
+    rho, log_det, seat, sockets, _ = seated_graph(problem, d)
     r = np.asarray(rho(d.Q.T), dtype=float).ravel()
     np.testing.assert_allclose(problem.sigma_m * np.sqrt(r), d.scores.rms_error_m, rtol=1e-7)
     assert np.max(np.abs(np.asarray(seat(d.Q.T), dtype=float).ravel()[:3 * d.m])) < 1e-7
+    assert float(log_det(d.Q.T)) == pytest.approx(d.scores.value("D"), abs=1e-6)
 
 
 def test_the_nlp_keeps_the_balls_seated_and_lowers_the_max_error(exchanged):
