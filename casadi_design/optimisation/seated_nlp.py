@@ -3,7 +3,8 @@ along the seated configurations by IPOPT.
 
 Each experiment i keeps its socket ``c_i = t_g + R_g a_k`` (point k of placement g of the problem
 file, :func:`~casadi_design.plan.seated.socket_positions`) and moves its joints ``q_i``
-(rad) within the joint limits, its nominal ball held in the socket and its hand within the tilt:
+(rad) within the joint limits and within :data:`SEATED_NLP_BOX` of the exchange's plan, its
+nominal ball held in the socket and its hand within the tilt:
 
     minimise  (mean_j rho_j^r)^(1/r),   rho_j = tr(B0_j M(Q)^-1 B0_j^T)   (j = 1..s)
               (test-pose; D: -log det M(Q))
@@ -44,6 +45,11 @@ from .ipopt import QUIET, ipopt_call
 SEATED_NLP_POWERS = (8.0, 32.0)
 #: The criteria the NLP is built for: test-pose (the surrogates above) and D (``-log det M``).
 SEATED_CRITERIA = ("test-pose", "D")
+#: Each joint moves at most this far (rad) from the exchange's plan: without the box, D's NLP
+#: left for near-singular plans and ended there (problems/panda_ball_socket.toml, m = 24, at
+#: front_center: log det M 16.0 -> -32 after 500 iterations; within 1 rad: 25.6 in 133); the
+#: test-pose plans lose 1 to 2 % to it (m = 16: 0.0526 -> 0.0535 mm).
+SEATED_NLP_BOX = 1.0
 SEATED_NLP_ITERATIONS = 500
 SEATED_NLP_OPTIONS = {"ipopt.hessian_approximation": "limited-memory"}
 #: How far (m) a refined plan's nominal ball may be from its socket, and its hand past the tilt
@@ -105,7 +111,8 @@ def seated_nlp(problem: Problem, design: Design) -> Design:
               if design.criterion == "test-pose" else [("log det M", -log_det(ca.reshape(x, n, m)) / len(kept))])  # per parameter of X: IPOPT diverges on the unscaled sum
     cos_max = float(np.cos(problem.spec.measurement.artefact.tilt_max_rad))
     lower, upper = problem.rules.limits.bounds()
-    bounds = {"lbx": np.tile(lower, m), "ubx": np.tile(upper, m),
+    x0 = design.Q.ravel()
+    bounds = {"lbx": np.maximum(np.tile(lower, m), x0 - SEATED_NLP_BOX), "ubx": np.minimum(np.tile(upper, m), x0 + SEATED_NLP_BOX),
               "lbg": np.concatenate([np.zeros(3 * m), np.full(m, cos_max)]),
               "ubg": np.concatenate([np.zeros(3 * m), np.full(m, np.inf)])}
     best, Q0, better = design, design.Q, CRITERIA[design.criterion].better
