@@ -40,6 +40,10 @@ SEATED_IK_STEPS = 30
 #: How far back along the hand's z axis from the seated configuration a robot program stops
 #: (m): the ball clear of the socket's rim, the operator seats it by hand.
 APPROACH_M = 0.02
+#: Starts about a seated configuration (normal, this spread in rad) its approach is sought from
+#: when a joint's limit stops the inverse kinematics from the configuration itself.
+APPROACH_TRIES = 20
+APPROACH_SPREAD_RAD = 0.3
 #: The seed's stream of the seated configurations (beside the designs' starts').
 SEATED_STREAM = 67
 
@@ -120,8 +124,9 @@ def seated_configurations(problem: Problem, per_point: int = SEATED_PER_POINT) -
 def approaches(problem: Problem, Q: np.ndarray) -> np.ndarray:
     """The configurations (m, n), rad, that hold the hand of each seated configuration ``Q``
     (m, n) in its orientation with the measured point :data:`APPROACH_M` back along the hand's z
-    axis (out of the socket), by inverse kinematics from it: where a robot program stops before
-    the operator seats the ball.
+    axis (out of the socket), by inverse kinematics from it, then, where a joint's limit stops it
+    (a plan at its limits), from :data:`APPROACH_TRIES` starts about it (seeded): where a robot
+    program stops before the operator seats the ball.
 
     Raises
     ------
@@ -129,11 +134,17 @@ def approaches(problem: Problem, Q: np.ndarray) -> np.ndarray:
         A configuration whose approach the robot cannot reach within its limits.
     """
     robot, out = problem.robot, []
+    rng = np.random.default_rng([problem.solver.seed, SEATED_STREAM, 1])
     for i, q in enumerate(np.asarray(Q, dtype=float)):
         M = frame_placement(robot, q)
         target = pin.SE3(M.rotation, M.translation - APPROACH_M * M.rotation[:, 2])
-        qa, err = solve_ik(robot, target, q)
-        if not err <= IK_ACCEPT:
+        starts = [q] + [np.clip(q + rng.normal(0.0, APPROACH_SPREAD_RAD, q.size), robot.q_min, robot.q_max)
+                        for _ in range(APPROACH_TRIES)]
+        for q0 in starts:
+            qa, err = solve_ik(robot, target, q0)
+            if err <= IK_ACCEPT:
+                break
+        else:
             raise ProblemError(f"experiment {i + 1}: the hand cannot be held {APPROACH_M * 1e3:g} mm back from its "
                                "socket within the joint limits; leave the experiment out or seat it by hand from "
                                "another configuration")
