@@ -41,14 +41,14 @@ from .ipopt import QUIET, ipopt_call
 #: p-mean of rho (the exchange's surrogate, :data:`~.pool.POOL_POWER`, then a sharper one). The
 #: epigraph of the max with a limited-memory Hessian stalls on these equality rows (the Panda of
 #: problems/panda_ball_socket.toml, m = 16: 200 iterations, worse than its start; the exact
-#: Hessian takes 45 s); the 8- then 32-mean converge in about 1 s each (0.0721 -> 0.0526 mm).
+#: Hessian takes 45 s); the 8- then 32-mean converge in about 1 s each (0.0919 -> 0.0548 mm).
 SEATED_NLP_POWERS = (8.0, 32.0)
 #: The criteria the NLP is built for: test-pose (the surrogates above) and D (``-log det M``).
 SEATED_CRITERIA = ("test-pose", "D")
 #: Each joint moves at most this far (rad) from the exchange's plan: without the box, D's NLP
-#: left for near-singular plans and ended there (problems/panda_ball_socket.toml, m = 24, at
-#: front_center: log det M 16.0 -> -32 after 500 iterations; within 1 rad: 25.6 in 133); the
-#: test-pose plans lose 1 to 2 % to it (m = 16: 0.0526 -> 0.0535 mm).
+#: left for near-singular plans and ended there (problems/panda_ball_socket.toml without its
+#: joint margin, m = 24, at front_center: log det M 16.0 -> -32 after 500 iterations; within
+#: 1 rad: 25.6 in 133); the test-pose plans lost 1 to 2 % to it there (m = 16: 0.0526 -> 0.0535 mm).
 SEATED_NLP_BOX = 1.0
 SEATED_NLP_ITERATIONS = 500
 SEATED_NLP_OPTIONS = {"ipopt.hessian_approximation": "limited-memory"}
