@@ -41,6 +41,7 @@ import dataclasses
 import itertools
 import json
 import math
+import pickle
 from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
@@ -166,11 +167,13 @@ def decimated(V: np.ndarray, T: np.ndarray, cell_m: float) -> tuple[np.ndarray, 
     return W[used], S.reshape(-1, 3)
 
 
-@memoised(4)
+@memoised(4, key=lambda urdf, model: (urdf, pickle.dumps(model)))
 def visual_geometry(urdf: str, model: pin.Model) -> tuple[pin.GeometryModel, tuple[tuple[np.ndarray, np.ndarray] | None, ...]]:
     """The visual geometry of ``urdf`` on ``model`` (the robot loaded from it) and each object's
     triangles in its frame, the meshes decimated together under ``MESH_TRIANGLES``
-    (:func:`decimated`). Read once per process (about 1 s for the UR10's 116 000 triangles)."""
+    (:func:`decimated`). Read once per process (about 1 s for the UR10's 116 000 triangles) for
+    a URDF and its robot: the problems of one URDF built apart (a command's and identify's,
+    without the cell) have equal models, kept by their serialization (20 kB, a millisecond)."""
     from ..cell.cell import _package_dirs  # the folders the collision meshes are found in
 
     try:

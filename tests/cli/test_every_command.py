@@ -3,11 +3,11 @@ stderr; a bug raises out of main(), and the command as a process of its own (``p
 casadi_design``, where a bug's traceback would reach stderr) runs clean.
 
 Tiny settings (identify: the solved plan measured on the nominal robot; program: its first
-three experiments): the D criterion, one start, IPOPT with a limited-memory Hessian, the smallest m,
-one exchange step of the approximate design on 12 candidates in the bound command (none in
-solve and sweep); the sweep runs a range that does not start at the smallest m. The bound
-command is a test of its own (on the 6-axis cells it is the longest command: the ABB's runs
-with the slow tests).
+experiments; validate: two trials): the D criterion, one start, IPOPT with a limited-memory
+Hessian, the smallest m, one exchange step of the approximate design on 12 candidates in the
+bound command (none in solve and sweep); the sweep runs a range that does not start at the
+smallest m. The bound command is a test of its own (on the 6-axis cells it is the longest
+command: the ABB's runs with the slow tests).
 """
 
 import json
@@ -44,6 +44,9 @@ QUICK = "hessian_approximation=limited-memory"
 POOL = 12
 BOUND = ["--bound-steps", "1", "--bound-pool", str(POOL), "--jobs", "1"]
 NO_BOUND = ["--bound-steps", "0"]
+#: Virtual calibrations of validate (each a nonlinear identification: half a second for the ABB; the
+#: statistics of a few trials are tested in tests/virtual/test_validate.py).
+TRIALS = 2
 #: Experiments of the solved plan the robot program visits (a program's cost grows with its
 #: moves: 9 experiments of the UR10 take 8 s in the virtual machine, 3 take 5 s, 2 take 2.5 s).
 PROGRAM_EXPERIMENTS = 2
@@ -63,7 +66,7 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert main(["evaluate", str(path), "--plan", str(plan), "--moves", "--quiet"]) == 0
     assert main(["evaluate", str(path), "--plan", str(plan), "--compare", str(solved),
                  "--out", str(tmp_path / "evaluate"), "--quiet"]) == 0
-    assert main(["validate", str(path), "--results", str(solved / "results.json"), "--trials", "4",
+    assert main(["validate", str(path), "--results", str(solved / "results.json"), "--trials", str(TRIALS),
                  "--out", str(tmp_path / "validate")]) == 0
     assert main(["plot", str(swept), "--out", str(tmp_path / "figures"), "--format", "png"]) == 0
     if problem.artefact is not None:  # recordings: the plan CSV itself (its rows seated by the nominal robot)
@@ -114,7 +117,7 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     for folder in (solved, tmp_path / "figures", tmp_path / "program", tmp_path / "identify",
                    *([second] if problem.artefact is None else [])):
         assert (folder / "viewer.html").stat().st_size > 0  # tests/reports/test_viewer.py opens them
-    assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == 4
+    assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == TRIALS
     identified = json.loads((tmp_path / "identify" / "identification.json").read_text())
     assert (tmp_path / "identify" / "calibrated.urdf").stat().st_size > 0
     # the nominal robot's own plan: nothing left to fit (an artefact's recordings: the seating the NLP holds to;

@@ -2,8 +2,8 @@
 
 The data the page shows are read back from the page (its embedded JSON) and compared with the
 plan CSV and the cell check computed apart. The pages are opened in headless Chromium (Debian's
-package ``chromium``; without it these tests are skipped and say so), one browser per page
-driven over the DevTools protocol on a pipe: screenshots of pose 1, pose 2 and pose 1 without
+package ``chromium``; without it these tests are skipped and say so), one browser per test
+module (each page loaded anew in its tab) driven over the DevTools protocol on a pipe: screenshots of pose 1, pose 2 and pose 1 without
 the robot (the robot's pixels are where the two pose-1 images differ), and the page's own check
 (``viewer.check()``: every pose of every plan drawn, the robot's vertices finite and moving
 from one pose to the next, a route's every frame placed), with no JavaScript error on the
@@ -79,9 +79,10 @@ class Browser:
     """Headless Chromium on one page, driven over the DevTools protocol on a pipe
     (``--remote-debugging-pipe``: commands on its fd 3, answers on its fd 4, each a JSON
     message ended by a NUL byte). JavaScript errors (exceptions, ``console.error``) are
-    collected in ``errors``; :meth:`close` leaves no process running."""
+    collected in ``errors``; :meth:`open` shows another page in the same tab (the errors
+    collected anew); :meth:`close` leaves no process running."""
 
-    def __init__(self, page: Path, fragment: str = ""):
+    def __init__(self, page: Path | None = None, fragment: str = ""):
         self.profile = tempfile.mkdtemp(prefix="chromium-")
         pipes = [os.pipe(), os.pipe()]  # commands, answers: both ends moved above fd 9
         (cmd_r, self.cmd_w), (self.ans_r, ans_w) = [[fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 10) for fd in pipe]
@@ -93,7 +94,8 @@ class Browser:
                    (os.POSIX_SPAWN_DUP2, self.log.fileno(), 2), (os.POSIX_SPAWN_OPEN, 1, os.devnull, os.O_WRONLY, 0)]
         self.pid = os.posix_spawn(CHROMIUM, [CHROMIUM, *FLAGS, f"--user-data-dir={self.profile}",
                                              f"--window-size={VIEWPORT[0]},{VIEWPORT[1]}",
-                                             f"{page.as_uri()}#{fragment}"], dict(os.environ),
+                                             f"{page.as_uri()}#{fragment}" if page else "about:blank"],
+                                  dict(os.environ),
                                   file_actions=actions, setsid=True)
         os.close(cmd_r)
         os.close(ans_w)
@@ -109,17 +111,40 @@ class Browser:
             self.call("Runtime.enable")
             self.call("Emulation.setDeviceMetricsOverride", width=VIEWPORT[0], height=VIEWPORT[1], deviceScaleFactor=1,
                       mobile=False)
-            while not self.ready():  # the page loads (from about:blank), then draws its first pose
-                assert time.monotonic() < deadline, f"{page}: not drawn in {TIMEOUT_S} s"
-                time.sleep(0.05)
+            if page is not None:
+                self._drawn(page)
         except BaseException:
             self.close()
             raise
 
+    def open(self, page: Path) -> None:
+        """Show ``page`` in place of the page shown, once it has drawn (the page before is
+        marked: a page counts as drawn only without the mark); the errors are collected anew.
+        The page, self-contained (nothing loaded from elsewhere), is shown from a copy at one
+        address in a folder of this browser, loaded anew for each page: Chromium starts once,
+        and V8 compiles the plotly.js every page embeds once, not once per page (2 s a page)."""
+        shown = Path(self.profile) / "pages" / "viewer.html"
+        again = shown.exists()
+        shown.parent.mkdir(exist_ok=True)
+        shutil.copyfile(page, shown)
+        self.evaluate("window.replacedBy = 1")
+        self.errors = []
+        if again:
+            self.call("Page.reload")
+        else:
+            self.call("Page.navigate", url=shown.as_uri())
+        self._drawn(page)
+
+    def _drawn(self, page: Path) -> None:
+        deadline = time.monotonic() + TIMEOUT_S
+        while not self.ready():  # the page loads (from about:blank), then draws its first pose
+            assert time.monotonic() < deadline, f"{page}: not drawn in {TIMEOUT_S} s"
+            time.sleep(0.05)
+
     def ready(self) -> bool:
         """Whether the page has drawn (its status says so); False while it is still loading."""
         result = self.call("Runtime.evaluate", returnByValue=True, expression=(
-            "!!(document.readyState === 'complete' && document.getElementById('status') && "
+            "!!(!window.replacedBy && document.readyState === 'complete' && document.getElementById('status') && "
             "document.getElementById('status').dataset.ready)"), check=False)
         return bool(result and result.get("result", {}).get("value"))
 
@@ -186,22 +211,29 @@ def differ(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.any(np.abs(a - b) > PIXEL_TOL, axis=2)
 
 
-def check_in_browser(page: Path, tmp_path: Path, screenshots: bool) -> dict:
+@pytest.fixture(scope="module")
+def chromium():
+    """One headless Chromium for the pages of this module's tests (:meth:`Browser.open`)."""
+    browser = Browser()
+    try:
+        yield browser
+    finally:
+        browser.close()
+
+
+def check_in_browser(chromium: Browser, page: Path, tmp_path: Path, screenshots: bool) -> dict:
     """Open the page in Chromium: its check of every pose (and route frame), and with
     ``screenshots`` the robot drawn (screenshots of pose 1 with and without the robot) and pose
     2 unlike pose 1 on screen; no JavaScript error. Returns the page's report."""
-    chromium = Browser(page)
-    try:
-        report = chromium.evaluate("viewer.check()")
-        if screenshots:  # the first plan of two experiments or more
-            view = 1 + next(k for k, v in enumerate(report["views"]) if v["poses"] > 1)
-            shots = {}
-            for name, pose, hide in (("pose1", 1, []), ("pose2", 2, []), ("bare", 1, ["robot", "tool"])):
-                chromium.evaluate(f"viewer.show({view}, {pose}, {json.dumps(hide)})")
-                shots[name] = pixels(chromium.screenshot(tmp_path / f"{page.parent.name}_{name}.png"))
-        errors = chromium.errors + chromium.evaluate("window.viewerErrors")
-    finally:
-        chromium.close()
+    chromium.open(page)
+    report = chromium.evaluate("viewer.check()")
+    if screenshots:  # the first plan of two experiments or more
+        view = 1 + next(k for k, v in enumerate(report["views"]) if v["poses"] > 1)
+        shots = {}
+        for name, pose, hide in (("pose1", 1, []), ("pose2", 2, []), ("bare", 1, ["robot", "tool"])):
+            chromium.evaluate(f"viewer.show({view}, {pose}, {json.dumps(hide)})")
+            shots[name] = pixels(chromium.screenshot(tmp_path / f"{page.parent.name}_{name}.png"))
+    errors = chromium.errors + chromium.evaluate("window.viewerErrors")
     assert errors == [], errors
     for view in report["views"]:
         assert view["shown"] == view["poses"] and view["finite"] and view["drawn"], view
@@ -308,8 +340,8 @@ def test_the_ur10_viewer_shows_the_plan_csv_and_the_cell_check(ur10_viewer):
 
 
 @browser
-def test_the_ur10_viewer_draws_the_robot_and_every_pose_in_a_browser(ur10_viewer, tmp_path):
-    check_in_browser(ur10_viewer[1] / VIEWER_NAME, tmp_path, screenshots=True)
+def test_the_ur10_viewer_draws_the_robot_and_every_pose_in_a_browser(ur10_viewer, chromium, tmp_path):
+    check_in_browser(chromium, ur10_viewer[1] / VIEWER_NAME, tmp_path, screenshots=True)
 
 
 def test_the_paper_viewer_of_solve_shows_its_plan_csvs(paper_solve_out, paper):
@@ -321,8 +353,8 @@ def test_the_paper_viewer_of_solve_shows_its_plan_csvs(paper_solve_out, paper):
 
 
 @browser
-def test_the_paper_viewer_draws_the_robot_and_every_pose_in_a_browser(paper_solve_out, tmp_path):
-    check_in_browser(paper_solve_out / VIEWER_NAME, tmp_path, screenshots=True)
+def test_the_paper_viewer_draws_the_robot_and_every_pose_in_a_browser(paper_solve_out, chromium, tmp_path):
+    check_in_browser(chromium, paper_solve_out / VIEWER_NAME, tmp_path, screenshots=True)
 
 
 def test_plot_writes_the_viewer_of_a_solve_folder(paper_solve_out, tmp_path, capsys):
@@ -361,7 +393,7 @@ def _dh_arm():
 @pytest.mark.parametrize("make, source", [(lambda: load_problem(ABB), "capsules of the cell"),
                                           (_panda, "URDF visual meshes"), (_dh_arm, "sticks")],
                          ids=["abb", "panda", "dh_arm"])
-def test_the_viewers_of_other_robots_show_every_pose_in_a_browser(make, source, tmp_path):
+def test_the_viewers_of_other_robots_show_every_pose_in_a_browser(make, source, chromium, tmp_path):
     problem = make()
     designs = random_designs(problem, ("D",), problem.m_min, seed=1)
     write_plans(tmp_path, problem, designs)
@@ -369,10 +401,10 @@ def test_the_viewers_of_other_robots_show_every_pose_in_a_browser(make, source, 
     data = read_viewer_data(tmp_path / VIEWER_NAME)
     assert data["geometry"]["robot_source"] == source
     check_against_plans(tmp_path / VIEWER_NAME, tmp_path / "plans", problem)
-    check_in_browser(tmp_path / VIEWER_NAME, tmp_path, screenshots=False)
+    check_in_browser(chromium, tmp_path / VIEWER_NAME, tmp_path, screenshots=False)
 
 
-def test_program_and_identify_write_their_viewers(paper_solve_out, paper, tmp_path):
+def test_program_and_identify_write_their_viewers(paper_solve_out, paper, tmp_path, request):
     """``program``'s viewer: the experiments in the program's order, numbered as in the plan,
     and its route through every point of the program; ``identify``'s: the measured points and
     the calibrated model's, residual arrows ``model + scale (measured - model)`` with the scale
@@ -403,12 +435,13 @@ def test_program_and_identify_write_their_viewers(paper_solve_out, paper, tmp_pa
     assert 0.05 <= r["scale"] * np.max(np.linalg.norm(meas - model, axis=2)) <= 0.15  # drawn 5 to 15 cm long
     if CHROMIUM is not None:
         for folder in ("program", "identify"):
-            check_in_browser(tmp_path / folder / VIEWER_NAME, tmp_path, screenshots=False)
+            check_in_browser(request.getfixturevalue("chromium"), tmp_path / folder / VIEWER_NAME, tmp_path,
+                             screenshots=False)
 
 
 @pytest.mark.slow
 @browser
-def test_the_ur10_study_viewer_opens_in_a_browser(tmp_path):
+def test_the_ur10_study_viewer_opens_in_a_browser(chromium, tmp_path):
     """The whole UR10 study (5 criteria, m = 9 and 12: 105 poses), solved with one start and
     no bound, under 20 MB, every pose drawn."""
     assert main(["solve", str(UR10), "--starts", "1", "--bound-steps", "0", "--out", str(tmp_path / "ur10"),
@@ -416,5 +449,5 @@ def test_the_ur10_study_viewer_opens_in_a_browser(tmp_path):
     page = tmp_path / "ur10" / VIEWER_NAME
     assert page.stat().st_size < 20e6
     check_against_plans(page, tmp_path / "ur10" / "plans", load_problem(UR10))
-    report = check_in_browser(page, tmp_path, screenshots=True)
+    report = check_in_browser(chromium, page, tmp_path, screenshots=True)
     assert sum(v["poses"] for v in report["views"]) == 5 * (9 + 12)
