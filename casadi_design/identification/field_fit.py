@@ -34,6 +34,7 @@ import math
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotri
@@ -149,12 +150,15 @@ def _inverse(V: np.ndarray) -> tuple[np.ndarray, float]:
     ------
     numpy.linalg.LinAlgError
         V not positive definite."""
-    C, info = dpotrf(V, lower=1)
+    C, info = dpotrf(V, lower=1)  # the upper triangle zero (clean)
     if info:
         raise np.linalg.LinAlgError("the field's covariance is not positive definite")
-    Vi = np.tril(dpotri(C, lower=1)[0])
-    Vi += np.tril(Vi, -1).T
-    return Vi, 2 * float(np.sum(np.log(np.diag(C))))
+    logdet = 2 * float(np.sum(np.log(np.diag(C))))
+    Vi = dpotri(C, lower=1, overwrite_c=1)[0]  # the lower triangle; the upper still zero
+    own = Vi.diagonal().copy()
+    Vi = Vi + Vi.T  # both triangles (a copy of the lower in the upper: no tril copies)
+    np.fill_diagonal(Vi, own)
+    return Vi, logdet
 
 
 def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Sites,
@@ -170,7 +174,10 @@ def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Si
     s2, ell, nug2 = np.exp(2 * theta[:n]), np.exp(theta[n:2 * n]), np.exp(2 * theta[-1])
     D = (squared_differences(S.Q) if D0 is None else D0) / ell**2  # (m, m, n)
     K = s2 * np.exp(-0.5 * D)  # k_c(q_i, q_k)
-    Vi, logdet = _inverse(loaded(S.G, K, S.G).reshape(N, N) + np.kron(nug2 * np.eye(m), S.A) + sigma**2 * np.eye(N))
+    V = loaded(S.G, K, S.G).reshape(N, N)  # a new array: the nugget and the noise added in place
+    V.reshape(m, d, m, d)[np.arange(m), :, np.arange(m), :] += nug2 * S.A
+    V.flat[::N + 1] += sigma**2
+    Vi, logdet = _inverse(V)
     if L:
         Sx = J.reshape(N, L)
         VS = Vi @ Sx
@@ -187,8 +194,9 @@ def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Si
     P = np.stack([np.einsum("iv,ivkw,kw->ik", S.G[:, :, c], P4, S.G[:, :, c], optimize=True) for c in range(n)])
     quad = np.einsum("ic,ikc,kc->c", a, K, a)
     trace = np.einsum("ikc,cik->c", K, P)
-    quad_l = np.einsum("ic,ikc,kc->c", a, K * D, a)
-    trace_l = np.einsum("ikc,cik->c", K * D, P)
+    KD = K * D
+    quad_l = np.einsum("ic,ikc,kc->c", a, KD, a)
+    trace_l = np.einsum("ikc,cik->c", KD, P)
     Pd = P4[np.arange(m), :, np.arange(m), :]  # (m, d, d)
     Ar = alpha.reshape(m, d)
     nug = 2 * nug2 * (np.einsum("iv,vw,iw->", Ar, S.A, Ar) - np.einsum("ivw,wv->", Pd, S.A))
@@ -306,6 +314,7 @@ class TrainedField:
     Wh: np.ndarray
     sigma: float
     model: object
+    _loo: dict = dataclass_field(default_factory=dict, init=False, repr=False)  # loo_rms's, once each
 
     @property
     def field(self) -> Field:
@@ -366,12 +375,20 @@ class TrainedField:
         others by least squares and, ``with_field``, the field's kriging. For the
         predictor with projector ``Pi = V^-1 - V^-1 S (S^T V^-1 S)^-1 S^T V^-1`` the row left out
         is off by ``Pi_ii^-1 (Pi r)_i`` (Dubrule, Cross validation of kriging in a unique
-        neighborhood, 1983); ``V = I`` gives least squares' PRESS residuals."""
+        neighborhood, 1983); ``V = I`` gives least squares' PRESS residuals. Each is computed
+        once (the notes and identification.json read both)."""
+        if with_field not in self._loo:
+            self._loo[with_field] = self._loo_rms(with_field)
+        return self._loo[with_field]
+
+    def _loo_rms(self, with_field: bool) -> float:
         m, d, L = self.B.shape
         S = self.B.reshape(m * d, L)
-        V = value_covariance(self.field, self.sites, self.sigma) if with_field else np.eye(m * d)
-        Vi = np.linalg.inv(V)
-        ViS = Vi @ S
+        if with_field:
+            Vi = np.linalg.inv(value_covariance(self.field, self.sites, self.sigma))
+            ViS = Vi @ S
+        else:  # V = I: V^-1 S is S (a copy: numpy would take S^T S for syrk's, which rounds otherwise)
+            Vi, ViS = np.eye(m * d), S.copy()
         Pi = Vi - ViS @ np.linalg.solve(S.T @ ViS, ViS.T)
         a = (Pi @ self.r.reshape(-1)).reshape(m, d)
         blocks = Pi.reshape(m, d, m, d)[np.arange(m), :, np.arange(m), :]  # (m, d, d)
