@@ -480,10 +480,9 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
                        model)
     chosen, warnings = choose(found, model)
     fm = chosen.fit_model
-    try:  # the chosen model on the rows without the outliers
-        f = fit(problem, fm, meas, T0, rows, loss) if rows is not None else None
-    except (ProblemError, DesignError):
-        f = None
+    # the chosen model on the rows without the outliers: the candidate's fit (to those rows; None
+    # when it failed)
+    f = chosen.fitted if rows is not None else None
     if f is None:
         f, outliers, refused = fit_without_outliers(problem, fm, meas, T0, threshold, loss)
     notes += refused + warnings
@@ -539,7 +538,8 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     if validation is not None:
         base = found[0]
         registered = None if math.isnan(base.training_rms_m) else (
-            f if base is chosen else fit(problem, base.fit_model, meas, T0, f.used, loss))
+            f if base is chosen else base.fitted if np.array_equal(base.fitted.used, f.used)
+            else fit(problem, base.fit_model, meas, T0, f.used, loss))
         valid = validate_rows(problem, f, validation, M0, registered, meas, s_m, compensating)
         if valid.rms("nominal_reregistered") > REGISTRATION_TOL_M:  # the rows of another robot, or units
             raise ProblemError(

@@ -37,7 +37,7 @@ that predict as well the smaller one holds further from the training poses.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -61,7 +61,8 @@ TIE_RTOL = 1e-3
 class Candidate:
     """One candidate model: its fit model, the RMS of its fit to all training rows (m) and
     its cross-validated error (m; NaN when it could not be cross-validated, ``why``); a
-    candidate ``auto`` may not choose says why in ``refused`` (:func:`negative_compliances`)."""
+    candidate ``auto`` may not choose says why in ``refused`` (:func:`negative_compliances`);
+    ``fitted`` its :class:`~.fit.Fit` (None when it failed): the chosen one is not fitted again."""
 
     name: str
     fit_model: FitModel
@@ -71,6 +72,7 @@ class Candidate:
     why: str = ""
     dof: float = math.nan
     refused: str = ""
+    fitted: Fit | None = field(default=None, repr=False)
 
     @property
     def L(self) -> int:
@@ -165,7 +167,7 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
         refused = (f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in negative)}): "
                    "no joint yields against its weight" if negative else "")
         return Candidate(name, fm, float(np.sqrt(np.mean(row_errors(problem, f, meas, rows) ** 2))),
-                         cv, se, why, dof, refused), f
+                         cv, se, why, dof, refused, f), f
 
     offsets = candidate_parameters(problem, "offsets")
     found = [candidate("registration", candidate_parameters(problem, "registration"))[0]]
