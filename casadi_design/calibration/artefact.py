@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from .identifiability import pivoted_columns
+
 #: Points closer than this (m) to the line through the first two are on that line; a turn is
 #: told when its points leave the line by more.
 COLLINEAR_M = 1e-6
@@ -173,18 +175,17 @@ def identifiable(J: np.ndarray, p: np.ndarray, G: np.ndarray, rtol: float) -> tu
     columns ``G`` (N, 3, P nP, :func:`placement_columns`) tell, with every placement and the
     robot's base unknown: the placements' columns and a rigid motion of the whole robot
     (:func:`rigid_columns`) projected out, the columns of unit norm, QR with column pivoting
-    (``|R_ii| > rtol |R_00|``). Returns (kept, live): kept the base set (bool, L), live the
-    columns with any effect left (bool, L)."""
-    import scipy.linalg
-
+    (``|R_ii| > rtol |R_00|``; ties to the parameter listed first,
+    :func:`~.identifiability.pivoted_columns`, so that the set does not depend on the BLAS).
+    Returns (kept, live): kept the base set (bool, L), live the columns with any effect left
+    (bool, L)."""
     Jp = projected_out(J, np.concatenate([rigid_columns(p), G], axis=2)).reshape(-1, J.shape[2])
     scale = np.linalg.norm(J.reshape(-1, J.shape[2]), axis=0)
     norms = np.linalg.norm(Jp, axis=0)
     live = norms > rtol * np.maximum(scale, np.finfo(float).tiny)
     kept = np.zeros(J.shape[2], dtype=bool)
     if live.any():
-        _, R, piv = scipy.linalg.qr(Jp[:, live] / norms[live], mode="economic", pivoting=True)
-        d = np.abs(np.diag(R))
+        piv, d = pivoted_columns(Jp[:, live] / norms[live])
         kept[np.flatnonzero(live)[piv[:int(np.sum(d > rtol * d[0]))]]] = True
     return kept, live
 
