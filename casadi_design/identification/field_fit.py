@@ -113,12 +113,12 @@ def restricted_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, Q
     rc = r @ U  # (m, d): the rotated values, column c of weight a_c
     Jc = np.einsum("mdl,dc->cml", J, U)  # (d, m, L)
     Kt = K + nugget**2 * np.eye(m)
-    Vi, logdet = [], 0.0
-    for ac in a:
-        Vc, logdet_c = _inverse(ac * Kt + sigma**2 * np.eye(m))
-        Vi.append(Vc)
+    Vi, logdet, blocks = np.empty((len(a), m, m)), 0.0, {}
+    for c, ac in enumerate(a):
+        if ac not in blocks:  # blocks of equal weight (an isotropic tracker: all d) inverted once
+            blocks[ac] = _inverse(ac * Kt + sigma**2 * np.eye(m))
+        Vi[c], logdet_c = blocks[ac]
         logdet += logdet_c
-    Vi = np.array(Vi)  # (d, m, m)
     L = J.shape[2]
     Vr = np.einsum("cij,jc->ci", Vi, rc)  # V^-1 r per block
     if L:
@@ -182,7 +182,8 @@ def joints_log_likelihood(theta: np.ndarray, r: np.ndarray, J: np.ndarray, S: Si
         Sx = J.reshape(N, L)
         VS = Vi @ Sx
         Gm = Sx.T @ VS
-        Pi = Vi - VS @ np.linalg.solve(Gm, VS.T)
+        Pi = Vi  # V^-1 no longer needed: Pi in its place
+        Pi -= VS @ np.linalg.solve(Gm, VS.T)
         logdet_G = np.linalg.slogdet(Gm)[1]
     else:
         Pi, logdet_G = Vi, 0.0
