@@ -36,7 +36,7 @@ from ..errors import DesignError, ProblemError
 from ..problem.build import Problem
 from ..robot.mapped import evaluate
 from ..measures.field import Field, covariance, value_covariance
-from .choice import NEGATIVE_STD, Candidate, choose, has_weight, negative_compliances
+from .choice import NEGATIVE_STD, Candidate, choose, cv_error, has_weight, negative_compliances
 from .field_fit import FieldFit, estimate_field
 from .fit import FitModel, fit_model
 from .lsq import LSQ_TOL, measurement_jacobian, nominal_poses, remembered
@@ -238,17 +238,15 @@ def fit_without_outliers(problem: Problem, fm: FitModel, rec: Recordings,
     return f, outliers, [f"{rec.sources[stopped.row]} kept: the fit without it failed ({stopped.error})"]
 
 
-def cross_validate(f: ArtefactFit) -> tuple[float, float, str]:
-    """The leave-one-configuration-out RMS point error (m) of the fit and its standard error
-    (:mod:`.choice`), the left-out configuration's placement refitted by the rest; NaN and why
-    when a row is needed to identify the model."""
+def cross_validate(f: ArtefactFit) -> tuple[np.ndarray | None, str]:
+    """Each configuration's leave-one-out point error (m) of the fit (:mod:`.choice`), the
+    left-out configuration's placement refitted by the rest; None and why when a row is needed
+    to identify the model."""
     used = np.flatnonzero(f.used)
     e, _, needed = press(f.r[used], leverages(f.J[used], f.information))
     if e is None:
-        return math.nan, math.nan, f"configuration {needed + 1} is needed to identify it"
-    e = np.linalg.norm(e, axis=1)
-    cv = float(np.sqrt(np.mean(e**2)))
-    return cv, float(np.std(e**2) / (2 * cv * math.sqrt(len(e)))) if cv > 0 else 0.0, ""
+        return None, f"configuration {needed + 1} is needed to identify it"
+    return np.linalg.norm(e, axis=1), ""
 
 
 def scale_of(f: ArtefactFit, sigma: float) -> ErrorScale:
@@ -475,11 +473,13 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
         except DesignError as e:
             found.append(Candidate(name, fm, math.nan, math.nan, why=str(e)))
             continue
-        cv, se, why = cross_validate(f)
+        e, why = cross_validate(f)
+        cv, se = cv_error(e) if e is not None else (math.nan, math.nan)
         if gravity:
             signs = negative_compliances(f, np.sqrt(np.sum(f.r**2) / max(f.dof, 1)) *
                                          np.sqrt(np.diagonal(np.linalg.inv(f.information))))
-        found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why))
+        found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why,
+                               cv_errors_m=e))
     chosen, notes = choose(found, "auto")
     if problem.spec.calibration.prior is not None:
         notes.append(f"{problem.path}: [calibration.prior] is not used with an artefact's recordings: the fits are "

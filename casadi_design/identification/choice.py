@@ -31,7 +31,11 @@ standard error ``se = std(e_i^2) / (2 cv sqrt(N))`` (delta method).
 ``auto`` takes the fewest (effective) parameters whose error is within one
 standard error of the smallest (the one-standard-error rule of Hastie, Tibshirani and Friedman,
 The Elements of Statistical Learning, 7.10): the best error is itself noisy, and of models
-that predict as well the smaller one holds further from the training poses.
+that predict as well the smaller one holds further from the training poses. The robot's weight
+is a load known beforehand, not one more term of a ladder: the chosen geometry with the
+compliances under it (``... + gravity``, not refused) is taken when it is better by more than
+one standard error of the difference on the same rows, ``std(e_i^2 / (2 cv) - b_i^2 / (2 cv_b))
+/ sqrt(N)`` (paired: what the rows share, a row hard for both, is not noise of the comparison).
 """
 
 from __future__ import annotations
@@ -60,9 +64,10 @@ TIE_RTOL = 1e-3
 @dataclass(frozen=True, eq=False)
 class Candidate:
     """One candidate model: its fit model, the RMS of its fit to all training rows (m) and
-    its cross-validated error (m; NaN when it could not be cross-validated, ``why``); a
-    candidate ``auto`` may not choose says why in ``refused`` (:func:`negative_compliances`);
-    ``fitted`` its :class:`~.fit.Fit` (None when it failed): the chosen one is not fitted again."""
+    its cross-validated error (m; NaN when it could not be cross-validated, ``why``), each
+    row's (``cv_errors_m``, m); a candidate ``auto`` may not choose says why in ``refused``
+    (:func:`negative_compliances`); ``fitted`` its :class:`~.fit.Fit` (None when it failed):
+    the chosen one is not fitted again."""
 
     name: str
     fit_model: FitModel
@@ -73,10 +78,16 @@ class Candidate:
     dof: float = math.nan
     refused: str = ""
     fitted: Fit | None = field(default=None, repr=False)
+    cv_errors_m: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def L(self) -> int:
         return self.fit_model.model.L
+
+    @property
+    def gravity(self) -> bool:
+        """Whether the joints deflect under the robot's own weight in this model."""
+        return self.fit_model is not None and bool(self.fit_model.model.gravity)
 
     @property
     def size(self) -> float:
@@ -113,19 +124,31 @@ def has_weight(problem: Problem) -> bool:
     return bool(np.any(robot.model.gravity.linear)) and any(carried_weights(robot))
 
 
-def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[float, float, str]:
-    """The leave-one-out RMS error (m) of the fit ``f`` over its rows of ``meas`` and its
-    standard error (module docstring), or NaN and why not."""
+def cv_error(e: np.ndarray, best: np.ndarray | None = None) -> tuple[float, float]:
+    """The cross-validated RMS error (m) of the rows' errors ``e`` (N, m) and its standard error
+    (delta method), of ``e`` alone or, beside the ``best`` candidate's errors on the same rows,
+    of the paired differences (module docstring)."""
+    cv = float(np.sqrt(np.mean(e**2)))
+    if cv == 0:
+        return cv, 0.0
+    g = e**2 / (2 * cv)  # cv's linearisation in the rows' squared errors
+    if best is not None:
+        b = float(np.sqrt(np.mean(best**2)))
+        g = g - (best**2 / (2 * b) if b > 0 else 0.0)
+    return cv, float(np.std(g) / math.sqrt(len(e)))
+
+
+def cross_validate(problem: Problem, f: Fit, meas: Measurements) -> tuple[np.ndarray | None, str]:
+    """Each row's leave-one-out RMS point error (m) of the fit ``f`` over its rows of ``meas``
+    (module docstring), or None and why not."""
     used = np.flatnonzero(f.used)
     # with a MAP fit's prior in H: the PRESS of ridge regression
     e, _, needed = press(f.r[used], leverages(f.J[used], f.information))
     if e is None:
-        return math.nan, math.nan, f"row {meas.lines[used[needed]]} is needed to identify it"
+        return None, f"row {meas.lines[used[needed]]} is needed to identify it"
     left_out = e @ np.linalg.inv(problem.whitening).T
     points = f.mask[used].sum(axis=1) / len(measured_axes(problem))
-    e = np.sqrt(np.sum(left_out**2, axis=1) / points)
-    cv = float(np.sqrt(np.mean(e**2)))
-    return cv, float(np.std(e**2) / (2 * cv * math.sqrt(len(e)))) if cv > 0 else 0.0, ""
+    return np.sqrt(np.sum(left_out**2, axis=1) / points), ""
 
 
 def residual_std(problem: Problem, f: Fit) -> np.ndarray:
@@ -160,14 +183,15 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
             f = fit(problem, fm, meas, T0, every, loss)
         except (ProblemError, DesignError) as e:
             return Candidate(name, fm, math.nan, math.nan, math.nan, str(e)), None
-        cv, se, why = cross_validate(problem, f, meas)
+        e, why = cross_validate(problem, f, meas)
+        cv, se = cv_error(e) if e is not None else (math.nan, math.nan)
         dof = math.nan if f.prior_information is None else float(np.trace(
             np.linalg.solve(f.information, f.information - np.diag(f.prior_information))))
         negative = negative_compliances(f, residual_std(problem, f)) if gravity else []
         refused = (f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in negative)}): "
                    "no joint yields against its weight" if negative else "")
         return Candidate(name, fm, float(np.sqrt(np.mean(row_errors(problem, f, meas, rows) ** 2))),
-                         cv, se, why, dof, refused, f), f
+                         cv, se, why, dof, refused, f, e), f
 
     offsets = candidate_parameters(problem, "offsets")
     found = [candidate("registration", candidate_parameters(problem, "registration"))[0]]
@@ -206,6 +230,20 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
     return kept
 
 
+def _paired_se(c: Candidate, other: Candidate) -> float:
+    """The standard error of ``c``'s cross-validated error beside ``other``'s (m): of the paired
+    differences when both were judged on the same rows, else ``other``'s own."""
+    e, b = c.cv_errors_m, other.cv_errors_m
+    return cv_error(e, b)[1] if e is not None and b is not None and e.shape == b.shape else other.cv_se_m
+
+
+def _geometry(c: Candidate) -> frozenset[str] | None:
+    """The candidate's parameters but its compliances (None without a fit model)."""
+    if c.fit_model is None:
+        return None
+    return frozenset(n for n in c.fit_model.model.parameter_names if not n.startswith("k."))
+
+
 def _own(found: list[Candidate]) -> Candidate:
     """The candidate of the problem's own parameters (the last of the nested ones)."""
     return [c for c in found if c.name != "prior" and not c.fit_model.model.gravity][-1]
@@ -228,6 +266,9 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
         valid = [c for c in valid if not c.refused] or valid[:1]
         best = min(valid, key=lambda c: c.cv_rms_m)
         chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.size)
+        weighed = [c for c in valid if c.gravity and not chosen.gravity and _geometry(c) is not None
+                   and _geometry(c) == _geometry(chosen) and c.cv_rms_m < chosen.cv_rms_m - _paired_se(c, chosen)]
+        chosen = weighed[0] if weighed else chosen
     else:
         chosen = next((c for c in found if c.name == model), None)
         if chosen is None:  # the same parameters as a smaller candidate
