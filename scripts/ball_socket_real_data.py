@@ -6,9 +6,9 @@ other placement held out; the figures docs/ball-socket.md gives.
 For each robot (the problem file of its kind in examples/, the placement trained on: panda_2's
 ``front_center`` and panda_4's ``front`` as the authors', the first folder for the others):
 held-out consistency and median spacing error (mm) of the nominal model, of the calibration
-(what ``casadi-design identify`` prints, the same function) and its prediction, and where the
-authors' calibrated URDF is published, theirs on the same placements (Pinocchio, their
-``ball_link``).
+(what ``casadi-design identify`` prints, the same function) and its prediction, the consistency
+with the ball relocated on the hand at each placement, and where the authors' calibrated URDF is
+published, theirs on the same placements (Pinocchio, their ``ball_link``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import pinocchio as pin
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from casadi_design.identification.artefact_fit import calibrate_artefact, figures  # noqa: E402
+from casadi_design.identification.artefact_fit import calibrate_artefact, figures, relocated  # noqa: E402
 from casadi_design.identification.recordings import read_recordings  # noqa: E402
 from casadi_design.problem.build import load_problem  # noqa: E402
 
@@ -34,23 +34,27 @@ ROBOTS = {"panda_2": ("panda_ball_socket", "front_center"), "panda_4": ("panda_b
           "dinova_1": ("gen3lite_ball_socket", None), "dinova_2": ("gen3lite_ball_socket", None)}
 
 
-def authors(urdf: Path, problem, rec) -> tuple[float, float]:
-    """Mean consistency and median spacing error (m) of the authors' calibrated URDF on ``rec``'s
-    placements (their ``ball_link``, the chain's joints first)."""
+def authors(urdf: Path, problem, rec) -> tuple[float, float, float]:
+    """Mean consistency, median spacing error and mean consistency with the ball relocated on
+    the hand (m) of the authors' calibrated URDF on ``rec``'s placements (their ``ball_link``,
+    the chain's joints first)."""
     model = pin.buildModelFromUrdf(str(urdf))
     data, fid = model.createData(), model.getFrameId("ball_link")
     out = []
     for g in range(rec.P):
         rows = rec.placement == g
-        P = []
+        P, R = [], []
         for q in rec.Q[rows]:
             full = pin.neutral(model)
             full[:len(q)] = q
             pin.framesForwardKinematics(model, data, full)
             P.append(data.oMf[fid].translation.copy())
-        out.append(figures(problem.artefact, np.array(P), rec.point[rows]))
+            R.append(data.oMf[fid].rotation.copy())
+        k = rec.point[rows]
+        moved = relocated(np.array(P), np.array(R), k, np.eye(3 * len(k)))[1]
+        out.append((*figures(problem.artefact, np.array(P), k), moved))
     out = np.array(out)
-    return float(out[:, 0].mean()), float(np.median(out[:, 1]))
+    return float(out[:, 0].mean()), float(np.median(out[:, 1])), float(out[:, 2].mean())
 
 
 def main() -> int:
@@ -60,7 +64,7 @@ def main() -> int:
     args = parser.parse_args()
     data = Path(args.data)
     print("robot                train          held out  nominal  calibrated (predicted)  authors | "
-          "median spacing: calibrated  authors   model  time")
+          "median spacing: calibrated  authors | ball relocated: calibrated  authors   model  time")
     for robot in args.robots.split(","):
         name, train = ROBOTS[robot]
         problem = load_problem(ROOT / ("problems" if name == "panda_ball_socket" else "examples") / f"{name}.toml")
@@ -73,17 +77,20 @@ def main() -> int:
         wall = time.perf_counter() - t0
         v = cal.validation
         mean = {k: float(np.mean([getattr(j, f"{k}_m") for j in v])) * 1e3
-                for k in ("consistency", "predicted_consistency", "nominal_consistency")}
+                for k in ("consistency", "predicted_consistency", "nominal_consistency", "relocated_consistency")}
         spacing = float(np.median([j.spacing_m for j in v])) * 1e3
         theirs = data / "calibrated_urdf" / robot / "panda.urdf"
         a = authors(theirs, problem, valid) if theirs.exists() else None
         print(f"{robot:20s} {train:14s} {len(v):8d}  {mean['nominal_consistency']:7.3f}  {mean['consistency']:10.3f} "
               f"({mean['predicted_consistency']:.3f})      " + (f"{a[0] * 1e3:7.3f}" if a else "      -")
               + f" | {spacing:26.3f}  " + (f"{a[1] * 1e3:7.3f}" if a else "      -")
+              + f" | {mean['relocated_consistency']:26.3f}  " + (f"{a[2] * 1e3:7.3f}" if a else "      -")
               + f"   {cal.model} ({len(cal.names)}){'' if cal.field is None else ', field'}  {wall:.0f} s")
         for j in v:
             print(f"    {j.name:16s} consistency {j.consistency_m * 1e3:.3f} (predicted {j.predicted_consistency_m * 1e3:.3f},"
-                  f" nominal {j.nominal_consistency_m * 1e3:.2f})  spacing {j.spacing_m * 1e3:.3f}")
+                  f" nominal {j.nominal_consistency_m * 1e3:.2f})  spacing {j.spacing_m * 1e3:.3f}  ball moved "
+                  f"{np.linalg.norm(j.moved_m) * 1e3:.2f} mm ({j.moved_std:.1f} std), relocated "
+                  f"{j.relocated_consistency_m * 1e3:.3f}")
     return 0
 
 

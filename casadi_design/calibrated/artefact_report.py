@@ -17,11 +17,12 @@ def _means(judged: tuple[Judged, ...]) -> dict:
     if not judged:
         return {}
     mean = {k: float(np.mean([getattr(j, f"{k}_m") for j in judged])) * 1e3
-            for k in ("consistency", "predicted_consistency", "nominal_consistency")}
+            for k in ("consistency", "predicted_consistency", "nominal_consistency", "relocated_consistency")}
     median = {k: float(np.median([getattr(j, f"{k}_m") for j in judged])) * 1e3
               for k in ("spacing", "predicted_spacing", "nominal_spacing")}
     return {"consistency_mm": mean["consistency"], "predicted_consistency_mm": mean["predicted_consistency"],
-            "nominal_consistency_mm": mean["nominal_consistency"], "median_spacing_mm": median["spacing"],
+            "nominal_consistency_mm": mean["nominal_consistency"],
+            "relocated_consistency_mm": mean["relocated_consistency"], "median_spacing_mm": median["spacing"],
             "predicted_median_spacing_mm": median["predicted_spacing"],
             "nominal_median_spacing_mm": median["nominal_spacing"]}
 
@@ -38,7 +39,8 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
         "configurations": int(rec.N),
         "sigma_m": cal.problem.sigma_m,
         "model": cal.model,
-        "model_choice": "leave-one-configuration-out cross-validation, one-standard-error rule",
+        "model_choice": "leave-one-configuration-out cross-validation, one-standard-error rule; the robot's "
+                        "weight by one standard error of the paired differences",
         "candidates": [c.as_dict() for c in cal.candidates],
         "parameters": [{"name": n, "value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
                        for n, x, s in zip(names, f.X, cal.std)],

@@ -265,7 +265,10 @@ class Judged:
     """Figures of one placement (m): ``consistency`` the mean distance of the FK points to their
     point's mean, averaged over the points (MUKCa's), ``spacing`` the largest error of the
     distance between two points' means against the artefact's; ``predicted_*`` the same
-    expected from the fit (:func:`predicted`); ``nominal_*`` of the nominal robot."""
+    expected from the fit (:func:`predicted`); ``nominal_*`` of the nominal robot;
+    ``moved_m`` (3,) the measured point's move on the hand that these configurations tell, in
+    the measured frame, its size in standard deviations ``moved_std`` and the consistency
+    with it moved, ``relocated_consistency_m`` (:func:`relocated`)."""
 
     name: str
     rows: int
@@ -275,12 +278,63 @@ class Judged:
     predicted_spacing_m: float
     nominal_consistency_m: float
     nominal_spacing_m: float
+    moved_m: tuple[float, float, float] = (math.nan,) * 3
+    moved_std: float = math.nan
+    relocated_consistency_m: float = math.nan
 
     def as_dict(self) -> dict:
         return {"placement": self.name, "configurations": self.rows,
                 **{f"{k}_mm": getattr(self, f"{k}_m") * 1e3 for k in
                    ("consistency", "spacing", "predicted_consistency", "predicted_spacing", "nominal_consistency",
-                    "nominal_spacing")}}
+                    "nominal_spacing", "relocated_consistency")},
+                "measured_point_moved_mm": [x * 1e3 for x in self.moved_m],
+                "measured_point_moved_std": self.moved_std}
+
+
+#: The measured point moved on the hand when its move is beyond this many standard deviations
+#: (its Mahalanobis length under the rows' error per value; chi-square of 3 degrees of
+#: freedom: 1e-3 of false alarms).
+MOVED_STD = 4.0
+
+
+def frame_poses(model: CalibrationModel, Q: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The measured frame's position ``p`` (N, 3), m, and rotation ``R`` (N, 3, 3) of robot X at
+    the configurations ``Q`` (the model's pose, under the robot's weight where it deflects)."""
+    F = np.zeros((len(Q), model.nF))
+    pose = evaluate(model.pose, Q, F, np.tile(X, (len(Q), 1)))[0][:, :, 0]
+    return pose[:, 9:12], pose[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)  # vec(R) is column-major
+
+
+def relocated(p: np.ndarray, R: np.ndarray, k: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """The move ``delta`` (3,), m, of the measured point in the measured frame that makes the
+    configurations of one placement, seated at the points ``k`` (N,), most consistent: with
+    ``p_i`` (N, 3) and ``R_i`` (N, 3, 3) the measured frame's position and rotation
+    (:func:`frame_poses`), the linear least squares ``min sum_i |d_i + A_i delta|^2``, ``d_i = p_i - mean_k p``, ``A_i = R_i - mean_k
+    R``; the consistency (m, :func:`figures`) of ``p_i + R_i delta``; and delta's covariance
+    ``A^+ C_d A^+^T`` when the points err by ``cov`` (3N x 3N, m^2: the fit's predicted error,
+    :func:`error_covariance`), ``C_d`` that of the ``d_i``: a move the calibrated robot's own
+    error would make is not one of the point. A ball held by a gripper's fingers moves between
+    placements when grasped again."""
+    D = np.kron(np.eye(len(k)) - _point_means(k), np.eye(3))  # each point's mean subtracted
+    A = D @ R.reshape(-1, 3)
+    Ap = np.linalg.pinv(A)
+    delta = -Ap @ (D @ p.reshape(-1))
+    return delta, consistency_of(p + R @ delta, k), Ap @ D @ cov @ D.T @ Ap.T
+
+
+def _point_means(k: np.ndarray) -> np.ndarray:
+    """``avg`` (N, N): row i averages the rows seated at i's point."""
+    avg = np.zeros((len(k), len(k)))
+    for j in np.unique(k):
+        rows = k == j
+        avg[np.ix_(rows, rows)] = 1.0 / rows.sum()
+    return avg
+
+
+def consistency_of(p: np.ndarray, k: np.ndarray) -> float:
+    """MUKCa's consistency (m) of the FK points ``p`` (N, 3) seated at the points ``k`` (N,):
+    the mean distance to their point's mean, averaged over the points."""
+    return float(np.mean([np.mean(np.linalg.norm(p[k == j] - p[k == j].mean(axis=0), axis=1)) for j in np.unique(k)]))
 
 
 def figures(A: Artefact, p: np.ndarray, k: np.ndarray) -> tuple[float, float]:
@@ -288,7 +342,7 @@ def figures(A: Artefact, p: np.ndarray, k: np.ndarray) -> tuple[float, float]:
     points ``k`` (N,) (:class:`Judged`)."""
     seen = np.unique(k)
     means = {j: p[k == j].mean(axis=0) for j in seen}
-    consistency = float(np.mean([np.mean(np.linalg.norm(p[k == j] - means[j], axis=1)) for j in seen]))
+    consistency = consistency_of(p, k)
     spacing = max((abs(float(np.linalg.norm(means[a] - means[b])) - A.spacings_m[a, b])
                    for a in seen for b in seen if a < b), default=math.nan)
     return consistency, spacing
@@ -303,11 +357,7 @@ def predicted(A: Artefact, k: np.ndarray, cov: np.ndarray) -> tuple[float, float
     ``sqrt(2 v / pi)`` its expected size."""
     N = len(k)
     seen = np.unique(k)
-    avg = np.zeros((N, N))
-    for j in seen:
-        rows = k == j
-        avg[np.ix_(rows, rows)] = 1.0 / rows.sum()
-    D = np.kron(np.eye(N) - avg, np.eye(3))
+    D = np.kron(np.eye(N) - _point_means(k), np.eye(3))
     S = (D @ cov @ D.T).reshape(N, 3, N, 3)[np.arange(N), :, np.arange(N), :]
     z = np.random.default_rng(DISTANCE_SEED).standard_normal((DISTANCE_DRAWS, 3))
     w, U = np.linalg.eigh((S + S.transpose(0, 2, 1)) / 2)
@@ -388,7 +438,9 @@ def judged(problem: Problem, f: ArtefactFit, rec: Recordings, field: Field | Non
         c, sp = figures(A, p[rows], k)
         c0, sp0 = figures(A, p0[rows], k)
         pc, ps = predicted(A, k, cov)
-        out.append(Judged(name, len(rows), c, sp, pc, ps, c0, sp0))
+        delta, moved, C = relocated(*frame_poses(model, rec.Q[rows], f.X), k, cov)
+        out.append(Judged(name, len(rows), c, sp, pc, ps, c0, sp0, tuple(float(x) for x in delta),
+                          float(np.sqrt(delta @ np.linalg.solve(C, delta))), moved))
     return out
 
 
@@ -499,6 +551,14 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     C = Hi @ Jp.T @ Vtt @ Jp @ Hi  # the least squares' covariance under the rows' errors
     training = judged(problem, f, rec, field, scale.s_m, rec)
     validation = judged(problem, f, valid, field, scale.s_m, rec) if valid is not None else []
+    moved = [j for j in validation if j.moved_std > MOVED_STD]
+    if moved:
+        more.append("the measured point sits elsewhere on the hand at " + ", ".join(
+            f"{j.name} ({np.linalg.norm(j.moved_m) * 1e3:.2f} mm, {j.moved_std:.0f} std; consistency "
+            f"{j.relocated_consistency_m * 1e3:.3f} mm with it moved)" for j in moved) + f" than at "
+            f"{', '.join(rec.names)}: it moved on the hand between the recordings (a ball held by the gripper's "
+            "fingers moves when grasped again: fix it to the flange); the robot's own error there is the consistency "
+            "with it moved")
     worse = [j.name for j in validation if j.predicted_consistency_m > j.nominal_consistency_m]
     if worse:
         more.append(f"at {', '.join(worse)} the predicted consistency is above the nominal robot's: the recordings "
