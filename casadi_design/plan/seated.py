@@ -17,6 +17,7 @@ pool engine then chooses the plan among them (:mod:`casadi_design.optimisation.a
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,8 +26,11 @@ import pinocchio as pin
 from ..calibration.artefact import least_turn
 from ..errors import ProblemError
 from ..problem.build import Problem
+from ..problem_file.read import spec_digest_blob
+from ..problem_file.solver import SolverSettings
 from ..robot.ik import IK_ACCEPT, solve_ik
 from ..robot.robots import frame_placement
+from ..runtime.cache import memoised
 from .rules import plan_violations
 
 #: Seated configurations drawn per point of each placement, by default.
@@ -78,9 +82,20 @@ def tilted(axis: np.ndarray, tilt_max: float, rng: np.random.Generator) -> np.nd
     return least_turn(z, axis) @ least_turn(z, np.array([s * np.cos(phi), s * np.sin(phi), c])) @ pin.exp3(spin * z)
 
 
+def _seated_key(problem: Problem, per_point: int = SEATED_PER_POINT) -> tuple:
+    """What the seated configurations of ``problem`` are computed from: its checked data (the
+    problem is a pure function of it, :func:`casadi_design.problem.build.build_problem`) less
+    the solver settings and the held data but for the seed, and ``per_point``."""
+    bare = dataclasses.replace(problem.spec, solver=SolverSettings(), held=None)
+    return spec_digest_blob(bare), problem.solver.seed, per_point
+
+
+@memoised(8, key=_seated_key)
 def seated_configurations(problem: Problem, per_point: int = SEATED_PER_POINT) -> Seated:
     """``per_point`` seated configurations of each point of each placement of the problem file
-    (module docstring), drawn by the problem's seed (``[solver] seed``).
+    (module docstring), drawn by the problem's seed (``[solver] seed``). Kept per process
+    (:func:`~casadi_design.runtime.cache.memoised`: ``solve``, ``sweep`` and ``bound`` of one
+    problem in one process draw them once; a Panda's take about a second), read-only.
 
     Raises
     ------
@@ -118,7 +133,10 @@ def seated_configurations(problem: Problem, per_point: int = SEATED_PER_POINT) -
                     f"({', '.join(f'{v * 1e3:.1f}' for v in c[g, k])}) mm within the joint limits, the workspace "
                     f"and a tilt of {np.degrees(spec.tilt_max_rad):g} deg; move the placement within the robot's "
                     "reach or raise tilt_max_deg")
-    return Seated(np.array(Q), np.array(point), np.array(placement), tuple(p.name for p in spec.placements))
+    arrays = np.array(Q), np.array(point), np.array(placement)
+    for a in arrays:
+        a.setflags(write=False)  # kept and shared by the callers (the memo)
+    return Seated(*arrays, tuple(p.name for p in spec.placements))
 
 
 def approaches(problem: Problem, Q: np.ndarray) -> np.ndarray:
