@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from matplotlib import rc_context
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter, NullLocator
@@ -257,11 +258,17 @@ def save_figures(fig: Figure, paths: list[Path]) -> None:
     """Save atomically in the format of each file's suffix (png, pdf, svg).
 
     The layout is computed for the first file and kept for the others (constrained layout
-    takes most of the time of a save, and gives the same result every time).
+    takes most of the time of a save, and gives the same result every time): the figure has
+    no layout engine from the second file on. Not even the placeholder that
+    ``set_layout_engine("none")`` leaves: ``savefig`` draws a figure with any engine once
+    before it prints (to lay it out), a draw of every artist that lays out nothing here (the
+    PDF of the paper's fig1 0.12 -> 0.09 s of CPU, the same bytes).
     """
     for k, path in enumerate(paths):
         if k == 1:
-            fig.set_layout_engine("none")
+            # None, not "none"; None means no engine only while these rcParams are off
+            with rc_context({"figure.autolayout": False, "figure.constrained_layout.use": False}):
+                fig.set_layout_engine(None)
         buf = io.BytesIO()
         fig.savefig(buf, format=Path(path).suffix[1:], dpi=150)
         write_atomic(Path(path), buf.getvalue())
