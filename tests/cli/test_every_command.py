@@ -52,7 +52,14 @@ TRIALS = 2
 PROGRAM_EXPERIMENTS = 2
 
 
-@pytest.mark.parametrize("path", PROBLEM_FILES, ids=lambda p: p.stem)
+def _on_one_worker(path, *marks):
+    """The runs of one problem file in this module on one test worker (``--dist loadgroup``):
+    the second reuses what the first built and kept in the process (the problem, its CasADi
+    functions, a Panda's seated configurations: about a second each)."""
+    return pytest.param(path, marks=[pytest.mark.xdist_group(f"every_command_{path.stem}"), *marks], id=path.stem)
+
+
+@pytest.mark.parametrize("path", [_on_one_worker(p) for p in PROBLEM_FILES])
 def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     problem = load_problem(path)
     m = problem.m_min
@@ -138,11 +145,11 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
 
 #: The bound command's runs: the ABB's (7 s, the longest of its kind) with the slow tests; the
 #: UR10 runs the same path of a 6-axis arm in a cell (capsule rows in the searches) by default.
-BOUND_RUNS = [pytest.param(p, marks=pytest.mark.slow) if p.stem == "abb_irb6640_machining" else p
+BOUND_RUNS = [_on_one_worker(p, *([pytest.mark.slow] if p.stem == "abb_irb6640_machining" else []))
               for p in PROBLEM_FILES]
 
 
-@pytest.mark.parametrize("path", BOUND_RUNS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", BOUND_RUNS)
 def test_the_bound_command_runs_on_every_problem(path, capsys):
     problem = load_problem(path)
     m = problem.m_min
