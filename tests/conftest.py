@@ -117,10 +117,20 @@ SHARED = ("paper_solve_out", "paper_solved")
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config, items):
     """Group the tests for xdist: those of a shared session fixture (:data:`SHARED`) by the
-    fixture, those of a module-scoped fixture by their module; the others run anywhere."""
+    fixture, those of a module-scoped fixture by their module; the others run anywhere. A
+    module whose module-scoped fixture is used by tests of a shared fixture too (the browser of
+    tests/reports/test_viewer.py) has its module's group join the shared one: the fixture is
+    set up on one worker, not on both (a Chromium started and plotly.js compiled once, ~2 s)."""
+    groups = {}
     for item in items:
         shared = [f for f in SHARED if f in item.fixturenames]
         # pytest keeps an item's fixture definitions in _fixtureinfo (no public accessor)
         module = any(d and d[-1].scope == "module" for d in item._fixtureinfo.name2fixturedefs.values())
         if shared or module:
-            item.add_marker(pytest.mark.xdist_group("+".join(shared) or item.module.__name__))
+            groups[item] = ("+".join(shared) or item.module.__name__, module)
+    joined = {}
+    for item, (group, module) in groups.items():
+        if module and group != item.module.__name__:
+            joined.setdefault(item.module.__name__, group)
+    for item, (group, _) in groups.items():
+        item.add_marker(pytest.mark.xdist_group(joined.get(group, group)))
