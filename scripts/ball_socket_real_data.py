@@ -24,6 +24,7 @@ import pinocchio as pin
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from casadi_design.calibrated.artefact_report import placement_means  # noqa: E402
 from casadi_design.identification.artefact_fit import calibrate_artefact, figures, relocated  # noqa: E402
 from casadi_design.identification.recordings import read_recordings  # noqa: E402
 from casadi_design.problem.build import load_problem  # noqa: E402
@@ -51,7 +52,7 @@ def authors(urdf: Path, problem, rec) -> tuple[float, float, float]:
             P.append(data.oMf[fid].translation.copy())
             R.append(data.oMf[fid].rotation.copy())
         k = rec.point[rows]
-        moved = relocated(np.array(P), np.array(R), k, np.eye(3 * len(k)))[1]
+        moved = relocated(np.array(R), np.array(P), k, np.eye(3 * len(k)))[1]
         out.append((*figures(problem.artefact, np.array(P), k), moved))
     out = np.array(out)
     return float(out[:, 0].mean()), float(np.median(out[:, 1])), float(out[:, 2].mean())
@@ -76,15 +77,13 @@ def main() -> int:
         cal = calibrate_artefact(problem, rec, valid)
         wall = time.perf_counter() - t0
         v = cal.validation
-        mean = {k: float(np.mean([getattr(j, f"{k}_m") for j in v])) * 1e3
-                for k in ("consistency", "predicted_consistency", "nominal_consistency", "relocated_consistency")}
-        spacing = float(np.median([j.spacing_m for j in v])) * 1e3
+        mean = placement_means(v)  # mm, as identification.json's "validation"
         theirs = data / "calibrated_urdf" / robot / "panda.urdf"
         a = authors(theirs, problem, valid) if theirs.exists() else None
-        print(f"{robot:20s} {train:14s} {len(v):8d}  {mean['nominal_consistency']:7.3f}  {mean['consistency']:10.3f} "
-              f"({mean['predicted_consistency']:.3f})      " + (f"{a[0] * 1e3:7.3f}" if a else "      -")
-              + f" | {spacing:26.3f}  " + (f"{a[1] * 1e3:7.3f}" if a else "      -")
-              + f" | {mean['relocated_consistency']:26.3f}  " + (f"{a[2] * 1e3:7.3f}" if a else "      -")
+        print(f"{robot:20s} {train:14s} {len(v):8d}  {mean['nominal_consistency_mm']:7.3f}  {mean['consistency_mm']:10.3f} "
+              f"({mean['predicted_consistency_mm']:.3f})      " + (f"{a[0] * 1e3:7.3f}" if a else "      -")
+              + f" | {mean['median_spacing_mm']:26.3f}  " + (f"{a[1] * 1e3:7.3f}" if a else "      -")
+              + f" | {mean['relocated_consistency_mm']:26.3f}  " + (f"{a[2] * 1e3:7.3f}" if a else "      -")
               + f"   {cal.model} ({len(cal.names)}){'' if cal.field is None else ', field'}  {wall:.0f} s")
         for j in v:
             print(f"    {j.name:16s} consistency {j.consistency_m * 1e3:.3f} (predicted {j.predicted_consistency_m * 1e3:.3f},"

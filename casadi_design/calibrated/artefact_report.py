@@ -11,7 +11,7 @@ from ..identification.artefact_fit import ArtefactCalibration, Judged
 from .report import none_if_nan, parameter_unit
 
 
-def _means(judged: tuple[Judged, ...]) -> dict:
+def placement_means(judged: tuple[Judged, ...]) -> dict:
     """Means over placements of the consistency (measured, predicted, nominal) and the median of
     the spacing errors, mm (None without placements)."""
     if not judged:
@@ -53,8 +53,8 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
         "outliers": [{"configuration": where, "score": score} for where, score in cal.outliers],
         "notes": list(cal.notes),
         "residual_rms_m": float(np.sqrt(np.mean(np.sum(f.r[f.used] ** 2, axis=1)))),
-        "training": {"placements": [j.as_dict() for j in cal.training], **_means(cal.training)},
-        "validation": ({"placements": [j.as_dict() for j in cal.validation], **_means(cal.validation)}
+        "training": {"placements": [j.as_dict() for j in cal.training], **placement_means(cal.training)},
+        "validation": ({"placements": [j.as_dict() for j in cal.validation], **placement_means(cal.validation)}
                        if cal.validation else None),
         "files": files,
     }
@@ -85,7 +85,7 @@ def artefact_summary(cal: ArtefactCalibration) -> list[str]:
                          f"({none_if_nan(j.predicted_spacing_m * 1e3) or 0:.3f}, {j.nominal_spacing_m * 1e3:.2f})"
                          f"   {title}")
     if cal.validation:
-        m = _means(cal.validation)
+        m = placement_means(cal.validation)
         lines.append(f"held out: mean consistency {m['consistency_mm']:.3f} mm (predicted "
                      f"{m['predicted_consistency_mm']:.3f}, nominal {m['nominal_consistency_mm']:.2f}), median spacing "
                      f"error {m['median_spacing_mm']:.3f} mm (predicted {m['predicted_median_spacing_mm']:.3f})")

@@ -39,7 +39,7 @@ from ..measures.field import Field, covariance, value_covariance
 from .choice import NEGATIVE_STD, Candidate, choose, cv_error, has_weight, negative_compliances
 from .field_fit import FieldFit, estimate_field
 from .fit import FitModel, fit_model
-from .lsq import LSQ_TOL, measurement_jacobian, nominal_poses, remembered
+from .lsq import LSQ_TOL, frame_poses, measurement_jacobian, nominal_poses, remembered
 from .recordings import Recordings
 from .residuals import ErrorScale, deleted_scores, error_scale, leverages, press, without_outliers
 
@@ -292,25 +292,17 @@ class Judged:
 
 
 #: The measured point moved on the hand when its move is beyond this many standard deviations
-#: (its Mahalanobis length under the rows' error per value; chi-square of 3 degrees of
-#: freedom: 1e-3 of false alarms).
+#: (its Mahalanobis length under the fit's predicted error at those configurations,
+#: :func:`relocated`; chi-square of 3 degrees of freedom: 1e-3 of false alarms).
 MOVED_STD = 4.0
 
 
-def frame_poses(model: CalibrationModel, Q: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The measured frame's position ``p`` (N, 3), m, and rotation ``R`` (N, 3, 3) of robot X at
-    the configurations ``Q`` (the model's pose, under the robot's weight where it deflects)."""
-    F = np.zeros((len(Q), model.nF))
-    pose = evaluate(model.pose, Q, F, np.tile(X, (len(Q), 1)))[0][:, :, 0]
-    return pose[:, 9:12], pose[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)  # vec(R) is column-major
-
-
-def relocated(p: np.ndarray, R: np.ndarray, k: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+def relocated(R: np.ndarray, p: np.ndarray, k: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """The move ``delta`` (3,), m, of the measured point in the measured frame that makes the
     configurations of one placement, seated at the points ``k`` (N,), most consistent: with
-    ``p_i`` (N, 3) and ``R_i`` (N, 3, 3) the measured frame's position and rotation
-    (:func:`frame_poses`), the linear least squares ``min sum_i |d_i + A_i delta|^2``, ``d_i = p_i - mean_k p``, ``A_i = R_i - mean_k
-    R``; the consistency (m, :func:`figures`) of ``p_i + R_i delta``; and delta's covariance
+    ``R_i`` (N, 3, 3) and ``p_i`` (N, 3) the measured frame's rotation and position
+    (:func:`~.lsq.frame_poses`), the linear least squares ``min sum_i |d_i + A_i delta|^2``,
+    ``d_i = p_i - mean_k p``, ``A_i = R_i - mean_k R``; the consistency (m, :func:`figures`) of ``p_i + R_i delta``; and delta's covariance
     ``A^+ C_d A^+^T`` when the points err by ``cov`` (3N x 3N, m^2: the fit's predicted error,
     :func:`error_covariance`), ``C_d`` that of the ``d_i``: a move the calibrated robot's own
     error would make is not one of the point. A ball held by a gripper's fingers moves between
@@ -438,7 +430,7 @@ def judged(problem: Problem, f: ArtefactFit, rec: Recordings, field: Field | Non
         c, sp = figures(A, p[rows], k)
         c0, sp0 = figures(A, p0[rows], k)
         pc, ps = predicted(A, k, cov)
-        delta, moved, C = relocated(*frame_poses(model, rec.Q[rows], f.X), k, cov)
+        delta, moved, C = relocated(*frame_poses(model, rec.Q[rows], np.zeros((len(rows), model.nF)), f.X), k, cov)
         out.append(Judged(name, len(rows), c, sp, pc, ps, c0, sp0, tuple(float(x) for x in delta),
                           float(np.sqrt(delta @ np.linalg.solve(C, delta))), moved))
     return out

@@ -77,7 +77,7 @@ from .fit import (
     register,
     row_errors,
 )
-from .lsq import check_loss, nominal_poses
+from .lsq import check_loss, nominal_poses, pose_parts
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
 from .residuals import ErrorScale, deleted_scores, error_scale, leverages, without_outliers
@@ -362,7 +362,7 @@ def corrected_commands(model, X: np.ndarray, Q: np.ndarray, F: np.ndarray, sigma
         if np.any(w):
             from scipy.spatial.transform import Rotation
 
-            R = target[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)  # the pose's vec(R), column-major
+            R = pose_parts(target)[0]
             R = Rotation.from_rotvec(-w).as_matrix() @ R
             target[:, :9] = R.transpose(0, 2, 1).reshape(-1, 9)
     qc, done, _ = compensate(model, Q, F, target, np.tile(X, (len(Q), 1)), sigma)

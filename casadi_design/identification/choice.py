@@ -266,8 +266,8 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
         valid = [c for c in valid if not c.refused] or valid[:1]
         best = min(valid, key=lambda c: c.cv_rms_m)
         chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.size)
-        weighed = [c for c in valid if c.gravity and not chosen.gravity and _geometry(c) is not None
-                   and _geometry(c) == _geometry(chosen) and c.cv_rms_m < chosen.cv_rms_m - _paired_se(c, chosen)]
+        weighed = [c for c in valid if c.gravity and not chosen.gravity and _geometry(c) == _geometry(chosen)
+                   and c.cv_rms_m < chosen.cv_rms_m - _paired_se(c, chosen)]
         chosen = weighed[0] if weighed else chosen
     else:
         chosen = next((c for c in found if c.name == model), None)

@@ -36,7 +36,15 @@ from ..problem.build import Problem, model_arguments
 from ..robot.mapped import evaluate
 from ..robot.symbolic import PLACEMENT_ERRORS
 from ..runtime.cache import Memo
-from .lsq import Identification, expanded, identify_nonlinear, measurement_jacobian, nominal_poses
+from .lsq import (
+    Identification,
+    expanded,
+    frame_poses,
+    identify_nonlinear,
+    measurement_jacobian,
+    nominal_poses,
+    pose_parts,
+)
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
 
@@ -266,10 +274,7 @@ def model_points(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, X: np.nd
     """Points (m, k, 3), m, of the markers of robot ``X`` (fit parameters; one row per
     experiment, shape (m, L), or one for all) under the loads ``F``, in the base frame (the
     frame's ``delta`` included when ``X`` holds it)."""
-    X = np.asarray(X, dtype=float)
-    rows = X if X.ndim == 2 else np.tile(X, (len(Q), 1))
-    poses = evaluate(model.pose, Q, F.reshape(len(Q), model.nF), rows)[0][:, :, 0]
-    R, p = poses[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), poses[:, 9:]
+    R, p = frame_poses(model, Q, F, X)
     return p[:, None, :] + np.einsum("tij,kj->tki", R, model.markers_m)
 
 
@@ -411,7 +416,7 @@ def locate_points(fm: FitModel, meas: Measurements) -> tuple[np.ndarray, float]:
     """
     model = fm.model
     ref = nominal_poses(model, meas.Q, meas.F)
-    R, p = ref[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), ref[:, 9:]
+    R, p = pose_parts(ref)
     seen, P = meas.seen, meas.P_m
     rounds = [meas.frame_of == k for k in range(meas.frames)]  # one tracker frame per round
     seen_in = [seen & r[:, None] for r in rounds]  # each round's seen points
@@ -448,7 +453,7 @@ def measured_values(problem: Problem, fm: FitModel, meas: Measurements,
     ``meas``, each row's points taken out of its round's frame ``T0s[k]`` (R, 4, 4)."""
     model, axes = fm.model, list(measured_axes(problem))
     ref = nominal_poses(model, meas.Q, meas.F)
-    R, p = ref[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), ref[:, 9:]
+    R, p = pose_parts(ref)
     nominal = p[:, None, :] + np.einsum("tij,kj->tki", R, model.markers_m)
     P = meas.P_m.copy()
     P[:, :, [a for a in range(3) if a not in axes]] = 0.0  # not measured: left alone by T0

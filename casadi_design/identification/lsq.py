@@ -54,6 +54,22 @@ LSQ_MAX_EVALUATIONS = 100
 JACOBIANS = ("exact", "taylor")
 
 
+def pose_parts(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotations ``R`` (N, 3, 3) and positions ``p`` (N, 3), m, of poses (N, 12) as
+    :attr:`CalibrationModel.pose` gives them (``vec(R)`` column-major, then ``p``)."""
+    return poses[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1), poses[:, 9:12]
+
+
+def frame_poses(model: CalibrationModel, Q: np.ndarray, F: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The measured frame's rotation ``R`` (N, 3, 3) and position ``p`` (N, 3), m, of robot
+    ``X`` (fit parameters; one row per configuration, (N, L), or one for all) at the
+    configurations ``Q`` under the loads ``F`` (deflected, under the robot's weight too where
+    the model has it)."""
+    X = np.asarray(X, dtype=float)
+    rows = X if X.ndim == 2 else np.tile(X, (len(Q), 1))
+    return pose_parts(evaluate(model.pose, Q, np.asarray(F, float).reshape(len(Q), model.nF), rows)[0][:, :, 0])
+
+
 def nominal_poses(model: CalibrationModel, Q: np.ndarray, F: np.ndarray) -> np.ndarray:
     """References of the nominal robot (``X = 0``, no deflection), shape (N, 12): the
     measurement references of a plan ``(Q, F)`` and the targets of the test poses."""

@@ -82,7 +82,8 @@ def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool 
         pin.updateFramePlacements(model, data)
         M = data.oMf[fid]
         e[:3] = t - M.translation
-        e[3:] = pin.log3(R @ M.rotation.T)
+        if k == 6:  # the orientation's error only where it is asked for
+            e[3:] = pin.log3(R @ M.rotation.T)
         ek = e[:k]
         err = math.sqrt(ek.dot(ek))  # np.linalg.norm's sum of squares and square root
         if err < IK_TOL:

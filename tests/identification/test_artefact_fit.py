@@ -18,11 +18,11 @@ from casadi_design.identification.artefact_fit import (
     figures,
     fit_artefact,
     fit_without_outliers,
-    frame_poses,
     judged,
     relocated,
 )
 from casadi_design.identification.fit import fit_model
+from casadi_design.identification.lsq import frame_poses
 from casadi_design.identification.recordings import Recordings, read_recordings
 from casadi_design.problem.build import load_problem
 from tests.artefact_data import recordings, seated as seated_at, true_ball
@@ -216,11 +216,12 @@ def test_a_ball_moved_on_the_hand_is_found_and_relocated():
         rng = np.random.default_rng(3)
         Q = np.vstack([seated_at(problem, true, t + R @ a, rng, 12) for a in A.points_m])
         k = np.repeat([0, 1], 12)
-        found, consistency, C = relocated(*frame_poses(problem.model, Q, np.zeros(problem.model.L)), k,
+        L, nF = problem.model.L, problem.model.nF
+        found, consistency, C = relocated(*frame_poses(problem.model, Q, np.zeros((len(Q), nF)), np.zeros(L)), k,
                                           SIGMA**2 * np.eye(3 * len(Q)))
         np.testing.assert_allclose(found, delta, atol=1e-9)
         assert consistency < 1e-8
         std = float(np.sqrt(found @ np.linalg.solve(C, found)))
         assert std > 10 if delta.any() else std < 1e-3
-        before = figures(A, ball_points(problem.model, Q, np.zeros(problem.model.L))[0], k)[0]
+        before = figures(A, ball_points(problem.model, Q, np.zeros(L))[0], k)[0]
         assert before > 2e-5 if delta.any() else before < 1e-8
