@@ -124,10 +124,10 @@
                                                                  len: 0.35, x: 0.98, xanchor: "right", y: 0.02, yanchor: "bottom" } }, scale),
                              line: D.test_poses.path ? Object.assign({ width: 6 }, scale) : undefined,
                              text: tp.map((_, a) => "test pose " + (a + 1) + ": " + fmt(rms[a], 4) + " mm"), hoverinfo: "text" }, c));
-    if (v.route) {  // the first reflector along the whole route
+    if (v.route) {  // the first measured point along the whole route
       const path = [];
       for (let g = 0; g < v.frames.count; g++) path.push(framePoints(v, g)[0]);
-      out.push(Object.assign({ type: "scatter3d", uid: "route", name: "route (the reflector's path)", mode: "lines",
+      out.push(Object.assign({ type: "scatter3d", uid: "route", name: "route (the " + D.point + "'s path)", mode: "lines",
                                line: { color: "#9467bd", width: 3 }, hoverinfo: "name" }, columns(path)));
     }
     // every pose's first reflector, numbered as in the plan; this frame's reflectors and beams
@@ -136,7 +136,7 @@
                              text: v.poses.map((p) => String(p.number)), textposition: "top center", textfont: { size: 10, color: "#555" },
                              marker: { size: 3, color: "#777" }, hoverinfo: "text" }, cf));
     const refl = framePoints(v, f), cr = columns(refl);
-    out.push(Object.assign({ type: "scatter3d", uid: "reflectors", name: refl.length > 1 ? "reflectors" : "reflector",
+    out.push(Object.assign({ type: "scatter3d", uid: "reflectors", name: D.point + (refl.length > 1 ? "s" : ""),
                              mode: "markers", marker: { size: 5, color: "#d62728" }, hoverinfo: "name" }, cr));
     if (G.tracker_m) {
       const beam = [];
@@ -209,7 +209,7 @@
     }
     const f = state.frame === null ? pose.frame : state.frame;
     const refl = framePoints(v, f).map((p) => "(" + p.map((c) => fmt(1000 * c, 1)).join(", ") + ")");
-    out.push("<div>reflector" + (refl.length > 1 ? "s" : "") + " (mm): " + refl.join(" ") + "</div>");
+    out.push("<div>" + D.point + (refl.length > 1 ? "s" : "") + " (mm): " + refl.join(" ") + "</div>");
     if (v.residuals) {
       out.push("<div>residual RMS " + fmt(pose.residual_rms_mm, 4) + " mm, max " + fmt(pose.residual_max_mm, 4) + " mm" +
                (pose.used ? "" : " <span class=warn>(outlier: not in the fit)</span>") + "</div>");

@@ -605,6 +605,7 @@ def viewer_html(problem: Problem, scene: Scene, views: list[dict], title: str) -
             "joints": [{"name": j, "unit": joint_units(problem, k)[1]} for k, j in enumerate(problem.robot.joints)],
             "clearance_mm": None if cell is None else cell.spec.clearance_m * 1e3,
             "checked_on": None if cell is None else cell.check.source,
+            "point": "reflector" if problem.artefact is None else "ball centre",  # what the measured point is
             "geometry": scene_record(problem, scene, views),
             "test_poses": {"position_m": problem.test_poses.position_m.tolist(),
                            "path": is_path(problem.test_poses.position_m)},

@@ -30,6 +30,7 @@ from casadi_design.plan.sampling import random_plan
 from casadi_design.problem.build import build_robot, load_problem
 from casadi_design.problem_file.read import read_problem
 from casadi_design.records.export import read_plan_table
+from casadi_design.reports.viewer import read_viewer_data
 from casadi_design.robot.robots import frame_placement, make_robot
 from tests.conftest import PAPER, PROBLEM_FILES, ROOT
 from tests.identify_data import measurement_csv
@@ -124,6 +125,9 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     for folder in (solved, tmp_path / "figures", tmp_path / "program", tmp_path / "identify",
                    *([second] if problem.artefact is None else [])):
         assert (folder / "viewer.html").stat().st_size > 0  # tests/reports/test_viewer.py opens them
+        # the measured point named as what it is, in the legend and the pose's panel
+        assert read_viewer_data(folder / "viewer.html")["point"] == ("reflector" if problem.artefact is None
+                                                                     else "ball centre")
     assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == TRIALS
     identified = json.loads((tmp_path / "identify" / "identification.json").read_text())
     assert (tmp_path / "identify" / "calibrated.urdf").stat().st_size > 0
