@@ -1,14 +1,14 @@
 """Which configurations to record, judged on MUKCa's real recordings: from the recordings of one
 placement, m chosen by test-pose and by D (``casadi-design solve --candidates``, the same
 functions), each plan identified (``identify``'s fit and model choice) and judged by the
-consistency at another placement, where the test poses are; beside them the median of random
-m-subsets.
+consistency at another placement, where the test poses are (every third recording there);
+beside them the median of random m-subsets. Every other placement of the robot is a test
+placement in turn: plans are judged over that set, not one by one.
 
     python scripts/ball_socket_design.py [--data ../shared/real_data/mukca] [--m 16] [--random 20]
 
-Cases: panda_2 from ``front_center``, test poses at ``mid_left`` (those of
-problems/panda_ball_socket.toml); panda_4 from ``front``, test poses at ``right`` (every third
-recording there).
+Cases: panda_2's candidates at ``front_center``, panda_4's at ``front`` (the placements
+identify is trained on in scripts/ball_socket_real_data.py).
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,8 +30,8 @@ from casadi_design.problem.build import build_problem  # noqa: E402
 from casadi_design.problem_file.poses import TestPoseSpec  # noqa: E402
 from casadi_design.problem_file.read import read_problem  # noqa: E402
 
-#: robot -> (candidates' placement, test poses' placement, test poses from the problem file)
-CASES = {"panda_2": ("front_center", "mid_left", True), "panda_4": ("front", "right", False)}
+#: robot -> the candidates' placement (every other placement holds test poses in turn)
+CASES = {"panda_2": "front_center", "panda_4": "front"}
 
 
 def judged(problem, rec, rows, test) -> float:
@@ -48,29 +47,31 @@ def main() -> int:
     parser.add_argument("--random", type=int, default=20)
     args = parser.parse_args()
     data = Path(args.data) / "data"
+    spec = read_problem(ROOT / "problems" / "panda_ball_socket.toml")
     print(f"m = {args.m}: consistency (mm) at the test poses' placement after identifying each plan")
-    for robot, (cand, test, shipped) in CASES.items():
-        spec = read_problem(ROOT / "problems" / "panda_ball_socket.toml")
-        problem = build_problem(spec)
-        trec = read_recordings(problem, [str(data / robot / test)], "--validation")
-        if not shipped:
-            q = tuple(map(tuple, trec.Q[::3]))
-            problem = build_problem(dataclasses.replace(spec, test_poses=TestPoseSpec(("x", "y", "z"), "joints",
-                                                                                        joints_rad=q)))
-        rec = read_recordings(problem, [str(data / robot / cand)], "--candidates")
-        pool = artefact_pool(problem, rec.Q, rec.point, rec.placement)
-        line = [f"{robot} from {cand} ({rec.N}), test poses at {test}:"]
-        for criterion in ("test-pose", "D"):
-            t0 = time.perf_counter()
-            d = choose_recordings(problem, pool, criterion, args.m, problem.solver.starts_for(criterion))
-            line.append(f"{criterion} {judged(problem, rec, chosen_rows(pool, d), trec):.3f} "
-                        f"(max sqrt(rho) {d.scores.max_rms_error_m * 1e3:.3f}, {time.perf_counter() - t0:.0f} s)")
-        rng = np.random.default_rng(0)
-        random = [judged(problem, rec, rng.choice(rec.N, args.m, replace=False), trec) for _ in range(args.random)]
-        line.append(f"random median {np.median(random):.3f} (quartiles {np.percentile(random, 25):.3f}, "
-                    f"{np.percentile(random, 75):.3f})")
-        line.append(f"all {rec.N}: {judged(problem, rec, np.arange(rec.N), trec):.3f}")
-        print("\n    ".join(line))
+    print(f"{'robot':8s} {'candidates':14s} {'test poses':12s} {'test-pose':>9s} {'D':>7s} {'random median':>13s} "
+          f"{'(quartiles)':>15s} {'all':>7s}")
+    wins = {"D": [], "random": []}
+    for robot, cand in CASES.items():
+        places = sorted(p.name for p in (data / robot).iterdir() if p.is_dir() and p.name != cand)
+        for test in places:
+            problem = build_problem(spec)
+            trec = read_recordings(problem, [str(data / robot / test)], "--validation")
+            problem = build_problem(dataclasses.replace(spec, test_poses=TestPoseSpec(
+                ("x", "y", "z"), "joints", joints_rad=tuple(map(tuple, trec.Q[::3])))))
+            rec = read_recordings(problem, [str(data / robot / cand)], "--candidates")
+            pool = artefact_pool(problem, rec.Q, rec.point, rec.placement)
+            got = {c: judged(problem, rec, chosen_rows(pool, choose_recordings(
+                problem, pool, c, args.m, problem.solver.starts_for(c))), trec) for c in ("test-pose", "D")}
+            rng = np.random.default_rng(0)
+            random = [judged(problem, rec, rng.choice(rec.N, args.m, replace=False), trec) for _ in range(args.random)]
+            wins["D"].append(got["test-pose"] < got["D"])
+            wins["random"].append(got["test-pose"] < np.median(random))
+            print(f"{robot:8s} {cand:14s} {test:12s} {got['test-pose']:9.3f} {got['D']:7.3f} {np.median(random):13.3f} "
+                  f"  ({np.percentile(random, 25):.3f}, {np.percentile(random, 75):.3f}) "
+                  f"{judged(problem, rec, np.arange(rec.N), trec):7.3f}")
+    print(f"test-pose below D at {sum(wins['D'])} of {len(wins['D'])} test placements, below the random median at "
+          f"{sum(wins['random'])} of {len(wins['random'])}")
     return 0
 
 
