@@ -89,7 +89,7 @@ def main() -> int:
             print(f"    {j.name:16s} consistency {j.consistency_m * 1e3:.3f} (predicted {j.predicted_consistency_m * 1e3:.3f},"
                   f" nominal {j.nominal_consistency_m * 1e3:.2f})  spacing {j.spacing_m * 1e3:.3f}  ball moved "
                   f"{np.linalg.norm(j.moved_m) * 1e3:.2f} mm ({j.moved_std:.1f} std), relocated "
-                  f"{j.relocated_consistency_m * 1e3:.3f}")
+                  f"{j.relocated_consistency_m * 1e3:.3f}, beyond the prediction {j.beyond} of {j.rows}")
     return 0
 
 

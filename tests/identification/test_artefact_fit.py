@@ -13,8 +13,11 @@ import pytest
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
 from casadi_design.identification.artefact_fit import (
+    UNSEATED_SHARE,
     artefact_base_set,
     ball_points,
+    beyond_prediction,
+    calibrate_artefact,
     figures,
     fit_artefact,
     fit_without_outliers,
@@ -106,6 +109,51 @@ def test_a_ball_not_seated_is_an_outlier(simulated):
                                           Recordings(Qb, train.point, train.placement, train.names, train.sources))
     assert [where for where, _ in outliers] == ["front 3"]
     assert not f.used[3] and f.used.sum() == len(Qb) - 1
+
+
+def test_the_configurations_beyond_the_prediction_are_those_moved():
+    """Rows seated at two points, each deviating from its point's mean by N(0, S_i), S_i of
+    another shape each: three moved 20 standard deviations are the three beyond the prediction, as
+    a loop of 3 x 3 solves counts them; under noise alone, none."""
+    rng = np.random.default_rng(5)
+    N = 60
+    k = np.repeat([0, 1], N // 2)
+    A = rng.standard_normal((N, 3, 3))
+    S = 1e-10 * (np.eye(3) + A @ A.transpose(0, 2, 1) / np.sum(A**2, axis=(1, 2))[:, None, None])  # ~(0.01 mm)^2
+    means = np.array([[0.5, 0.0, 0.2], [0.55, 0.0, 0.2]])
+    p = means[k] + np.einsum("nab,nb->na", np.linalg.cholesky(S), rng.standard_normal((N, 3)))
+    assert not beyond_prediction(p, k, S).any()
+    moved = [4, 17, 40]
+    for i in moved:
+        u = rng.standard_normal(3)
+        p[i] += 20 * u / np.sqrt(u @ np.linalg.solve(S[i], u))  # 20 std along u
+    flagged = beyond_prediction(p, k, S)
+    loop = [i for i in range(N) if (d := p[i] - p[k == k[i]].mean(axis=0)) @ np.linalg.solve(S[i], d) > 16]
+    assert np.flatnonzero(flagged).tolist() == loop == moved
+
+
+def test_a_placement_recorded_badly_is_said_so(simulated, ideal):
+    """Held out, a placement whose configurations mostly sat 1 mm off their socket (balls not
+    seated) has them beyond the prediction and a note to record it again; recorded well, none is
+    and no note is printed."""
+    problem, _, Q, k, g = simulated
+    train, valid = _split(Q, k, g)
+    steps = ideal[5][g == 1]
+    rng = np.random.default_rng(11)
+    for bad in (False, True):
+        Qv = valid.Q.copy()
+        if bad:
+            off = rng.standard_normal((len(Qv), 3))
+            keep = np.arange(len(Qv)) % 3 == 0  # a third seated, the others 1 mm off in random directions
+            Qv[~keep] += np.einsum("kij,kj->ki", steps[~keep], 1e-3 * off[~keep] / np.linalg.norm(off[~keep], axis=1)[:, None])
+        cal = calibrate_artefact(problem, train, Recordings(Qv, valid.point, valid.placement, valid.names, valid.sources),
+                                 model="identifiable", with_field=False)
+        j = cal.validation[0]
+        noted = [n for n in cal.notes if "record the placement again" in n]
+        if bad:
+            assert j.beyond > UNSEATED_SHARE * j.rows and len(noted) == 1 and f"at side ({j.beyond} of" in noted[0]
+        else:
+            assert j.beyond <= 1 and not noted
 
 
 def _folder(path, Q, k):
