@@ -94,7 +94,9 @@ def test_on_figaroh_s_tiago_the_test_pose_choice_generalises_better():
     """FIGAROH's TIAGo (tests/data/tiago_mocap): 12 of the 37 training postures chosen by
     test-pose (the 62 held-out postures as test poses) and identified (auto model) leave a
     smaller held-out error than 12 chosen by D and than the median of 20 random choices
-    (measured: 4.13 mm, 4.32 mm, 5.41 mm)."""
+    (measured: 4.13 mm, 4.32 mm, 5.45 mm; one random choice takes the robot's weight by the
+    paired rule of identification/choice.py, 6.62 mm held out against 5.21 without: the median
+    5.41 mm before that rule)."""
     from casadi_design.cli.identify import load_without_cell
     from casadi_design.identification.calibrate import calibrate
     from casadi_design.identification.measurements import read_measurements
@@ -117,4 +119,4 @@ def test_on_figaroh_s_tiago_the_test_pose_choice_generalises_better():
     rng = np.random.default_rng(0)
     random = [held_out_mm(rng.choice(37, 12, replace=False)) for _ in range(20)]
     assert chosen["test-pose"] < chosen["D"] < np.median(random)
-    assert chosen["test-pose"] == pytest.approx(4.13, abs=0.01) and np.median(random) == pytest.approx(5.41, abs=0.01)
+    assert chosen["test-pose"] == pytest.approx(4.13, abs=0.01) and np.median(random) == pytest.approx(5.45, abs=0.01)

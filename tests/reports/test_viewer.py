@@ -377,7 +377,7 @@ def test_plot_writes_the_viewer_of_a_solve_folder(paper_solve_out, tmp_path, cap
 #: Panda (URDF meshes, capsules given as numbers), a DH arm without a cell (a line through its
 #: joints).
 def _panda():
-    from tests.model.test_cell import PANDA_CELL
+    from tests.cell.test_cell import PANDA_CELL
 
     return build_problem(parse_problem(tomllib.loads(PANDA_CELL), "panda.toml"))
 
