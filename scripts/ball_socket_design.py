@@ -48,6 +48,7 @@ def main() -> int:
     args = parser.parse_args()
     data = Path(args.data) / "data"
     spec = read_problem(ROOT / "problems" / "panda_ball_socket.toml")
+    base = build_problem(spec)  # the test poses' recordings are read with it
     print(f"m = {args.m}: consistency (mm) at the test poses' placement after identifying each plan")
     print(f"{'robot':8s} {'candidates':14s} {'test poses':12s} {'test-pose':>9s} {'D':>7s} {'random median':>13s} "
           f"{'(quartiles)':>15s} {'all':>7s}")
@@ -55,8 +56,7 @@ def main() -> int:
     for robot, cand in CASES.items():
         places = sorted(p.name for p in (data / robot).iterdir() if p.is_dir() and p.name != cand)
         for test in places:
-            problem = build_problem(spec)
-            trec = read_recordings(problem, [str(data / robot / test)], "--validation")
+            trec = read_recordings(base, [str(data / robot / test)], "--validation")
             problem = build_problem(dataclasses.replace(spec, test_poses=TestPoseSpec(
                 ("x", "y", "z"), "joints", joints_rad=tuple(map(tuple, trec.Q[::3])))))
             rec = read_recordings(problem, [str(data / robot / cand)], "--candidates")

@@ -300,7 +300,7 @@ class Judged:
 MOVED_STD = 4.0
 #: A held-out placement was not recorded well when more than this share of its configurations
 #: are beyond the prediction (:func:`beyond_prediction`; by chance 1e-3 of them). On MUKCa's
-#: recordings: 51 of 62 at panda_2's ``high``, at most 7 of 62 at every other placement.
+#: recordings: 52 of 62 at panda_2's ``high``, at most 7 of 62 at every other placement.
 UNSEATED_SHARE = 0.25
 
 
@@ -366,16 +366,16 @@ def beyond_prediction(p: np.ndarray, k: np.ndarray, S: np.ndarray) -> np.ndarray
     return np.einsum("na,na->n", d, np.linalg.solve(S, d[:, :, None])[:, :, 0]) > MOVED_STD**2
 
 
-def predicted(A: Artefact, k: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+def predicted(A: Artefact, k: np.ndarray, cov: np.ndarray, S: np.ndarray) -> tuple[float, float]:
     """The expected consistency and spacing error (m) of one placement's configurations seated
     at ``k`` (N,) whose FK points err by ``e`` of covariance ``cov`` (3N x 3N, m^2; the seating's
     noise included): a point's deviation from its point's mean is ``d_i = e_i - mean_k e``, its
-    expected length by a seeded Monte Carlo of its 3 x 3 covariance; the spacing error of two
+    expected length by a seeded Monte Carlo of its 3 x 3 covariance ``S_i``
+    (:func:`centred_covariances`, ``S`` (N, 3, 3)); the spacing error of two
     means is a normal of variance ``u^T cov(mean_b e - mean_a e) u``, ``u`` their direction:
     ``sqrt(2 v / pi)`` its expected size."""
     N = len(k)
     seen = np.unique(k)
-    S = centred_covariances(k, cov)
     z = np.random.default_rng(DISTANCE_SEED).standard_normal((DISTANCE_DRAWS, 3))
     w, U = np.linalg.eigh((S + S.transpose(0, 2, 1)) / 2)
     lengths = np.linalg.norm(np.einsum("kab,kb,zb->kza", U, np.sqrt(np.clip(w, 0.0, None)), z), axis=2)
@@ -454,11 +454,12 @@ def judged(problem: Problem, f: ArtefactFit, rec: Recordings, field: Field | Non
         cov = error_covariance(f, J[rows], row_covariances(field, s, problem.sigma_m, Qt, dqt, rec.Q[rows], dqh[rows]))
         c, sp = figures(A, p[rows], k)
         c0, sp0 = figures(A, p0[rows], k)
-        pc, ps = predicted(A, k, cov)
+        S = centred_covariances(k, cov)
+        pc, ps = predicted(A, k, cov, S)
         delta, moved, C = relocated(*frame_poses(model, rec.Q[rows], np.zeros((len(rows), model.nF)), f.X), k, cov)
         out.append(Judged(name, len(rows), c, sp, pc, ps, c0, sp0, tuple(float(x) for x in delta),
                           float(np.sqrt(delta @ np.linalg.solve(C, delta))), moved,
-                          int(beyond_prediction(p[rows], k, centred_covariances(k, cov)).sum())))
+                          int(beyond_prediction(p[rows], k, S).sum())))
     return out
 
 
