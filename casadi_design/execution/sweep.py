@@ -6,7 +6,8 @@ sweep's plan for the previous m (``m_prev``) completed with ``m - m_prev`` rando
 experiments drawn from their own generator (:func:`warm_start_rng`). The warm start runs
 after the seeded starts and wins only when strictly better, so a sweep's design equals the
 solve's design when the warm start does not win, and is better when it does; each row says
-which happened (``warm_start_won``) and keeps the best seeded result.
+which happened (``warm_start_won``) and keeps the best result of the solve's own starts
+(seeded and rounded: ``seeded_best_max_error_mm``).
 
 Reference line "repeat the best single pose": repeating a plan k times multiplies M by k, so
 ``sqrt(rho)`` is divided by ``sqrt(k)``. From the best test-pose plan of ``m_ref`` experiments
@@ -26,7 +27,7 @@ import numpy as np
 from ..measures.criteria import CRITERIA
 from ..optimisation.bound import ApproximateDesign
 from ..optimisation.solve import StartExecutor
-from ..plan.design import Design
+from ..plan.design import WARM_ORIGIN, Design
 from ..plan.sampling import random_plan
 from ..problem.build import Problem
 from ..records.results import design_from_record, design_record, results_dict
@@ -52,9 +53,6 @@ def warm_start_plan(problem: Problem, previous: Design, m: int) -> tuple[np.ndar
     Q_new, F_new = random_plan(problem, k, warm_start_rng(problem.solver.seed, previous.criterion, m))
     return np.vstack([previous.Q, Q_new]), np.vstack([previous.F, F_new])
 
-
-#: ``StartRecord.origin`` of the warm start of a sweep.
-WARM_ORIGIN = "warm start"
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,7 +155,7 @@ def sweep_rows(sweep: Sweep) -> list[dict]:
     rows = []
     for (c, m), d in sweep.designs.items():
         scores, crit = d.scores, CRITERIA[c]
-        seeded = d.best_seeded()
+        seeded = d.best_of_solve()
         rows.append({
             "criterion": c,
             "m": m,

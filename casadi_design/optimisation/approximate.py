@@ -199,7 +199,7 @@ def _search(problem: Problem) -> Search:
     rules = problem.rules.pose
     R = 0 if rules.collision is None else len(rules.collision.cases)
     row = {} if rules.collision is None else _search_rows(rules.collision, fns.n, fns.p)  # none without a cell
-    lbx, ubx = plan_bounds(problem, 1, loads)
+    lbx, ubx = plan_bounds(problem, 1, loads, box=False)
     lbg, ubg = rule_bounds(problem, 1, loads)
     return Search(fixed, row, np.arange(c.numel(), c.numel() + R), lbx, ubx, lbg, ubg)
 

@@ -25,6 +25,8 @@ EXCHANGE_ENDED = "Exchange_Ended"
 CONVERGED = ("Solve_Succeeded", "Solved_To_Acceptable_Level", EXCHANGE_ENDED)
 #: ``StartRecord.origin`` of the seeded random starts.
 SEEDED = "seeded"
+#: ``StartRecord.origin`` of the warm start of a sweep (:mod:`casadi_design.execution.sweep`).
+WARM_ORIGIN = "warm start"
 
 
 @dataclass(frozen=True)
@@ -166,10 +168,11 @@ class Design:
         return {"starts_at_optimum": len(tied), "min_max_rms_error_m": min(tied),
                 "max_max_rms_error_m": max(tied)}
 
-    def best_seeded(self) -> StartRecord | None:
-        """The record that wins among the seeded starts (the rule of the multi-start)."""
+    def best_of_solve(self) -> StartRecord | None:
+        """The record that wins among the starts a solve runs too (the seeded and the rounded
+        ones: all but a sweep's :data:`WARM_ORIGIN`), by the rule of the multi-start."""
         crit, best = CRITERIA[self.criterion], None
         for rec in self.starts:
-            if rec.origin == SEEDED and rec.converged and (best is None or crit.better(rec.value, best.value)):
+            if rec.origin != WARM_ORIGIN and rec.converged and (best is None or crit.better(rec.value, best.value)):
                 best = rec
         return best
