@@ -41,7 +41,7 @@ from .field_fit import FieldFit, estimate_field
 from .fit import FitModel, fit_model
 from .lsq import LSQ_TOL, frame_poses, measurement_jacobian, nominal_poses, remembered
 from .recordings import Recordings
-from .residuals import ErrorScale, deleted_scores, error_scale, leverages, press, without_outliers
+from .residuals import ErrorScale, chi2_quantile, deleted_scores, error_scale, leverages, press, without_outliers
 
 #: Outlier test: a configuration whose externally studentized residual exceeds this many of the
 #: other rows' errors is a ball not seated; at most this share of the rows is excluded.
@@ -252,11 +252,9 @@ def cross_validate(f: ArtefactFit) -> tuple[np.ndarray | None, str]:
 def scale_of(f: ArtefactFit, sigma: float) -> ErrorScale:
     """The error per value (m): the seating repeatability ``sigma`` and the robot's unmodelled
     error, from the PRESS residuals when the chi-square test rejects sigma alone (:mod:`.residuals`)."""
-    from scipy.stats import chi2
-
     r = f.r[f.used]
     ssr = float(np.sum(r**2))
-    rejected = ssr / sigma**2 > chi2.ppf(UNMODELLED_CONFIDENCE, max(f.dof, 1))
+    rejected = ssr / sigma**2 > chi2_quantile(UNMODELLED_CONFIDENCE, max(f.dof, 1))
     return error_scale(r, leverages(f.J[f.used], f.information), sigma, math.sqrt(ssr / max(f.dof, 1)), rejected)
 
 

@@ -80,7 +80,7 @@ from .fit import (
 from .lsq import check_loss, nominal_poses, pose_parts
 from .measurements import Measurements, measured_axes
 from .registration import rigid_fit
-from .residuals import ErrorScale, deleted_scores, error_scale, leverages, without_outliers
+from .residuals import ErrorScale, chi2_quantile, deleted_scores, error_scale, leverages, without_outliers
 
 #: A row whose externally studentized residual exceeds this many times the other rows' error
 #: (at least sigma) is an outlier (default of ``--outlier-sigma``; :func:`row_scores`).
@@ -456,13 +456,9 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     """
     if model not in MODELS:
         raise ProblemError(f"--model {model}: allowed for tracker measurements: {', '.join(MODELS)}")
-    from scipy.stats import chi2  # imported here: scipy.stats takes ~1 s to import
-
     if not threshold > 0:
         raise ProblemError(f"--outlier-sigma {threshold:g}: give a positive number of sigma, e.g. 4")
     check_loss(loss)
-    if model not in MODELS:
-        raise ProblemError(f"--model {model}: allowed: {', '.join(MODELS)}")
     if model == "prior" and problem.spec.calibration.prior is None:
         raise ProblemError("--model prior: the problem file has no [calibration.prior]; add one "
                            "(a standard deviation per group, e.g. length_m = 1e-3, angle_rad = 1e-3)")
@@ -494,10 +490,10 @@ def calibrate(problem: Problem, meas: Measurements, frame: str = "tracker",
     N = int(f.mask[f.used].sum())
     dof = N - L - (0 if f.frames is None else f.frames.size)  # the later rounds' frames too
     ssr = float(np.sum(f.r[f.used] ** 2))
-    interval = ((float(chi2.ppf((1 - CONFIDENCE) / 2, dof)), float(chi2.ppf((1 + CONFIDENCE) / 2, dof)))
+    interval = ((float(chi2_quantile((1 - CONFIDENCE) / 2, dof)), float(chi2_quantile((1 + CONFIDENCE) / 2, dof)))
                 if dof > 0 else (0.0, float("inf")))
     sigma_hat = float(np.sqrt(ssr / dof)) if dof > 0 else float("nan")
-    rejected = dof > 0 and ssr / sigma**2 > float(chi2.ppf(UNMODELLED_CONFIDENCE, dof))
+    rejected = dof > 0 and ssr / sigma**2 > float(chi2_quantile(UNMODELLED_CONFIDENCE, dof))
     scale = error_scale(f.r[f.used], leverages(f.J[f.used], f.information), sigma, sigma_hat, rejected)
     s_m = scale.s_m
     C = s_m**2 * np.linalg.inv(f.information)

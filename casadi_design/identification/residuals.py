@@ -49,6 +49,16 @@ F = TypeVar("F")
 LEVERAGE_RTOL = 1e-8
 
 
+def chi2_quantile(p: float, dof):
+    """Quantile ``p`` of the chi-square law with ``dof`` degrees of freedom (``dof`` need not
+    be an integer; a number or an array): ``2 P^-1(dof / 2, p)`` with ``P`` the regularised
+    lower incomplete gamma function, as ``scipy.stats.chi2.ppf`` computes it (from
+    scipy.special, a third of scipy.stats's second of import)."""
+    from scipy.special import gammaincinv
+
+    return 2.0 * gammaincinv(np.asarray(dof, dtype=float) / 2.0, p)
+
+
 def leverages(J: np.ndarray, H: np.ndarray) -> np.ndarray:
     """``P_i = J_i H^-1 J_i^T`` (m, d, d) of the rows of ``J`` (m, d, L); ``H`` (L, L)."""
     return np.einsum("kai,ij,kbj->kab", J, np.linalg.inv(H), J)

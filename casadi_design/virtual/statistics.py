@@ -14,16 +14,10 @@ from typing import Protocol
 
 import numpy as np
 
+from ..identification.residuals import chi2_quantile
+
 #: Level of the confidence intervals of the empirical RMS errors.
 CONFIDENCE = 0.95
-
-
-def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
-    """Quantile ``p`` of the chi-square law with ``dof`` degrees of freedom (``scipy.stats.chi2.ppf``;
-    dof need not be an integer)."""
-    from scipy.stats import chi2  # imported here: scipy.stats takes ~1 s to import
-
-    return chi2.ppf(p, np.asarray(dof, dtype=float))
 
 
 def effective_dof(C: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ import pytest
 import casadi_design.cli
 from casadi_design.cli.validate import add_arguments, run
 from casadi_design.errors import DesignError, OutputError, ProblemError
+from casadi_design.identification.residuals import chi2_quantile
 from casadi_design.measures.measures import score_plan
 from casadi_design.optimisation.solve import solve_design
 from casadi_design.plan.sampling import random_plan
@@ -35,7 +36,7 @@ from casadi_design.virtual.simulate import (
     nominal_poses,
     simulate_measurements,
 )
-from casadi_design.virtual.statistics import chi2_quantile, rms_interval
+from casadi_design.virtual.statistics import rms_interval
 from tests.conftest import ROOT, build, paper_raw, read_raw
 
 GEOMETRIC = ROOT / "problems" / "planar_2r_geometric.toml"
