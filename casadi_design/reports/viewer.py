@@ -523,7 +523,8 @@ def artefact_identification_view(calibration, scene: Scene) -> dict:
     J0 = registered(ball_points(f.fit.model, tp.q, f.X)[1], tp.position_m)
     rms = np.sqrt(np.einsum("sil,lk,sik->s", J0, c.C, J0))
     poses = [{"number": i + 1, "frame": i, "q": [float(v) for v in rec.Q[i] / scales], "measured": False,
-              "clearance_mm": None, "closest": None, "load": [], "load_text": "", "arrow": None,
+              "clearance_mm": None, "closest": None, "load": [], "load_text": load_words(problem, np.zeros(0)),
+              "arrow": None,
               "used": bool(f.used[i]), "residual_rms_mm": _number(np.linalg.norm(f.r[i]) / np.sqrt(3) * 1e3),
               "residual_max_mm": _number(np.max(np.abs(f.r[i])) * 1e3)} for i in range(rec.N)]
     return {"kind": "identification",

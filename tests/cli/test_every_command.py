@@ -125,9 +125,10 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     for folder in (solved, tmp_path / "figures", tmp_path / "program", tmp_path / "identify",
                    *([second] if problem.artefact is None else [])):
         assert (folder / "viewer.html").stat().st_size > 0  # tests/reports/test_viewer.py opens them
-        # the measured point named as what it is, in the legend and the pose's panel
-        assert read_viewer_data(folder / "viewer.html")["point"] == ("reflector" if problem.artefact is None
-                                                                     else "ball centre")
+        # the measured point named as what it is, in the legend and the pose's panel, and each pose's load
+        data = read_viewer_data(folder / "viewer.html")
+        assert data["point"] == ("reflector" if problem.artefact is None else "ball centre")
+        assert all(p["load_text"] for v in data["views"] for p in v["poses"])
     assert json.loads((tmp_path / "validate" / "validation.json").read_text())["trials"] == TRIALS
     identified = json.loads((tmp_path / "identify" / "identification.json").read_text())
     assert (tmp_path / "identify" / "calibrated.urdf").stat().st_size > 0
