@@ -54,7 +54,6 @@ def warm_start_plan(problem: Problem, previous: Design, m: int) -> tuple[np.ndar
     return np.vstack([previous.Q, Q_new]), np.vstack([previous.F, F_new])
 
 
-
 @dataclass(frozen=True, eq=False)
 class Sweep:
     """The designs of a sweep and how they were obtained.
