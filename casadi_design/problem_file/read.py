@@ -145,9 +145,13 @@ def _parse(raw: dict, path: str) -> ProblemSpec:
     name = top.get("name", str, Path(path).stem)
     description = top.get("description", str, "")
     robot = read_robot(top.sub("robot", required=True))
-    calibration = read_calibration(top.sub("calibration", required=True))
+    cal = top.sub("calibration", required=True)
+    calibration = read_calibration(cal)
     elastic = calibration.case in ("elastostatic", "both")
     measurement = read_measurement(top.sub("measurement", required=True))
+    if measurement.artefact is not None and calibration.model_error is not None:
+        raise cal.error("is not held by a design of an artefact's configurations yet", "remove it: identify "
+                        "estimates the robot's unmodelled error from the recordings", "model_error")
     test_poses = read_test_poses(top.sub("test_poses", required=True), measurement, len(calibration.wrench_components))
     exp = top.sub("experiments", required=True)
     m_raw = exp.get("m", (int, list), hint="the number of experiments, e.g. m = [1, 5]")

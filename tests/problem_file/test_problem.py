@@ -8,7 +8,8 @@ import pytest
 from casadi_design.errors import DesignError, ProblemError
 from casadi_design.optimisation.solve import solve_design
 from casadi_design.problem.build import load_problem
-from tests.conftest import ROOT, build, paper_raw
+from casadi_design.problem_file.read import parse_problem
+from tests.conftest import ROOT, build, paper_raw, read_raw
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "problems").glob("*.toml")), ids=lambda p: p.name)
@@ -82,6 +83,36 @@ def _edit(path: str, value):
 def test_bad_input_messages(path, value, match):
     with pytest.raises(ProblemError, match=match):
         build(_edit(path, value))
+
+
+PANDA = ROOT / "problems" / "panda_ball_socket.toml"
+
+
+def _artefact(edit):
+    raw = read_raw(PANDA)
+    edit(raw, raw["measurement"]["artefact"])
+    return raw
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda r, a: a.update(points_m=[[0, 0, 0], [50, 0, 0]]), r"\[measurement.artefact\].points_m: has points 50 m apart; "
+     r"give them in m"),
+    (lambda r, a: a.update(points_m=[[0, 0, 0], [0, 0, 0]]), r"points_m: has a point twice"),
+    (lambda r, a: a.update(points_m=[]), r"points_m: expected finite numbers of shape any x 3, got \[\]; one row"),
+    (lambda r, a: r["measurement"].update(components=["x", "y"]), r"\[measurement\].components: an artefact's points "
+     r"are met by one point in x, y and z"),
+    (lambda r, a: r["measurement"].update(sigma_rad=1e-4), r"\[measurement\].sigma_rad: is not used with an artefact"),
+    (lambda r, a: a["placements"].append(dict(a["placements"][0])), r"placements\[5\]\].name: 'front_center' is empty "
+     r"or repeated"),
+    (lambda r, a: a.update(tilt_max_deg=200), r"tilt_max_deg: is 200 deg; give an angle in deg up to 180"),
+    (lambda r, a: a.update(clamps=9), r"\[measurement.artefact\].clamps"),
+    # the design's test-pose measure with a field is that of tracker rows (no placements' poses)
+    (lambda r, a: r["calibration"].update(model_error={"angle_rad": [2e-4] * 7, "length_rad": [0.3] * 7}),
+     r"\[calibration\].model_error: is not held by a design of an artefact's configurations yet; remove it"),
+])
+def test_bad_artefact_input_messages(edit, match):
+    with pytest.raises(ProblemError, match=match):
+        parse_problem(_artefact(edit), "test.toml")
 
 
 def test_bad_ipopt_option_is_refused_before_solving():
