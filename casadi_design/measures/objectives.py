@@ -111,6 +111,9 @@ class Objective:
 
     epigraph: bool = False
     kappa: float = 0.0
+    #: phi > 0 at every regular M (A, I): ``log phi`` has its minimisers and no scale (the
+    #: seated NLP, :mod:`casadi_design.optimisation.seated_nlp`, minimises it)
+    positive: bool = False
 
     @property
     def couples(self) -> bool:
@@ -170,6 +173,7 @@ class TraceInverse(Objective):
     """A: ``tr(N) = |C^-1|_F^2``."""
 
     kappa: float = 2.0
+    positive: bool = True
 
     def at(self, M, C, Cinv, P, power) -> Local:
         return Local(float(np.sum(Cinv * Cinv)))
@@ -184,6 +188,7 @@ class MeanTestPose(Objective):
     rows (``rho_j = sigma^2 tr(H_j N)``)."""
 
     kappa: float = 2.0
+    positive: bool = True
 
     def weights(self, B0s: np.ndarray) -> np.ndarray:
         return np.einsum("jri,jrl->il", B0s, B0s) / B0s.shape[0]

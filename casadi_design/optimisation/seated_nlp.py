@@ -4,10 +4,10 @@ along the seated configurations by IPOPT.
 Each experiment i keeps its socket ``c_i = t_g + R_g a_k`` (point k of placement g of the problem
 file, :func:`~casadi_design.plan.seated.socket_positions`) and moves its joints ``q_i``
 (rad) within the joint limits and within :data:`SEATED_NLP_BOX` of the exchange's plan, its
-nominal ball held in the socket and its hand within the tilt:
+nominal ball held in its socket and its hand within the tilt:
 
     minimise  (mean_j rho_j^r)^(1/r),   rho_j = tr(B0_j M(Q)^-1 B0_j^T)   (j = 1..s)
-              (test-pose; D: -log det M(Q))
+              (test-pose; any other criterion: its phi(M(Q)) / k)
     subject to  p(q_i) = c_i,   z(q_i) . (-R_g e_z) >= cos(tilt_max),
 
 with ``M(Q) = sum_i [B_i(q_i), -G_i]^T [B_i(q_i), -G_i]`` the information of X (the base set the
@@ -16,8 +16,12 @@ exchange's pool tells) and every placement's pose, ``B0`` the test poses' regist
 :func:`~casadi_design.calibration.artefact.registered`): the test-pose measure of the pool engine,
 here a CasADi graph of the plan (its values equal the engine's, a test checks them to 1e-7), so
 IPOPT gets its exact gradient; a limited-memory Hessian. The r-mean is the test-pose criterion's
-smooth surrogate, the max as r grows (:data:`SEATED_NLP_POWERS`). The plan is kept where IPOPT
-converges to a plan that keeps every rule and scores better by the max itself
+smooth surrogate, the max as r grows (:data:`SEATED_NLP_POWERS`). The other criteria are their
+own ``phi(M)`` of :mod:`~casadi_design.measures.objectives` (D ``-log det M``, A ``log tr M^-1``, E
+and condition their spectral surrogates for each power of the criterion's ``powers``), with
+its gradient ``dphi/dM`` (:class:`CriterionOfM`), divided by k, the number of parameters of X
+(IPOPT diverges on D's sum). The plan is kept where IPOPT converges to a
+plan that keeps every rule and scores better by the criterion itself
 (:func:`~.artefact_pool.artefact_scores`).
 """
 
@@ -30,6 +34,7 @@ import numpy as np
 
 from ..calibration.artefact import placement_columns
 from ..measures.criteria import CRITERIA
+from ..measures.objectives import Objective
 from ..plan.design import Design, StartRecord
 from ..plan.seated import socket_positions
 from ..plan.rules import plan_violations
@@ -43,8 +48,6 @@ from .ipopt import QUIET, ipopt_call
 #: problems/panda_ball_socket.toml, m = 16: 200 iterations, worse than its start; the exact
 #: Hessian takes 45 s); the 8- then 32-mean converge in about 1 s each (0.0919 -> 0.0548 mm).
 SEATED_NLP_POWERS = (8.0, 32.0)
-#: The criteria the NLP is built for: test-pose (the surrogates above) and D (``-log det M``).
-SEATED_CRITERIA = ("test-pose", "D")
 #: Each joint moves at most this far (rad) from the exchange's plan: without the box, D's NLP
 #: left for near-singular plans and ended there (problems/panda_ball_socket.toml without its
 #: joint margin, m = 24, at front_center: log det M 16.0 -> -32 after 500 iterations; within
@@ -60,11 +63,12 @@ SEATED_NLP = "NLP along the seated configurations, from the exchange's plan"
 
 
 def seated_graph(problem: Problem, design: Design) -> tuple[ca.Function, ca.Function, ca.Function, np.ndarray,
-                                                             np.ndarray]:
+                                                             np.ndarray, np.ndarray]:
     """The CasADi functions of the plan ``Q`` (n x m, rad) of ``design`` (its seating fixed):
-    ``rho(Q)`` (s,), ``tr(B0_j M^-1 B0_j^T)``; ``log_det(Q)``, ``log det M`` (D's score); and
-    ``seat(Q)`` (4m,): each experiment's ball minus its socket (m) then the cosine of its tilt;
-    with the sockets (m, 3) and the pool's parameters' columns in the problem's model."""
+    ``rho(Q)`` (s,), ``tr(B0_j M^-1 B0_j^T)``; ``information(Q)``, M (L x L); and ``seat(Q)``
+    (4m,): each experiment's ball minus its socket (m) then the cosine of its tilt; with the
+    sockets (m, 3), the pool's parameters' columns in the problem's model and the test poses'
+    registered rows ``B0`` (s, 3, L)."""
     model, A = problem.model, problem.artefact
     s = design.seated
     pool = artefact_pool(problem, design.Q, s.point, s.placement)
@@ -91,31 +95,86 @@ def seated_graph(problem: Problem, design: Design) -> tuple[ca.Function, ca.Func
     M = J.T @ J
     X = ca.solve(M, ca.DM(B0.T))
     rho = ca.reshape(ca.sum1(ca.DM(B0.T) * X), 3, -1)  # each row's B0_r M^-1 B0_r^T, three a pose
-    return (ca.Function("rho", [Q], [ca.sum1(rho).T]), ca.Function("log_det", [Q], [ca.log(ca.det(M))]),
-            ca.Function("seat", [Q], [ca.vertcat(*seat, *tilt)]), sockets, np.array(kept))
+    return (ca.Function("rho", [Q], [ca.sum1(rho).T]), ca.Function("information", [Q], [M]),
+            ca.Function("seat", [Q], [ca.vertcat(*seat, *tilt)]), sockets, np.array(kept), pool.B0)
+
+
+class CriterionOfM(ca.Callback):
+    """A criterion's ``phi(M) / k`` (:class:`~casadi_design.measures.objectives.Objective`; ``P``
+    its weights, ``power`` r of a surrogate; ``log phi(M) / k`` where phi is positive: A's
+    ``tr M^-1`` is 1e6 on a Panda's plans) of a symmetric L x L matrix M, for IPOPT: the value,
+    and its gradient in M as CasADi's Jacobian (no second derivative: the NLP's Hessian is
+    limited-memory). Not a number where M is not positive definite: IPOPT then cuts its step.
+    The caller keeps the object alive as long as a solver calls it."""
+
+    def __init__(self, objective: Objective, P: np.ndarray | None, power: float, L: int, k: int,
+                 gradient: bool = False):
+        ca.Callback.__init__(self)
+        self.objective, self.P, self.power, self.L, self.k, self.gradient = objective, P, power, L, k, gradient
+        self._jacobians: list[CriterionOfM] = []
+        self.construct("dphi" if gradient else "phi", {})
+
+    def get_n_in(self) -> int:
+        return 2 if self.gradient else 1  # a Jacobian's inputs: M and phi at M
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.L, self.L) if i == 0 else ca.Sparsity.dense(1, 1)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(1, self.L**2 if self.gradient else 1)
+
+    def eval(self, arg):
+        M = np.asarray(arg[0], dtype=float)
+        M = 0.5 * (M + M.T)
+        try:
+            C = np.linalg.cholesky(M)
+        except np.linalg.LinAlgError:
+            return [ca.DM.nan(*self.get_sparsity_out(0).shape)]
+        Cinv = np.linalg.inv(C)
+        local = self.objective.at(M, C, Cinv, self.P, self.power)
+        log = self.objective.positive
+        if not self.gradient:
+            return [(np.log(local.value) if log else local.value) / self.k]
+        G = self.objective.gradient(local, Cinv.T @ Cinv, self.P) / (local.value if log else 1.0)
+        return [ca.DM(np.ravel(0.5 * (G + G.T), order="F")[None] / self.k)]
+
+    def has_jacobian(self) -> bool:
+        return not self.gradient
+
+    def get_jacobian(self, name, inames, onames, opts):
+        jacobian = CriterionOfM(self.objective, self.P, self.power, self.L, self.k, gradient=True)
+        self._jacobians.append(jacobian)  # each one CasADi asks for lives as long as this one
+        return jacobian
 
 
 def seated_nlp(problem: Problem, design: Design) -> Design:
     """IPOPT on the NLP of the module docstring from ``design``'s plan: for the test-pose
-    criterion on the p-mean of rho for each power of :data:`SEATED_NLP_POWERS` in turn, for D
-    on ``-log det M``; the design with the best refined plan that is seated, keeps every rule and
-    scores better by the criterion itself, and with the NLP's records among its starts either
-    way. Other criteria: ``design`` as it is."""
-    if design.criterion not in SEATED_CRITERIA:
-        return design
+    criterion on the p-mean of rho for each power of :data:`SEATED_NLP_POWERS` in turn, for
+    another criterion on its ``phi(M)`` (each power of its surrogate in turn); the design with the
+    best refined plan that is seated, keeps every rule and scores better by the criterion itself,
+    and with the NLP's records among its starts either way."""
     m, n = design.Q.shape
-    rho, log_det, seat, _, kept = seated_graph(problem, design)
+    rho, information, seat, _, kept, B0 = seated_graph(problem, design)
     x = ca.MX.sym("x", n * m)
     r, seated = rho(ca.reshape(x, n, m)), seat(ca.reshape(x, n, m))
-    stages = ([(f"{p:g}-mean", ca.log(ca.sum1(r**p) / r.numel()) / p) for p in SEATED_NLP_POWERS]
-              if design.criterion == "test-pose" else [("log det M", -log_det(ca.reshape(x, n, m)) / len(kept))])  # per parameter of X: IPOPT diverges on the unscaled sum
+    crit = CRITERIA[design.criterion]
+    if design.criterion == "test-pose":
+        stages = [(f"{p:g}-mean", ca.log(ca.sum1(r**p) / r.numel()) / p) for p in SEATED_NLP_POWERS]
+    else:
+        P, M = crit.objective.weights(B0), information(ca.reshape(x, n, m))
+        phis = [(f"{crit.row}, r = {p:g}" if crit.powers else crit.row, CriterionOfM(crit.objective, P, p, len(B0[0, 0]), len(kept)))
+                for p in (crit.powers or (0.0,))]
+        stages = [(name, phi(M)) for name, phi in phis]
     cos_max = float(np.cos(problem.spec.measurement.artefact.tilt_max_rad))
     lower, upper = problem.rules.limits.bounds()
     x0 = design.Q.ravel()
     bounds = {"lbx": np.maximum(np.tile(lower, m), x0 - SEATED_NLP_BOX), "ubx": np.minimum(np.tile(upper, m), x0 + SEATED_NLP_BOX),
               "lbg": np.concatenate([np.zeros(3 * m), np.full(m, cos_max)]),
               "ubg": np.concatenate([np.zeros(3 * m), np.full(m, np.inf)])}
-    best, Q0, better = design, design.Q, CRITERIA[design.criterion].better
+    best, Q0, better = design, design.Q, crit.better
     for stage, f in stages:
         solver = ca.nlpsol("seated", "ipopt", {"x": x, "f": f, "g": seated},
                            {**QUIET, **SEATED_NLP_OPTIONS, "ipopt.max_iter": SEATED_NLP_ITERATIONS,
