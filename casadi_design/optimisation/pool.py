@@ -154,7 +154,8 @@ def _passes(S: list[int], chosen: np.ndarray, state: PlanState | None, restate: 
     """Passes of the modified exchange over the plan ``S`` (in place; ``chosen`` its mask over
     the pool): each position a in turn takes the posture of the least ``keys_at(state, a)`` (a
     key per posture of the pool) when it is below ``current`` by more than
-    :data:`EXCHANGE_RTOL`, and ``restate(S)`` is the state after a swap; until a pass swaps
+    :data:`EXCHANGE_RTOL`, and ``restate(S)`` is the state after a swap (None: M is singular once
+    factored, and the next best posture is tried instead); until a pass swaps
     nothing, ``stop(state)`` holds when a pass would start, or ``budget`` passes. A pass without
     a swap ends at the position of the last swap: that position and those after it were priced
     with this plan and kept it, so the rest of the pass would swap nothing. The passes and the
@@ -169,10 +170,17 @@ def _passes(S: list[int], chosen: np.ndarray, state: PlanState | None, restate: 
                 return passes, swaps      # with this plan and kept it (a keeps the best of its rest)
             keys = np.where(chosen, np.inf, keys_at(state, a))
             i = int(np.argmin(keys))
-            if keys[i] < current - EXCHANGE_RTOL * abs(current):
-                chosen[S[a]], chosen[i] = False, True
-                S[a], current, swapped, swaps, last = i, float(keys[i]), True, swaps + 1, a
-                state = restate(S)
+            while keys[i] < current - EXCHANGE_RTOL * abs(current):
+                old, S[a] = S[a], i
+                new = restate(S)
+                if new is not None:
+                    chosen[old], chosen[i] = False, True
+                    current, swapped, swaps, last, state = float(keys[i]), True, swaps + 1, a, new
+                    break
+                # priced by a low-rank update, singular once factored (a condition number near 1 / eps:
+                # the sweep of problems/panda_ball_socket.toml): not taken, the next best is tried
+                S[a], keys[i] = old, np.inf
+                i = int(np.argmin(keys))
         if not swapped:
             break
     return passes, swaps

@@ -120,3 +120,19 @@ def test_on_figaroh_s_tiago_the_test_pose_choice_generalises_better():
     random = [held_out_mm(rng.choice(37, 12, replace=False)) for _ in range(20)]
     assert chosen["test-pose"] < chosen["D"] < np.median(random)
     assert chosen["test-pose"] == pytest.approx(4.13, abs=0.01) and np.median(random) == pytest.approx(5.45, abs=0.01)
+
+
+def test_a_swap_singular_once_factored_gives_way_to_the_next_best():
+    """The exchange prices swaps by low-rank updates; where the plan with the best one is singular
+    once factored (restate gives None), that swap is not taken and the next best is."""
+    from casadi_design.optimisation.pool import _passes
+
+    keys = np.array([5.0, 5.0, 1.0, 2.0, 4.0])  # posture 2 the best, then 3
+
+    def restate(S):
+        return None if 2 in S else tuple(S)
+
+    S, chosen = [0, 1], np.array([True, True, False, False, False])
+    passes, swaps = _passes(S, chosen, tuple(S), restate, lambda state, a: keys.copy(), 5.0, lambda state: False, 10)
+    assert 2 not in S and 3 in S and swaps >= 1
+    assert chosen.tolist() == [i in S for i in range(5)]
