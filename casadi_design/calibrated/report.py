@@ -17,12 +17,14 @@ FRAME_STEP = 1e-7
 
 
 def parameter_unit(calibration: Calibration, name: str) -> str:
-    """SI unit of parameter ``name``: m, rad, rad/(N m) or m/N."""
+    """SI unit of parameter ``name``: m, rad, rad/(N m) or m/N (a joint's compliance ``k.<joint>``;
+    a bearing's tilt ``k.<joint>.<axis>``: rad/(N m))."""
     robot = calibration.problem.robot
     owner, what = name.split(".", 1)
     prismatic = owner in robot.joints and is_prismatic(calibration.problem, robot.joints.index(owner))
     if owner == "k":
-        return "m/N" if is_prismatic(calibration.problem, robot.joints.index(what)) else "rad/(N m)"
+        joint, _, tilt = what.partition(".")
+        return "m/N" if not tilt and is_prismatic(calibration.problem, robot.joints.index(joint)) else "rad/(N m)"
     if what in ("tx", "ty", "tz") or (what == "offset" and prismatic):
         return "m"
     return "rad"

@@ -169,10 +169,11 @@ def add_campaign(p: argparse.ArgumentParser, m_help: str, candidates: bool = Tru
     p.add_argument("--starts", type=integer("--starts"), metavar="N",
                    help="seeded IPOPT starts per design (default: [solver].starts of the problem)")
     if candidates:
-        choice.add_argument("--candidates", metavar="CSV",
+        choice.add_argument("--candidates", metavar="CSV", action="append",
                        help="choose each plan's experiments from these postures (a plan or measurement CSV: its "
                             "joint and load columns), by exchange from a greedy plan, the pool's approximate "
-                            "design and --starts random choices; the bound is the pool's")
+                            "design and --starts random choices; the bound is the pool's. An artefact's "
+                            "recordings: a placement's folder or a CSV, repeatable (one per placement)")
     add_held(p)
     add_workers(p)
     add_bound_steps(p)
@@ -341,7 +342,10 @@ def study(args: argparse.Namespace, problem: Problem, partial: Path | None = Non
     settings = Settings.of(problem, args.starts, bound_steps=args.bound_steps, bound_pool=args.bound_pool,
                            verbose=args.verbose)
     candidates = getattr(args, "candidates", None)
-    pool = None if candidates is None else _kept_pool(args, problem, candidates)
+    if candidates and len(candidates) > 1:
+        raise ProblemError(f"--candidates is given {len(candidates)} times; give one CSV of postures (join them into "
+                           "one file)")
+    pool = None if candidates is None else _kept_pool(args, problem, candidates[0])
     return Study(problem, criteria, tuple(args.m or default_m), settings, sweep,
                  not getattr(args, "no_warm_start", False), args.jobs, args.dask_scheduler, partial,
                  getattr(args, "resume", False), None if target is None else target * 1e-3, pool)

@@ -199,9 +199,15 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
     from ..identification.artefact_fit import calibrate_artefact
     from ..calibrated.artefact_report import artefact_record, artefact_summary
     from ..calibrated.calibrated_toml import calibrated_problem, toml_text
+    from ..identification.measurements import LIMIT_TOLERANCE
     from ..identification.recordings import read_recordings
     from ..calibrated.urdf import calibrated_chain, urdf_text
 
+    for option, default in (("same_frame", False), ("frame", "tracker"), ("loss", "linear"), ("units", None),
+                            ("joint_units", "rad,m"), ("columns", ""), ("limit_tolerance", LIMIT_TOLERANCE)):
+        if getattr(args, option) != default:  # options of a tracker's measurements
+            raise ProblemError(f"--{option.replace('_', '-')}: not used with an artefact's recordings (joints in rad "
+                               "in the chain's order, a point and a placement each: docs/ball-socket.md); leave it out")
     rec = read_recordings(problem, args.measurements)
     valid = None if not args.validation else read_recordings(problem, args.validation, "--validation")
     if valid is not None and set(valid.names) & set(rec.names):

@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from ..errors import OutputError
+from ..errors import OutputError, ProblemError
 from ..execution.campaign import Campaign
 from ..execution.study import writing
 from ..problem.build import Problem
@@ -51,6 +51,10 @@ def run(args: argparse.Namespace) -> int:
 
     spec = common.read_spec(args, artefact=True)
     if spec.measurement.artefact is not None:
+        if args.program:
+            raise ProblemError(f"{spec.path}: --program: not written by solve for an artefact's configurations yet; "
+                               "run casadi-design program --plan <out>/plans/<criterion>_m<m>.csv (its moves stop "
+                               "back from each socket)")
         return run_artefact(args, spec, out, t0)
     study, done, fig_m = common.design(args, "solve", out / PARTIAL_NAME if out else None, check=check)
     problem = study.problem
@@ -174,12 +178,15 @@ def artefact_designs(args: argparse.Namespace, problem: Problem) -> tuple:
     placements), the placements' names, each configuration's source, a line saying where they
     come from, and the :class:`~casadi_design.optimisation.artefact_pool.ClampChoice` of each
     (criterion, m)."""
+    from ..execution.campaign import check_criteria
     from ..identification.recordings import read_recordings
     from ..optimisation.artefact_pool import choose_clamps
     from ..plan.seated import seated_configurations
 
+    criteria = tuple(args.criteria or problem.criteria)
+    check_criteria(problem, criteria)
     if getattr(args, "candidates", None):
-        pool = read_recordings(problem, [args.candidates], "--candidates")
+        pool = read_recordings(problem, args.candidates, "--candidates")
         names, sources, clamps = pool.names, pool.sources, len(pool.names)
         where = f"{pool.N} recorded configurations of {', '.join(names)}"
     else:
@@ -188,7 +195,6 @@ def artefact_designs(args: argparse.Namespace, problem: Problem) -> tuple:
         sources = tuple(f"seated at point {k} of {names[g]}" for k, g in zip(pool.point, pool.placement))
         where = (f"{len(pool.Q)} configurations seated by the nominal robot at {', '.join(names)}, "
                  f"recorded at the best {common.count(clamps, 'placement')}")
-    criteria = tuple(args.criteria or problem.criteria)
     seated = not getattr(args, "candidates", None)
     choices = {(c, m): choose_clamps(problem, pool.Q, pool.point, pool.placement, names, c, m,
                                      args.starts or problem.solver.starts_for(c), clamps, seated)

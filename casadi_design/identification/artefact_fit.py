@@ -359,9 +359,12 @@ def beyond_prediction(p: np.ndarray, k: np.ndarray, S: np.ndarray) -> np.ndarray
     than :data:`MOVED_STD` standard deviations of the predicted error ``S``
     (:func:`centred_covariances`): ``d_i^T S_i^-1 d_i > MOVED_STD^2``, shape (N,) bool. Where
     many are, the robot's own error is not what the consistency measures: balls not seated, or
-    the tool moved while it was recorded."""
+    the tool moved while it was recorded. A point of one configuration is its own mean: never
+    beyond."""
+    alone = np.array([np.sum(k == j) == 1 for j in k])  # a point of one configuration: its own mean
     d = p - _point_means(k) @ p
-    return np.einsum("na,na->n", d, np.linalg.solve(S, d[:, :, None])[:, :, 0]) > MOVED_STD**2
+    S = np.where(alone[:, None, None], np.eye(3), S)
+    return ~alone & (np.einsum("na,na->n", d, np.linalg.solve(S, d[:, :, None])[:, :, 0]) > MOVED_STD**2)
 
 
 def predicted(A: Artefact, k: np.ndarray, cov: np.ndarray, S: np.ndarray) -> tuple[float, float]:
@@ -456,7 +459,7 @@ def judged(problem: Problem, f: ArtefactFit, rec: Recordings, field: Field | Non
         pc, ps = predicted(A, k, cov, S)
         delta, moved, C = relocated(*frame_poses(model, rec.Q[rows], np.zeros((len(rows), model.nF)), f.X), k, cov)
         out.append(Judged(name, len(rows), c, sp, pc, ps, c0, sp0, tuple(float(x) for x in delta),
-                          float(np.sqrt(delta @ np.linalg.solve(C, delta))), moved,
+                          float(np.sqrt(delta @ np.linalg.pinv(C) @ delta)), moved,
                           int(beyond_prediction(p[rows], k, S).sum())))
     return out
 
@@ -531,6 +534,11 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
         if model == TILT_MODEL:  # + the tilts of the joints' bearings under the moments they carry
             bent = artefact_base_set(problem, rec, told + tuple(f"k.{j}" for j in bent_joints(problem, rec.Q)), True)[0]
             wanted.append((TILT_MODEL, bent, True))
+    if model != "auto" and model not in [n for n, _, _ in wanted]:  # the weight's models, on a robot without masses
+        why = ("its own weight loads no joint at these configurations;" if has_weight(problem) else
+               "the robot's links carry no masses, so its own weight loads no joint; give [robot] inertias_urdf (a "
+               "URDF with the links' inertias) or")
+        raise ProblemError(f"--model {model}: {why} give another model")
     found, signs = [], []
     for name, chosen, gravity in wanted:
         same = [c for n, c, _ in wanted if n != name and (n, name) in (("ball", "offsets"), ("identifiable", "offsets"))]

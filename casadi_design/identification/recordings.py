@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +32,8 @@ from ..records.export import LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_
 PLACEMENT_NAME = SEATED_COLUMNS[2]
 #: The file name of a point's recordings in a placement's folder.
 POINT_FILE = re.compile(r"hole_(\d+)\.csv")
+#: The largest point or placement number a CSV may give (beyond: not a label, and an int64 overflows).
+MAX_LABEL = 10**6
 #: Joint values all within this many rad of 0 with some beyond 2 pi look like degrees.
 DEGREES_RAD = 2 * math.pi
 
@@ -105,6 +108,12 @@ def read_recordings(problem: Problem, paths: list[str], option: str = "--measure
     if len(set(names)) != len(names):
         raise ProblemError(f"{option}: placement '{next(n for n in names if names.count(n) > 1)}' is given twice; "
                            "give each placement once")
+    if option == "--validation":  # a point's consistency is its configurations' spread about their mean
+        for name, kg in zip(names, point):
+            one = [j for j in np.unique(kg) if np.sum(kg == j) == 1]
+            if one:
+                raise ProblemError(f"{option} {name}: point {one[0]} has one configuration, which tells no "
+                                   "consistency; record more at that point or leave its file out")
     return Recordings(np.vstack(Q), np.concatenate(point), np.concatenate(placement), tuple(names),
                       tuple(sources), tuple(notes))
 
@@ -135,7 +144,9 @@ def _folder(problem: Problem, folder: Path, option: str) -> tuple[dict, list[str
     Q, k, sources = [], [], []
     for point, f in files:
         try:
-            rows = np.loadtxt(f, delimiter=",", ndmin=2)
+            with warnings.catch_warnings():  # an empty file: skipped below, without numpy's warning
+                warnings.simplefilter("ignore", UserWarning)
+                rows = np.loadtxt(f, delimiter=",", ndmin=2)
         except ValueError as exc:
             raise ProblemError(f"{f}: not a table of numbers ({exc}); give one row of {n} joint values in rad "
                                "per configuration, no header") from None
@@ -182,9 +193,9 @@ def _csv(problem: Problem, path: str, option: str) -> tuple[dict, list[str]]:
             raise ProblemError(f"{path}: no '{c}' column; add it (an integer per row: the artefact's point and "
                                "the placement it was clamped at)")
         v = values[c]
-        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
+        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)) | (np.abs(v) > MAX_LABEL))
         if bad.size:
-            raise ProblemError(f"{path}: row {lines[bad[0]]}, column '{c}': {v[bad[0]]!r} is not an integer; "
+            raise ProblemError(f"{path}: row {lines[bad[0]]}, column '{c}': {float(v[bad[0]]):g} is not an integer; "
                                "give the number")
     notes = list(check_joint_limits(problem, plan, Q, lines))
     named = _placement_names(plan, values["placement"])
@@ -194,7 +205,11 @@ def _csv(problem: Problem, path: str, option: str) -> tuple[dict, list[str]]:
         sources = [f"{path}: row {line}" for line, r in zip(lines, rows) if r]
         k = values["point"][rows].astype(int)
         _checked(problem, f"{path}: placement {g}", Q[rows], k, sources)
-        out[named.get(g, f"{Path(path).stem}:{g}")] = (Q[rows], k, sources)
+        name = named.get(g, f"{Path(path).stem}:{g}")
+        if name in out:
+            raise ProblemError(f"{path}: column '{PLACEMENT_NAME}': '{name}' names two placement numbers; give each "
+                               "placement its own name (or leave the column out)")
+        out[name] = (Q[rows], k, sources)
     return out, notes
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from casadi_design.calibrated.report import parameter_unit
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
 from casadi_design.identification.artefact_fit import (
@@ -181,13 +182,31 @@ def test_bad_recordings_get_one_line_naming_the_file_and_the_fix(simulated, tmp_
         assert "\n" not in str(info.value) and str(folder) in str(info.value)
     with pytest.raises(ProblemError, match="no such file or folder"):
         read_recordings(problem, [str(tmp_path / "missing.csv")])
+    # a held-out point of one configuration tells no consistency (in a fit it is welcome: a plan may have one)
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    np.savetxt(alone / "hole_0.csv", Q[:1], delimiter=",")
+    np.savetxt(alone / "hole_1.csv", Q[1:6], delimiter=",")
+    assert read_recordings(problem, [str(alone)]).N == 6
+    with pytest.raises(ProblemError, match=r"--validation alone: point 0 has one configuration"):
+        read_recordings(problem, [str(alone)], "--validation")
+    joints = ",".join(f"{j}_rad" for j in problem.robot.joints)
+    for name, rows, message in (
+            ("named.csv", [(0, 0, "front"), (1, 0, "front"), (0, 1, "front"), (1, 1, "front")],
+             "'front' names two placement numbers"),
+            ("huge.csv", [(0, 0, "a"), (1e30, 0, "a")], r"column 'point': 1e\+30 is not an integer")):
+        text = [f"{joints},point,placement,placement_name"]
+        text += [",".join(f"{v:.9g}" for v in Q[i]) + f",{k:g},{g},{n}" for i, (k, g, n) in enumerate(rows * 2)]
+        (tmp_path / name).write_text("\n".join(text) + "\n")
+        with pytest.raises(ProblemError, match=message):
+            read_recordings(problem, [str(tmp_path / name)])
 
 
 def test_identify_and_solve_end_to_end(simulated, tmp_path, capsys):
     """identify on one placement's folder with another held out: identification.json holds the
     held-out consistency, measured and predicted; Pinocchio evaluating calibrated.urdf's
     measured_point on the recorded joints gets the consistency identify prints. solve
-    --candidates chooses recordings whose plan CSV identify reads back."""
+    --candidates (one per placement) chooses recordings whose plan CSV identify reads back."""
     problem, _, Q, k, g = simulated
     front = _folder(tmp_path / "front", Q[g == 0], k[g == 0])
     side = _folder(tmp_path / "side", Q[g == 1], k[g == 1])
@@ -209,13 +228,14 @@ def test_identify_and_solve_end_to_end(simulated, tmp_path, capsys):
         P.append(data.oMf[fid].translation.copy())
     assert figures(problem.artefact, np.array(P), k[g == 1])[0] * 1e3 == pytest.approx(v["consistency_mm"], rel=1e-9)
     design = tmp_path / "design"
-    assert main(["solve", str(PANDA), "--candidates", str(front), "--m", "12", "--criteria", "test-pose,D",
-                 "--starts", "2", "--out", str(design), "--quiet"]) == 0
+    assert main(["solve", str(PANDA), "--candidates", str(front), "--candidates", str(side), "--m", "12",
+                 "--criteria", "test-pose,D", "--starts", "2", "--out", str(design), "--quiet"]) == 0
     designs = json.loads((design / "results.json").read_text())["designs"]
     assert [d["criterion"] for d in designs] == ["test-pose", "D"]
     assert designs[0]["max_rms_error_m"] <= designs[1]["max_rms_error_m"]
     chosen = read_recordings(problem, [str(design / "plans" / "test-pose_m12.csv")])
-    assert chosen.N == 12 and set(map(tuple, chosen.Q)) <= set(map(tuple, Q[g == 0]))
+    assert chosen.N == 12 and set(map(tuple, chosen.Q)) <= set(map(tuple, Q))  # from both placements' recordings
+    assert set(chosen.names) <= {"front", "side"}
 
 
 def test_a_model_named_is_the_one_fitted(simulated):
@@ -243,6 +263,7 @@ def test_the_bearings_tilts_are_fitted_when_named_only(simulated):
     assert cal.model == TILT_MODEL and [c.name for c in cal.candidates] == [TILT_MODEL]
     tilts = [n for n in cal.names if n.startswith("k.") and n.count(".") == 2]
     assert tilts and all(n.rsplit(".", 1)[1] in ("rx", "ry") for n in tilts)
+    assert {parameter_unit(cal, n) for n in tilts} == {"rad/(N m)"}  # identification.json's units
     assert TILT_MODEL not in [c.name for c in calibrate_artefact(problem, train, valid, with_field=False).candidates]
 
 
@@ -273,3 +294,29 @@ def test_a_ball_moved_on_the_hand_is_found_and_relocated():
         assert std > 10 if delta.any() else std < 1e-3
         before = figures(A, ball_points(problem.model, Q, np.zeros(L))[0], k)[0]
         assert before > 2e-5 if delta.any() else before < 1e-8
+
+
+def test_what_an_artefact_s_commands_do_not_use_is_refused_in_one_line(simulated, tmp_path, capsys):
+    """A tracker's identify options, an unknown criterion, solve's --program and the weight's
+    models on a robot without masses: one line each, before anything is fitted or solved."""
+    from casadi_design.identification.artefact_fit import calibrate_artefact
+    from tests.conftest import build, read_raw
+
+    problem, _, Q, k, g = simulated
+    front = _folder(tmp_path / "front", Q[g == 0], k[g == 0])
+    for args, message in (
+            (["identify", "--measurements", str(front), "--loss", "cauchy"], "--loss: not used with an artefact"),
+            (["identify", "--measurements", str(front), "--frame", "base"], "--frame: not used with an artefact"),
+            (["solve", "--criteria", "Z"], "--criteria has 'Z'"),
+            (["solve", "--candidates", str(front), "--criteria", "Z"], "--criteria has 'Z'"),
+            (["solve", "--program", "json"], "--program: not written by solve for an artefact")):
+        assert main([args[0], str(PANDA), *args[1:], "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1
+    raw = read_raw(PANDA)
+    del raw["robot"]["inertias_urdf"]  # MUKCa's URDF alone: no masses
+    raw["robot"]["urdf"] = str(ROOT / "problems" / raw["robot"]["urdf"])
+    massless = build(raw)
+    train, valid = _split(Q, k, g)
+    with pytest.raises(ProblemError, match="the robot's links carry no masses"):
+        calibrate_artefact(massless, train, valid, model="identifiable + gravity", with_field=False)
