@@ -78,13 +78,19 @@ def run_artefact(args: argparse.Namespace, spec) -> int:
 
     problem = common.load(args, check_solver=False, spec=spec)
     seated = seated_configurations(problem)
-    ms = args.m or list(range(problem.m_min, max(problem.m_values) + 1))
-    check_m_values(problem, ms)
     clamps = spec.measurement.artefact.clamps
-    per_set = []
+    pools = []
     for S in combinations(range(len(seated.names)), clamps):
         rows = np.flatnonzero(np.isin(seated.placement, S))
-        pool = artefact_pool(problem, seated.Q[rows], seated.point[rows], seated.placement[rows])
+        pools.append((rows, artefact_pool(problem, seated.Q[rows], seated.point[rows], seated.placement[rows])))
+    L = min(pool.B.shape[2] for _, pool in pools)  # X and the placements' poses: 3 values a configuration
+    m_min = max(1, -(-L // 3))
+    ms = args.m or list(range(m_min, max(problem.m_values) + 1))
+    if min(ms) < m_min:
+        raise ProblemError(f"{problem.path}: --m {min(ms)} is too small: the {L} unknowns (X and the placements' "
+                           f"poses) need m >= {m_min} configurations; start the range at {m_min}")
+    per_set = []
+    for rows, pool in pools:
         idx = rows[pool.kept]
         A, F = information_matrices(pool.B[pool.kept]), np.zeros((len(idx), problem.model.nF))
         per_set.append({c: [bound(problem, m, pool_design(problem, c, seated.Q[idx], F, A, m, pool.B0), pool.B.shape[2])

@@ -140,11 +140,12 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     from ..measures.criteria import CRITERIA
 
     check_designable(problem)
-    better, by_set, best = CRITERIA[criterion].better, [], None
+    better, by_set, best, most = CRITERIA[criterion].better, [], None, 0
     for S in combinations(np.unique(placement).tolist(), clamps):
         idx = np.flatnonzero(np.isin(placement, S))
         try:
             pool = artefact_pool(problem, Q[idx], point[idx], placement[idx])
+            most = max(most, int(pool.kept.sum()))
             d = choose_recordings(problem, pool, criterion, m, starts)
         except ProblemError:  # too few configurations, or none of m identifies X there
             by_set.append((tuple(S), None))
@@ -159,8 +160,14 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
         if best is None or better(d.scores.value(criterion), best[0].scores.value(criterion)):
             best = (d, rows, tuple(S))
     if best is None:
-        raise ProblemError(f"{problem.path}: [measurement.artefact]: no {clamps} of the placements give m = {m} "
-                           "configurations that identify the parameters; give a larger m, more placements or raise clamps")
+        where = f"{problem.path}: [measurement.artefact]" if seated else "--candidates"
+        if m > most:
+            raise ProblemError(f"{where}: --m {m}: only {most} configurations keep the problem's rules "
+                               f"([experiments.workspace]) at any {clamps} of the placements; give m <= {most}"
+                               + (" or more placements" if seated else " or more recordings"))
+        raise ProblemError(f"{where}: no {clamps} of the placements give m = {m} configurations that identify the "
+                           "parameters and the placements' poses; give a larger m or more varied configurations"
+                           + (", more placements or raise clamps" if seated else ""))
     return ClampChoice(*best, tuple(by_set))
 
 

@@ -105,6 +105,10 @@ def _artefact(meas: TableReader, measured: tuple[str, ...], markers) -> Artefact
             raise meas.error("is not used with an artefact", "give sigma_m, the seating repeatability in m", key)
     points = table.array("points_m", (None, 3), hint="one row (x, y, z) in m per point, in the artefact's frame, "
                          "e.g. [[0, 0, 0], [0.05, 0, 0]]")
+    if len(points) < 2:  # every configuration at one unknown point: the robot scaled about its base is as consistent
+        raise table.error("has one point, which tells no length: the robot's scale would not be told", "give two "
+                          "or more points a known distance apart, e.g. [[0, 0, 0], [0.05, 0, 0]] for sockets 50 mm "
+                          "apart", "points_m")
     far = float(np.max(np.linalg.norm(points - points[0], axis=1)))
     if far > MAX_ARTEFACT_M:
         raise table.error(f"has points {far:g} m apart", "give them in m, e.g. [[0, 0, 0], [0.05, 0, 0]] for "

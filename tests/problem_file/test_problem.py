@@ -98,6 +98,7 @@ def _artefact(edit):
     (lambda r, a: a.update(points_m=[[0, 0, 0], [50, 0, 0]]), r"\[measurement.artefact\].points_m: has points 50 m apart; "
      r"give them in m"),
     (lambda r, a: a.update(points_m=[[0, 0, 0], [0, 0, 0]]), r"points_m: has a point twice"),
+    (lambda r, a: a.update(points_m=[[0, 0, 0]]), r"points_m: has one point, which tells no length"),
     (lambda r, a: a.update(points_m=[]), r"points_m: expected finite numbers of shape any x 3, got \[\]; one row"),
     (lambda r, a: r["measurement"].update(components=["x", "y"]), r"\[measurement\].components: an artefact's points "
      r"are met by one point in x, y and z"),
