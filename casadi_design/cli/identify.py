@@ -227,9 +227,10 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
                                             header, "", "```", *artefact_summary(cal), "```", "",
                                             "Files: " + ", ".join(f"`{n}`" for n in names), ""])
     files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml", "report": "identification.md"}
+    record = artefact_record(cal, files)  # made before any file is written
     for name, text in texts.items():
         write_atomic(out / name, text.encode())
-    write_json(out / "identification.json", artefact_record(cal, files))
+    write_json(out / "identification.json", record)
     from ..reports.viewer import write_identification_viewer
 
     write_identification_viewer(out, cal)  # the recordings, the sockets and the calibrated ball centres

@@ -180,6 +180,24 @@ def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...],
             [(n, why[bool(live[i])]) for i, n in enumerate(fm.model.parameter_names) if not kept[i]])
 
 
+#: Configurations, uniform within the joint limits, of the recordings that tell every parameter
+#: an artefact's recordings can tell (:func:`generic_base_set`), and their seed.
+GENERIC_CONFIGURATIONS, GENERIC_SEED = 200, 0
+
+
+def generic_base_set(problem: Problem, names: tuple[str, ...]) -> tuple[str, ...]:
+    """The parameters of ``names`` that recordings of varied configurations tell
+    (:func:`artefact_base_set` of :data:`GENERIC_CONFIGURATIONS` uniform within the joint limits,
+    at the artefact's points in turn, one placement): what the kind can tell, against which the
+    recordings' own base set shows configurations that vary too little."""
+    robot = problem.robot
+    rng = np.random.default_rng(GENERIC_SEED)
+    Q = robot.q_min + rng.random((GENERIC_CONFIGURATIONS, robot.n)) * (robot.q_max - robot.q_min)
+    k = np.arange(len(Q)) % problem.artefact.K
+    rec = Recordings(Q, k, np.zeros(len(Q), dtype=int), ("generic",), (), ())
+    return artefact_base_set(problem, rec, names)[0]
+
+
 def row_scores(f: ArtefactFit, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Each row's outlier score and scale (m): its externally studentized residual among the
     rows used (:func:`~.residuals.deleted_scores`); rows not used score -inf."""
@@ -558,6 +576,12 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
         found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why,
                                cv_errors_m=e))
     chosen, notes = choose(found, "auto")
+    told = generic_base_set(problem, problem.model.parameter_names)
+    if len(names) < len(told):
+        missing = [n for n in told if n not in names]
+        notes.append(f"the recordings tell {len(names)} of the {len(told)} parameters an artefact's recordings can "
+                     f"tell (not {', '.join(missing[:6])}{', ...' * (len(missing) > 6)}): their configurations vary "
+                     "too little; record the ball seated in many orientations of the hand and postures")
     if problem.spec.calibration.prior is not None:
         notes.append(f"{problem.path}: [calibration.prior] is not used with an artefact's recordings: the fits are "
                      "least squares")

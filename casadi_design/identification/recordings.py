@@ -106,8 +106,8 @@ def read_recordings(problem: Problem, paths: list[str], option: str = "--measure
             sources += src
         notes += part[1]
     if len(set(names)) != len(names):
-        raise ProblemError(f"{option}: placement '{next(n for n in names if names.count(n) > 1)}' is given twice; "
-                           "give each placement once")
+        raise ProblemError(f"{option}: placement '{next(n for n in names if names.count(n) > 1)}' is given twice (a "
+                           "folder's placement is named by the folder); give each placement once, under its own name")
     if option == "--validation":  # a point's consistency is its configurations' spread about their mean
         for name, kg in zip(names, point):
             one = [j for j in np.unique(kg) if np.sum(kg == j) == 1]
@@ -121,9 +121,10 @@ def read_recordings(problem: Problem, paths: list[str], option: str = "--measure
 def _checked(problem: Problem, where: str, Q: np.ndarray, k: np.ndarray, sources: list[str]) -> None:
     """The checks every layout shares, for one placement ``where``."""
     K = problem.artefact.K
-    if len(Q) < 2:
-        raise ProblemError(f"{where}: one configuration; a placement needs several (the ball seated in its "
-                           "points in many configurations) to tell the robot anything; record more or leave it out")
+    if len(np.unique(Q, axis=0)) < 2:
+        raise ProblemError(f"{where}: one configuration{' repeated' * (len(Q) > 1)}; a placement needs several (the "
+                           "ball seated in its points in many configurations) to tell the robot anything; record more "
+                           "or leave it out")
     bad = np.flatnonzero((k < 0) | (k >= K))
     if bad.size:
         raise ProblemError(f"{sources[bad[0]]}: point {k[bad[0]]} is not a point of the artefact (it has {K}: "

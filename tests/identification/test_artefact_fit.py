@@ -320,3 +320,21 @@ def test_what_an_artefact_s_commands_do_not_use_is_refused_in_one_line(simulated
     train, valid = _split(Q, k, g)
     with pytest.raises(ProblemError, match="the robot's links carry no masses"):
         calibrate_artefact(massless, train, valid, model="identifiable + gravity", with_field=False)
+
+
+def test_recordings_that_vary_too_little_are_said_so(simulated):
+    """Two configurations, each recorded 30 times, tell a base set far smaller than varied
+    recordings do: identify says so, and names what they do not tell; the simulated recordings
+    tell all of it (no note)."""
+    from casadi_design.identification.artefact_fit import calibrate_artefact, generic_base_set
+
+    problem, _, Q, k, g = simulated
+    train, _ = _split(Q, k, g)
+    told = generic_base_set(problem, problem.model.parameter_names)
+    full = calibrate_artefact(problem, train, model="identifiable", with_field=False)
+    assert set(full.names) == set(told) and not any("vary too little" in n for n in full.notes)
+    two = np.repeat(np.flatnonzero(g == 0)[[0, PER_POINT]], 30)  # one configuration at each point
+    poor = Recordings(Q[two], k[two], np.zeros(len(two), dtype=int), ("poor",), (), ())
+    cal = calibrate_artefact(problem, poor, model="identifiable", with_field=False)
+    assert len(cal.names) < len(told)
+    assert any(f"tell {len(cal.names)} of the {len(told)} parameters" in n and "vary too little" in n for n in cal.notes)
