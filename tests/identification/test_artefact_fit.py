@@ -172,6 +172,8 @@ def test_bad_recordings_get_one_line_naming_the_file_and_the_fix(simulated, tmp_
         "one": (lambda d: np.savetxt(d / "hole_0.csv", Q[:1], delimiter=","), "one configuration"),
         "empty": (lambda d: None, "a folder with no recordings"),
         "degrees": (lambda d: np.savetxt(d / "hole_0.csv", np.degrees(Q[:5]), delimiter=","), "look like degrees"),
+        "twice": (lambda d: [np.savetxt(d / f, Q[:5], delimiter=",") for f in ("hole_0.csv", "hole_00.csv")],
+                  "are both point 0"),
     }
     for name, (make, message) in cases.items():
         folder = tmp_path / name
