@@ -83,8 +83,8 @@ def run_artefact(args: argparse.Namespace, spec) -> int:
     for S in combinations(range(len(seated.names)), clamps):
         rows = np.flatnonzero(np.isin(seated.placement, S))
         pools.append((rows, artefact_pool(problem, seated.Q[rows], seated.point[rows], seated.placement[rows])))
-    L = min(pool.B.shape[2] for _, pool in pools)  # X and the placements' poses: 3 values a configuration
-    m_min = max(1, -(-L // 3))
+    L = min(pool.B.shape[2] for _, pool in pools)  # X and the placements' poses
+    m_min = max(1, -(-L // problem.d_independent))
     ms = args.m or list(range(m_min, max(problem.m_values) + 1))
     if min(ms) < m_min:
         raise ProblemError(f"{problem.path}: --m {min(ms)} is too small: the {L} unknowns (X and the placements' "

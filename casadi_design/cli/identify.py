@@ -92,6 +92,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="write into --out even if it exists and is not empty (overwrites our files)")
     p.add_argument("--quiet", "-q", action="store_true",
                    help="no time and no list of the files written; the notes, tables and errors still print")
+    p.set_defaults(tracker_defaults={d: p.get_default(d) for d in TRACKER_OPTIONS})
+
+
+#: The options of a tracker's measurements: refused with an artefact's recordings (:func:`run_artefact`).
+TRACKER_OPTIONS = ("same_frame", "frame", "loss", "units", "joint_units", "columns", "limit_tolerance")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -199,13 +204,11 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
     from ..identification.artefact_fit import calibrate_artefact
     from ..calibrated.artefact_report import artefact_record, artefact_summary
     from ..calibrated.calibrated_toml import calibrated_problem, toml_text
-    from ..identification.measurements import LIMIT_TOLERANCE
     from ..identification.recordings import read_recordings
     from ..calibrated.urdf import calibrated_chain, urdf_text
 
-    for option, default in (("same_frame", False), ("frame", "tracker"), ("loss", "linear"), ("units", None),
-                            ("joint_units", "rad,m"), ("columns", ""), ("limit_tolerance", LIMIT_TOLERANCE)):
-        if getattr(args, option) != default:  # options of a tracker's measurements
+    for option, default in args.tracker_defaults.items():
+        if getattr(args, option) != default:
             raise ProblemError(f"--{option.replace('_', '-')}: not used with an artefact's recordings (joints in rad "
                                "in the chain's order, a point and a placement each: docs/ball-socket.md); leave it out")
     rec = read_recordings(problem, args.measurements)

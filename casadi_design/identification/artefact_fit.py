@@ -379,8 +379,9 @@ def beyond_prediction(p: np.ndarray, k: np.ndarray, S: np.ndarray) -> np.ndarray
     many are, the robot's own error is not what the consistency measures: balls not seated, or
     the tool moved while it was recorded. A point of one configuration is its own mean: never
     beyond."""
-    alone = np.array([np.sum(k == j) == 1 for j in k])  # a point of one configuration: its own mean
-    d = p - _point_means(k) @ p
+    avg = _point_means(k)
+    alone = np.diagonal(avg) == 1.0  # a point of one configuration: its own mean
+    d = p - avg @ p
     S = np.where(alone[:, None, None], np.eye(3), S)
     return ~alone & (np.einsum("na,na->n", d, np.linalg.solve(S, d[:, :, None])[:, :, 0]) > MOVED_STD**2)
 

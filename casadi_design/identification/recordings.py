@@ -138,10 +138,10 @@ def _checked(problem: Problem, where: str, Q: np.ndarray, k: np.ndarray, sources
 def _folder(problem: Problem, folder: Path, option: str) -> tuple[dict, list[str]]:
     """A placement's folder of ``hole_<k>.csv`` files (MUKCa's layout)."""
     files = sorted((int(m.group(1)), f) for f in folder.iterdir() if (m := POINT_FILE.fullmatch(f.name)))
-    same = [(a, b) for (i, a), (j, b) in zip(files, files[1:]) if i == j]
+    same = [(i, a, b) for (i, a), (j, b) in zip(files, files[1:]) if i == j]
     if same:
-        raise ProblemError(f"{option} {folder}: {same[0][0].name} and {same[0][1].name} are both point "
-                           f"{int(POINT_FILE.fullmatch(same[0][0].name).group(1))}; keep one file per point")
+        i, a, b = same[0]
+        raise ProblemError(f"{option} {folder}: {a.name} and {b.name} are both point {i}; keep one file per point")
     if not files:
         raise ProblemError(f"{option} {folder}: a folder with no recordings (hole_0.csv, hole_1.csv, ...: one "
                            "row of joint values in rad per configuration); give a placement's folder")
