@@ -462,6 +462,8 @@ def seated_designs(problem: Problem, path: str, option: str) -> list:
         raise ProblemError(f"{option}: {exc}") from None
     designs = [design_from_record(d) for d in record["designs"]]
     if record.get("problem") != problem.name or any(d.seated is None for d in designs):
+        why = (f"they are the results of problem {record.get('problem')}"
+               if record.get("problem") != problem.name else "its experiments carry no artefact's point and placement")
         raise ProblemError(f"{option}: {record['_path']} is not the results of casadi-design solve {problem.path} "
-                           "(its experiments carry no artefact's point and placement); solve this problem first")
+                           f"({why}); solve this problem first")
     return designs

@@ -78,14 +78,15 @@ def run(args: argparse.Namespace) -> int:
 
     out = common.output_folder(args, "program")
     problem = common.load(args, check_solver=False, spec=common.read_spec(args, artefact=True))
+    notes = []  # said once the program is made: nothing is printed before an error
     if problem.artefact is not None:  # seated configurations: the program visits their approaches
         from ..identification.recordings import read_recordings
         from ..plan.seated import APPROACH_M, approaches
 
         Q = approaches(problem, read_recordings(problem, [args.plan], "--plan").Q)
         F = np.zeros((len(Q), problem.model.nF))
-        common.say(args, f"note: each experiment is programmed {APPROACH_M * 1e3:g} mm back along the hand's axis from "
-                         "its seated configuration: hand-guide the ball into its socket there, then record")
+        notes.append(f"note: each experiment is programmed {APPROACH_M * 1e3:g} mm back along the hand's axis from "
+                     "its seated configuration: hand-guide the ball into its socket there, then record")
     else:
         Q, F, plan = read_experiments(problem, args.plan)  # a plan of another robot names the plan
         new = ~plan.measured  # a campaign's measured experiments are not measured again
@@ -94,14 +95,16 @@ def run(args: argparse.Namespace) -> int:
     past = int(np.sum((Q < robot.q_min) | (Q > robot.q_max)))  # within the reading's tolerance
     if past:  # a controller refuses a target past a limit, however little
         Q = np.clip(Q, robot.q_min, robot.q_max)
-        common.say(args, f"note: {common.count(past, 'joint value')} of the plan past {'their' if past > 1 else 'its'} "
-                         "limit (within the reading's tolerance) programmed at the limit")
-    check_format(problem, args.format)
+        notes.append(f"note: {common.count(past, 'joint value')} of the plan past {'their' if past > 1 else 'its'} "
+                     "limit (within the reading's tolerance) programmed at the limit")
+    check_format(problem, args.format)  # after the plan: a plan of another robot is the first thing to say
     home = home_pose(problem, args.home)
     t0 = time.perf_counter()
     program = make_program(problem, Q, F, home, args.measure_s)
     text = program_text(problem, program, args.format, str(args.plan))
     wall = time.perf_counter() - t0
+    if notes:
+        common.say(args, *notes)
     print(report(problem, program, args.plan))
     common.say(args, f"ordered, checked and written in {wall:.2f} s")
     if out:

@@ -117,7 +117,7 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
     (:mod:`casadi_design.plan.seated`), recorded at the best ``clamps`` of them (where to clamp
     the tool). Prints Table 4's table and each set of placements' max error; writes
     results.json, fig1, ``plans/<criterion>_m<m>.csv`` (with point and placement columns: what
-    ``identify`` reads) and ``viewer.html`` (:func:`write_artefact`)."""
+    ``identify`` reads), ``viewer.html`` and report.md (:func:`write_artefact`)."""
     problem = common.load(args, check_solver=False, spec=spec)
     pool, names, sources, where, choices = artefact_designs(args, problem)
     designs = [ch.design for ch in choices.values()]
@@ -129,31 +129,42 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
         print(clamping)
     common.say(args, f"total {time.perf_counter() - t0:.2f} s for {common.count(len(designs), 'design')} (after imports)")
     if out:
-        files = write_artefact(out, problem, choices, names, sources, where)
+        solver = (f"the pool exchange, seed {problem.solver.seed}" if args.candidates else
+                  f"the pool exchange, then IPOPT along the seated configurations; seed {problem.solver.seed}")
+        files = write_artefact(out, problem, choices, names, sources, where, solver)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} and "
                          f"{common.count(len(designs), 'plan')} in {out / 'plans'}")
     return 0
 
 
 def write_artefact(out: Path, problem: Problem, choices: dict, names: tuple[str, ...], sources: tuple[str, ...],
-                   where: str) -> list[str]:
+                   where: str, solver: str) -> list[str]:
     """results.json (the designs, each experiment with its point and placement, and where to
     clamp: each set of placements' best plan), fig1, the plans (with their point and placement
-    columns, as identify reads them) and viewer.html."""
-    from ..records.export import write_plans
+    columns, as identify reads them), viewer.html and report.md (``solver``: how the plans were
+    found, its row)."""
+    from ..records.export import report_markdown, write_plans
     from ..records.files import write_json
     from ..records.results import results_dict
     from ..reports.plotting import fig1, write_figures
     from ..reports.viewer import write_viewer
 
     designs = [ch.design for ch in choices.values()]
-    write_json(out / "results.json", results_dict(problem, designs) | {"artefact": artefact_record(choices, names, sources,
-                                                                                                  where)})
+    record = artefact_record(choices, names, sources, where)
+    write_json(out / "results.json", results_dict(problem, designs) | {"artefact": record})
     files = ["results.json"]
-    files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, sorted({d.m for d in designs})[-1:]))
+    shown = sorted({d.m for d in designs})[-1:]
+    files += write_figures(out, "fig1", fig1(problem.test_poses.position_m, designs, shown))
     files += write_plans(out, problem, designs)
     files += write_viewer(out, problem, designs)
-    return files
+    tables = [format_table(designs), clamp_table(choices, names)]
+    report = report_markdown(
+        problem, designs, table="\n\n".join(t for t in tables if t), plans_for=shown, files=files, starts="",
+        figures=[("Fig. 1: +/- sqrt(rho) along the test poses, after registering the work", "fig1.png")],
+        notes=[f"candidates: {where}", f"the test-pose measure: {record['test_pose_measure']}"],
+        solver=solver)
+    write_atomic(out / "report.md", report.encode())
+    return files + ["report.md"]
 
 
 def artefact_record(choices: dict, names: tuple[str, ...], sources: tuple[str, ...], where: str) -> dict:

@@ -128,7 +128,7 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     judges plans: each placement recorded is a pose more to absorb. ``seated``: the configurations
     are seated by the nominal robot at the problem file's placements
     (:mod:`casadi_design.plan.seated`), and each set's plan is then moved along them by IPOPT
-    (:func:`~.seated_nlp.seated_nlp`: test-pose and D) before the sets are compared.
+    (:func:`~.seated_nlp.seated_nlp`) before the sets are compared.
 
     Raises
     ------

@@ -505,10 +505,11 @@ def describe_test_poses(problem: Problem) -> str:
 
 def report_markdown(problem: Problem, designs: list[Design], *, table: str, figures: list[tuple[str, str]],
                     plans_for: list[int], files: list[str], starts: str, title: str = "Calibration plan",
-                    notes: list[str] = ()) -> str:
+                    notes: list[str] = (), solver: str | None = None) -> str:
     """The one-page report: the case, the table, the figures, the plans for ``plans_for`` m.
 
-    ``table`` is a preformatted text table (mm); ``figures`` are (caption, relative file).
+    ``table`` is a preformatted text table (mm); ``figures`` are (caption, relative file);
+    ``solver`` says how the plans were found (default: IPOPT from ``starts`` seeded starts).
     """
     model = problem.model
     force = problem.force
@@ -529,7 +530,7 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
             ["measured", f"{', '.join(problem.spec.measurement.components)}, sigma = {problem.sigma_m * 1e3:g} mm"],
             ["test poses", describe_test_poses(problem)],
             ["calibration load", load],
-            ["solver", f"IPOPT, {starts} seeded starts per design, seed {problem.solver.seed}"],
+            ["solver", solver or f"IPOPT, {starts} seeded starts per design, seed {problem.solver.seed}"],
         ]),
         "",
         "## Accuracy along the test poses",

@@ -277,3 +277,24 @@ def test_a_design_no_start_can_make_leaves_no_partial_file(tmp_path, capsys):
     _, err = capsys.readouterr()
     assert "criterion D, m = 5: none of" in err
     assert not out.exists()
+
+
+def test_validate_of_another_problem_s_results_names_that_problem(tmp_path, capsys):
+    solved = tmp_path / "paper"
+    assert main(["solve", str(PAPER), "--m", "3", "--criteria", "D", "--starts", "1", "--bound-steps", "0",
+                 "--quiet", "--out", str(solved)]) == 0
+    capsys.readouterr()
+    assert main(["validate", str(ROOT / "problems" / "panda_ball_socket.toml"), "--results", str(solved),
+                 "--trials", "2"]) == 2
+    line = _one_error_line(capsys)
+    assert "they are the results of problem paper_planar_2r" in line and "point and placement" not in line
+
+
+def test_program_prints_nothing_before_its_error(tmp_path, capsys):
+    panda = ROOT / "problems" / "panda_ball_socket.toml"
+    Q = load_problem(panda).test_poses.q  # recorded at panda_2's mid_left, as MUKCa publishes a placement
+    for k in (0, 1):
+        (tmp_path / f"hole_{k}.csv").write_text("\n".join(",".join(f"{v:.6f}" for v in q) for q in Q[2 * k:2 * k + 2]) + "\n")
+    assert main(["program", str(panda), "--plan", str(tmp_path), "--format", "urscript"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("error: --format urscript: the controller drives 6 joints")

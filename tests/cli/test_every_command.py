@@ -113,6 +113,9 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     assert capsys.readouterr().err == ""
 
     design = json.loads((solved / "results.json").read_text())["designs"][0]
+    report = (solved / "report.md").read_text()  # the one page a person reads: the plan and its figure of results.json
+    assert f"### {CRITERION} plan, m = {m}: max error {design['max_rms_error_m'] * 1e3:.4f} mm" in report
+    assert ("| placement_name |" in report) == (problem.artefact is not None)
     if problem.artefact is not None:  # each experiment seated at a point of a placement of the problem file
         names = [p.name for p in problem.spec.measurement.artefact.placements]
         assert all(e["point"] in (0, 1) and e["placement"] in names for e in design["experiments"])
