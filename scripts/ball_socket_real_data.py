@@ -7,8 +7,9 @@ For each robot (the problem file of its kind in examples/, the placement trained
 ``front_center`` and panda_4's ``front`` as the authors', the first folder for the others):
 held-out consistency and median spacing error (mm) of the nominal model, of the calibration
 (what ``casadi-design identify`` prints, the same function) and its prediction, the consistency
-with the ball relocated on the hand at each placement, and where the authors' calibrated URDF is
-published, theirs on the same placements (Pinocchio, their ``ball_link``).
+with the ball relocated on the hand at each placement, what calibrated.urdf holds where the chosen
+model's compliances have no place in it, and where the authors' calibrated URDF is published,
+theirs on the same placements (Pinocchio, their ``ball_link``).
 """
 
 from __future__ import annotations
@@ -85,6 +86,10 @@ def main() -> int:
               + f" | {mean['median_spacing_mm']:26.3f}  " + (f"{a[1] * 1e3:7.3f}" if a else "      -")
               + f" | {mean['relocated_consistency_mm']:26.3f}  " + (f"{a[2] * 1e3:7.3f}" if a else "      -")
               + f"   {cal.model} ({len(cal.names)}){'' if cal.field is None else ', field'}  {wall:.0f} s")
+        if cal.urdf is not None:  # what calibrated.urdf holds: the best model without the weight's compliances
+            u = placement_means(cal.urdf.validation)
+            print(f"    calibrated.urdf ({cal.urdf.model}, {len(cal.urdf.names)}): held out {u['consistency_mm']:.3f} "
+                  f"(predicted {u['predicted_consistency_mm']:.3f}), median spacing {u['median_spacing_mm']:.3f}")
         for j in v:
             print(f"    {j.name:16s} consistency {j.consistency_m * 1e3:.3f} (predicted {j.predicted_consistency_m * 1e3:.3f},"
                   f" nominal {j.nominal_consistency_m * 1e3:.2f})  spacing {j.spacing_m * 1e3:.3f}  ball moved "

@@ -30,7 +30,6 @@ def placement_means(judged: tuple[Judged, ...]) -> dict:
 def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
     """``identification.json`` of an artefact's recordings."""
     f, rec = cal.fit, cal.recordings
-    names = cal.names
     return {
         "problem": cal.problem.path,
         "measurement": "points fixed in an artefact",
@@ -42,8 +41,7 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
         "model_choice": "leave-one-configuration-out cross-validation, one-standard-error rule; the robot's "
                         "weight by one standard error of the paired differences",
         "candidates": [c.as_dict() for c in cal.candidates],
-        "parameters": [{"name": n, "value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
-                       for n, x, s in zip(names, f.X, cal.std)],
+        "parameters": parameters(cal),
         "covariance": cal.C.tolist(),
         "covariance_unit": "SI units of the parameters, squared",
         "absorbed": [{"name": n, "why": why} for n, why in cal.absorbed],
@@ -53,11 +51,27 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
         "outliers": [{"configuration": where, "score": score} for where, score in cal.outliers],
         "notes": list(cal.notes),
         "residual_rms_m": float(np.sqrt(np.mean(np.sum(f.r[f.used] ** 2, axis=1)))),
-        "training": {"placements": [j.as_dict() for j in cal.training], **placement_means(cal.training)},
-        "validation": ({"placements": [j.as_dict() for j in cal.validation], **placement_means(cal.validation)}
-                       if cal.validation else None),
+        **judged_record(cal),
+        "calibrated_urdf": {"model": cal.in_urdf.model, "parameters": parameters(cal.in_urdf),
+                            "why": ("the chosen model" if cal.urdf is None else
+                                    "the best model without the chosen model's compliances (a URDF cannot hold them), "
+                                    "identified and judged alike"),
+                            **judged_record(cal.in_urdf)},
         "files": files,
     }
+
+
+def parameters(cal: ArtefactCalibration) -> list[dict]:
+    """The identified parameters: name, value, standard deviation and unit (SI)."""
+    return [{"name": n, "value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
+            for n, x, s in zip(cal.names, cal.fit.X, cal.std)]
+
+
+def judged_record(cal: ArtefactCalibration) -> dict:
+    """``training`` and ``validation``: per placement the figures (mm) and their means."""
+    return {"training": {"placements": [j.as_dict() for j in cal.training], **placement_means(cal.training)},
+            "validation": ({"placements": [j.as_dict() for j in cal.validation], **placement_means(cal.validation)}
+                           if cal.validation else None)}
 
 
 def artefact_summary(cal: ArtefactCalibration) -> list[str]:
@@ -85,8 +99,19 @@ def artefact_summary(cal: ArtefactCalibration) -> list[str]:
                          f"({none_if_nan(j.predicted_spacing_m * 1e3) or 0:.3f}, {j.nominal_spacing_m * 1e3:.2f})"
                          f"   {title}")
     if cal.validation:
-        m = placement_means(cal.validation)
-        lines.append(f"held out: mean consistency {m['consistency_mm']:.3f} mm (predicted "
-                     f"{m['predicted_consistency_mm']:.3f}, nominal {m['nominal_consistency_mm']:.2f}), median spacing "
-                     f"error {m['median_spacing_mm']:.3f} mm (predicted {m['predicted_median_spacing_mm']:.3f})")
+        lines.append(f"held out: {held_out(cal)}")
+    if cal.urdf is not None:
+        u = cal.urdf
+        lines.append(f"calibrated.urdf holds the {u.model} model ({len(u.names)} parameters, identified alike: a URDF "
+                     "cannot hold the weight's compliances): trained on, mean consistency "
+                     f"{placement_means(u.training)['consistency_mm']:.3f} mm" +
+                     (f"; held out, {held_out(u)}" if u.validation else ""))
     return lines
+
+
+def held_out(cal: ArtefactCalibration) -> str:
+    """The held-out placements' mean consistency and median spacing error, measured and predicted (mm)."""
+    m = placement_means(cal.validation)
+    return (f"mean consistency {m['consistency_mm']:.3f} mm (predicted {m['predicted_consistency_mm']:.3f}, nominal "
+            f"{m['nominal_consistency_mm']:.2f}), median spacing error {m['median_spacing_mm']:.3f} mm (predicted "
+            f"{m['predicted_median_spacing_mm']:.3f})")

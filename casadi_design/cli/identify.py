@@ -219,10 +219,10 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
     cal = calibrate_artefact(problem, rec, valid, args.model, args.outlier_sigma)
     print("\n".join(artefact_summary(cal)))
     say(args, f"identification time {time.perf_counter() - t0:.2f} s")
-    f = cal.fit
-    chain = calibrated_chain(problem, cal.names, f.X)  # the geometric errors; compliances have no place in it
+    kept = cal.in_urdf  # the chosen model, or the best one without its compliances (a URDF cannot hold them)
+    chain = calibrated_chain(problem, kept.names, kept.fit.X)
     header = (f"calibrated by casadi-design identify from {', '.join(rec.names)} ({problem.path}, the artefact's "
-              f"points, {cal.model} model)")
+              f"points, {kept.model} model)")
     texts = {"calibrated.urdf": urdf_text(problem, chain),
              "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header)}
     names = ["identification.json", "identification.md", *texts, "viewer.html"]

@@ -487,8 +487,10 @@ def judged(problem: Problem, f: ArtefactFit, rec: Recordings, field: Field | Non
 class ArtefactCalibration:
     """What :func:`calibrate_artefact` found: the chosen model's fit, its parameters' names,
     covariance ``C`` (SI units) and standard deviations, the error scale, the candidates judged,
-    what the recordings do not tell (``absorbed``), the outliers and notes, and the figures of the
-    training and held-out placements."""
+    what the recordings do not tell (``absorbed``), the outliers and notes, the figures of the
+    training and held-out placements, and ``urdf``: the calibration calibrated.urdf holds when the
+    chosen model's compliances have no place in a URDF (the best model without them, identified
+    and judged alike; None: the chosen model itself)."""
 
     problem: Problem
     recordings: Recordings
@@ -504,6 +506,13 @@ class ArtefactCalibration:
     training: tuple[Judged, ...]
     validation: tuple[Judged, ...]
     validation_recordings: Recordings | None
+    urdf: ArtefactCalibration | None = None
+
+    @property
+    def in_urdf(self) -> ArtefactCalibration:
+        """The calibration calibrated.urdf holds: this one, or without the compliances its
+        model has (:attr:`urdf`)."""
+        return self.urdf or self
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -621,5 +630,10 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
         more.append(f"at {', '.join(worse)} the predicted consistency is above the nominal robot's: the recordings "
                     f"of {', '.join(rec.names)} do not tell the robot well enough to calibrate it there (their error "
                     f"{scale.s_m * 1e3:.3g} mm per value); record more varied configurations, or check the seating")
+    urdf = None
+    if f.fit.model.gravity:  # a URDF holds no compliance: the best model without them, for calibrated.urdf
+        judged_alike = [c for c in found if not c.gravity and not math.isnan(c.cv_rms_m)]
+        urdf = calibrate_artefact(problem, rec, valid, choose(judged_alike, "auto")[0].name if judged_alike else
+                                  "identifiable", threshold, with_field)
     return ArtefactCalibration(problem, rec, f, chosen.name, tuple(found), tuple(absorbed), scale, C, field,
-                               tuple(outliers), tuple(notes + more), tuple(training), tuple(validation), valid)
+                               tuple(outliers), tuple(notes + more), tuple(training), tuple(validation), valid, urdf)

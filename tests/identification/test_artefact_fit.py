@@ -220,15 +220,9 @@ def test_identify_and_solve_end_to_end(simulated, tmp_path, capsys):
     assert v["placements"][0]["placement"] == "side"
     assert 0 < v["consistency_mm"] < 0.2 and 0 < v["predicted_consistency_mm"] < 0.2
     assert "base.tx" in [a["name"] for a in record["absorbed"]]
-    model = pin.buildModelFromUrdf(str(out / "calibrated.urdf"))
-    data, fid = model.createData(), model.getFrameId("measured_point")
-    P = []
-    for q in Q[g == 1]:
-        full = pin.neutral(model)
-        full[:7] = q
-        pin.framesForwardKinematics(model, data, full)
-        P.append(data.oMf[fid].translation.copy())
-    assert figures(problem.artefact, np.array(P), k[g == 1])[0] * 1e3 == pytest.approx(v["consistency_mm"], rel=1e-9)
+    assert record["calibrated_urdf"]["model"] == record["model"]  # no compliance chosen: the URDF holds it all
+    consistency = _urdf_figures(problem, out, Q[g == 1], k[g == 1])[0]
+    assert consistency * 1e3 == pytest.approx(v["consistency_mm"], rel=1e-9)
     design = tmp_path / "design"
     assert main(["solve", str(PANDA), "--candidates", str(front), "--candidates", str(side), "--m", "12",
                  "--criteria", "test-pose,D", "--starts", "2", "--out", str(design), "--quiet"]) == 0
@@ -238,6 +232,42 @@ def test_identify_and_solve_end_to_end(simulated, tmp_path, capsys):
     chosen = read_recordings(problem, [str(design / "plans" / "test-pose_m12.csv")])
     assert chosen.N == 12 and set(map(tuple, chosen.Q)) <= set(map(tuple, Q))  # from both placements' recordings
     assert set(chosen.names) <= {"front", "side"}
+
+
+def _urdf_figures(problem, out, Q, k) -> tuple[float, float]:
+    """Consistency and spacing error (m) of ``out``'s calibrated.urdf, its ``measured_point``
+    evaluated by Pinocchio on the recorded joints ``Q`` seated at points ``k``."""
+    model = pin.buildModelFromUrdf(str(out / "calibrated.urdf"))
+    data, fid = model.createData(), model.getFrameId("measured_point")
+    P = []
+    for q in Q:
+        full = pin.neutral(model)
+        full[:7] = q
+        pin.framesForwardKinematics(model, data, full)
+        P.append(data.oMf[fid].translation.copy())
+    return figures(problem.artefact, np.array(P), k)
+
+
+def test_a_model_with_compliances_leaves_calibrated_urdf_the_best_model_without_them(simulated, tmp_path):
+    """The weight's compliances have no place in a URDF: with them chosen, calibrated.urdf holds
+    the best model without them, identified alike, and identification.json's ``calibrated_urdf``
+    gives its figures, the ones Pinocchio gets from the file (the chosen model's own differ)."""
+    problem, _, Q, k, g = simulated
+    front = _folder(tmp_path / "front", Q[g == 0], k[g == 0])
+    side = _folder(tmp_path / "side", Q[g == 1], k[g == 1])
+    out = tmp_path / "id"
+    assert main(["identify", str(PANDA), "--measurements", str(front), "--validation", str(side),
+                 "--model", "identifiable + gravity", "--out", str(out), "--quiet"]) == 0
+    record = json.loads((out / "identification.json").read_text())
+    urdf = record["calibrated_urdf"]
+    assert record["model"] == "identifiable + gravity" and urdf["model"] == "identifiable"
+    assert not any(p["name"].startswith("k.") for p in urdf["parameters"])
+    consistency, spacing = _urdf_figures(problem, out, Q[g == 1], k[g == 1])
+    assert consistency * 1e3 == pytest.approx(urdf["validation"]["consistency_mm"], rel=1e-9)
+    assert spacing * 1e3 == pytest.approx(urdf["validation"]["median_spacing_mm"], rel=1e-9)
+    assert consistency * 1e3 != pytest.approx(record["validation"]["consistency_mm"], rel=1e-6)
+    train = _urdf_figures(problem, out, Q[g == 0], k[g == 0])[0]
+    assert train * 1e3 == pytest.approx(urdf["training"]["consistency_mm"], rel=1e-9)
 
 
 def test_a_model_named_is_the_one_fitted(simulated):
