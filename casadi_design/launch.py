@@ -35,8 +35,40 @@ def _interrupted() -> NoReturn:
     _exit_interrupted()
 
 
+class ReaderSafeOutput:
+    """The command's standard output, kept working when its reader stops reading (``| head``):
+    what is printed after that goes nowhere, and the command goes on to write its files and
+    ends as it would (a closed pipe is no reason to lose a solve)."""
+
+    def __init__(self, stream):
+        self._stream, self.reader_gone = stream, False
+
+    def _gone(self) -> None:
+        self.reader_gone = True
+        os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())  # the flush at exit has nowhere to fail
+
+    def write(self, text: str) -> int:
+        if not self.reader_gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._gone()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.reader_gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._gone()
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Import the command line and run it (:func:`casadi_design.cli.main`)."""
+    sys.stdout = ReaderSafeOutput(sys.stdout)
     interrupt.install()  # records Ctrl-C: Python drops the KeyboardInterrupt of some import hooks
     fixed_blas()  # before numpy, CasADi and IPOPT load: the same numbers for any --jobs and CPU
     try:
@@ -53,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     if interrupt.pressed():
         _interrupted()
     code = run(argv)
+    sys.stdout.flush()  # here, where a reader gone is caught, not at the interpreter's exit
     if code == EXIT_INTERRUPTED:
         _exit_interrupted()  # the command said what it kept
     return code

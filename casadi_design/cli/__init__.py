@@ -23,7 +23,6 @@ each reading its arguments, calling the package and writing; what they share is 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import threading
 
@@ -36,8 +35,6 @@ from ..execution.study import Interrupted
 from . import bound, evaluate, identify, plot, program, solve, sweep, validate
 
 EXIT_ERROR = 2
-#: The exit status of a command whose output was closed by its reader (128 + SIGPIPE, as a shell reports).
-EXIT_BROKEN_PIPE = 141
 #: The commands, in the order of ``--help``.
 COMMANDS = (solve, sweep, evaluate, plot, bound, validate, identify, program)
 
@@ -76,9 +73,6 @@ def main(argv: list[str] | None = None) -> int:
     except (ArgumentError, ProblemError, DesignError, OutputError, MissingExtraError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    except BrokenPipeError:  # the reader of the output stopped (``| head``): stop as a Unix tool does, silently
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
-        return EXIT_BROKEN_PIPE
     except OSError as exc:  # a file operation the commands do not name themselves
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: {where}{exc.strerror or exc}; check the path, the free space and the "

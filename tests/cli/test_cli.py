@@ -151,3 +151,23 @@ def test_quiet_keeps_the_base_set_to_its_count():
     full, quiet = case_line(problem).splitlines(), case_line(problem, quiet=True).splitlines()
     assert quiet == full[:2] and full[1].startswith("identifiable base set: ")
     assert any(line.startswith("dropped ") for line in full[2:])
+
+
+@pytest.mark.parametrize("unbuffered", ["1", ""])
+def test_a_reader_that_stops_reading_loses_nothing(tmp_path, unbuffered):
+    """``casadi-design ... | head``: the output's reader gone before the command prints, the
+    command still writes its files and ends as it would, with no error (buffered or not)."""
+    import os
+
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone: every write to the pipe fails (EPIPE)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"} | (
+        {"PYTHONUNBUFFERED": unbuffered} if unbuffered else {})
+    try:
+        run = subprocess.run([sys.executable, "-m", "casadi_design", "solve", str(PAPER), "--m", "3", "--criteria", "D",
+                              "--starts", "1", "--bound-steps", "0", "--out", str(tmp_path / "out")],
+                             stdout=write, stderr=subprocess.PIPE, text=True, env=env, check=False)
+    finally:
+        os.close(write)
+    assert run.returncode == 0 and run.stderr.strip() == "", run.stderr
+    assert (tmp_path / "out" / "results.json").exists() and (tmp_path / "out" / "report.md").exists()
