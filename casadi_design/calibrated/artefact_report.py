@@ -54,9 +54,10 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
         **judged_record(cal),
         "calibrated_urdf": {"model": cal.in_urdf.model, "parameters": parameters(cal.in_urdf),
                             "why": ("the chosen model" if cal.urdf is None else
-                                    "the best model without the chosen model's compliances (a URDF cannot hold them), "
-                                    "identified and judged alike"),
-                            **judged_record(cal.in_urdf)},
+                                    "the model without the chosen model's compliances (a URDF cannot hold them), "
+                                    "identified and judged alike on the same recordings"),
+                            "outliers": [{"configuration": where, "score": score} for where, score in cal.in_urdf.outliers],
+                            "notes": list(cal.in_urdf.notes), **judged_record(cal.in_urdf)},
         "files": files,
     }
 

@@ -129,20 +129,30 @@ def run_artefact(args: argparse.Namespace, spec, out: Path | None, t0: float) ->
         print(clamping)
     common.say(args, f"total {time.perf_counter() - t0:.2f} s for {common.count(len(designs), 'design')} (after imports)")
     if out:
-        solver = (f"the pool exchange, seed {problem.solver.seed}" if args.candidates else
-                  f"the pool exchange, then IPOPT along the seated configurations; seed {problem.solver.seed}")
-        files = write_artefact(out, problem, choices, names, sources, where, solver)
+        from ..optimisation.artefact_pool import artefact_pool
+        from ..problem_file.solver import starts_text
+
+        starts = str(args.starts) if args.starts else starts_text(problem.solver.starts, problem.solver.criterion_starts)
+        told = artefact_pool(problem, pool.Q, pool.point, pool.placement).names
+        absorbed = [n for n in problem.model.parameter_names if n not in told]
+        rows = {"solver": (f"the pool exchange from {starts} seeded starts per design"
+                           + ("" if args.candidates else ", then IPOPT along the seated configurations")
+                           + f"; seed {problem.solver.seed}"),
+                "identified": (f"{problem.model.case}: the {len(told)} parameters the configurations tell "
+                               f"({', '.join(told)}); absorbed by the placements' poses (no fixed point tells them): "
+                               f"{', '.join(absorbed) or 'none'}")}
+        files = write_artefact(out, problem, choices, names, sources, where, rows)
         common.say(args, f"wrote {', '.join(str(out / f) for f in files if not f.startswith('plans/'))} and "
                          f"{common.count(len(designs), 'plan')} in {out / 'plans'}")
     return 0
 
 
 def write_artefact(out: Path, problem: Problem, choices: dict, names: tuple[str, ...], sources: tuple[str, ...],
-                   where: str, solver: str) -> list[str]:
+                   where: str, rows: dict[str, str]) -> list[str]:
     """results.json (the designs, each experiment with its point and placement, and where to
     clamp: each set of placements' best plan), fig1, the plans (with their point and placement
-    columns, as identify reads them), viewer.html and report.md (``solver``: how the plans were
-    found, its row)."""
+    columns, as identify reads them), viewer.html and report.md (``rows``: the case's rows said
+    for this kind, :func:`~casadi_design.records.export.report_markdown`)."""
     from ..records.export import report_markdown, write_plans
     from ..records.files import write_json
     from ..records.results import results_dict
@@ -162,7 +172,7 @@ def write_artefact(out: Path, problem: Problem, choices: dict, names: tuple[str,
         problem, designs, table="\n\n".join(t for t in tables if t), plans_for=shown, files=files, starts="",
         figures=[("Fig. 1: +/- sqrt(rho) along the test poses, after registering the work", "fig1.png")],
         notes=[f"candidates: {where}", f"the test-pose measure: {record['test_pose_measure']}"],
-        solver=solver)
+        rows=rows)
     write_atomic(out / "report.md", report.encode())
     return files + ["report.md"]
 
@@ -225,6 +235,7 @@ def clamp_table(choices: dict, names: tuple[str, ...]) -> str:
         "-" if d is None else f"{d.scores.max_rms_error_m * 1e3:.4f}" + ("*" if S == choices[k].placements else "")
         for k in keys for S2, d in choices[k].by_set if S2 == S] for S in sets]
     width = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
-    lines = ["where to clamp: max error along the test poses (mm) of each placement's best plan (* chosen)"]
+    lines = ["where to clamp: max error along the test poses (mm) of each placement's best plan by the criterion "
+             "(* where it clamps, by its own measure)"]
     lines += ["  ".join([r[0].ljust(width[0])] + [v.rjust(w) for v, w in zip(r[1:], width[1:])]) for r in [head, *rows]]
     return "\n".join(lines)

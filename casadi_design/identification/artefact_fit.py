@@ -570,7 +570,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     found, signs = [], []
     for name, chosen, gravity in wanted:
         same = [c for n, c, _ in wanted if n != name and (n, name) in (("ball", "offsets"), ("identifiable", "offsets"))]
-        if not chosen or chosen in same or model not in ("auto", name):  # a candidate equal to another
+        if not chosen or model not in ("auto", name) or (model == "auto" and chosen in same):  # auto: once each
             continue
         fm = fit_model(problem, "base", chosen, gravity=gravity)
         try:
@@ -585,6 +585,8 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
                                          np.sqrt(np.diagonal(np.linalg.inv(f.information))))
         found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why,
                                cv_errors_m=e))
+    if not found:
+        raise ProblemError(f"--model {model}: the recordings tell none of its parameters; give another model")
     chosen, notes = choose(found, "auto")
     told = generic_base_set(problem, problem.model.parameter_names)
     if len(names) < len(told):
@@ -631,7 +633,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
                     f"of {', '.join(rec.names)} do not tell the robot well enough to calibrate it there (their error "
                     f"{scale.s_m * 1e3:.3g} mm per value); record more varied configurations, or check the seating")
     urdf = None
-    if f.fit.model.gravity:  # a URDF holds no compliance: the best model without them, for calibrated.urdf
+    if any(n.startswith("k.") for n in f.fit.model.parameter_names):  # none in a URDF: the best model without them
         judged_alike = [c for c in found if not c.gravity and not math.isnan(c.cv_rms_m)]
         urdf = calibrate_artefact(problem, rec, valid, choose(judged_alike, "auto")[0].name if judged_alike else
                                   "identifiable", threshold, with_field)

@@ -505,11 +505,12 @@ def describe_test_poses(problem: Problem) -> str:
 
 def report_markdown(problem: Problem, designs: list[Design], *, table: str, figures: list[tuple[str, str]],
                     plans_for: list[int], files: list[str], starts: str, title: str = "Calibration plan",
-                    notes: list[str] = (), solver: str | None = None) -> str:
+                    notes: list[str] = (), rows: dict[str, str] | None = None) -> str:
     """The one-page report: the case, the table, the figures, the plans for ``plans_for`` m.
 
     ``table`` is a preformatted text table (mm); ``figures`` are (caption, relative file);
-    ``solver`` says how the plans were found (default: IPOPT from ``starts`` seeded starts).
+    ``rows``: rows of the case's table said otherwise (e.g. ``solver``: how the plans were found,
+    by default IPOPT from ``starts`` seeded starts).
     """
     model = problem.model
     force = problem.force
@@ -522,7 +523,7 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
         "",
         problem.spec.description,
         "",
-        _md_table(["", ""], [
+        _md_table(["", ""], [[name, (rows or {}).get(name, text)] for name, text in [
             ["problem file", f"`{problem.path}`"],
             ["robot", (f"{problem.robot.name}, {problem.robot.n} joints "
                        f"({', '.join(problem.robot.joints)}), measured frame `{problem.robot.frame}`")],
@@ -530,8 +531,8 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
             ["measured", f"{', '.join(problem.spec.measurement.components)}, sigma = {problem.sigma_m * 1e3:g} mm"],
             ["test poses", describe_test_poses(problem)],
             ["calibration load", load],
-            ["solver", solver or f"IPOPT, {starts} seeded starts per design, seed {problem.solver.seed}"],
-        ]),
+            ["solver", f"IPOPT, {starts} seeded starts per design, seed {problem.solver.seed}"],
+        ]]),
         "",
         "## Accuracy along the test poses",
         "",
@@ -544,8 +545,8 @@ def report_markdown(problem: Problem, designs: list[Design], *, table: str, figu
     ]
     for caption, fname in figures:
         lines += [f"![{caption}]({fname})", "", f"*{caption}*", ""]
-    lines += ["## Plans", "", ("Joints in deg (mm for prismatic joints), load in N, measured point "
-                               "in mm; full precision in the plans/*.csv files."), ""]
+    lines += ["## Plans", "", (f"Joints in deg (mm for prismatic joints), {'' if force is None else 'load in N, '}"
+                               "measured point in mm; full precision in the plans/*.csv files."), ""]
     for m in plans_for:
         for d in (d for d in designs if d.m == m):
             title = f"### {d.criterion} plan, m = {m}: max error {d.scores.max_rms_error_m * 1e3:.4f} mm"

@@ -370,3 +370,27 @@ def test_recordings_that_vary_too_little_are_said_so(simulated):
     cal = calibrate_artefact(problem, poor, model="identifiable", with_field=False)
     assert len(cal.names) < len(told)
     assert any(f"tell {len(cal.names)} of the {len(told)} parameters" in n and "vary too little" in n for n in cal.notes)
+
+
+def test_a_model_named_like_a_smaller_one_is_fitted_under_its_name():
+    """The Gen3 lite's joint offsets are not in its base set: ``offsets`` holds the ball's
+    parameters alone, as ``ball`` does. Named, it is fitted (auto judges it once, as ball)."""
+    problem = load_problem(ROOT / "examples" / "gen3lite_ball_socket.toml")
+    _, Q, k, g = recordings(problem, 1, 8, SIGMA)
+    rec = Recordings(Q, k, g, ("a", "b"), tuple(f"c{i}" for i in range(len(Q))))
+    ball, offsets = (calibrate_artefact(problem, rec, model=m, with_field=False) for m in ("ball", "offsets"))
+    assert offsets.model == "offsets" and offsets.names == ball.names == ("tool.tx", "tool.ty")
+    np.testing.assert_allclose(offsets.fit.X, ball.fit.X)
+    assert "offsets" not in [c.name for c in calibrate_artefact(problem, rec, with_field=False).candidates]
+
+
+def test_a_gravity_model_whose_compliances_are_not_told_is_its_own_urdf(simulated):
+    """Named on four recordings, the weight's model holds no compliance (the rows tell none):
+    calibrated.urdf holds it as it is, no second model."""
+    from casadi_design.identification.artefact_fit import calibrate_artefact
+
+    problem, _, Q, k, g = simulated
+    rows = np.concatenate([np.flatnonzero((g == 0) & (k == j))[:2] for j in (0, 1)])
+    rec = Recordings(Q[rows], k[rows], np.zeros(len(rows), int), ("front",), tuple(map(str, rows)))
+    cal = calibrate_artefact(problem, rec, model="identifiable + gravity", with_field=False)
+    assert not any(n.startswith("k.") for n in cal.names) and cal.urdf is None and cal.in_urdf is cal
