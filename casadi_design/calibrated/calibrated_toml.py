@@ -97,13 +97,20 @@ def _relative(path: str, problem: Problem, out: Path) -> str:
     return os.path.relpath((Path(problem.path).parent / path).resolve(), Path(out).resolve())
 
 
+#: The ``[robot]`` keys calibrated.toml keeps as the problem file gives them: what the calibration
+#: does not change (the tool's placement and the chain's source are in calibrated.urdf).
+CARRIED = ("joint_limits_rad", "joint_speeds_deg_s", "controller")
+
+
 def calibrated_problem(problem: Problem, urdf: Path) -> dict:
     """The table of ``calibrated.toml`` (module docstring); ``urdf``: the calibrated URDF."""
     record = _calibrated_record(problem, "_calibrated")
     source = problem.spec.robot.source
     robot = {"urdf": Path(urdf).name, "frame": MEASURED_POINT}  # calibrated.toml is beside it
-    if "joint_limits_rad" in record.get("robot", {}):
-        robot["joint_limits_rad"] = record["robot"]["joint_limits_rad"]
+    kept = record.get("robot", {})
+    robot |= {key: kept[key] for key in CARRIED if key in kept}  # the same robot's limits, speeds and controller
+    if kept.get("inertias_urdf"):  # the links' masses (a URDF robot's own stay in calibrated.urdf)
+        robot["inertias_urdf"] = _relative(kept["inertias_urdf"], problem, Path(urdf).parent)
     record["robot"] = robot
     cell = record.get("cell")
     if cell is not None:

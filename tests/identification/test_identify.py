@@ -425,3 +425,29 @@ def test_rounds_in_two_tracker_frames_identify_one_robot(ur10, tmp_path, capsys)
     assert main(["identify", str(UR10), "--measurements", str(tmp_path / "first.csv"), "--measurements",
                  str(tmp_path / "second.csv"), "--model", "identifiable", "--out", str(tmp_path / "out")]) == 0
     assert "first.csv + " in json.loads((tmp_path / "out" / "identification.json").read_text())["measurements"]
+
+
+@pytest.mark.parametrize("case", ["abb_irb6640_machining", "panda_ball_socket"])
+def test_calibrated_toml_keeps_the_robot_s_speeds_controller_and_masses(case, tmp_path):
+    """calibrated.toml is the same robot calibrated: its joint speeds and controller (the
+    programs' time and joint convention) and the URDF of its links' masses (the weight's models)
+    as the problem file gives them, that file's relative path rewritten from the folder written."""
+    import tomllib
+
+    from casadi_design.calibrated.calibrated_toml import calibrated_problem, toml_text
+    from casadi_design.calibrated.urdf import calibrated_chain, urdf_text
+
+    path = ROOT / "problems" / f"{case}.toml"
+    problem = load_without_cell(str(path))
+    raw = tomllib.loads(path.read_text())["robot"]
+    (tmp_path / "calibrated.urdf").write_text(urdf_text(problem, calibrated_chain(problem, (), np.zeros(0))))
+    (tmp_path / "calibrated.toml").write_text(toml_text(calibrated_problem(problem, tmp_path / "calibrated.urdf"), "#"))
+    robot = tomllib.loads((tmp_path / "calibrated.toml").read_text())["robot"]
+    for key in ("joint_speeds_deg_s", "controller", "inertias_urdf"):
+        assert robot.get(key) == raw.get(key), key
+    again = load_without_cell(str(tmp_path / "calibrated.toml"))
+    assert again.spec.robot.inertias_urdf == problem.spec.robot.inertias_urdf
+    if case == "panda_ball_socket":  # the weight loads the calibrated Panda's joints as the nominal one's
+        q = problem.test_poses.q[0]
+        np.testing.assert_allclose(np.asarray(again.model.kinematics.gravity_torque(q)).ravel(),
+                                   np.asarray(problem.model.kinematics.gravity_torque(q)).ravel(), atol=1e-9)
