@@ -68,7 +68,8 @@ class ReaderSafeOutput:
 
 def main(argv: list[str] | None = None) -> int:
     """Import the command line and run it (:func:`casadi_design.cli.main`)."""
-    sys.stdout = ReaderSafeOutput(sys.stdout)
+    if not isinstance(sys.stdout, ReaderSafeOutput):  # main may run again in one process
+        sys.stdout = ReaderSafeOutput(sys.stdout)
     interrupt.install()  # records Ctrl-C: Python drops the KeyboardInterrupt of some import hooks
     fixed_blas()  # before numpy, CasADi and IPOPT load: the same numbers for any --jobs and CPU
     try:
