@@ -451,3 +451,29 @@ def test_calibrated_toml_keeps_the_robot_s_speeds_controller_and_masses(case, tm
         q = problem.test_poses.q[0]
         np.testing.assert_allclose(np.asarray(again.model.kinematics.gravity_torque(q)).ravel(),
                                    np.asarray(problem.model.kinematics.gravity_torque(q)).ravel(), atol=1e-9)
+
+
+def test_calibrated_toml_names_a_relative_inertias_urdf_from_where_it_is_written(tmp_path):
+    """A problem file's ``inertias_urdf`` given relative to it is rewritten relative to the
+    folder calibrated.toml is written in, and that file reads it."""
+    import tomllib
+
+    from casadi_design.calibrated.calibrated_toml import calibrated_problem, toml_text
+    from casadi_design.calibrated.urdf import calibrated_chain, urdf_text
+    from casadi_design.robot.robots import urdf_file
+
+    source = ROOT / "problems" / "panda_ball_socket.toml"
+    (tmp_path / "masses.urdf").write_bytes(urdf_file("example-robot-data:panda_description/urdf/panda.urdf").read_bytes())
+    text = source.read_text().replace('"robots/mukca/panda.urdf"', f'"{source.parent / "robots/mukca/panda.urdf"}"')
+    path = tmp_path / "panda.toml"
+    path.write_text(text.replace('"example-robot-data:panda_description/urdf/panda.urdf"', '"masses.urdf"'))
+    problem = load_without_cell(str(path))
+    out = tmp_path / "out" / "identify"
+    out.mkdir(parents=True)
+    (out / "calibrated.urdf").write_text(urdf_text(problem, calibrated_chain(problem, (), np.zeros(0))))
+    (out / "calibrated.toml").write_text(toml_text(calibrated_problem(problem, out / "calibrated.urdf"), "#"))
+    assert tomllib.loads((out / "calibrated.toml").read_text())["robot"]["inertias_urdf"] == "../../masses.urdf"
+    again = load_without_cell(str(out / "calibrated.toml"))
+    q = problem.test_poses.q[0]
+    np.testing.assert_allclose(np.asarray(again.model.kinematics.gravity_torque(q)).ravel(),
+                               np.asarray(problem.model.kinematics.gravity_torque(q)).ravel(), atol=1e-9)
