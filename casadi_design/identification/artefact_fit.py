@@ -172,8 +172,9 @@ def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...],
     the robot's own weight), and (name, why) of those left out."""
     fm = fit_model(problem, "base", names, gravity=gravity)
     p, J = ball_points(fm.model, rec.Q, np.zeros(fm.model.L))
-    R, _ = problem.artefact.placed(p, rec.point, rec.placement)
-    kept, live = identifiable(J, p, placement_columns(problem.artefact, R, rec.point, rec.placement), RANK_RTOL)
+    at = np.searchsorted(np.unique(rec.placement), rec.placement)  # the placements recorded, 0..P-1
+    R, _ = problem.artefact.placed(p, rec.point, at)
+    kept, live = identifiable(J, p, placement_columns(problem.artefact, R, rec.point, at), RANK_RTOL)
     why = {False: "a rigid motion of the whole robot or of a placement (the base, which no fixed point tells)",
            True: "acts as a combination of the parameters kept"}
     return (tuple(n for n, k in zip(fm.model.parameter_names, kept) if k),
