@@ -48,7 +48,7 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
         "placement_poses": [{"placement": name, "R": f.R[g].tolist(), "t_m": f.t[g].tolist()}
                             for g, name in enumerate(rec.names)],
         "error_per_value": cal.scale.as_dict(),
-        "outliers": [{"configuration": where, "score": score} for where, score in cal.outliers],
+        "outliers": outliers(cal),
         "notes": list(cal.notes),
         "residual_rms_m": float(np.sqrt(np.mean(np.sum(f.r[f.used] ** 2, axis=1)))),
         **judged_record(cal),
@@ -56,7 +56,7 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
                             "why": ("the chosen model" if cal.urdf is None else
                                     "the model without the chosen model's compliances (a URDF cannot hold them), "
                                     "identified and judged alike on the same recordings"),
-                            "outliers": [{"configuration": where, "score": score} for where, score in cal.in_urdf.outliers],
+                            "outliers": outliers(cal.in_urdf),
                             "notes": list(cal.in_urdf.notes), **judged_record(cal.in_urdf)},
         "files": files,
     }
@@ -66,6 +66,11 @@ def parameters(cal: ArtefactCalibration) -> list[dict]:
     """The identified parameters: name, value, standard deviation and unit (SI)."""
     return [{"name": n, "value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
             for n, x, s in zip(cal.names, cal.fit.X, cal.std)]
+
+
+def outliers(cal: ArtefactCalibration) -> list[dict]:
+    """The configurations left out as outliers (a ball not seated) and their scores."""
+    return [{"configuration": where, "score": score} for where, score in cal.outliers]
 
 
 def judged_record(cal: ArtefactCalibration) -> dict:

@@ -90,41 +90,41 @@ def test_registered_test_poses_see_no_rigid_motion_and_keep_the_rest():
     assert np.allclose(registered(Br, p0), Br, atol=1e-12)  # a projection
 
 
-def test_a_pandas_recordings_tell_its_tracker_base_set_less_a_rigid_motion():
-    """The tracker's identifiable base set of the Panda (31: 4 of them base.*, and joint 1's two
-    tilts) holds 6 that a rigid motion of the whole robot makes: the artefact's recordings tell
-    the other 25, whatever the placements."""
+@pytest.fixture(scope="module")
+def recorded():
+    """The Panda problem's model and 8 configurations per socket of two placements: the rows
+    ``B`` (N, 3, L), the ball's points ``p``, the artefact, each placement's first turn ``R``,
+    the placements' columns ``G``, the points ``k`` and placements ``g``."""
     from tests.artefact_data import recordings
 
     problem = load_problem(PANDA)
     _, Q, k, g = recordings(problem, 0, 8, 5e-5)
     model = problem.model
-    assert model.L == 31
     B = model.B_stack(Q, np.zeros((len(Q), 0)))
     p = np.stack([np.asarray(model.points(q)).reshape(3) for q in Q])
     A = problem.artefact
     R = np.array([A.place({j: p[(g == h) & (k == j)].mean(axis=0) for j in (0, 1)})[0] for h in (0, 1)])
-    kept, live = identifiable(B, p, placement_columns(A, R, k, g), RANK_RTOL)
+    return model, B, p, A, R, placement_columns(A, R, k, g), k, g
+
+
+def test_a_pandas_recordings_tell_its_tracker_base_set_less_a_rigid_motion(recorded):
+    """The tracker's identifiable base set of the Panda (31: 4 of them base.*, and joint 1's two
+    tilts) holds 6 that a rigid motion of the whole robot makes: the artefact's recordings tell
+    the other 25, whatever the placements."""
+    model, B, p, _, _, G, _, _ = recorded
+    assert model.L == 31
+    kept, live = identifiable(B, p, G, RANK_RTOL)
     left = {n for n, keep in zip(model.parameter_names, kept) if not keep}
     assert kept.sum() == 25
     assert left == {"base.tx", "base.ty", "base.tz", "base.rz", "panda_joint1.rx", "panda_joint1.ry"}
 
 
-def test_tied_parameters_are_kept_in_their_order_whatever_the_rounding():
+def test_tied_parameters_are_kept_in_their_order_whatever_the_rounding(recorded):
     """Two parameters that move the recordings alike (a copy of a column, as a joint's ty and rz
     can be for one placement of an iiwa) are a tie: the one listed first is kept, whichever of
     the two carries a rounding difference (LAPACK's pivoting left it to the BLAS's kernel, and
     the other choice stalled the fit)."""
-    from tests.artefact_data import recordings
-
-    problem = load_problem(PANDA)
-    _, Q, k, g = recordings(problem, 0, 8, 5e-5)
-    model = problem.model
-    B = model.B_stack(Q, np.zeros((len(Q), 0)))
-    p = np.stack([np.asarray(model.points(q)).reshape(3) for q in Q])
-    A = problem.artefact
-    R = np.array([A.place({j: p[(g == h) & (k == j)].mean(axis=0) for j in (0, 1)})[0] for h in (0, 1)])
-    G = placement_columns(A, R, k, g)
+    model, B, p, _, _, G, _, _ = recorded
     j = model.parameter_names.index("panda_joint3.tx")
     for noisy in (0, 1):
         twin = np.concatenate([B[:, :, :j + 1], B[:, :, j:j + 1], B[:, :, j + 1:]], axis=2)
@@ -133,21 +133,12 @@ def test_tied_parameters_are_kept_in_their_order_whatever_the_rounding():
         assert kept[j] and not kept[j + 1] and kept.sum() == 25
 
 
-def test_a_parameter_whose_own_effect_is_all_but_absorbed_is_not_told():
+def test_a_parameter_whose_own_effect_is_all_but_absorbed_is_not_told(recorded):
     """A parameter that moves the ball as a turn of the whole robot about the vertical plus
     2e-3 of another's effect (and 2e-9 more: a calibrated Panda's ``panda_joint2.ry``) is told
     by no recording: it is not kept, and the rows of the kept ones with the placements' are
     regular (kept, the design's information was singular and no plan identified X)."""
-    from tests.artefact_data import recordings
-
-    problem = load_problem(PANDA)
-    _, Q, k, g = recordings(problem, 0, 8, 5e-5)
-    model = problem.model
-    B = model.B_stack(Q, np.zeros((len(Q), 0)))
-    p = np.stack([np.asarray(model.points(q)).reshape(3) for q in Q])
-    A = problem.artefact
-    R = np.array([A.place({j: p[(g == h) & (k == j)].mean(axis=0) for j in (0, 1)})[0] for h in (0, 1)])
-    G = placement_columns(A, R, k, g)
+    model, B, p, A, R, G, k, g = recorded
     told = B[:, :, model.parameter_names.index("panda_joint3.tx")]
     noise = np.random.default_rng(1).standard_normal(told.shape) * np.linalg.norm(told) / np.sqrt(told.size)
     almost = rigid_columns(p)[:, :, 5] + 2e-3 * (told + 1e-6 * noise)
