@@ -35,6 +35,23 @@ import pinocchio as pin
 
 from .identifiability import pivoted_columns
 
+#: A parameter is told by an artefact's recordings when more than this share of its own effect is
+#: left once the placements, a rigid motion of the robot and the parameters kept take theirs
+#: (:func:`identifiable`): its information is then above ``TOLD_RTOL**2`` of its own, the
+#: plans' threshold of a singular ``M`` (:data:`~casadi_design.measures.measures.SINGULAR_RTOL`,
+#: 1e-12). Below it the rows are regular only by the nominal robot's rounding: a UR5's
+#: ``shoulder_lift_joint.rx`` at one placement keeps 4e-8 of its effect, configurations seated by
+#: the inverse kinematics to 1e-7 m, and no plan of them was regular. On MUKCa's recordings the
+#: weakest parameter kept keeps 8e-5 (panda_4 ``right``) and the next is 1e-15.
+TOLD_RTOL = 1e-6
+#: Directions of the motions projected out (:func:`projected_out`) below this share of the
+#: largest are not motions: a rigid motion of the whole robot and a placement's differ at two
+#: sockets only by the points' spread about them, 1e-12 m for configurations seated by the
+#: plans' NLP; taken as motions, they removed what no motion makes from a parameter's effect (a
+#: UR5's ``shoulder_lift_joint.rx`` then kept 3e-6 of its own and the plan's rows were singular).
+#: Recordings spread by the nominal robot's error (mm) are far above it.
+MOTION_RCOND = 1e-9
+
 #: Points closer than this (m) to the line through the first two are on that line; a turn is
 #: told when its points leave the line by more.
 COLLINEAR_M = 1e-6
@@ -154,9 +171,10 @@ def rigid_columns(p: np.ndarray) -> np.ndarray:
 
 def projected_out(J: np.ndarray, T: np.ndarray) -> np.ndarray:
     """The rows ``J`` (N, 3, L) less their least-squares part in the columns ``T`` (N, 3, c):
-    ``(I - T T^+) J`` stacked, (N, 3, L)."""
+    ``(I - T T^+) J`` stacked, (N, 3, L), ``T^+`` without the directions of ``T`` below
+    :data:`MOTION_RCOND` of its largest."""
     S, C = J.reshape(-1, J.shape[2]), T.reshape(-1, T.shape[2])
-    return (S - C @ np.linalg.lstsq(C, S, rcond=None)[0]).reshape(J.shape)
+    return (S - C @ np.linalg.lstsq(C, S, rcond=MOTION_RCOND)[0]).reshape(J.shape)
 
 
 def placement_columns(A: Artefact, R: np.ndarray, point: np.ndarray, placement: np.ndarray) -> np.ndarray:
@@ -170,14 +188,14 @@ def placement_columns(A: Artefact, R: np.ndarray, point: np.ndarray, placement: 
     return out
 
 
-def identifiable(J: np.ndarray, p: np.ndarray, G: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
+def identifiable(J: np.ndarray, p: np.ndarray, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Which columns of ``J`` (N, 3, L) recordings at the points ``p`` (N, 3) of placements of
     columns ``G`` (N, 3, P nP, :func:`placement_columns`) tell, with every placement and the
     robot's base unknown: the placements' columns and a rigid motion of the whole robot
     (:func:`rigid_columns`) projected out, each column divided by its norm before the projection,
-    QR with column pivoting (``|R_ii| > rtol |R_00|``; ties to the parameter listed first,
+    QR with column pivoting (``|R_ii| > TOLD_RTOL |R_00|``; ties to the parameter listed first,
     :func:`~.identifiability.pivoted_columns`, so that the set does not depend on the BLAS): a
-    parameter is told when a share of its own effect beyond ``rtol`` is left once the others'
+    parameter is told when a share of its own effect beyond :data:`TOLD_RTOL` is left once the others'
     is taken (a calibrated Panda's ``panda_joint2.ry``, nearly a turn of the base about its
     vertical: 2e-3 of its effect is left by the projection and 1e-6 of that by the others',
     told by no recording). Returns (kept, live): kept the base set (bool, L), live the columns
@@ -185,11 +203,11 @@ def identifiable(J: np.ndarray, p: np.ndarray, G: np.ndarray, rtol: float) -> tu
     Jp = projected_out(J, np.concatenate([rigid_columns(p), G], axis=2)).reshape(-1, J.shape[2])
     scale = np.linalg.norm(J.reshape(-1, J.shape[2]), axis=0)
     norms = np.linalg.norm(Jp, axis=0)
-    live = norms > rtol * np.maximum(scale, np.finfo(float).tiny)
+    live = norms > TOLD_RTOL * np.maximum(scale, np.finfo(float).tiny)
     kept = np.zeros(J.shape[2], dtype=bool)
     if live.any():
         piv, d = pivoted_columns(Jp[:, live] / scale[live])
-        kept[np.flatnonzero(live)[piv[:int(np.sum(d > rtol * d[0]))]]] = True
+        kept[np.flatnonzero(live)[piv[:int(np.sum(d > TOLD_RTOL * d[0]))]]] = True
     return kept, live
 
 

@@ -174,7 +174,7 @@ def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...],
     p, J = ball_points(fm.model, rec.Q, np.zeros(fm.model.L))
     at = np.searchsorted(np.unique(rec.placement), rec.placement)  # the placements recorded, 0..P-1
     R, _ = problem.artefact.placed(p, rec.point, at)
-    kept, live = identifiable(J, p, placement_columns(problem.artefact, R, rec.point, at), RANK_RTOL)
+    kept, live = identifiable(J, p, placement_columns(problem.artefact, R, rec.point, at))
     why = {False: "a rigid motion of the whole robot or of a placement (the base, which no fixed point tells)",
            True: "acts as a combination of the parameters kept"}
     return (tuple(n for n, k in zip(fm.model.parameter_names, kept) if k),

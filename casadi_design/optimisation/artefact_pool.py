@@ -20,7 +20,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..calibration.artefact import artefact_rows, identifiable, placement_columns, registered
-from ..calibration.identifiability import RANK_RTOL
 from ..errors import ProblemError
 from ..plan.design import Design, Seating
 from ..problem.build import Problem
@@ -65,7 +64,7 @@ def artefact_pool(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     p = np.stack([np.asarray(model.points(q), dtype=float).reshape(3) for q in Q])
     at = np.searchsorted(np.unique(placement), placement)
     R, t = A.placed(p, point, at)
-    kept, _ = identifiable(B, p, placement_columns(A, R, point, at), RANK_RTOL)
+    kept, _ = identifiable(B, p, placement_columns(A, R, point, at))
     rows = artefact_rows(A, B[:, :, kept], R, point, at)
     B0 = registered(problem.B0[:, :, kept], problem.test_poses.position_m)
     B0 = np.concatenate([B0, np.zeros((len(B0), 3, rows.shape[2] - B0.shape[2]))], axis=2)

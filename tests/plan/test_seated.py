@@ -103,3 +103,20 @@ def test_the_placement_is_chosen_by_the_measure(panda):
         approx = pool_design(problem, "test-pose", s.Q[rows][pool.kept], np.zeros((int(pool.kept.sum()), 0)), A, m,
                              pool.B0)
         assert bound(problem, m, approx, pool.B.shape[2]).value <= plan.scores.max_rms_error_m * (1 + 1e-9)
+
+
+def test_a_six_joint_ur5_s_plans_from_nothing_identify_its_base_set():
+    """A UR5 with a ball on its flange (examples/ur5_ball_socket.toml): a placement's seated
+    configurations tell its tracker base set less the 6 parameters a rigid motion of the robot
+    makes (``shoulder_lift_joint.rx`` with them: the configurations leave 4e-8 of its own effect,
+    the inverse kinematics' rounding); the plan the NLP moves along the sockets (seated to 1e-12
+    m) scores regular, alone, as the design said. Before, rx was kept, every plan was singular and
+    ``solve`` refused the file; a plan of the NLP lost a parameter to the rounding."""
+    problem = load_problem(ROOT / "examples" / "ur5_ball_socket.toml")
+    s = seated_configurations(problem, PER_POINT)
+    pool = artefact_pool(problem, s.Q[s.placement == 0], s.point[s.placement == 0], s.placement[s.placement == 0])
+    assert len(pool.names) == problem.model.L - 6 and "shoulder_lift_joint.rx" not in pool.names
+    ch = choose_clamps(problem, s.Q, s.point, s.placement, s.names, "test-pose", 12, 1, 1, seated=True)
+    d = ch.design
+    again = artefact_scores(problem, d.Q, d.seated.point, d.seated.placement)
+    assert again.identifiable and np.allclose(again.rms_error_m, d.scores.rms_error_m, rtol=1e-6)
