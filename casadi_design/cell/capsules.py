@@ -18,7 +18,7 @@ import pinocchio as pin
 import scipy
 
 from ..errors import ProblemError
-from ..robot.robots import Robot
+from ..robot.robots import Robot, frame_id
 from ..robot.symbolic import compose, joint_axis, rotation_about
 from ..runtime.cache import digest, stored
 from ..runtime.threads import blas_kernels
@@ -221,7 +221,7 @@ def carrier(model: pin.Model, name: str, where: str = "[cell].capsules") -> tupl
     """The joint carrying frame or joint ``name`` and the placement of ``name`` in it; an
     unknown name is refused naming the field ``where``."""
     if model.existFrame(name):
-        frame = model.frames[model.getFrameId(name)]
+        frame = model.frames[frame_id(model, name)]
         return frame.parentJoint, frame.placement
     if model.existJointName(name):
         return model.getJointId(name), pin.SE3.Identity()

@@ -43,7 +43,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..errors import ProblemError
-from ..robot.robots import Robot, example_robot_data_dir, load_urdf, urdf_file
+from ..robot.robots import Robot, example_robot_data_dir, frame_id, load_urdf, urdf_file
 from ..runtime.cache import code_digest, digest, memoised, stored
 from ..runtime.threads import blas_kernels
 from .capsules import capsule_names, capsules_from_geometry, carrier, load_collision_geometry
@@ -256,7 +256,7 @@ def _onto_chain(robot: Robot, urdf: str, per_link: int, where: str) -> tuple[pin
             bodies.append(robot.model.names[j])
     fitted = []
     for c in capsules_from_geometry(urdf_model, geometry, per_link) if per_link else ():
-        frame = urdf_model.frames[urdf_model.getFrameId(c.frame)]
+        frame = urdf_model.frames[frame_id(urdf_model, c.frame)]
         if frame.parentJoint in to_robot:
             jMc = offsets[frame.parentJoint] * frame.placement
             fitted.append(Capsule(robot.model.names[to_robot[frame.parentJoint]], jMc.act(np.array(c.a_m)),

@@ -10,7 +10,8 @@ recording meets), and the hand comes into the socket from above: the measured fr
 Each seated configuration is the inverse kinematics (:func:`~casadi_design.robot.ik.solve_ik`,
 position and orientation to 1e-7, :data:`SEATED_IK_STEPS` steps at most) of a hand orientation drawn uniformly over the cone of
 ``tilt_max`` (its turn about z uniform), from a configuration drawn uniformly within the joint
-limits; it is kept when it keeps every rule of one experiment
+limits (an arm of fewer than 6 joints, which reaches few orientations, to the position alone,
+kept when its hand is within the tilt); it is kept when it keeps every rule of one experiment
 (:func:`~casadi_design.plan.rules.plan_violations`: limits less the margin, workspace, cell). The
 pool engine then chooses the plan among them (:mod:`casadi_design.optimisation.artefact_pool`).
 """
@@ -111,6 +112,7 @@ def seated_configurations(problem: Problem, per_point: int = SEATED_PER_POINT) -
     R, c = socket_positions(problem)
     rng = np.random.default_rng([problem.solver.seed, SEATED_STREAM])
     limits, F0 = problem.rules.limits, np.zeros((1, problem.model.nF))
+    few, cos_max = robot.n < 6, np.cos(spec.tilt_max_rad)  # fewer than 6 joints: the ball's position alone
     Q, point, placement = [], [], []
     for g, name in enumerate(p.name for p in spec.placements):
         into = -R[g][:, 2]  # the artefact's -z: the hand's z axis points into the socket
@@ -118,8 +120,9 @@ def seated_configurations(problem: Problem, per_point: int = SEATED_PER_POINT) -
             found = 0
             for _ in range(SEATED_TRIES * per_point):
                 target = pin.SE3(tilted(into, spec.tilt_max_rad, rng), c[g, k])
-                q, err = solve_ik(robot, target, limits.sample(rng), max_iter=SEATED_IK_STEPS)
-                if err <= IK_ACCEPT and not plan_violations(problem, q[None], F0, meshes=False):
+                q, err = solve_ik(robot, target, limits.sample(rng), position_only=few, max_iter=SEATED_IK_STEPS)
+                if (err <= IK_ACCEPT and (not few or frame_placement(robot, q).rotation[:, 2] @ into >= cos_max)
+                        and not plan_violations(problem, q[None], F0, meshes=False)):
                     Q.append(q)
                     point.append(k)
                     placement.append(g)

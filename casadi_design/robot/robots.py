@@ -75,7 +75,7 @@ class Robot:
 
     @cached_property
     def frame_id(self) -> int:
-        return self.model.getFrameId(self.frame)
+        return frame_id(self.model, self.frame)
 
     @cached_property
     def joint_ids(self) -> tuple[int, ...]:
@@ -231,6 +231,14 @@ def placement_from_xyz_rpy(xyz_m, rpy_rad) -> pin.SE3:
     return pin.SE3(pin.rpy.rpyToMatrix(*(float(v) for v in rpy_rad)), np.asarray(xyz_m, dtype=float))
 
 
+def frame_id(model: pin.Model, name: str) -> int:
+    """The id of the frame ``name`` (which exists): the URDF link's where a joint bears its name
+    too (Unitree Z1's ``gripperStator``, SO-100's ``gripper``: Pinocchio's ``getFrameId`` refuses
+    the ambiguity); a link's frame and its joint's are at one place."""
+    ids = [i for i, f in enumerate(model.frames) if f.name == name]
+    return next((i for i in ids if model.frames[i].type == pin.FrameType.BODY), ids[0])
+
+
 def add_tool_frame(model: pin.Model, frame: str, placement: pin.SE3, name: str = "tcp") -> str:
     """Add a tool frame ``name`` at ``placement`` relative to ``frame``; returns its name."""
     if not model.existFrame(frame):
@@ -238,7 +246,7 @@ def add_tool_frame(model: pin.Model, frame: str, placement: pin.SE3, name: str =
         raise ProblemError(f"[robot].frame: unknown frame '{frame}'; the model has: {', '.join(names)}")
     if model.existFrame(name):
         raise ProblemError(f"[robot].tool_xyz_m: the model already has a frame '{name}'; set [robot].frame to it instead")
-    parent = model.frames[model.getFrameId(frame)]
+    parent = model.frames[frame_id(model, frame)]
     model.addFrame(pin.Frame(name, parent.parentJoint, parent.placement * placement, pin.FrameType.OP_FRAME))
     return name
 
@@ -337,7 +345,7 @@ def make_robot(
     if not model.existFrame(frame):
         names = [f.name for f in model.frames if f.name != "universe"]
         raise ProblemError(f"[robot].frame: unknown frame '{frame}'; the model has: {', '.join(names)}")
-    parent = model.frames[model.getFrameId(frame)].parentJoint
+    parent = model.frames[frame_id(model, frame)].parentJoint
     chain = [j for j in model.supports[parent] if j != 0]
     for jid in chain:
         joint = model.joints[jid]

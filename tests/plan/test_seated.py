@@ -120,3 +120,49 @@ def test_a_six_joint_ur5_s_plans_from_nothing_identify_its_base_set():
     d = ch.design
     again = artefact_scores(problem, d.Q, d.seated.point, d.seated.placement)
     assert again.identifiable and np.allclose(again.rms_error_m, d.scores.rms_error_m, rtol=1e-6)
+
+
+SO100 = """
+name = "so100_ball_socket"
+[robot]
+urdf = "example-robot-data:so_arm_description/urdf/so100.urdf"
+frame = "gripper"
+tool_xyz_m = [0.0, 0.0, 0.05]
+[calibration]
+case = "geometric"
+parameters = "identifiable"
+[measurement]
+components = ["x", "y", "z"]
+sigma_m = 5e-5
+[measurement.artefact]
+points_m = [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]
+placements = [{ name = "side", xyz_m = [0.1266, -0.1608, 0.2493], rpy_deg = [0, 0, 60] }]
+[test_poses]
+components = ["x", "y", "z"]
+joints_rad = [[1.0736, 1.9781, -0.3238, -2.1176, 1.1533], [-0.7348, 1.0842, -0.0013, -1.8130, 1.5137],
+              [1.1836, 1.5531, -0.5737, -1.1632, 1.2909], [-1.0664, 0.3951, -0.3674, -0.7764, 1.5087]]
+[experiments]
+m = [16]
+[design]
+criteria = ["test-pose"]
+"""
+
+
+def test_a_five_joint_arm_is_seated_by_the_ball_s_position_within_the_tilt(tmp_path):
+    """An arm of 5 joints (SO-100) reaches few hand orientations: its configurations are seated
+    by the ball's position alone and kept within the tilt. Drawn with the orientation too, as a
+    6-joint arm's, no configuration of 300 tried was seated and solve refused the placement."""
+    path = tmp_path / "so100.toml"
+    path.write_text(SO100)
+    problem = load_problem(path)
+    assert problem.robot.n == 5
+    s = seated_configurations(problem, PER_POINT)
+    spec = problem.spec.measurement.artefact
+    R = Rotation.from_euler("xyz", spec.placements[0].rpy_rad).as_matrix()
+    assert len(s.Q) == problem.artefact.K * PER_POINT
+    for q, k in zip(s.Q, s.point):
+        M = frame_placement(problem.robot, q)
+        assert np.linalg.norm(M.translation - (np.array(spec.placements[0].xyz_m) + R @ problem.artefact.points_m[k])) < 1e-7
+        assert -M.rotation[:, 2] @ R[:, 2] >= np.cos(spec.tilt_max_rad) - 1e-12
+    d = choose_clamps(problem, s.Q, s.point, s.placement, s.names, "test-pose", 16, 1, 1).design
+    assert artefact_scores(problem, d.Q, d.seated.point, d.seated.placement).identifiable

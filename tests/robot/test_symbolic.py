@@ -25,6 +25,9 @@ ROBOTS = {
     "ur5": (lambda: load_urdf("example-robot-data:ur_description/urdf/ur5_robot.urdf"), "tool0"),
     "ur10": (lambda: load_urdf("example-robot-data:ur_description/urdf/ur10_robot.urdf"), "tool0"),
     "panda": (lambda: load_urdf("example-robot-data:panda_description/urdf/panda.urdf"), "panda_hand"),
+    # a link named as its joint (Pinocchio's getFrameId refuses the name): the link's frame
+    "z1": (lambda: load_urdf("example-robot-data:z1_description/urdf/z1.urdf"), "gripperStator"),
+    "so100": (lambda: load_urdf("example-robot-data:so_arm_description/urdf/so100.urdf"), "gripper"),
     "abb_irb6640": (lambda: load_urdf(str(ROOT / "problems/robots/abb_irb6640_180_255.urdf")), "tool0"),
     "abb_irb6640_dh": (lambda: load_problem(ROOT / "problems/abb_irb6640_machining.toml").robot.model, "tcp"),
 }
@@ -109,3 +112,19 @@ def test_parameter_names_count():
     names = parameter_names(robot)
     assert len(names) == 6 + 7 * robot.n + 6
     assert names[6] == "joint1.offset" and names[-1] == "tool.rz"
+
+
+def test_a_link_named_as_its_joint_is_measured_at_the_link():
+    """Unitree Z1's URDF names a link as the fixed joint that carries it (``gripperStator``):
+    Pinocchio's ``getFrameId`` refuses the name; the robot is measured at the link's frame, where
+    the joint's is too."""
+    model = load_urdf("example-robot-data:z1_description/urdf/z1.urdf")
+    ids = [i for i, f in enumerate(model.frames) if f.name == "gripperStator"]
+    assert len(ids) == 2
+    with pytest.raises(ValueError):
+        model.getFrameId("gripperStator")
+    robot = make_robot(model, "gripperStator")
+    assert model.frames[robot.frame_id].type == pin.FrameType.BODY
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.randomConfiguration(model))
+    assert np.allclose(data.oMf[ids[0]].homogeneous, data.oMf[ids[1]].homogeneous, atol=1e-12)
