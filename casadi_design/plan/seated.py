@@ -144,10 +144,13 @@ def seated_configurations(problem: Problem, per_point: int = SEATED_PER_POINT) -
 
 def approaches(problem: Problem, Q: np.ndarray) -> np.ndarray:
     """The configurations (m, n), rad, that hold the hand of each seated configuration ``Q``
-    (m, n) in its orientation with the measured point :data:`APPROACH_M` back along the hand's z
-    axis (out of the socket), by inverse kinematics from it, then, where a joint's limit stops it
-    (a plan at its limits), from :data:`APPROACH_TRIES` starts about it (seeded): where a robot
-    program stops before the operator seats the ball.
+    (m, n) with its z axis as seated and the measured point :data:`APPROACH_M` back along it (out
+    of the socket), its turn about the axis free (the ball is a sphere: a wrist at its limit turns
+    the other way), by inverse kinematics from it, then, where a joint's limit stops it (a plan at
+    its limits), from :data:`APPROACH_TRIES` starts about it (seeded); where none holds the axis
+    (an arm of 5 joints, a wrist at its limit), the point alone, the hand turned as little as the
+    steps of least norm turn it: where a robot program stops before the operator seats the
+    ball.
 
     Raises
     ------
@@ -161,8 +164,8 @@ def approaches(problem: Problem, Q: np.ndarray) -> np.ndarray:
         target = pin.SE3(M.rotation, M.translation - APPROACH_M * M.rotation[:, 2])
         starts = [q] + [np.clip(q + rng.normal(0.0, APPROACH_SPREAD_RAD, q.size), robot.q_min, robot.q_max)
                         for _ in range(APPROACH_TRIES)]
-        for q0 in starts:
-            qa, err = solve_ik(robot, target, q0)
+        for position_only, q0 in [(robot.n < 5, q0) for q0 in starts] + [(True, q0) for q0 in starts]:
+            qa, err = solve_ik(robot, target, q0, position_only=position_only, free_spin=True)
             if err <= IK_ACCEPT:
                 break
         else:

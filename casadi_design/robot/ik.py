@@ -63,17 +63,25 @@ def sample_path(kind: str, points: np.ndarray, nodes: int) -> tuple[np.ndarray, 
 
 
 def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool = False,
-             limits: bool = True, max_iter: int = IK_MAX_ITER) -> tuple[np.ndarray, float]:
+             limits: bool = True, max_iter: int = IK_MAX_ITER, free_spin: bool = False) -> tuple[np.ndarray, float]:
     """Configuration reaching ``target`` with the tool frame, from ``q0``, within the joint
-    limits (``limits``; else anywhere), in at most ``max_iter`` steps; and the residual |e|."""
+    limits (``limits``; else anywhere), in at most ``max_iter`` steps; and the residual |e|.
+    ``position_only``: the position alone; ``free_spin``: the position and the tool's z axis,
+    its turn about it free (a ball's): the orientation's error ``log3(R* R^T)`` and the
+    Jacobian's rows of it taken along the target's x and y axes only (zero where ``R^T R*``
+    is a turn about z)."""
     model, data, fid = robot.model, robot.model.createData(), robot.frame_id
     low, high = (robot.q_min, robot.q_max) if limits else (-np.inf, np.inf)
     q = np.clip(np.asarray(q0, dtype=float), low, high)
     # what every step uses, made once (a step is mostly Python's overhead: a 7-joint arm's is
     # about 50 us): the configuration of the whole model, the error and the identity
-    k = 3 if position_only else 6
-    q_full, q_index, v_index = robot.full_q(q), robot.q_index, robot.v_index
-    t, R, e, eye = target.translation, target.rotation, np.empty(6), np.eye(k)
+    t, R, e = target.translation, target.rotation, np.empty(6)
+    S = np.eye(6)[:3] if position_only else np.eye(6)  # the rows asked for, of (position, orientation)
+    if free_spin and not position_only:
+        S = np.zeros((5, 6))
+        S[:3, :3], S[3:, 3:] = np.eye(3), R[:, :2].T
+    k = len(S)
+    q_full, q_index, v_index, eye = robot.full_q(q), robot.q_index, robot.v_index, np.eye(k)
     world = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
     err = np.inf
     for _ in range(max_iter):
@@ -82,13 +90,14 @@ def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool 
         pin.updateFramePlacements(model, data)
         M = data.oMf[fid]
         e[:3] = t - M.translation
-        if k == 6:  # the orientation's error only where it is asked for
+        if k > 3:  # the orientation's error only where it is asked for
             e[3:] = pin.log3(R @ M.rotation.T)
-        ek = e[:k]
+        ek = e[:k] if k != 5 else S @ e
         err = math.sqrt(ek.dot(ek))  # np.linalg.norm's sum of squares and square root
         if err < IK_TOL:
             break
-        J = pin.getFrameJacobian(model, data, fid, world)[:k][:, v_index]
+        J = pin.getFrameJacobian(model, data, fid, world)[:, v_index]
+        J = J[:k] if k != 5 else S @ J
         lam2 = LAMBDA0**2 + err**2
         q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + lam2 * eye, ek), low, high)
     return q, err
