@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 from ..errors import ProblemError
@@ -96,7 +97,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 #: The options of a tracker's measurements: refused with an artefact's recordings (:func:`run_artefact`).
-TRACKER_OPTIONS = ("same_frame", "frame", "loss", "units", "joint_units", "columns", "limit_tolerance")
+TRACKER_OPTIONS = ("same_frame", "frame", "loss", "units", "joint_units", "columns")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -211,8 +212,11 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
         if getattr(args, option) != default:
             raise ProblemError(f"--{option.replace('_', '-')}: not used with an artefact's recordings (joints in rad "
                                "in the chain's order, a point and a placement each: docs/ball-socket.md); leave it out")
-    rec = read_recordings(problem, args.measurements)
-    valid = None if not args.validation else read_recordings(problem, args.validation, "--validation")
+    if not (math.isfinite(args.limit_tolerance) and args.limit_tolerance >= 0):
+        raise ProblemError(f"--limit-tolerance {args.limit_tolerance:g}: give a number >= 0 (rad or m)")
+    rec = read_recordings(problem, args.measurements, "--measurements", args.limit_tolerance)
+    valid = None if not args.validation else read_recordings(problem, args.validation, "--validation",
+                                                             args.limit_tolerance)
     if valid is not None and set(valid.names) & set(rec.names):
         raise ProblemError(f"--validation: placement '{sorted(set(valid.names) & set(rec.names))[0]}' is in the fit; "
                            "give placements not used in the fit")

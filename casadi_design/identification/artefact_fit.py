@@ -589,6 +589,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     if not found:
         raise ProblemError(f"--model {model}: the recordings tell none of its parameters; give another model")
     chosen, notes = choose(found, "auto")
+    notes = [*rec.notes, *(valid.notes if valid is not None else ()), *notes]  # the files' own first
     told = generic_base_set(problem, problem.model.parameter_names)
     if len(names) < len(told):
         missing = [n for n in told if n not in names]

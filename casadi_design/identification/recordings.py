@@ -26,6 +26,7 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..problem.build import Problem
+from .measurements import LIMIT_TOLERANCE
 from ..records.export import LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_cells, read_plan_file, read_plan_table
 
 #: The column of a plan CSV that names each placement number.
@@ -81,9 +82,11 @@ class Recordings:
                           tuple(s for s, r in zip(self.sources, rows) if r), self.notes)
 
 
-def read_recordings(problem: Problem, paths: list[str], option: str = "--measurements") -> Recordings:
+def read_recordings(problem: Problem, paths: list[str], option: str = "--measurements",
+                    limit_tolerance: float = LIMIT_TOLERANCE) -> Recordings:
     """The recordings of ``paths`` (each a placement's folder or a CSV of the project's; module
-    docstring), one placement per folder and per ``placement`` of a CSV, numbered in order.
+    docstring), one placement per folder and per ``placement`` of a CSV, numbered in order; joint
+    values past a limit by at most ``limit_tolerance`` (rad or m) are accepted with a note.
 
     Raises
     ------
@@ -95,7 +98,8 @@ def read_recordings(problem: Problem, paths: list[str], option: str = "--measure
     if problem.artefact is None:
         raise ProblemError(f"{problem.path}: [measurement.artefact] is missing, so {option} cannot be "
                            "recordings of an artefact's points; add it (points_m) or give tracker measurements")
-    parts = [_folder(problem, Path(p), option) if Path(p).is_dir() else _csv(problem, p, option) for p in paths]
+    parts = [_folder(problem, Path(p), option, limit_tolerance) if Path(p).is_dir() else
+             _csv(problem, p, option, limit_tolerance) for p in paths]
     Q, point, placement, names, sources, notes = [], [], [], [], [], []
     for part in parts:
         for name, (Qg, kg, src) in part[0].items():
@@ -135,7 +139,7 @@ def _checked(problem: Problem, where: str, Q: np.ndarray, k: np.ndarray, sources
                            "degrees; give them in rad")
 
 
-def _folder(problem: Problem, folder: Path, option: str) -> tuple[dict, list[str]]:
+def _folder(problem: Problem, folder: Path, option: str, tolerance: float) -> tuple[dict, list[str]]:
     """A placement's folder of ``hole_<k>.csv`` files (MUKCa's layout)."""
     files = sorted((int(m.group(1)), f) for f in folder.iterdir() if (m := POINT_FILE.fullmatch(f.name)))
     same = [(i, a, b) for (i, a), (j, b) in zip(files, files[1:]) if i == j]
@@ -171,21 +175,31 @@ def _folder(problem: Problem, folder: Path, option: str) -> tuple[dict, list[str
                            "the folder out")
     Q, k = np.vstack(Q), np.concatenate(k)
     _checked(problem, f"{option} {folder}", Q, k, sources)
-    _limits(problem, Q, sources)
-    return {folder.name: (Q, k, sources)}, []
+    return {folder.name: (Q, k, sources)}, _limits(problem, Q, sources, tolerance)
 
 
-def _limits(problem: Problem, Q: np.ndarray, sources: list[str]) -> None:
-    """Joint values past a limit by more than the encoder's tolerance: one line naming the row."""
+def _limits(problem: Problem, Q: np.ndarray, sources: list[str], tolerance: float) -> list[str]:
+    """Notes on the joint values ``Q`` past a limit by at most ``tolerance`` (rad or m: a real
+    encoder reads past the URDF's limit; rounding below :data:`LIMIT_TOL` silently), one line
+    naming the row of a value past it by more."""
     robot = problem.robot
     past = np.maximum(robot.q_min - Q, Q - robot.q_max)
     i, j = np.unravel_index(int(np.argmax(past)), past.shape)
-    if past[i, j] > LIMIT_TOL:
+    if past[i, j] > tolerance:
         raise ProblemError(f"{sources[i]}: {robot.joints[j]} = {Q[i, j]:.6g} is outside its limits "
-                           f"[{robot.q_min[j]:.6g}, {robot.q_max[j]:.6g}] rad; check the joint order and units")
+                           f"[{robot.q_min[j]:.6g}, {robot.q_max[j]:.6g}] rad by more than {tolerance:g}; check the "
+                           "joint order and units (identify --limit-tolerance accepts readings past a limit)")
+    notes = []
+    for j, joint in enumerate(robot.joints):
+        over = np.flatnonzero(past[:, j] > LIMIT_TOL)
+        if over.size:  # as check_joint_limits says it of a CSV
+            i = int(np.argmax(past[:, j]))
+            notes.append(f"{sources[i]}, {joint}: {over.size} reading{'s' if over.size > 1 else ''} past the joint "
+                         f"limits by at most {past[i, j]:.3g} rad, within --limit-tolerance {tolerance:g}: accepted")
+    return notes
 
 
-def _csv(problem: Problem, path: str, option: str) -> tuple[dict, list[str]]:
+def _csv(problem: Problem, path: str, option: str, tolerance: float) -> tuple[dict, list[str]]:
     """A CSV of the project's: joint columns, ``point`` and ``placement``."""
     if not Path(path).exists():
         raise ProblemError(f"{option} {path}: no such file or folder; give a placement's folder (hole_0.csv, ...) "
@@ -202,7 +216,7 @@ def _csv(problem: Problem, path: str, option: str) -> tuple[dict, list[str]]:
         if bad.size:
             raise ProblemError(f"{path}: row {lines[bad[0]]}, column '{c}': {float(v[bad[0]]):g} is not an integer; "
                                "give the number")
-    notes = list(check_joint_limits(problem, plan, Q, lines))
+    notes = list(check_joint_limits(problem, plan, Q, lines, tolerance))
     named = _placement_names(plan, values["placement"])
     out = {}
     for g in np.unique(values["placement"]).astype(int):

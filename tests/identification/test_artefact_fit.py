@@ -394,3 +394,37 @@ def test_a_gravity_model_whose_compliances_are_not_told_is_its_own_urdf(simulate
     rec = Recordings(Q[rows], k[rows], np.zeros(len(rows), int), ("front",), tuple(map(str, rows)))
     cal = calibrate_artefact(problem, rec, model="identifiable + gravity", with_field=False)
     assert not any(n.startswith("k.") for n in cal.names) and cal.urdf is None and cal.in_urdf is cal
+
+
+def test_readings_past_a_joint_limit_are_accepted_within_the_tolerance_and_said(simulated, tmp_path, capsys):
+    """An encoder reads past the URDF's limit (a robot seated at its limit by hand): 0.5 mrad
+    past is accepted with a note identify prints and writes (folder and CSV alike: the CSV's
+    note was read and lost), 5 mrad past is refused naming the row and --limit-tolerance, and
+    accepted with --limit-tolerance 0.01. Before, any reading past by 1e-6 was refused and
+    --limit-tolerance was refused with an artefact's recordings."""
+    problem, _, Q, k, g = simulated
+    rows = np.flatnonzero(g == 0)
+    j = 3
+    for past, ok in ((5e-4, True), (5e-3, False)):
+        Qp = Q[rows].copy()
+        Qp[0, j] = problem.robot.q_max[j] + past
+        folder = _folder(tmp_path / f"past{past:g}", Qp, k[rows])
+        if not ok:
+            with pytest.raises(ProblemError, match=rf"hole_{k[rows][0]}\.csv: row 1: {problem.robot.joints[j]} = .* "
+                                                   r"by more than 0\.001.*--limit-tolerance"):
+                read_recordings(problem, [str(folder)])
+            assert read_recordings(problem, [str(folder)], limit_tolerance=0.01).N == len(rows)
+            continue
+        rec = read_recordings(problem, [str(folder)])
+        assert len(rec.notes) == 1 and problem.robot.joints[j] in rec.notes[0] and "at most 0.0005 rad" in rec.notes[0]
+        joints = ",".join(f"{n}_rad" for n in problem.robot.joints)
+        text = [f"{joints},point,placement"] + [",".join(f"{v:.12g}" for v in q) + f",{p},0" for q, p in zip(Qp, k[rows])]
+        (tmp_path / "past.csv").write_text("\n".join(text) + "\n")
+        out = tmp_path / "out"
+        assert main(["identify", str(PANDA), "--measurements", str(tmp_path / "past.csv"), "--model", "identifiable",
+                     "--out", str(out)]) == 0
+        said = capsys.readouterr().out
+        assert "1 reading past the joint limits by at most 0.0005 rad (row 2)" in said
+        assert any("past the joint limits" in n for n in json.loads((out / "identification.json").read_text())["notes"])
+    assert main(["identify", str(PANDA), "--measurements", str(folder), "--limit-tolerance", "0.01", "--model",
+                 "identifiable", "--out", str(tmp_path / "out2")]) == 0
