@@ -139,12 +139,15 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
     from ..measures.criteria import CRITERIA
 
     check_designable(problem)
-    better, by_set, best, most = CRITERIA[criterion].better, [], None, 0
+    better, by_set, best, most, fewest = CRITERIA[criterion].better, [], None, 0, None
     for S in combinations(np.unique(placement).tolist(), clamps):
         idx = np.flatnonzero(np.isin(placement, S))
         try:
             pool = artefact_pool(problem, Q[idx], point[idx], placement[idx])
             most = max(most, int(pool.kept.sum()))
+            unknowns = (len(pool.names), pool.B.shape[2] - len(pool.names))  # X's and the placements' poses'
+            if fewest is None or sum(unknowns) < sum(fewest):
+                fewest = unknowns
             d = choose_recordings(problem, pool, criterion, m, starts)
         except ProblemError:  # too few configurations, or none of m identifies X there
             by_set.append((tuple(S), None))
@@ -164,6 +167,11 @@ def choose_clamps(problem: Problem, Q: np.ndarray, point: np.ndarray, placement:
             raise ProblemError(f"{where}: --m {m}: only {most} configurations keep the problem's rules "
                                f"([experiments.workspace]) at any {clamps} of the placements; give m <= {most}"
                                + (" or more placements" if seated else " or more recordings"))
+        if fewest is not None and 3 * m < sum(fewest):
+            need = -(-sum(fewest) // 3)
+            raise ProblemError(f"{where}: --m {m}: {m} configurations give {3 * m} values, fewer than the {sum(fewest)} "
+                               f"unknowns ({fewest[0]} parameters the configurations tell and {fewest[1]} of the "
+                               f"placements' poses); give m >= {need}")
         raise ProblemError(f"{where}: no {clamps} of the placements give m = {m} configurations that identify the "
                            "parameters and the placements' poses; give a larger m or more varied configurations"
                            + (", more placements or raise clamps" if seated else ""))

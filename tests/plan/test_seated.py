@@ -175,3 +175,14 @@ def test_a_five_joint_arm_is_seated_by_the_ball_s_position_within_the_tilt(tmp_p
         M, Ma = frame_placement(problem.robot, q), frame_placement(problem.robot, qa)
         assert np.allclose(Ma.translation, M.translation - APPROACH_M * M.rotation[:, 2], atol=1e-7)
         assert np.all(qa >= problem.robot.q_min) and np.all(qa <= problem.robot.q_max)
+
+
+def test_too_few_configurations_are_refused_naming_the_fewest(panda):
+    """m configurations give 3 m values: fewer than the base set and the placement's pose
+    (25 + 5 on the Panda) is refused in one line naming the fewest m, not as configurations that
+    do not vary enough."""
+    problem, s = panda
+    with pytest.raises(ProblemError, match=r"--m 9: 9 configurations give 27 values, fewer than the 30 unknowns \(25 "
+                                           r"parameters .* and 5 of the placements' poses\); give m >= 10$"):
+        choose_clamps(problem, s.Q, s.point, s.placement, s.names, "D", 9, 1, 1)
+    assert choose_clamps(problem, s.Q, s.point, s.placement, s.names, "D", 10, 1, 1).design.scores.identifiable
