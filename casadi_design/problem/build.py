@@ -448,7 +448,7 @@ def build_robot(r: RobotSpec) -> Robot:
     if r.source == "planar":
         model = planar_arm(r.planar_links_m)
     elif r.source == "urdf":
-        model = load_urdf(r.urdf)
+        model = load_urdf(r.urdf, {j: (lo, hi) for j, lo, hi in r.joint_limits_rad})
         if r.inertias_urdf:
             with_inertias(model, load_urdf(r.inertias_urdf), r.inertias_urdf)
     else:

@@ -13,7 +13,7 @@ import os
 import re
 import sys
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -274,18 +274,22 @@ def urdf_file(path: str | Path) -> Path:
     return example_robot_data_dir() / text[len(prefix):] if text.startswith(prefix) else Path(text)
 
 
-def load_urdf(path: str | Path) -> pin.Model:
+def load_urdf(path: str | Path, revolute: Mapping[str, tuple[float, float]] | None = None) -> pin.Model:
     """Load a URDF into a ``pinocchio.Model`` (kinematics only).
 
     ``path`` is a file path, or ``example-robot-data:<relative path>`` for a URDF shipped by
     the example-robot-data package, e.g. ``example-robot-data:ur_description/urdf/ur10_robot.urdf``.
+    A continuous joint named in ``revolute`` (joint -> (lower, upper), rad: the problem file's
+    ``[robot.joint_limits_rad]``) is read as a revolute joint with those limits (Kinova's URDFs
+    declare their unlimited joints continuous; Pinocchio gives them two coordinates, cos and sin).
     """
     file = urdf_file(path)
     if not file.is_file():
         raise ProblemError(f"[robot].urdf: file {file} does not exist; give a URDF path")
+    text = _revolute_text(file, revolute) if revolute else None
     with _captured_stderr() as said:
         try:
-            model = pin.buildModelFromUrdf(str(file))
+            model = pin.buildModelFromUrdf(str(file)) if text is None else pin.buildModelFromXML(text)
         except (RuntimeError, ValueError) as exc:
             model, error = None, str(exc).strip()
     if model is None:
@@ -294,6 +298,32 @@ def load_urdf(path: str | Path) -> pin.Model:
         reason = "; ".join(ln for ln in said_lines if ln) or error
         raise ProblemError(f"[robot].urdf: Pinocchio cannot read {file} ({reason}); fix the URDF")
     return model
+
+
+def _revolute_text(file: Path, revolute: Mapping[str, tuple[float, float]]) -> str | None:
+    """The URDF ``file`` with its continuous joints named in ``revolute`` made revolute with
+    those limits (rad; the ``<limit>``'s effort and velocity kept, 0 where absent: no speed
+    known); None when it has none of them, or cannot be parsed (Pinocchio then says why)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(file).getroot()
+    except ET.ParseError:
+        return None
+    changed = False
+    for joint in root.iter("joint"):
+        if joint.get("type") == "continuous" and joint.get("name") in revolute:
+            lower, upper = revolute[joint.get("name")]
+            limit = joint.find("limit")
+            if limit is None:
+                limit = ET.SubElement(joint, "limit")
+            limit.set("lower", repr(float(lower)))
+            limit.set("upper", repr(float(upper)))
+            limit.attrib.setdefault("effort", "0")
+            limit.attrib.setdefault("velocity", "0")
+            joint.set("type", "revolute")
+            changed = True
+    return ET.tostring(root, encoding="unicode") if changed else None
 
 
 @contextlib.contextmanager
@@ -351,10 +381,13 @@ def make_robot(
         joint = model.joints[jid]
         kind = joint.shortname()
         if kind not in SUPPORTED_JOINTS:
+            fix = (f"give its limits in [robot.joint_limits_rad], e.g. {model.names[jid]} = [-6.2832, 6.2832] (read as "
+                   "a revolute joint), or declare it revolute" if kind.startswith("JointModelRUB") else "declare it "
+                   "revolute (or prismatic)")
             raise ProblemError(
                 f"[robot]: joint '{model.names[jid]}' is {joint_kind_for_people(kind)}; the chain to "
-                f"'{frame}' may hold revolute and prismatic joints with limits only; declare it "
-                "revolute (or prismatic) with <limit lower=... upper=...> in the URDF"
+                f"'{frame}' may hold revolute and prismatic joints with limits only; {fix} with "
+                "<limit lower=... upper=...> in the URDF"
             )
         if kind.endswith("Unaligned"):
             axis = np.asarray(joint.extract().axis, dtype=float)

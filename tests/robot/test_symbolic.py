@@ -128,3 +128,35 @@ def test_a_link_named_as_its_joint_is_measured_at_the_link():
     data = model.createData()
     pin.framesForwardKinematics(model, data, pin.randomConfiguration(model))
     assert np.allclose(data.oMf[ids[0]].homogeneous, data.oMf[ids[1]].homogeneous, atol=1e-12)
+
+
+KINOVA = "example-robot-data:kinova_description/robots/kinova.urdf"
+
+
+def test_a_continuous_joint_with_limits_given_is_read_as_revolute():
+    """Kinova's URDF declares joints 1, 4 and 6 continuous (Pinocchio: cos and sin, two
+    coordinates): refused in one line naming [robot.joint_limits_rad]; with limits given there,
+    read as revolute joints with those limits, whose kinematics is Pinocchio's continuous joint's
+    at the same angle (the effort and velocity of the URDF's <limit> kept)."""
+    from casadi_design.errors import ProblemError
+
+    original = load_urdf(KINOVA)
+    with pytest.raises(ProblemError, match=r"joint 'j2s6s200_joint_1' is a continuous joint .* give its limits in "
+                                           r"\[robot.joint_limits_rad\], e.g. j2s6s200_joint_1 = "):
+        make_robot(original, "j2s6s200_link_6")
+    limits = {f"j2s6s200_joint_{i}": (-6.0 - i / 10, 6.0 + i / 10) for i in (1, 4, 6)}
+    model = load_urdf(KINOVA, limits)
+    robot = make_robot(model, "j2s6s200_link_6")
+    assert robot.n == 6 and original.nq == robot.n + 3
+    for i in (1, 4, 6):
+        j = robot.joints.index(f"j2s6s200_joint_{i}")
+        assert (robot.q_min[j], robot.q_max[j]) == limits[f"j2s6s200_joint_{i}"]
+        assert model.velocityLimit[j] == original.velocityLimit[original.joints[original.getJointId(robot.joints[j])].idx_v]
+    data, odata = model.createData(), original.createData()
+    fid, ofid = robot.frame_id, original.getFrameId("j2s6s200_link_6", pin.BODY)
+    for q in np.random.default_rng(0).uniform(robot.q_min, robot.q_max, (5, robot.n)):
+        oq = np.concatenate([[np.cos(v), np.sin(v)] if original.joints[original.getJointId(n)].nq == 2 else [v]
+                             for n, v in zip(robot.joints, q)])
+        pin.framesForwardKinematics(model, data, q)
+        pin.framesForwardKinematics(original, odata, oq)
+        assert np.allclose(data.oMf[fid].homogeneous, odata.oMf[ofid].homogeneous, atol=1e-12)
