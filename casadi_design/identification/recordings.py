@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibration.artefact import artefact
 from ..errors import ProblemError
 from ..problem.build import Problem
 from .measurements import LIMIT_TOLERANCE
@@ -100,18 +101,30 @@ def read_recordings(problem: Problem, paths: list[str], option: str = "--measure
                            "recordings of an artefact's points; add it (points_m) or give tracker measurements")
     parts = [_folder(problem, Path(p), option, limit_tolerance) if Path(p).is_dir() else
              _csv(problem, p, option, limit_tolerance) for p in paths]
-    Q, point, placement, names, sources, notes = [], [], [], [], [], []
-    for part in parts:
+    Q, point, placement, names, sources, notes, where = [], [], [], [], [], [], []
+    for path, part in zip(paths, parts):
         for name, (Qg, kg, src) in part[0].items():
             Q.append(Qg)
             point.append(kg)
             placement.append(np.full(len(Qg), len(names)))
             names.append(name)
             sources += src
+            where.append(path if Path(path).is_dir() else f"{path}: placement {name}")
         notes += part[1]
     if len(set(names)) != len(names):
         raise ProblemError(f"{option}: placement '{next(n for n in names if names.count(n) > 1)}' is given twice (a "
                            "folder's placement is named by the folder); give each placement once, under its own name")
+    if option == "--measurements":  # a placement's pose is fitted: its points must tell its turns
+        A = problem.artefact
+        for at, kg in zip(where, point):
+            seen = np.unique(kg)
+            told = artefact(A.points_m[seen]).turns.shape[1]
+            if told < A.turns.shape[1]:
+                raise ProblemError(f"{option} {at}: its configurations are at point{'s' * (len(seen) > 1)} "
+                                   f"{', '.join(str(j) for j in seen)} only, which tell {told} of the "
+                                   f"{A.turns.shape[1]} turns of the placement (a turn about a line through them "
+                                   "moves none): record the ball in another point there too, or give it as "
+                                   "--validation")
     if option == "--validation":  # a point's consistency is its configurations' spread about their mean
         for name, kg in zip(names, point):
             one = [j for j in np.unique(kg) if np.sum(kg == j) == 1]

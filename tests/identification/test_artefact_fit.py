@@ -174,6 +174,9 @@ def test_bad_recordings_get_one_line_naming_the_file_and_the_fix(simulated, tmp_
         "degrees": (lambda d: np.savetxt(d / "hole_0.csv", np.degrees(Q[:5]), delimiter=","), "look like degrees"),
         "twice": (lambda d: [np.savetxt(d / f, Q[:5], delimiter=",") for f in ("hole_0.csv", "hole_00.csv")],
                   "are both point 0"),
+        # fitted, a placement at one point tells none of its turns (it said "record more varied configurations")
+        "at one point": (lambda d: np.savetxt(d / "hole_1.csv", Q[:5], delimiter=","),
+                         "at point 1 only, which tell 0 of the 2 turns .* or give it as --validation"),
     }
     for name, (make, message) in cases.items():
         folder = tmp_path / name
