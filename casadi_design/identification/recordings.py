@@ -27,7 +27,6 @@ import numpy as np
 from ..calibration.artefact import artefact
 from ..errors import ProblemError
 from ..problem.build import Problem
-from .measurements import LIMIT_TOLERANCE
 from ..records.export import LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_cells, read_plan_file, read_plan_table
 
 #: The column of a plan CSV that names each placement number.
@@ -84,7 +83,7 @@ class Recordings:
 
 
 def read_recordings(problem: Problem, paths: list[str], option: str = "--measurements",
-                    limit_tolerance: float = LIMIT_TOLERANCE) -> Recordings:
+                    limit_tolerance: float = LIMIT_TOL) -> Recordings:
     """The recordings of ``paths`` (each a placement's folder or a CSV of the project's; module
     docstring), one placement per folder and per ``placement`` of a CSV, numbered in order; joint
     values past a limit by at most ``limit_tolerance`` (rad or m) are accepted with a note.
@@ -198,17 +197,21 @@ def _limits(problem: Problem, Q: np.ndarray, sources: list[str], tolerance: floa
     robot = problem.robot
     past = np.maximum(robot.q_min - Q, Q - robot.q_max)
     i, j = np.unravel_index(int(np.argmax(past)), past.shape)
+    unit = ["m" if robot.is_prismatic(k) else "rad" for k in range(robot.n)]
     if past[i, j] > tolerance:
+        allowed = (f"by more than --limit-tolerance {tolerance:g} ({unit[j]})" if tolerance > LIMIT_TOL else
+                   "(the robot cannot reach it)")
         raise ProblemError(f"{sources[i]}: {robot.joints[j]} = {Q[i, j]:.6g} is outside its limits "
-                           f"[{robot.q_min[j]:.6g}, {robot.q_max[j]:.6g}] rad by more than {tolerance:g}; check the "
-                           "joint order and units (identify --limit-tolerance accepts readings past a limit)")
+                           f"[{robot.q_min[j]:.6g}, {robot.q_max[j]:.6g}] {unit[j]} {allowed}; check the joint order "
+                           "and units (identify accepts readings past a limit with --limit-tolerance)")
     notes = []
     for j, joint in enumerate(robot.joints):
         over = np.flatnonzero(past[:, j] > LIMIT_TOL)
         if over.size:  # as check_joint_limits says it of a CSV
             i = int(np.argmax(past[:, j]))
             notes.append(f"{sources[i]}, {joint}: {over.size} reading{'s' if over.size > 1 else ''} past the joint "
-                         f"limits by at most {past[i, j]:.3g} rad, within --limit-tolerance {tolerance:g}: accepted")
+                         f"limits by at most {past[i, j]:.3g} {unit[j]}, within --limit-tolerance {tolerance:g}: "
+                         "accepted")
     return notes
 
 
@@ -229,7 +232,7 @@ def _csv(problem: Problem, path: str, option: str, tolerance: float) -> tuple[di
         if bad.size:
             raise ProblemError(f"{path}: row {lines[bad[0]]}, column '{c}': {float(v[bad[0]]):g} is not an integer; "
                                "give the number")
-    notes = list(check_joint_limits(problem, plan, Q, lines, tolerance))
+    notes = [f"{path}: {n}" for n in check_joint_limits(problem, plan, Q, lines, tolerance)]
     named = _placement_names(plan, values["placement"])
     out = {}
     for g in np.unique(values["placement"]).astype(int):

@@ -233,8 +233,9 @@ def placement_from_xyz_rpy(xyz_m, rpy_rad) -> pin.SE3:
 
 def frame_id(model: pin.Model, name: str) -> int:
     """The id of the frame ``name`` (which exists): the URDF link's where a joint bears its name
-    too (Unitree Z1's ``gripperStator``, SO-100's ``gripper``: Pinocchio's ``getFrameId`` refuses
-    the ambiguity); a link's frame and its joint's are at one place."""
+    too (Pinocchio's ``getFrameId`` refuses the ambiguity): Unitree Z1's ``gripperStator``, the
+    fixed joint that carries the link, at its place; SO-100's ``gripper``, the jaw's joint, 3 cm
+    from the link's frame; ``[robot] frame`` names a link."""
     ids = [i for i, f in enumerate(model.frames) if f.name == name]
     return next((i for i in ids if model.frames[i].type == pin.FrameType.BODY), ids[0])
 

@@ -400,11 +400,15 @@ def test_a_gravity_model_whose_compliances_are_not_told_is_its_own_urdf(simulate
 
 
 def test_readings_past_a_joint_limit_are_accepted_within_the_tolerance_and_said(simulated, tmp_path, capsys):
-    """An encoder reads past the URDF's limit (a robot seated at its limit by hand): 0.5 mrad
-    past is accepted with a note identify prints and writes (folder and CSV alike: the CSV's
-    note was read and lost), 5 mrad past is refused naming the row and --limit-tolerance, and
-    accepted with --limit-tolerance 0.01. Before, any reading past by 1e-6 was refused and
-    --limit-tolerance was refused with an artefact's recordings."""
+    """An encoder reads past the URDF's limit (a robot seated at its limit by hand): identify
+    accepts 0.5 mrad past (--limit-tolerance, 1 mrad by default) with a note naming the file,
+    printed and written once (folder and CSV alike: the CSV's note was read and lost), refuses 5
+    mrad past naming the row and the option, and accepts it with --limit-tolerance 0.01. The other
+    commands' readings (solve --candidates, evaluate, program) keep the limits: refused. Before,
+    any reading past by 1e-6 was refused and --limit-tolerance was refused with an artefact's
+    recordings."""
+    from casadi_design.identification.measurements import LIMIT_TOLERANCE
+
     problem, _, Q, k, g = simulated
     rows = np.flatnonzero(g == 0)
     j = 3
@@ -412,14 +416,17 @@ def test_readings_past_a_joint_limit_are_accepted_within_the_tolerance_and_said(
         Qp = Q[rows].copy()
         Qp[0, j] = problem.robot.q_max[j] + past
         folder = _folder(tmp_path / f"past{past:g}", Qp, k[rows])
+        with pytest.raises(ProblemError, match=r"outside its limits .* rad \(the robot cannot reach it\)"):
+            read_recordings(problem, [str(folder)], "--candidates")
         if not ok:
             with pytest.raises(ProblemError, match=rf"hole_{k[rows][0]}\.csv: row 1: {problem.robot.joints[j]} = .* "
-                                                   r"by more than 0\.001.*--limit-tolerance"):
-                read_recordings(problem, [str(folder)])
+                                                   r"by more than --limit-tolerance 0\.001 \(rad\)"):
+                read_recordings(problem, [str(folder)], limit_tolerance=LIMIT_TOLERANCE)
             assert read_recordings(problem, [str(folder)], limit_tolerance=0.01).N == len(rows)
             continue
-        rec = read_recordings(problem, [str(folder)])
-        assert len(rec.notes) == 1 and problem.robot.joints[j] in rec.notes[0] and "at most 0.0005 rad" in rec.notes[0]
+        rec = read_recordings(problem, [str(folder)], limit_tolerance=LIMIT_TOLERANCE)
+        assert len(rec.notes) == 1 and str(folder) in rec.notes[0] and problem.robot.joints[j] in rec.notes[0]
+        assert "at most 0.0005 rad" in rec.notes[0]
         joints = ",".join(f"{n}_rad" for n in problem.robot.joints)
         text = [f"{joints},point,placement"] + [",".join(f"{v:.12g}" for v in q) + f",{p},0" for q, p in zip(Qp, k[rows])]
         (tmp_path / "past.csv").write_text("\n".join(text) + "\n")
@@ -427,7 +434,8 @@ def test_readings_past_a_joint_limit_are_accepted_within_the_tolerance_and_said(
         assert main(["identify", str(PANDA), "--measurements", str(tmp_path / "past.csv"), "--model", "identifiable",
                      "--out", str(out)]) == 0
         said = capsys.readouterr().out
-        assert "1 reading past the joint limits by at most 0.0005 rad (row 2)" in said
-        assert any("past the joint limits" in n for n in json.loads((out / "identification.json").read_text())["notes"])
+        assert said.count(f"{tmp_path / 'past.csv'}: column 'panda_joint4_rad': 1 reading past the joint limits by at "
+                          "most 0.0005 rad (row 2)") == 1
+        assert sum("past the joint limits" in n for n in json.loads((out / "identification.json").read_text())["notes"]) == 1
     assert main(["identify", str(PANDA), "--measurements", str(folder), "--limit-tolerance", "0.01", "--model",
                  "identifiable", "--out", str(tmp_path / "out2")]) == 0

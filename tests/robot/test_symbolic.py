@@ -25,7 +25,7 @@ ROBOTS = {
     "ur5": (lambda: load_urdf("example-robot-data:ur_description/urdf/ur5_robot.urdf"), "tool0"),
     "ur10": (lambda: load_urdf("example-robot-data:ur_description/urdf/ur10_robot.urdf"), "tool0"),
     "panda": (lambda: load_urdf("example-robot-data:panda_description/urdf/panda.urdf"), "panda_hand"),
-    # a link named as its joint (Pinocchio's getFrameId refuses the name): the link's frame
+    # a link named as a joint (Pinocchio's getFrameId refuses the name): the link's frame
     "z1": (lambda: load_urdf("example-robot-data:z1_description/urdf/z1.urdf"), "gripperStator"),
     "so100": (lambda: load_urdf("example-robot-data:so_arm_description/urdf/so100.urdf"), "gripper"),
     "abb_irb6640": (lambda: load_urdf(str(ROOT / "problems/robots/abb_irb6640_180_255.urdf")), "tool0"),
