@@ -111,11 +111,9 @@ def run(args: argparse.Namespace) -> int:
     """
     from ..identification.calibrate import calibrate
     from ..calibrated.calibrated_toml import (
-        calibrated_dh_problem,
         calibrated_problem,
         toml_text,
     )
-    from ..calibrated.dh_table import calibrated_dh, has_dh_table
     from ..identification.measurements import (
         FileFormat,
         parse_columns,
@@ -162,13 +160,7 @@ def run(args: argparse.Namespace) -> int:
     texts = {"calibrated.urdf": urdf_text(problem, chain),
              "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header),
              "compensated_test_poses.csv": compensated_csv(cal)}
-    robot = problem.spec.robot
-    if has_dh_table(robot):
-        texts["calibrated_dh.toml"] = toml_text(calibrated_dh_problem(problem, calibrated_dh(robot, chain), out), header + (
-            "\nthe calibrated DH table: beta_deg is Hayati's rotation about y for nearly parallel axes"))
-    elif robot.source == "dh":
-        print(f"no calibrated_dh.toml: the robot is measured at '{robot.frame}', not at its flange "
-              "(calibrated.urdf and calibrated.toml hold the calibration)")
+    texts.update(dh_texts(problem, chain, out, header))
     compliances = [(n, x, s) for n, x, s in zip(cal.names, f.X, cal.std) if n.startswith("k.")]
     if compliances:
         record = {"compliances": {n[2:]: {"value": float(x), "std": float(s), "unit": parameter_unit(cal, n)}
@@ -195,6 +187,22 @@ def run(args: argparse.Namespace) -> int:
     write_identification_viewer(out, cal)  # the measured points and the model's, in the cell
     say(args, f"wrote {', '.join(names)} in {out}")
     return 0
+
+
+def dh_texts(problem, chain, out, header: str) -> dict[str, str]:
+    """``calibrated_dh.toml``'s text for a DH robot measured at its flange (the calibrated DH
+    table of ``chain``), else none (a DH robot measured elsewhere is said so)."""
+    from ..calibrated.calibrated_toml import calibrated_dh_problem, toml_text
+    from ..calibrated.dh_table import calibrated_dh, has_dh_table
+
+    robot = problem.spec.robot
+    if has_dh_table(robot):
+        return {"calibrated_dh.toml": toml_text(calibrated_dh_problem(problem, calibrated_dh(robot, chain), out), header + (
+            "\nthe calibrated DH table: beta_deg is Hayati's rotation about y for nearly parallel axes"))}
+    if robot.source == "dh":
+        print(f"no calibrated_dh.toml: the robot is measured at '{robot.frame}', not at its flange "
+              "(calibrated.urdf and calibrated.toml hold the calibration)")
+    return {}
 
 
 def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
@@ -228,12 +236,15 @@ def run_artefact(args: argparse.Namespace, problem, out, t0: float) -> int:
     header = (f"calibrated by casadi-design identify from {', '.join(rec.names)} ({problem.path}, the artefact's "
               f"points, {kept.model} model)")
     texts = {"calibrated.urdf": urdf_text(problem, chain),
-             "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header)}
+             "calibrated.toml": toml_text(calibrated_problem(problem, out / "calibrated.urdf"), header),
+             **dh_texts(problem, chain, out, header)}
     names = ["identification.json", "identification.md", *texts, "viewer.html"]
     texts["identification.md"] = "\n".join([f"# Identification of {problem.name} from an artefact's recordings", "",
                                             header, "", "```", *artefact_summary(cal), "```", "",
                                             "Files: " + ", ".join(f"`{n}`" for n in names), ""])
     files = {"urdf": "calibrated.urdf", "problem": "calibrated.toml", "report": "identification.md"}
+    if "calibrated_dh.toml" in texts:
+        files["dh_problem"] = "calibrated_dh.toml"
     record = artefact_record(cal, files)  # made before any file is written
     for name, text in texts.items():
         write_atomic(out / name, text.encode())

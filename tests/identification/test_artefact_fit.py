@@ -439,3 +439,62 @@ def test_readings_past_a_joint_limit_are_accepted_within_the_tolerance_and_said(
         assert sum("past the joint limits" in n for n in json.loads((out / "identification.json").read_text())["notes"]) == 1
     assert main(["identify", str(PANDA), "--measurements", str(folder), "--limit-tolerance", "0.01", "--model",
                  "identifiable", "--out", str(tmp_path / "out2")]) == 0
+
+
+DH_SOCKET = """
+name = "dh_socket"
+[robot]
+frame = "flange"
+tool_xyz_m = [0.0, 0.0, 0.05]
+[robot.dh]
+convention = "standard"
+flange_rpy_deg = [0.0, 0.0, 180.0]
+joints = [
+  { name = "joint_1", type = "R", theta_offset_deg = 0.0, d_m = 0.78, a_m = 0.32, alpha_deg = -90.0, limits_deg = [-170.0, 170.0] },
+  { name = "joint_2", type = "R", theta_offset_deg = -90.0, d_m = 0.0, a_m = 1.075, alpha_deg = 0.0, limits_deg = [-65.0, 85.0] },
+  { name = "joint_3", type = "R", theta_offset_deg = 0.0, d_m = 0.0, a_m = 0.2, alpha_deg = -90.0, limits_deg = [-180.0, 70.0] },
+  { name = "joint_4", type = "R", theta_offset_deg = 0.0, d_m = 1.1425, a_m = 0.0, alpha_deg = 90.0, limits_deg = [-300.0, 300.0] },
+  { name = "joint_5", type = "R", theta_offset_deg = 0.0, d_m = 0.0, a_m = 0.0, alpha_deg = -90.0, limits_deg = [-120.0, 120.0] },
+  { name = "joint_6", type = "R", theta_offset_deg = 0.0, d_m = 0.2, a_m = 0.0, alpha_deg = 0.0, limits_deg = [-360.0, 360.0] },
+]
+[calibration]
+case = "geometric"
+parameters = "identifiable"
+[measurement]
+components = ["x", "y", "z"]
+sigma_m = 5e-5
+[measurement.artefact]
+points_m = [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]
+[test_poses]
+components = ["x", "y", "z"]
+joints_rad = [[0.1, 0.3, -0.2, 0.0, 1.2, 0.0], [-0.2, 0.5, -0.4, 0.3, 1.0, 0.2]]
+[experiments]
+m = [16]
+[design]
+criteria = ["test-pose"]
+"""
+
+
+def test_a_dh_robot_s_artefact_calibration_writes_its_calibrated_dh_table(tmp_path):
+    """identify of an artefact's recordings by a DH robot measured at its flange (an ABB IRB
+    6640's table) writes calibrated_dh.toml as the tracker's identify does: the calibrated DH
+    table puts the ball where calibrated.urdf does at every recorded configuration. Before, only
+    calibrated.urdf was written."""
+    from casadi_design.robot.robots import frame_placement
+
+    path = tmp_path / "dh_socket.toml"
+    path.write_text(DH_SOCKET)
+    problem = load_problem(path)
+    _, Q, k, _ = recordings(problem, 5, 12, 5e-5, placements=((np.eye(3), np.array([1.6, 0.0, 0.3])),))
+    front = _folder(tmp_path / "front", Q, k)
+    out = tmp_path / "out"
+    assert main(["identify", str(path), "--measurements", str(front), "--out", str(out)]) == 0
+    assert json.loads((out / "identification.json").read_text())["files"]["dh_problem"] == "calibrated_dh.toml"
+    dh, urdf = load_problem(out / "calibrated_dh.toml"), load_problem(out / "calibrated.toml")
+    assert dh.spec.robot.source == "dh" and urdf.spec.robot.source == "urdf"
+    for q in Q:
+        assert np.allclose(frame_placement(dh.robot, q).translation, frame_placement(urdf.robot, q).translation,
+                           atol=1e-9)
+    nominal = np.array([frame_placement(problem.robot, q).translation for q in Q])
+    calibrated = np.array([frame_placement(dh.robot, q).translation for q in Q])
+    assert np.max(np.linalg.norm(calibrated - nominal, axis=1)) > 1e-4  # the table did change
