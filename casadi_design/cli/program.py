@@ -83,11 +83,16 @@ def run(args: argparse.Namespace) -> int:
         from ..identification.recordings import read_recordings
         from ..plan.seated import APPROACH_M, approaches
 
-        Q = approaches(problem, read_recordings(problem, [args.plan], "--plan").Q)
+        plan = read_recordings(problem, [args.plan], "--plan")
+        Q = approaches(problem, plan.Q)
         F = np.zeros((len(Q), problem.model.nF))
+        steps = [f"hand-guide the ball into point {k} of the tool at {plan.names[g]!r} (the plan's configuration), "
+                 "record the joints, then continue" for k, g in zip(plan.point, plan.placement)]
         notes.append(f"note: each experiment is programmed {APPROACH_M * 1e3:g} mm back along the hand's axis from "
-                     "its seated configuration: hand-guide the ball into its socket there, then record")
+                     "its seated configuration; the program stops there for the operator to hand-guide the ball into "
+                     "its socket and record, then comes back out")
     else:
+        steps = None
         Q, F, plan = read_experiments(problem, args.plan)  # a plan of another robot names the plan
         new = ~plan.measured  # a campaign's measured experiments are not measured again
         Q, F = Q[new], F[new]
@@ -100,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     check_format(problem, args.format)  # after the plan: a plan of another robot is the first thing to say
     home = home_pose(problem, args.home)
     t0 = time.perf_counter()
-    program = make_program(problem, Q, F, home, args.measure_s)
+    program = make_program(problem, Q, F, home, args.measure_s, steps)
     text = program_text(problem, program, args.format, str(args.plan))
     wall = time.perf_counter() - t0
     if notes:

@@ -12,6 +12,7 @@ lower bound.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -90,12 +91,14 @@ def turns(problem: Problem, q: np.ndarray, home: np.ndarray) -> list[np.ndarray]
 
 
 def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarray,
-                 measure_s: float) -> Program:
+                 measure_s: float, steps: Sequence[str] | None = None) -> Program:
     """The program of the plan ``Q`` (m, n), rad, ``F`` (m, nF), N, from and back to ``home``
     (n,), rad, measuring ``measure_s`` seconds per experiment; each experiment in the
     configuration of its pose (:func:`turns`) that home reaches first by a clear move, else by
     a detour; a move between two experiments that no detour of its own makes safe goes
-    through home.
+    through home. ``steps``: an operator's step at each experiment (m,), the program stopped
+    for it (``stop_before``) and back at the experiment's configuration after it (a via point):
+    a ball hand-guided into its socket from the approach ``Q`` and recorded there.
 
     Raises
     ------
@@ -177,7 +180,7 @@ def make_program(problem: Problem, Q: np.ndarray, F: np.ndarray, home: np.ndarra
     file_time = (tour_cost(T, file_order) + m * measure_s, tour_cost(straight, file_order) + m * measure_s)
     return _assemble(problem, Q, np.asarray(F, dtype=float).reshape(m, -1), nodes, order,
                      final, changes, times, measure_s, file_time,
-                     int(sum(changes[i, j] for i, j in edges(file_order))), file_blocked)
+                     int(sum(changes[i, j] for i, j in edges(file_order))), file_blocked, steps)
 
 
 def _reached(search: MoveSearch, home: np.ndarray, options: list[np.ndarray], k: int) -> Route:
@@ -200,8 +203,9 @@ def _joined(a: Route, b: Route) -> Route:
 
 
 def _assemble(problem, Q, F, nodes, order, paths, changes, times, measure_s, file_time, file_changes,
-              file_blocked) -> Program:
-    """The points of the program: home, each path's via points and its experiment, home."""
+              file_blocked, steps=None) -> Program:
+    """The points of the program: home, each path's via points and its experiment (with the
+    operator's step, then back at it: :func:`make_program`), home."""
     tour = [0, *order, 0]
     t, hanging = 0.0, np.zeros(F.shape[1])
     points = [Point(nodes[0], "home", None, 0.0)]
@@ -222,8 +226,12 @@ def _assemble(problem, Q, F, nodes, order, paths, changes, times, measure_s, fil
                       f"remove the load {load_text(problem, hanging)}" if not changes[0, j] else
                       f"replace the load {load_text(problem, hanging)} by {load_text(problem, f)}")
             hanging = f
+        if steps is not None:
+            before = "; ".join(x for x in (before, steps[j - 1]) if x)
         points.append(Point(Q[j - 1], "experiment", j, t, before))
         t += measure_s
+        if steps is not None:  # back where the step started: the moves checked start there
+            points.append(Point(Q[j - 1], "via", None, t))
     return Program(problem.robot.joints, tuple(points), tuple(paths), tuple(order), times, measure_s, t,
                    *file_time, int(sum(changes[i, j] for i, j in itertools.pairwise(tour))), file_changes,
                    file_blocked)

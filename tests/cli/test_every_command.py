@@ -149,6 +149,13 @@ def test_every_subcommand_runs_on_every_problem(path, tmp_path, capsys):
     program = json.loads((tmp_path / "program" / "program.json").read_text())
     assert sorted(p["experiment"] for p in program["points"] if p["experiment"]) == \
         list(range(1, min(m, PROGRAM_EXPERIMENTS) + 1))
+    if problem.artefact is not None:  # the program stops at each approach for the ball to be seated by hand,
+        points = program["points"]    # then comes back out to it: the moves checked start there
+        for p, after in zip(points, points[1:]):
+            if p["kind"] == "experiment":
+                e = design["experiments"][p["experiment"] - 1]
+                assert f"hand-guide the ball into point {e['point']} of the tool at '{e['placement']}'" in p["stop_before"]
+                assert after["kind"] == "via" and after["positions"] == p["positions"]
 
 
 #: The bound command's runs: the ABB's (7 s, the longest of its kind) with the slow tests; the
