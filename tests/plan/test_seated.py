@@ -117,7 +117,7 @@ def test_a_six_joint_ur5_s_plans_from_nothing_identify_its_base_set():
     left = s.placement == 2  # its plan of the NLP lost a parameter to the rounding (front's did not)
     pool = artefact_pool(problem, s.Q[left], s.point[left], s.placement[left])
     assert len(pool.names) == problem.model.L - 6 and "shoulder_lift_joint.rx" not in pool.names
-    ch = choose_clamps(problem, s.Q[left], s.point[left], s.placement[left], s.names, "test-pose", 12, 1, 1,
+    ch = choose_clamps(problem, s.Q[left], s.point[left], s.placement[left], s.names, "test-pose", 9, 1, 1,
                        seated=True)
     d = ch.design
     again = artefact_scores(problem, d.Q, d.seated.point, d.seated.placement)
@@ -166,7 +166,7 @@ def test_a_five_joint_arm_is_seated_by_the_ball_s_position_within_the_tilt(tmp_p
         M = frame_placement(problem.robot, q)
         assert np.linalg.norm(M.translation - (np.array(spec.placements[0].xyz_m) + R @ problem.artefact.points_m[k])) < 1e-7
         assert -M.rotation[:, 2] @ R[:, 2] >= np.cos(spec.tilt_max_rad) - 1e-12
-    d = choose_clamps(problem, s.Q, s.point, s.placement, s.names, "test-pose", 16, 1, 1, seated=True).design
+    d = choose_clamps(problem, s.Q, s.point, s.placement, s.names, "test-pose", 12, 1, 1, seated=True).design
     assert artefact_scores(problem, d.Q, d.seated.point, d.seated.placement).identifiable
     # the robot program's stops: the ball 20 mm back along the hand's axis (the plan's joints at
     # their limits: the hand held at its orientation, as a 6-joint arm's, reached none of them)
