@@ -27,7 +27,8 @@ import numpy as np
 from ..calibration.artefact import artefact
 from ..errors import ProblemError
 from ..problem.build import Problem
-from ..records.export import LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_cells, read_plan_file, read_plan_table
+from ..records.export import (LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_cells, limits_past, read_plan_file,
+                              read_plan_table)
 
 #: The column of a plan CSV that names each placement number.
 PLACEMENT_NAME = SEATED_COLUMNS[2]
@@ -193,26 +194,22 @@ def _folder(problem: Problem, folder: Path, option: str, tolerance: float) -> tu
 def _limits(problem: Problem, Q: np.ndarray, sources: list[str], tolerance: float) -> list[str]:
     """Notes on the joint values ``Q`` past a limit by at most ``tolerance`` (rad or m: a real
     encoder reads past the URDF's limit; rounding below :data:`LIMIT_TOL` silently), one line
-    naming the row of a value past it by more."""
+    naming the row of a value past it by more (:func:`~casadi_design.records.export.limits_past`,
+    as :func:`~casadi_design.records.export.check_joint_limits` says it of a CSV)."""
     robot = problem.robot
-    past = np.maximum(robot.q_min - Q, Q - robot.q_max)
-    i, j = np.unravel_index(int(np.argmax(past)), past.shape)
+    rows, worst, over = limits_past(robot, Q)
+    j = int(np.argmax(worst))
+    i = int(rows[j])
     unit = ["m" if robot.is_prismatic(k) else "rad" for k in range(robot.n)]
-    if past[i, j] > tolerance:
+    if worst[j] > tolerance:
         allowed = (f"by more than --limit-tolerance {tolerance:g} ({unit[j]})" if tolerance > LIMIT_TOL else
                    "(the robot cannot reach it)")
         raise ProblemError(f"{sources[i]}: {robot.joints[j]} = {Q[i, j]:.6g} is outside its limits "
                            f"[{robot.q_min[j]:.6g}, {robot.q_max[j]:.6g}] {unit[j]} {allowed}; check the joint order "
                            "and units (identify accepts readings past a limit with --limit-tolerance)")
-    notes = []
-    for j, joint in enumerate(robot.joints):
-        over = np.flatnonzero(past[:, j] > LIMIT_TOL)
-        if over.size:  # as check_joint_limits says it of a CSV
-            i = int(np.argmax(past[:, j]))
-            notes.append(f"{sources[i]}, {joint}: {over.size} reading{'s' if over.size > 1 else ''} past the joint "
-                         f"limits by at most {past[i, j]:.3g} {unit[j]}, within --limit-tolerance {tolerance:g}: "
-                         "accepted")
-    return notes
+    return [f"{sources[int(rows[k])]}, {joint}: {over[k]} reading{'s' if over[k] > 1 else ''} past the joint limits "
+            f"by at most {worst[k]:.3g} {unit[k]}, within --limit-tolerance {tolerance:g}: accepted"
+            for k, joint in enumerate(robot.joints) if over[k]]
 
 
 def _csv(problem: Problem, path: str, option: str, tolerance: float) -> tuple[dict, list[str]]:

@@ -411,6 +411,15 @@ def read_plan_table(problem: Problem, plan: PlanFile | Path | str, extra: tuple[
 
 
 
+def limits_past(robot, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per joint of ``robot`` (n,): the row of ``Q`` (N, n) farthest past a limit, how far past
+    it (rad or m; <= 0 within the limits) and how many rows are past it by more than
+    :data:`LIMIT_TOL` (a CSV's rounding)."""
+    past = np.maximum(robot.q_min - Q, Q - robot.q_max)
+    rows = np.argmax(past, axis=0)
+    return rows, past[rows, np.arange(past.shape[1])], np.sum(past > LIMIT_TOL, axis=0)
+
+
 def check_joint_limits(problem: Problem, plan: PlanFile, Q: np.ndarray, lines: list[int],
                        tolerance: float = LIMIT_TOL, rename: dict[str, str] | None = None) -> list[str]:
     """Notes on the joint values ``Q`` of a plan file past a limit by at most ``tolerance``
@@ -425,7 +434,7 @@ def check_joint_limits(problem: Problem, plan: PlanFile, Q: np.ndarray, lines: l
     """
     robot, path, header = problem.robot, plan.path, plan.header
     rename = rename or {}
-    past = np.maximum(robot.q_min - Q, Q - robot.q_max)
+    rows, worst, over = limits_past(robot, Q)
     allowed = (f"by more than --limit-tolerance {tolerance:g} (rad or m)" if tolerance > LIMIT_TOL
                else "(the robot cannot reach it)")
     notes = []
@@ -435,17 +444,16 @@ def check_joint_limits(problem: Problem, plan: PlanFile, Q: np.ndarray, lines: l
         column = next((h for h in header if rename.get(h, h) in ours), f"{j}_{people}")
         unit = next((u for u in (si, people) if rename.get(column, column).endswith(f"_{u}")), people)
         per = 1.0 if unit == si else scale
-        i = int(np.argmax(past[:, k]))
-        if past[i, k] > tolerance:
+        i = int(rows[k])
+        if worst[k] > tolerance:
             raise ProblemError(
                 f"{path}: row {lines[i]}, column '{column}': {Q[i, k] / per:.6g} {unit} is outside the "
                 f"joint limits [{robot.q_min[k] / per:.6g}, {robot.q_max[k] / per:.6g}] {unit} of "
                 f"{problem.path} {allowed}; check the units, the order of the joint columns and "
                 "that the file belongs to this case")
-        over = np.flatnonzero(past[:, k] > LIMIT_TOL)
-        if over.size:
-            notes.append(f"column '{column}': {over.size} reading{'s' if over.size > 1 else ''} past the "
-                         f"joint limits by at most {past[i, k] / per:.3g} {unit} (row {lines[i]}), within "
+        if over[k]:
+            notes.append(f"column '{column}': {over[k]} reading{'s' if over[k] > 1 else ''} past the "
+                         f"joint limits by at most {worst[k] / per:.3g} {unit} (row {lines[i]}), within "
                          f"--limit-tolerance {tolerance:g}: accepted")
     return notes
 
