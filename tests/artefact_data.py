@@ -63,3 +63,19 @@ def true_ball(problem, true: TrueRobot, Q: np.ndarray) -> np.ndarray:
         pin.framesForwardKinematics(true.model, data, problem.robot.full_q(q))
         out.append(data.oMf[true.frame_id].translation.copy())
     return np.array(out)
+
+
+def ball_socket_file(path, name: str, robot: dict, test_q: list, placements: list | None = None):
+    """A problem file at ``path`` of a ball on ``robot`` (the ``[robot]`` table) seated in the two
+    sockets (50 mm apart, 0.05 mm) of a tool, at ``placements`` (``[measurement.artefact]
+    placements``, none: recordings only), test poses ``test_q`` (rad); geometric, the
+    identifiable base set, the test-pose criterion, m = 16. Returns ``path``."""
+    import tomli_w
+
+    artefact = {"points_m": [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]], **({"placements": placements} if placements else {})}
+    path.write_text(tomli_w.dumps({
+        "name": name, "robot": robot, "calibration": {"case": "geometric", "parameters": "identifiable"},
+        "measurement": {"components": ["x", "y", "z"], "sigma_m": 5e-5, "artefact": artefact},
+        "test_poses": {"components": ["x", "y", "z"], "joints_rad": test_q},
+        "experiments": {"m": [16]}, "design": {"criteria": ["test-pose"]}}))
+    return path

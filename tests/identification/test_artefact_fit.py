@@ -29,7 +29,7 @@ from casadi_design.identification.fit import fit_model
 from casadi_design.identification.lsq import frame_poses
 from casadi_design.identification.recordings import Recordings, read_recordings
 from casadi_design.problem.build import load_problem
-from tests.artefact_data import recordings, seated as seated_at, true_ball
+from tests.artefact_data import ball_socket_file, recordings, seated as seated_at, true_ball
 from tests.conftest import ROOT
 
 PANDA = ROOT / "problems" / "panda_ball_socket.toml"
@@ -441,38 +441,6 @@ def test_readings_past_a_joint_limit_are_accepted_within_the_tolerance_and_said(
                  "identifiable", "--out", str(tmp_path / "out2")]) == 0
 
 
-DH_SOCKET = """
-name = "dh_socket"
-[robot]
-frame = "flange"
-tool_xyz_m = [0.0, 0.0, 0.05]
-[robot.dh]
-convention = "standard"
-flange_rpy_deg = [0.0, 0.0, 180.0]
-joints = [
-  { name = "joint_1", type = "R", theta_offset_deg = 0.0, d_m = 0.78, a_m = 0.32, alpha_deg = -90.0, limits_deg = [-170.0, 170.0] },
-  { name = "joint_2", type = "R", theta_offset_deg = -90.0, d_m = 0.0, a_m = 1.075, alpha_deg = 0.0, limits_deg = [-65.0, 85.0] },
-  { name = "joint_3", type = "R", theta_offset_deg = 0.0, d_m = 0.0, a_m = 0.2, alpha_deg = -90.0, limits_deg = [-180.0, 70.0] },
-  { name = "joint_4", type = "R", theta_offset_deg = 0.0, d_m = 1.1425, a_m = 0.0, alpha_deg = 90.0, limits_deg = [-300.0, 300.0] },
-  { name = "joint_5", type = "R", theta_offset_deg = 0.0, d_m = 0.0, a_m = 0.0, alpha_deg = -90.0, limits_deg = [-120.0, 120.0] },
-  { name = "joint_6", type = "R", theta_offset_deg = 0.0, d_m = 0.2, a_m = 0.0, alpha_deg = 0.0, limits_deg = [-360.0, 360.0] },
-]
-[calibration]
-case = "geometric"
-parameters = "identifiable"
-[measurement]
-components = ["x", "y", "z"]
-sigma_m = 5e-5
-[measurement.artefact]
-points_m = [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]
-[test_poses]
-components = ["x", "y", "z"]
-joints_rad = [[0.1, 0.3, -0.2, 0.0, 1.2, 0.0], [-0.2, 0.5, -0.4, 0.3, 1.0, 0.2]]
-[experiments]
-m = [16]
-[design]
-criteria = ["test-pose"]
-"""
 
 
 def test_a_dh_robot_s_artefact_calibration_writes_its_calibrated_dh_table(tmp_path):
@@ -482,8 +450,12 @@ def test_a_dh_robot_s_artefact_calibration_writes_its_calibrated_dh_table(tmp_pa
     calibrated.urdf was written."""
     from casadi_design.robot.robots import frame_placement
 
-    path = tmp_path / "dh_socket.toml"
-    path.write_text(DH_SOCKET)
+    from tests.conftest import read_raw
+
+    abb = read_raw(ROOT / "problems" / "abb_irb6640_machining.toml")["robot"]  # its DH table
+    robot = {"frame": "flange", "tool_xyz_m": [0.0, 0.0, 0.05], "dh": abb["dh"]}
+    path = ball_socket_file(tmp_path / "dh_socket.toml", "dh_socket", robot,
+                            [[0.1, 0.3, -0.2, 0.0, 1.2, 0.0], [-0.2, 0.5, -0.4, 0.3, 1.0, 0.2]])
     problem = load_problem(path)
     _, Q, k, _ = recordings(problem, 5, 12, 5e-5, placements=((np.eye(3), np.array([1.6, 0.0, 0.3])),))
     front = _folder(tmp_path / "front", Q, k)

@@ -20,6 +20,7 @@ from casadi_design.plan.seated import APPROACH_M, seated_configurations, tilted
 from casadi_design.problem.build import load_problem
 from casadi_design.problem_file.measurement import PlacementSpec
 from casadi_design.robot.robots import frame_placement
+from tests.artefact_data import ball_socket_file
 from tests.conftest import ROOT
 
 PANDA = ROOT / "problems" / "panda_ball_socket.toml"
@@ -124,39 +125,20 @@ def test_a_six_joint_ur5_s_plans_from_nothing_identify_its_base_set():
     assert again.identifiable and np.allclose(again.rms_error_m, d.scores.rms_error_m, rtol=1e-6)
 
 
-SO100 = """
-name = "so100_ball_socket"
-[robot]
-urdf = "example-robot-data:so_arm_description/urdf/so100.urdf"
-frame = "gripper"
-tool_xyz_m = [0.0, 0.0, 0.05]
-[calibration]
-case = "geometric"
-parameters = "identifiable"
-[measurement]
-components = ["x", "y", "z"]
-sigma_m = 5e-5
-[measurement.artefact]
-points_m = [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]
-placements = [{ name = "side", xyz_m = [0.1266, -0.1608, 0.2493], rpy_deg = [0, 0, 60] }]
-[test_poses]
-components = ["x", "y", "z"]
-joints_rad = [[1.0736, 1.9781, -0.3238, -2.1176, 1.1533], [-0.7348, 1.0842, -0.0013, -1.8130, 1.5137],
-              [1.1836, 1.5531, -0.5737, -1.1632, 1.2909], [-1.0664, 0.3951, -0.3674, -0.7764, 1.5087]]
-[experiments]
-m = [16]
-[design]
-criteria = ["test-pose"]
-"""
+#: An arm of 5 joints (SO-100) with a ball 50 mm out of its gripper, the tool at one spot.
+SO100_ROBOT = {"urdf": "example-robot-data:so_arm_description/urdf/so100.urdf", "frame": "gripper",
+               "tool_xyz_m": [0.0, 0.0, 0.05]}
+SO100_PLACEMENTS = [{"name": "side", "xyz_m": [0.1266, -0.1608, 0.2493], "rpy_deg": [0, 0, 60]}]
+SO100_TEST_Q = [[1.0736, 1.9781, -0.3238, -2.1176, 1.1533], [-0.7348, 1.0842, -0.0013, -1.8130, 1.5137],
+                [1.1836, 1.5531, -0.5737, -1.1632, 1.2909], [-1.0664, 0.3951, -0.3674, -0.7764, 1.5087]]
 
 
 def test_a_five_joint_arm_is_seated_by_the_ball_s_position_within_the_tilt(tmp_path):
     """An arm of 5 joints (SO-100) reaches few hand orientations: its configurations are seated
     by the ball's position alone and kept within the tilt. Drawn with the orientation too, as a
     6-joint arm's, no configuration of 300 tried was seated and solve refused the placement."""
-    path = tmp_path / "so100.toml"
-    path.write_text(SO100)
-    problem = load_problem(path)
+    problem = load_problem(ball_socket_file(tmp_path / "so100.toml", "so100_ball_socket", SO100_ROBOT, SO100_TEST_Q,
+                                            SO100_PLACEMENTS))
     assert problem.robot.n == 5
     s = seated_configurations(problem, PER_POINT)
     spec = problem.spec.measurement.artefact
