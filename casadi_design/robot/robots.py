@@ -232,22 +232,28 @@ def placement_from_xyz_rpy(xyz_m, rpy_rad) -> pin.SE3:
 
 
 def frame_id(model: pin.Model, name: str) -> int:
-    """The id of the frame ``name`` (which exists): the URDF link's where a joint bears its name
+    """The id of the frame ``name``: the URDF link's where a joint bears its name
     too (Pinocchio's ``getFrameId`` refuses the ambiguity): Unitree Z1's ``gripperStator``, the
     fixed joint that carries the link, at its place; SO-100's ``gripper``, the jaw's joint, 3 cm
-    from the link's frame; ``[robot] frame`` names a link."""
+    from the link's frame; ``[robot] frame`` names a link.
+
+    Raises
+    ------
+    ProblemError
+        A frame the model does not have (the message lists those it has).
+    """
     ids = [i for i, f in enumerate(model.frames) if f.name == name]
+    if not ids:
+        names = [f.name for f in model.frames if f.name != "universe"]
+        raise ProblemError(f"[robot].frame: unknown frame '{name}'; the model has: {', '.join(names)}")
     return next((i for i in ids if model.frames[i].type == pin.FrameType.BODY), ids[0])
 
 
 def add_tool_frame(model: pin.Model, frame: str, placement: pin.SE3, name: str = "tcp") -> str:
     """Add a tool frame ``name`` at ``placement`` relative to ``frame``; returns its name."""
-    if not model.existFrame(frame):
-        names = [f.name for f in model.frames if f.name != "universe"]
-        raise ProblemError(f"[robot].frame: unknown frame '{frame}'; the model has: {', '.join(names)}")
+    parent = model.frames[frame_id(model, frame)]
     if model.existFrame(name):
         raise ProblemError(f"[robot].tool_xyz_m: the model already has a frame '{name}'; set [robot].frame to it instead")
-    parent = model.frames[frame_id(model, frame)]
     model.addFrame(pin.Frame(name, parent.parentJoint, parent.placement * placement, pin.FrameType.OP_FRAME))
     return name
 
@@ -373,9 +379,6 @@ def make_robot(
     joint_limits : dict joint name -> (lower, upper), rad or m
         Overrides the model's limits for the named joints.
     """
-    if not model.existFrame(frame):
-        names = [f.name for f in model.frames if f.name != "universe"]
-        raise ProblemError(f"[robot].frame: unknown frame '{frame}'; the model has: {', '.join(names)}")
     parent = model.frames[frame_id(model, frame)].parentJoint
     chain = [j for j in model.supports[parent] if j != 0]
     for jid in chain:
