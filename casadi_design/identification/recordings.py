@@ -160,6 +160,13 @@ def _folder(problem: Problem, folder: Path, option: str, tolerance: float) -> tu
         i, a, b = same[0]
         raise ProblemError(f"{option} {folder}: {a.name} and {b.name} are both point {i}; keep one file per point")
     if not files:
+        inner = sorted(d.name for d in folder.iterdir() if d.is_dir() and any(
+            POINT_FILE.fullmatch(f.name) for f in d.iterdir()))
+        if inner:  # a robot's folder of placements (MUKCa's data/<robot>)
+            raise ProblemError(f"{option} {folder}: a folder of {len(inner)} placement{'s' * (len(inner) > 1)} "
+                               f"({', '.join(inner)}), not one "
+                               f"placement; give each placement's folder, e.g. {option} {folder / inner[0]} (the "
+                               "ones fitted as --measurements, the held-out ones as --validation)")
         raise ProblemError(f"{option} {folder}: a folder with no recordings (hole_0.csv, hole_1.csv, ...: one "
                            "row of joint values in rad per configuration); give a placement's folder")
     n = problem.robot.n
@@ -217,6 +224,9 @@ def _csv(problem: Problem, path: str, option: str, tolerance: float) -> tuple[di
     if not Path(path).exists():
         raise ProblemError(f"{option} {path}: no such file or folder; give a placement's folder (hole_0.csv, ...) "
                            "or a CSV with joint, point and placement columns")
+    if POINT_FILE.fullmatch(Path(path).name):  # one point's file of a placement's folder
+        raise ProblemError(f"{option} {path}: one point's recordings of a placement; give its folder, "
+                           f"{option} {Path(path).parent}, so that all its points are read (hole_0.csv, hole_1.csv, ...)")
     plan = read_plan_file(path)
     Q, _, values, lines = read_plan_table(problem, plan, ("point", "placement"),
                                           "point and placement (integers)", ignore_unknown=True)

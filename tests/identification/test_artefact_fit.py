@@ -187,6 +187,20 @@ def test_bad_recordings_get_one_line_naming_the_file_and_the_fix(simulated, tmp_
         assert "\n" not in str(info.value) and str(folder) in str(info.value)
     with pytest.raises(ProblemError, match="no such file or folder"):
         read_recordings(problem, [str(tmp_path / "missing.csv")])
+    # MUKCa's folders as published also hold each point's FK poses (7 numbers a row) and the
+    # operator's comments: not recordings, read past
+    placed = _folder(tmp_path / "robot" / "front", Q[:12], np.arange(12) % 2)
+    for j in (0, 1):
+        np.savetxt(placed / f"hole_{j}_pose.csv", np.ones((6, 7)), delimiter=",")
+    (placed / "comments.txt").write_text("tool screwed in the fourth row\n")
+    read = read_recordings(problem, [str(placed)])
+    assert read.N == 12 and np.array_equal(read.Q, np.vstack([Q[:12:2], Q[1:12:2]]))
+    # a robot's folder of placements, and one point's file, are named with the folder to give
+    for path, message in ((placed.parent, r"a folder of 1 placement \(front\).*--measurements .*robot/front"),
+                          (placed / "hole_0.csv", r"one point's recordings of a placement; give its folder")):
+        with pytest.raises(ProblemError, match=message) as info:
+            read_recordings(problem, [str(path)])
+        assert "\n" not in str(info.value)
     # a held-out point of one configuration tells no consistency (in a fit it is welcome: a plan may have one)
     alone = tmp_path / "alone"
     alone.mkdir()
