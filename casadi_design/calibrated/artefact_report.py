@@ -109,7 +109,7 @@ def artefact_summary(cal: ArtefactCalibration) -> list[str]:
     if cal.urdf is not None:
         u = cal.urdf
         lines.append(f"calibrated.urdf holds the {u.model} model ({len(u.names)} parameters, identified alike: a URDF "
-                     "cannot hold the weight's compliances): trained on, mean consistency "
+                     "cannot hold the joints' compliances): trained on, mean consistency "
                      f"{placement_means(u.training)['consistency_mm']:.3f} mm" +
                      (f"; held out, {held_out(u)}" if u.validation else ""))
     return lines

@@ -100,6 +100,9 @@ class CalibrationModel:
     gravity : bool
         The compliant joints deflect under the robot's own weight too (``g(q)`` of the URDF's
         inertias, :attr:`SymbolicKinematics.gravity_torque`), beside the wrench ``W``.
+    seating_N : tuple of 3 floats, N, or None
+        A force at the measured point in every measured experiment (base frame), beside ``W``:
+        the push that seats a ball in an artefact's point; the test poses carry none.
     """
 
     kinematics: SymbolicKinematics
@@ -118,6 +121,13 @@ class CalibrationModel:
     position: ca.Function
     points: ca.Function
     gravity: bool = False
+    seating_N: tuple[float, float, float] | None = None
+
+    @property
+    def loaded(self) -> bool:
+        """The compliant joints deflect under a load known beforehand: the robot's own weight
+        (``gravity``) or the seating push (``seating_N``)."""
+        return self.gravity or self.seating_N is not None
 
     @property
     def L(self) -> int:
@@ -201,6 +211,7 @@ def calibration_model(
     whitening: np.ndarray | None = None,
     column_scale: np.ndarray | None = None,
     gravity: bool = False,
+    seating_N: tuple[float, float, float] | None = None,
 ) -> CalibrationModel:
     """Build the measurement model of a calibration case (see :class:`CalibrationModel`).
 
@@ -228,6 +239,9 @@ def calibration_model(
         needs no ``force``). A compliance ``<joint>.rx`` (``.ry``, ``.rz``) of ``compliant`` tilts
         the joint's placement about its x (y, z) axis under the moment its bearing carries,
         ``dPi = kt (J_Pi^T W - dV/dPi)`` (:attr:`SymbolicKinematics.gravity_moments`), rad/(N m).
+    seating_N : a force (N, base frame) at the measured frame's origin added to ``W`` in the
+        measured values only: ``dq = diag(k) J^T (W + [f; 0])`` (the push seating a ball in an
+        artefact's point, :attr:`CalibrationModel.seating_N`).
     """
     if case not in CASES:
         raise ProblemError(f"[calibration].case: '{case}'; allowed: {', '.join(CASES)}")
@@ -275,7 +289,7 @@ def calibration_model(
             )
         names += [f"k.{j}" for j in compliant]
         f_rows = row_indices(tuple(force), WRENCH_ROWS, "[calibration].wrench_components") \
-            if force or not gravity else ()
+            if force or not (gravity or seating_N is not None) else ()
     d = len([r for r in m_rows if r < 3]) * len(markers) + len([r for r in m_rows if r >= 3])
     if whitening is not None and np.shape(whitening) != (d, d):
         raise ProblemError(
@@ -335,6 +349,8 @@ def calibration_model(
 
     R0, p0 = kinematics.placement(q, Pi)
     W_cal = ca.vertcat(wrench[:3], wrench[3:] + ca.cross(R0 @ ca.DM(lever), wrench[:3]))
+    if seating_N is not None:
+        W_cal = W_cal + ca.vertcat(ca.DM(np.asarray(seating_N, dtype=float)), ca.DM.zeros(3))
 
     def measured_values(iterations: int) -> tuple[ca.SX, ca.SX, ca.SX]:
         R, p, step = deflected(W_cal, iterations)
@@ -375,4 +391,5 @@ def calibration_model(
         points=ca.Function("points", [q], [ref0[9:12] + ca.reshape(ref0[0:9], 3, 3) @ ca.DM(markers.T)],
                            ["q"], ["P"]),
         gravity=gravity,
+        seating_N=None if seating_N is None else tuple(float(v) for v in seating_N),
     )

@@ -38,7 +38,7 @@ from ..robot.mapped import evaluate
 from ..measures.field import Field, covariance, value_covariance
 from .choice import NEGATIVE_STD, Candidate, choose, cv_error, has_weight, negative_compliances
 from .field_fit import FieldFit, estimate_field
-from .fit import FitModel, fit_model
+from .fit import SEATING_N, FitModel, fit_model
 from .lsq import LSQ_TOL, frame_poses, measurement_jacobian, nominal_poses, remembered
 from .recordings import Recordings
 from .residuals import ErrorScale, chi2_quantile, deleted_scores, error_scale, leverages, press, without_outliers
@@ -146,7 +146,7 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
     # MINPACK's Levenberg-Marquardt, or the trust-region reflective method where the joints
     # deflect under the robot's weight: there LM's first steps reach compliances whose deflection
     # fixed point runs away (a Panda: cost 1e5 sigma^2 after 1000 evaluations; trf: 53)
-    found = least_squares(lambda x: evaluated(x)[0], x0, jac=lambda x: evaluated(x)[1], method="trf" if model.gravity else "lm",
+    found = least_squares(lambda x: evaluated(x)[0], x0, jac=lambda x: evaluated(x)[1], method="trf" if model.loaded else "lm",
                           x_scale=1.0 / np.where(norms > 0, norms, 1.0), ftol=LSQ_TOL, xtol=LSQ_TOL, gtol=LSQ_TOL,
                           max_nfev=MAX_EVALUATIONS)
     if found.status <= 0:
@@ -165,12 +165,13 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
 
 
 def artefact_base_set(problem: Problem, rec: Recordings, names: tuple[str, ...],
-                      gravity: bool = False) -> tuple[tuple[str, ...], list[tuple[str, str]]]:
+                      load: str = "") -> tuple[tuple[str, ...], list[tuple[str, str]]]:
     """The parameters of ``names`` the recordings identify with every placement and the robot's
     base unknown (:func:`~casadi_design.calibration.artefact.identifiable` at the nominal
-    robot; with ``gravity`` the compliances ``k.<joint>`` of ``names`` deflect the joints under
-    the robot's own weight), and (name, why) of those left out."""
-    fm = fit_model(problem, "base", names, gravity=gravity)
+    robot; the compliances ``k.<joint>`` of ``names`` deflect the joints under the ``load``:
+    ``"gravity"``, the robot's own weight, or ``"seating"``, the push seating the ball), and
+    (name, why) of those left out."""
+    fm = loaded_model(problem, names, load)
     p, J = ball_points(fm.model, rec.Q, np.zeros(fm.model.L))
     at = np.searchsorted(np.unique(rec.placement), rec.placement)  # the placements recorded, 0..P-1
     R, _ = problem.artefact.placed(p, rec.point, at)
@@ -215,11 +216,21 @@ def row_scores(f: ArtefactFit, sigma: float) -> tuple[np.ndarray, np.ndarray]:
 LOADED_SHARE = 0.05
 
 
-def loaded_joints(problem: Problem, Q: np.ndarray) -> tuple[str, ...]:
-    """The joints the robot's own weight loads at the configurations ``Q`` (:data:`LOADED_SHARE`)."""
-    tau = np.stack([np.asarray(problem.model.kinematics.gravity_torque(q), dtype=float).ravel() for q in Q])
+def loaded_joints(problem: Problem, Q: np.ndarray, load: str) -> tuple[str, ...]:
+    """The joints the ``load`` (:func:`artefact_base_set`) loads at the configurations ``Q``
+    (:data:`LOADED_SHARE`): the weight's torque ``g(q)``, the seating push's ``(dp/dq)^T f``."""
+    if load == "gravity":
+        tau = np.stack([np.asarray(problem.model.kinematics.gravity_torque(q), dtype=float).ravel() for q in Q])
+    else:
+        tau = problem.model.dq_stack(Q, rows="position").transpose(0, 2, 1) @ np.asarray(SEATING_N)
     rms = np.sqrt(np.mean(tau**2, axis=0))
     return tuple(j for j, r in zip(problem.robot.joints, rms) if r > 0 and r >= LOADED_SHARE * rms.max())
+
+
+def loaded_model(problem: Problem, names: tuple[str, ...], load: str) -> FitModel:
+    """The fit model of ``names`` in the base frame whose compliances deflect the joints under
+    ``load`` (:func:`artefact_base_set`; ``""``: none)."""
+    return fit_model(problem, "base", names, gravity=load == "gravity", seating=load == "seating")
 
 
 def bent_joints(problem: Problem, Q: np.ndarray) -> tuple[str, ...]:
@@ -527,14 +538,16 @@ class ArtefactCalibration:
 #: The candidate models of an artefact's recordings (module docstring of :mod:`.choice`): the
 #: nominal robot with its ball (the measured point) located, the joint offsets and the ball, the base set the recordings tell, and with a robot whose
 #: URDF (or ``inertias_urdf``) gives masses the base set with every joint's compliance under the
-#: robot's own weight.
+#: robot's own weight; without masses, under the push seating the ball (1 N down,
+#: :data:`~.fit.SEATING_N`: the compliances take its size; it stands in for the weight too).
 #: The base set with the axial compliances and the tilts of the joints' bearings under the robot's
 #: weight (:func:`bent_joints`): fitted when named (``--model``), not among ``auto``'s
 #: candidates: on MUKCa's Pandas it is chosen on no placement of about 60 configurations, and on
 #: 16 (scripts/ball_socket_design.py's random subsets of panda_2) its 35 parameters made auto's
 #: choice worse (median held-out consistency 0.537 -> 0.665 mm).
 TILT_MODEL = "identifiable + gravity + tilt"
-ARTEFACT_MODELS = ("auto", "ball", "offsets", "identifiable", "identifiable + gravity", TILT_MODEL)
+ARTEFACT_MODELS = ("auto", "ball", "offsets", "identifiable", "identifiable + gravity", "identifiable + seating",
+                   TILT_MODEL)
 
 
 def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | None = None,
@@ -555,25 +568,30 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     names, absorbed = artefact_base_set(problem, rec, problem.model.parameter_names)
     ball = tuple(n for n in names if n.startswith("tool."))
     offsets = tuple(n for n in names if n.endswith(".offset")) + ball
-    wanted = [("ball", ball, False), ("offsets", offsets, False), ("identifiable", names, False)]
-    loaded = loaded_joints(problem, rec.Q) if has_weight(problem) else ()
-    if loaded:  # + the compliances of the joints the robot's own weight loads, those the rows tell
-        told = artefact_base_set(problem, rec, names + tuple(f"k.{j}" for j in loaded), True)[0]
-        wanted.append(("identifiable + gravity", told, True))
-        if model == TILT_MODEL:  # + the tilts of the joints' bearings under the moments they carry
-            bent = artefact_base_set(problem, rec, told + tuple(f"k.{j}" for j in bent_joints(problem, rec.Q)), True)[0]
-            wanted.append((TILT_MODEL, bent, True))
-    if model != "auto" and model not in [n for n, _, _ in wanted]:  # the weight's models, on a robot without masses
-        why = ("its own weight loads no joint at these configurations;" if has_weight(problem) else
-               "the robot's links carry no masses, so its own weight loads no joint; give [robot] inertias_urdf (a "
-               "URDF with the links' inertias) or")
+    wanted = [("ball", ball, ""), ("offsets", offsets, ""), ("identifiable", names, "")]
+    # auto: the weight where the links' masses are known, else the seating push (it stands in for the weight)
+    load = "gravity" if has_weight(problem) and model != "identifiable + seating" else "seating"
+    loaded = loaded_joints(problem, rec.Q, load)
+    if loaded:  # + the compliances of the joints the load loads, those the rows tell
+        told = artefact_base_set(problem, rec, names + tuple(f"k.{j}" for j in loaded), load)[0]
+        wanted.append((f"identifiable + {load}", told, load))
+        if model == TILT_MODEL and load == "gravity":  # + the tilts of the joints' bearings under the moments they carry
+            bent = artefact_base_set(problem, rec, told + tuple(f"k.{j}" for j in bent_joints(problem, rec.Q)),
+                                     load)[0]
+            wanted.append((TILT_MODEL, bent, load))
+    if model != "auto" and model not in [n for n, _, _ in wanted]:  # a load's model this robot does not take
+        if model == "identifiable + seating" or has_weight(problem):
+            why = f"{'its own weight' if load == 'gravity' else 'the seating push'} loads no joint at these configurations;"
+        else:
+            why = ("the robot's links carry no masses, so its own weight loads no joint; give [robot] inertias_urdf (a "
+                   "URDF with the links' inertias) or")
         raise ProblemError(f"--model {model}: {why} give another model")
     found, signs = [], []
-    for name, chosen, gravity in wanted:
+    for name, chosen, load in wanted:
         same = [c for n, c, _ in wanted if n != name and (n, name) in (("ball", "offsets"), ("identifiable", "offsets"))]
         if not chosen or model not in ("auto", name) or (model == "auto" and chosen in same):  # auto: once each
             continue
-        fm = fit_model(problem, "base", chosen, gravity=gravity)
+        fm = loaded_model(problem, chosen, load)
         try:
             f = fit_artefact(problem, fm, rec)
         except DesignError as e:
@@ -581,7 +599,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
             continue
         e, why = cross_validate(f)
         cv, se = cv_error(e) if e is not None else (math.nan, math.nan)
-        if gravity:
+        if load:
             signs = negative_compliances(f, np.sqrt(np.sum(f.r**2) / max(f.dof, 1)) *
                                          np.sqrt(np.diagonal(np.linalg.inv(f.information))))
         found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why,
@@ -599,10 +617,10 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     if problem.spec.calibration.prior is not None:
         notes.append(f"{problem.path}: [calibration.prior] is not used with an artefact's recordings: the fits are "
                      "least squares")
-    if chosen.fit_model.model.gravity and signs:
+    if chosen.fit_model.model.loaded and signs:
         notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in signs)}): the "
                      "encoders read the angle after the joint's yield (a Panda's are on the links), so the term "
-                     "takes up what else moves with the weight, the links' and bearings' bending")
+                     "takes up what else moves with the load, the links' and bearings' bending")
     f, outliers, more = fit_without_outliers(problem, chosen.fit_model, rec, threshold)
     scale = scale_of(f, problem.sigma_m)
     field = unmodelled_field(problem, f, rec).field if with_field else None
@@ -636,7 +654,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
                     f"{scale.s_m * 1e3:.3g} mm per value); record more varied configurations, or check the seating")
     urdf = None
     if any(n.startswith("k.") for n in f.fit.model.parameter_names):  # none in a URDF: the best model without them
-        judged_alike = [c for c in found if not c.gravity and not math.isnan(c.cv_rms_m)]
+        judged_alike = [c for c in found if not c.loaded and not math.isnan(c.cv_rms_m)]
         urdf = calibrate_artefact(problem, rec, valid, choose(judged_alike, "auto")[0].name if judged_alike else
                                   "identifiable", threshold, with_field)
     return ArtefactCalibration(problem, rec, f, chosen.name, tuple(found), tuple(absorbed), scale, C, field,

@@ -85,9 +85,10 @@ class Candidate:
         return self.fit_model.model.L
 
     @property
-    def gravity(self) -> bool:
-        """Whether the joints deflect under the robot's own weight in this model."""
-        return self.fit_model is not None and bool(self.fit_model.model.gravity)
+    def loaded(self) -> bool:
+        """Whether the joints deflect under a load known beforehand in this model: the robot's
+        own weight, or an artefact's seating push."""
+        return self.fit_model is not None and bool(self.fit_model.model.loaded)
 
     @property
     def size(self) -> float:
@@ -223,9 +224,9 @@ def candidates(problem: Problem, frame: str, meas: Measurements, T0: np.ndarray,
         found.append(candidate("prior", candidate_parameters(problem, "identifiable"), prior=True)[0])
     kept: list[Candidate] = []
     for c in found:
-        if c.name == "prior" or c.fit_model.model.gravity or not any(
+        if c.name == "prior" or c.fit_model.model.loaded or not any(
                 set(c.fit_model.model.parameter_names) == set(k.fit_model.model.parameter_names)
-                for k in kept if not k.fit_model.model.gravity):
+                for k in kept if not k.fit_model.model.loaded):
             kept.append(c)
     return kept
 
@@ -246,7 +247,7 @@ def _geometry(c: Candidate) -> frozenset[str] | None:
 
 def _own(found: list[Candidate]) -> Candidate:
     """The candidate of the problem's own parameters (the last of the nested ones)."""
-    return [c for c in found if c.name != "prior" and not c.fit_model.model.gravity][-1]
+    return [c for c in found if c.name != "prior" and not c.fit_model.model.loaded][-1]
 
 
 def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
@@ -266,7 +267,7 @@ def choose(found: list[Candidate], model: str) -> tuple[Candidate, list[str]]:
         valid = [c for c in valid if not c.refused] or valid[:1]
         best = min(valid, key=lambda c: c.cv_rms_m)
         chosen = min((c for c in valid if c.cv_rms_m <= best.cv_rms_m + best.cv_se_m), key=lambda c: c.size)
-        weighed = [c for c in valid if c.gravity and not chosen.gravity and _geometry(c) == _geometry(chosen)
+        weighed = [c for c in valid if c.loaded and not chosen.loaded and _geometry(c) == _geometry(chosen)
                    and c.cv_rms_m < chosen.cv_rms_m - _paired_se(c, chosen)]
         chosen = weighed[0] if weighed else chosen
     else:

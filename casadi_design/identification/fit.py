@@ -87,30 +87,37 @@ class FitModel:
 
 
 def fit_model(problem: Problem, frame: str, names: tuple[str, ...] | None = None,
-              prior: bool = False, gravity: bool = False) -> FitModel:
+              prior: bool = False, gravity: bool = False, seating: bool = False) -> FitModel:
     """The fit's measurement model for measurements in the ``frame`` (module docstring), of the
     robot parameters ``names`` (default the problem's own); with ``prior`` a MAP fit under the
     problem's ``[calibration.prior]``; with ``gravity`` the compliances ``k.<joint>`` of
-    ``names`` deflect the joints under the robot's own weight too (the URDF's inertias).
+    ``names`` deflect the joints under the robot's own weight too (the URDF's inertias); with
+    ``seating`` under :data:`SEATING_N` at the measured point in every measured experiment (the
+    push seating a ball in an artefact's point).
 
-    The model is derived once per problem model, frame, names and gravity in a process
+    The model is derived once per problem model, frame, names and loads in a process
     (:data:`_FITS`): a virtual calibration fits the same model in every trial, and the choice
     of a model fits each candidate in every fold."""
     if frame not in FRAMES:
         raise ProblemError(f"--frame {frame}: allowed: {', '.join(FRAMES)}")
     names = problem.model.parameter_names if names is None else tuple(names)
-    fm = _FITS.get((problem.model, frame, names, gravity), lambda: _fit_model(problem, frame, names, gravity))
+    fm = _FITS.get((problem.model, frame, names, gravity, seating),
+                   lambda: _fit_model(problem, frame, names, gravity, seating))
     return replace(fm, prior_std=prior_std(problem.robot, problem.spec.calibration.prior,
                                              fm.frame_names + fm.robot_names)) if prior else fm
 
 
-#: The fit models derived in this process, by problem model, frame, names and gravity: as many
+#: The push seating a ball in an artefact's point (N, base frame): 1 N down. Its size is not
+#: known, so a compliance under it, ``k.<joint>`` of a seating model, is rad per N m of torque
+#: per newton of push: the joints' deflection is what the recordings tell.
+SEATING_N = (0.0, 0.0, -1.0)
+#: The fit models derived in this process, by problem model, frame, names and loads: as many
 #: as the candidates of a model choice (:mod:`casadi_design.identification.choice`) and a few.
 KEEP_FITS = 32
 _FITS: Memo[FitModel] = Memo(KEEP_FITS)
 
 
-def _fit_model(problem: Problem, frame: str, names: tuple[str, ...], gravity: bool) -> FitModel:
+def _fit_model(problem: Problem, frame: str, names: tuple[str, ...], gravity: bool, seating: bool) -> FitModel:
     """:func:`fit_model` without a prior, derived anew."""
     model = problem.model
     kin = model.kinematics
@@ -123,9 +130,9 @@ def _fit_model(problem: Problem, frame: str, names: tuple[str, ...], gravity: bo
         args = model_arguments(problem.spec, geometric)
         args["compliant"] = tuple(p[2:] for p in names if p.startswith("k.")) or None
         case = "geometric" if args["compliant"] is None else "both" if geometric else "elastostatic"
-        return calibration_model(kin, case, **args, gravity=gravity)
+        return calibration_model(kin, case, **args, gravity=gravity, seating_N=SEATING_N if seating else None)
 
-    if frame == "base" and names == model.parameter_names and not gravity:
+    if frame == "base" and names == model.parameter_names and not (gravity or seating):
         return FitModel(model, frame, (), names, ())  # the problem's own: identifiable as it is
     frame_parameters = () if frame == "base" else FRAME_PARAMETERS
     dependent = DEPENDENT if frame == "base" else ABSORBED

@@ -33,7 +33,7 @@ def test_the_warning_beside_registration_only_says_which_and_why():
 
 def _judged(name: str, names: tuple[str, ...], e: np.ndarray, gravity: bool = False) -> Candidate:
     cv, se = cv_error(e)
-    model = SimpleNamespace(L=len(names), parameter_names=names, gravity=gravity)
+    model = SimpleNamespace(L=len(names), parameter_names=names, gravity=gravity, loaded=gravity)
     return Candidate(name, SimpleNamespace(model=model), 1e-3, cv, se, cv_errors_m=e)
 
 
