@@ -74,7 +74,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "offsets), identifiable (the problem's parameters), prior (those, MAP under the "
                         "problem's [calibration.prior]) or auto (default: chosen by cross-validation on the rows); "
                         "of an artefact's recordings: ball (the ball located), offsets, identifiable (the base set "
-                        "they tell), 'identifiable + gravity' or auto")
+                        "they tell), 'identifiable + gravity' (+ the joints' compliances under the robot's weight; "
+                        "'... + tilt' the bearings' too), 'identifiable + seating' (under the push seating the "
+                        "ball) or auto")
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help=f"least-squares loss: linear (default) or a robust loss that down-weights residuals "
                         f"beyond {LOSS_SCALE_SIGMA:g} sigma (bad shots)")
