@@ -5,13 +5,15 @@ consistency at another placement, where the test poses are (every third recordin
 beside them the median of random m-subsets. Every other placement of the robot is a test
 placement in turn: plans are judged over that set, not one by one.
 
-    python scripts/ball_socket_design.py [--data ../shared/real_data/mukca] [--m 16] [--random 20] [--model auto]
+    python scripts/ball_socket_design.py [--data ../shared/real_data/mukca] [--robots panda_2,...] [--m 16]
+        [--random 20] [--model auto]
 
 ``--model``: the model every plan is identified with (identify's ``--model``; auto: its choice,
 made on each plan's own rows).
 
-Cases: panda_2's candidates at ``front_center``, panda_4's at ``front`` (the placements
-identify is trained on in scripts/ball_socket_real_data.py).
+Cases: every robot of the data, its candidates at the placement identify is trained on in
+scripts/ball_socket_real_data.py (panda_2's ``front_center``, panda_4's ``front``, the first
+folder for the others); the summary is over every test placement and over the two Pandas'.
 """
 
 from __future__ import annotations
@@ -32,9 +34,10 @@ from casadi_design.optimisation.artefact_pool import artefact_pool, choose_recor
 from casadi_design.problem.build import build_problem  # noqa: E402
 from casadi_design.problem_file.poses import TestPoseSpec  # noqa: E402
 from casadi_design.problem_file.read import read_problem  # noqa: E402
+from ball_socket_real_data import ROBOTS  # noqa: E402  (robot -> problem file, placement trained on)
 
-#: robot -> the candidates' placement (every other placement holds test poses in turn)
-CASES = {"panda_2": "front_center", "panda_4": "front"}
+#: The robots whose candidates are the issue's developers' cases (the summary's second line).
+PANDAS = ("panda_2", "panda_4")
 
 
 def judged(problem, rec, rows, test, model: str) -> float:
@@ -49,17 +52,20 @@ def main() -> int:
     parser.add_argument("--m", type=int, default=16)
     parser.add_argument("--random", type=int, default=20)
     parser.add_argument("--model", default="auto", choices=ARTEFACT_MODELS)
+    parser.add_argument("--robots", default=",".join(ROBOTS))
     args = parser.parse_args()
     data = Path(args.data) / "data"
-    spec = read_problem(ROOT / "problems" / "panda_ball_socket.toml")
-    base = build_problem(spec)  # the test poses' recordings are read with it
     print(f"m = {args.m}: consistency (mm) at the test poses' placement after identifying each plan (model {args.model})")
-    print(f"{'robot':8s} {'candidates':14s} {'test poses':12s} {'test-pose':>9s} {'D':>7s} {'random median':>13s} "
+    print(f"{'robot':19s} {'candidates':14s} {'test poses':12s} {'test-pose':>9s} {'D':>7s} {'random median':>13s} "
           f"{'(quartiles)':>15s} {'all':>7s}")
-    wins, ratios = {"D": [], "random": []}, []
-    for robot, cand in CASES.items():
-        places = sorted(p.name for p in (data / robot).iterdir() if p.is_dir() and p.name != cand)
-        for test in places:
+    wins, ratios, robots = {"D": [], "random": []}, [], []
+    for robot in args.robots.split(","):
+        name, cand = ROBOTS[robot]
+        spec = read_problem(ROOT / ("problems" if name == "panda_ball_socket" else "examples") / f"{name}.toml")
+        base = build_problem(spec)  # the test poses' recordings are read with it
+        places = sorted(p.name for p in (data / robot).iterdir() if p.is_dir())
+        cand = cand or places[0]
+        for test in [p for p in places if p != cand]:
             trec = read_recordings(base, [str(data / robot / test)], "--validation")
             problem = build_problem(dataclasses.replace(spec, test_poses=TestPoseSpec(
                 ("x", "y", "z"), "joints", joints_rad=tuple(map(tuple, trec.Q[::3])))))
@@ -69,14 +75,19 @@ def main() -> int:
                 problem, pool, c, args.m, problem.solver.starts_for(c))), trec, args.model) for c in ("test-pose", "D")}
             rng = np.random.default_rng(0)
             random = [judged(problem, rec, rng.choice(rec.N, args.m, replace=False), trec, args.model) for _ in range(args.random)]
+            robots.append(robot)
             wins["D"].append(got["test-pose"] < got["D"])
             ratios.append(got["test-pose"] / got["D"])
             wins["random"].append(got["test-pose"] < np.median(random))
-            print(f"{robot:8s} {cand:14s} {test:12s} {got['test-pose']:9.3f} {got['D']:7.3f} {np.median(random):13.3f} "
+            print(f"{robot:19s} {cand:14s} {test:12s} {got['test-pose']:9.3f} {got['D']:7.3f} {np.median(random):13.3f} "
                   f"  ({np.percentile(random, 25):.3f}, {np.percentile(random, 75):.3f}) "
                   f"{judged(problem, rec, np.arange(rec.N), trec, args.model):7.3f}")
-    print(f"test-pose below D at {sum(wins['D'])} of {len(wins['D'])} test placements (geometric mean of the ratios "
-          f"{np.exp(np.mean(np.log(ratios))):.3f}), below the random median at {sum(wins['random'])} of {len(wins['random'])}")
+    for title, sel in (("every robot", [True] * len(robots)), ("panda_2 and panda_4", [r in PANDAS for r in robots])):
+        sel = np.array(sel, dtype=bool)
+        if sel.any():
+            d, r = np.array(wins["D"])[sel], np.array(wins["random"])[sel]
+            print(f"{title}: test-pose below D at {d.sum()} of {d.size} test placements (geometric mean of the ratios "
+                  f"{np.exp(np.mean(np.log(np.array(ratios)[sel]))):.3f}), below the random median at {r.sum()} of {r.size}")
     return 0
 
 
