@@ -646,7 +646,8 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
                                       f"{j.consistency_m * 1e3:.3f} mm)" for j in unseated)
                     + f" the configurations lie farther from their point's mean than the calibrated robot's "
                     f"predicted error allows ({MOVED_STD:g} std): balls not seated, or the tool moved while it was "
-                    "recorded; that consistency is not the robot's: record the placement again")
+                    "recorded (a tool raised on a stand gives under the push); that consistency is not the robot's: "
+                    "record the placement again, the tool clamped on the table")
     worse = [j.name for j in validation if j.predicted_consistency_m > j.nominal_consistency_m]
     if worse:
         more.append(f"at {', '.join(worse)} the predicted consistency is above the nominal robot's: the recordings "
