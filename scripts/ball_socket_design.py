@@ -34,9 +34,10 @@ from casadi_design.optimisation.artefact_pool import artefact_pool, choose_recor
 from casadi_design.problem.build import build_problem  # noqa: E402
 from casadi_design.problem_file.poses import TestPoseSpec  # noqa: E402
 from casadi_design.problem_file.read import read_problem  # noqa: E402
-from ball_socket_real_data import ROBOTS  # noqa: E402  (robot -> problem file, placement trained on)
+from ball_socket_real_data import ROBOTS, robot_case  # noqa: E402
 
-#: The robots whose candidates are the issue's developers' cases (the summary's second line).
+#: The Pandas whose training placements the authors' calibrated URDFs were fitted on (the
+#: summary's second line: the cases scripts/ball_socket_real_data.py compares with theirs).
 PANDAS = ("panda_2", "panda_4")
 
 
@@ -54,22 +55,20 @@ def main() -> int:
     parser.add_argument("--model", default="auto", choices=ARTEFACT_MODELS)
     parser.add_argument("--robots", default=",".join(ROBOTS))
     args = parser.parse_args()
-    data = Path(args.data) / "data"
+    data = Path(args.data)
     print(f"m = {args.m}: consistency (mm) at the test poses' placement after identifying each plan (model {args.model})")
     print(f"{'robot':19s} {'candidates':14s} {'test poses':12s} {'test-pose':>9s} {'D':>7s} {'random median':>13s} "
           f"{'(quartiles)':>15s} {'all':>7s}")
     wins, ratios, robots = {"D": [], "random": []}, [], []
     for robot in args.robots.split(","):
-        name, cand = ROBOTS[robot]
-        spec = read_problem(ROOT / ("problems" if name == "panda_ball_socket" else "examples") / f"{name}.toml")
+        path, cand, places = robot_case(data, robot)
+        spec = read_problem(path)
         base = build_problem(spec)  # the test poses' recordings are read with it
-        places = sorted(p.name for p in (data / robot).iterdir() if p.is_dir())
-        cand = cand or places[0]
         for test in [p for p in places if p != cand]:
-            trec = read_recordings(base, [str(data / robot / test)], "--validation")
+            trec = read_recordings(base, [str(data / "data" / robot / test)], "--validation")
             problem = build_problem(dataclasses.replace(spec, test_poses=TestPoseSpec(
                 ("x", "y", "z"), "joints", joints_rad=tuple(map(tuple, trec.Q[::3])))))
-            rec = read_recordings(problem, [str(data / robot / cand)], "--candidates")
+            rec = read_recordings(problem, [str(data / "data" / robot / cand)], "--candidates")
             pool = artefact_pool(problem, rec.Q, rec.point, rec.placement)
             got = {c: judged(problem, rec, chosen_rows(pool, choose_recordings(
                 problem, pool, c, args.m, problem.solver.starts_for(c))), trec, args.model) for c in ("test-pose", "D")}

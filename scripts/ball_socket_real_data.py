@@ -36,6 +36,14 @@ ROBOTS = {"panda_2": ("panda_ball_socket", "front_center"), "panda_4": ("panda_b
           "dinova_1": ("gen3lite_ball_socket", None), "dinova_2": ("gen3lite_ball_socket", None)}
 
 
+def robot_case(data: Path, robot: str) -> tuple[Path, str, list[str]]:
+    """``robot``'s problem file, the placement trained on (:data:`ROBOTS`; else its first folder)
+    and every placement of it in MUKCa's folder ``data``."""
+    name, train = ROBOTS[robot]
+    places = sorted(p.name for p in (data / "data" / robot).iterdir() if p.is_dir())
+    return ROOT / ("problems" if name == "panda_ball_socket" else "examples") / f"{name}.toml", train or places[0], places
+
+
 def authors(urdf: Path, problem, rec) -> tuple[float, float, float]:
     """Mean consistency, median spacing error and mean consistency with the ball relocated on
     the hand (m) of the authors' calibrated URDF on ``rec``'s placements (their ``ball_link``,
@@ -68,10 +76,8 @@ def main() -> int:
     print("robot                train          held out  nominal  calibrated (predicted)  authors | "
           "median spacing: calibrated  authors | ball relocated: calibrated  authors   model  time")
     for robot in args.robots.split(","):
-        name, train = ROBOTS[robot]
-        problem = load_problem(ROOT / ("problems" if name == "panda_ball_socket" else "examples") / f"{name}.toml")
-        places = sorted(p.name for p in (data / "data" / robot).iterdir() if p.is_dir())
-        train = train or places[0]
+        path, train, places = robot_case(data, robot)
+        problem = load_problem(path)
         t0 = time.perf_counter()
         rec = read_recordings(problem, [str(data / "data" / robot / train)])
         valid = read_recordings(problem, [str(data / "data" / robot / p) for p in places if p != train], "--validation")

@@ -39,8 +39,8 @@ def artefact_record(cal: ArtefactCalibration, files: dict) -> dict:
         "sigma_m": cal.problem.sigma_m,
         "model": cal.model,
         "model_choice": "leave-one-configuration-out cross-validation, one-standard-error rule; the compliances "
-                        "under a load (the robot's weight, or without masses the 1 N seating push) by one "
-                        "standard error of the paired differences",
+                        "under a load (the robot's weight, or on a robot without masses the seating push) by "
+                        "one standard error of the paired differences",
         "candidates": [c.as_dict() for c in cal.candidates],
         "parameters": parameters(cal),
         "covariance": cal.C.tolist(),

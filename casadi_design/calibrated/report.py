@@ -18,13 +18,15 @@ FRAME_STEP = 1e-7
 
 def parameter_unit(calibration: Calibration, name: str) -> str:
     """SI unit of parameter ``name``: m, rad, rad/(N m) or m/N (a joint's compliance ``k.<joint>``;
-    a bearing's tilt ``k.<joint>.<axis>``: rad/(N m))."""
+    a bearing's tilt ``k.<joint>.<axis>``: rad/(N m)); under the seating push, whose size is not
+    known, a compliance is that of a 1 N push (:data:`~casadi_design.identification.fit.SEATING_N`)."""
     robot = calibration.problem.robot
     owner, what = name.split(".", 1)
     prismatic = owner in robot.joints and is_prismatic(calibration.problem, robot.joints.index(owner))
     if owner == "k":
         joint, _, tilt = what.partition(".")
-        return "m/N" if not tilt and is_prismatic(calibration.problem, robot.joints.index(joint)) else "rad/(N m)"
+        unit = "m/N" if not tilt and is_prismatic(calibration.problem, robot.joints.index(joint)) else "rad/(N m)"
+        return unit + (", at a 1 N push" if calibration.fit.fit.model.seating_N is not None else "")
     if what in ("tx", "ty", "tz") or (what == "offset" and prismatic):
         return "m"
     return "rad"

@@ -316,7 +316,7 @@ def calibration_model(
     jacobian = ca.Function("J", [qs, Pis], [twist_jacobian(*kinematics.placement(qs, Pis), qs)])
     tilts = any(tilted)
     bending = ca.Function("J_Pi", [qs, Pis], [twist_jacobian(*kinematics.placement(qs, Pis), Pis)]) \
-        if tilts and f_rows else None
+        if tilts and (f_rows or seating_N is not None) else None
 
     def deflected(W: ca.SX, iterations: int) -> tuple[ca.SX, ca.SX, ca.SX]:
         """Pose (R, p) of robot X deflected by W and the last fixed-point update: the joints by

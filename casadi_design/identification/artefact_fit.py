@@ -144,7 +144,7 @@ def fit_artefact(problem: Problem, fm: FitModel, rec: Recordings, used: np.ndarr
                           f"{len(places)} placement(s) unknown; record more varied configurations")
     norms = np.linalg.norm(J0, axis=0)
     # MINPACK's Levenberg-Marquardt, or the trust-region reflective method where the joints
-    # deflect under the robot's weight: there LM's first steps reach compliances whose deflection
+    # deflect under a load (a Panda under its weight): there LM's first steps reach compliances whose deflection
     # fixed point runs away (a Panda: cost 1e5 sigma^2 after 1000 evaluations; trf: 53)
     found = least_squares(lambda x: evaluated(x)[0], x0, jac=lambda x: evaluated(x)[1], method="trf" if model.loaded else "lm",
                           x_scale=1.0 / np.where(norms > 0, norms, 1.0), ftol=LSQ_TOL, xtol=LSQ_TOL, gtol=LSQ_TOL,
@@ -210,9 +210,10 @@ def row_scores(f: ArtefactFit, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     return score, s
 
 
-#: A joint is loaded by the robot's own weight when the RMS of its gravity torque over the
-#: recordings is at least this share of the most loaded joint's: a Panda's joints 2, 3, 4 and 6
-#: (26, 15, 9.5, 1.5 N m), not 5 and 7 (0.5, 0.01 N m), whose compliances would take up anything.
+#: A joint is loaded by the robot's own weight (or the seating push) when the RMS of its torque
+#: over the recordings is at least this share of the most loaded joint's: under the weight, a
+#: Panda's joints 2, 3, 4 and 6 (26, 15, 9.5, 1.5 N m), not 5 and 7 (0.5, 0.01 N m), whose
+#: compliances would take up anything.
 LOADED_SHARE = 0.05
 
 
@@ -571,7 +572,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     wanted = [("ball", ball, ""), ("offsets", offsets, ""), ("identifiable", names, "")]
     # auto: the weight where the links' masses are known, else the seating push (it stands in for the weight)
     load = "gravity" if has_weight(problem) and model != "identifiable + seating" else "seating"
-    loaded = loaded_joints(problem, rec.Q, load)
+    loaded = loaded_joints(problem, rec.Q, load) if model in ("auto", f"identifiable + {load}", TILT_MODEL) else ()
     if loaded:  # + the compliances of the joints the load loads, those the rows tell
         told = artefact_base_set(problem, rec, names + tuple(f"k.{j}" for j in loaded), load)[0]
         wanted.append((f"identifiable + {load}", told, load))
@@ -587,11 +588,11 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
                    "URDF with the links' inertias) or")
         raise ProblemError(f"--model {model}: {why} give another model")
     found, signs = [], []
-    for name, chosen, load in wanted:
+    for name, chosen, loads in wanted:
         same = [c for n, c, _ in wanted if n != name and (n, name) in (("ball", "offsets"), ("identifiable", "offsets"))]
         if not chosen or model not in ("auto", name) or (model == "auto" and chosen in same):  # auto: once each
             continue
-        fm = loaded_model(problem, chosen, load)
+        fm = loaded_model(problem, chosen, loads)
         try:
             f = fit_artefact(problem, fm, rec)
         except DesignError as e:
@@ -599,7 +600,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
             continue
         e, why = cross_validate(f)
         cv, se = cv_error(e) if e is not None else (math.nan, math.nan)
-        if load:
+        if loads:
             signs = negative_compliances(f, np.sqrt(np.sum(f.r**2) / max(f.dof, 1)) *
                                          np.sqrt(np.diagonal(np.linalg.inv(f.information))))
         found.append(Candidate(name, fm, float(np.sqrt(np.mean(np.sum(f.r**2, axis=1)))), cv, se, why,
@@ -618,9 +619,11 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
         notes.append(f"{problem.path}: [calibration.prior] is not used with an artefact's recordings: the fits are "
                      "least squares")
     if chosen.fit_model.model.loaded and signs:
-        notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in signs)}): the "
-                     "encoders read the angle after the joint's yield (a Panda's are on the links), so the term "
-                     "takes up what else moves with the load, the links' and bearings' bending")
+        why = ("the encoders read the angle after the joint's yield (a Panda's are on the links), so the term takes "
+               "up what else moves with the weight, the links' and bearings' bending" if chosen.fit_model.model.gravity
+               else "the push is taken 1 N down, so the term takes up a push in another direction and what else "
+               "moves with it")
+        notes.append(f"negative compliance beyond {NEGATIVE_STD:g} std ({', '.join(n for n, _, _ in signs)}): {why}")
     f, outliers, more = fit_without_outliers(problem, chosen.fit_model, rec, threshold)
     scale = scale_of(f, problem.sigma_m)
     field = unmodelled_field(problem, f, rec).field if with_field else None

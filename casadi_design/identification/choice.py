@@ -32,8 +32,9 @@ standard error ``se = std(e_i^2) / (2 cv sqrt(N))`` (delta method).
 standard error of the smallest (the one-standard-error rule of Hastie, Tibshirani and Friedman,
 The Elements of Statistical Learning, 7.10): the best error is itself noisy, and of models
 that predict as well the smaller one holds further from the training poses. The robot's weight
-is a load known beforehand, not one more term of a ladder: the chosen geometry with the
-compliances under it (``... + gravity``, not refused) is taken when it is better by more than
+(or, for an artefact's recordings on a robot without masses, the push seating the ball) is a
+load known beforehand, not one more term of a ladder: the chosen geometry with the compliances
+under it (``... + gravity``, ``identifiable + seating``; not refused) is taken when it is better by more than
 one standard error of the difference on the same rows, ``std(e_i^2 / (2 cv) - b_i^2 / (2 cv_b))
 / sqrt(N)`` (paired: what the rows share, a row hard for both, is not noise of the comparison).
 """
@@ -54,7 +55,7 @@ from .residuals import leverages, press
 
 MODELS = ("auto", "registration", "offsets", "identifiable", "prior")
 #: A compliance below minus this many standard deviations is negative (a stiff joint's estimate
-#: falls below 0 half the time within its noise): a gravity candidate with one is not chosen.
+#: falls below 0 half the time within its noise): a loaded candidate with one is not chosen.
 NEGATIVE_STD = 2.0
 #: A model predicts worse than registration only when its cross-validated error is larger by
 #: more than this fraction.

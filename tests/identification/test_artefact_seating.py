@@ -106,3 +106,30 @@ def test_the_weight_s_models_are_named_with_their_fix(iiwa):
         calibrate_artefact(problem, train, model="identifiable + gravity", with_field=False)
     assert calibrate_artefact(problem, train, model="identifiable + seating", with_field=False).model == \
         "identifiable + seating"
+
+
+def test_the_push_bends_the_bearings_too(iiwa):
+    """A bearing's tilt compliance moves the ball under the push as an axial one does."""
+    problem, _, Q, _, _ = iiwa
+    pushed = fit_model(problem, "base", ("k.joint_a2", "k.joint_a2.rx", "k.joint_a2.ry"), seating=True).model
+    assert any(n.startswith("k.joint_a2.r") for n in pushed.parameter_names)
+    _, J = ball_points(pushed, Q[:6], np.zeros(pushed.L))
+    moves = np.linalg.norm(J, axis=(0, 1))  # each compliance's effect on the ball, m per rad/(N m)
+    assert np.all(moves > 1e-3 * moves.max()) and moves.min() > 0
+
+
+def test_the_seating_model_named_on_a_robot_with_masses():
+    """Named on a Panda, whose links' masses are known (auto takes their weight's model), the
+    seating model is fitted: the push's compliances, not the weight's; the two models of the same
+    names are two (the cache keeps them apart)."""
+    problem = load_problem(ROOT / "problems" / "panda_ball_socket.toml")
+    names = ("panda_joint2.offset", "k.panda_joint2", "k.panda_joint4")
+    pushed, weighed = (fit_model(problem, "base", names, seating=True).model,
+                       fit_model(problem, "base", names, gravity=True).model)
+    assert pushed is not weighed and weighed.seating_N is None and pushed.seating_N == SEATING_N and weighed.gravity
+    _, Q, k, g = recordings(problem, 1, 10, SIGMA)
+    train, _ = _split(Q, k, g, 0)
+    cal = calibrate_artefact(problem, train, model="identifiable + seating", with_field=False)
+    model = cal.fit.fit.model
+    assert cal.model == "identifiable + seating" and model.seating_N == SEATING_N and not model.gravity
+    assert any(n.startswith("k.") for n in cal.names)

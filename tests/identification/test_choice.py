@@ -31,9 +31,9 @@ def test_the_warning_beside_registration_only_says_which_and_why():
     assert choose([registration, _candidate("identifiable", 33, 4.0e-3)], "identifiable")[1] == []
 
 
-def _judged(name: str, names: tuple[str, ...], e: np.ndarray, gravity: bool = False) -> Candidate:
+def _judged(name: str, names: tuple[str, ...], e: np.ndarray, loaded: bool = False) -> Candidate:
     cv, se = cv_error(e)
-    model = SimpleNamespace(L=len(names), parameter_names=names, gravity=gravity, loaded=gravity)
+    model = SimpleNamespace(L=len(names), parameter_names=names, gravity=loaded, loaded=loaded)
     return Candidate(name, SimpleNamespace(model=model), 1e-3, cv, se, cv_errors_m=e)
 
 
@@ -65,11 +65,11 @@ def test_auto_takes_the_weight_when_it_is_better_on_the_same_rows():
     weight no better than the rows' noise."""
     small_e, large_e = _rows(np.random.default_rng(1), 60)
     small = _judged("identifiable", GEOMETRY, small_e)
-    weight = _judged("identifiable + gravity", GEOMETRY + ("k.joint2",), large_e, gravity=True)
+    weight = _judged("identifiable + gravity", GEOMETRY + ("k.joint2",), large_e, loaded=True)
     assert small.cv_rms_m - weight.cv_rms_m < weight.cv_se_m
     assert choose([small, weight], "auto")[0] is weight
     larger = _judged("offsets + 1", GEOMETRY + ("joint2.tx",), large_e)
     assert choose([small, larger], "auto")[0] is small
     noise = _judged("identifiable + gravity", GEOMETRY + ("k.joint2",),
-                    small_e * (1 + 0.02 * np.random.default_rng(2).normal(size=60)), gravity=True)
+                    small_e * (1 + 0.02 * np.random.default_rng(2).normal(size=60)), loaded=True)
     assert choose([small, noise], "auto")[0] is small
