@@ -571,7 +571,8 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     offsets = tuple(n for n in names if n.endswith(".offset")) + ball
     wanted = [("ball", ball, ""), ("offsets", offsets, ""), ("identifiable", names, "")]
     # auto: the weight where the links' masses are known, else the seating push (it stands in for the weight)
-    load = "gravity" if has_weight(problem) and model != "identifiable + seating" else "seating"
+    weight = has_weight(problem)
+    load = "gravity" if weight and model != "identifiable + seating" else "seating"
     loaded = loaded_joints(problem, rec.Q, load) if model in ("auto", f"identifiable + {load}", TILT_MODEL) else ()
     if loaded:  # + the compliances of the joints the load loads, those the rows tell
         told = artefact_base_set(problem, rec, names + tuple(f"k.{j}" for j in loaded), load)[0]
@@ -581,7 +582,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
                                      load)[0]
             wanted.append((TILT_MODEL, bent, load))
     if model != "auto" and model not in [n for n, _, _ in wanted]:  # a load's model this robot does not take
-        if model == "identifiable + seating" or has_weight(problem):
+        if model == "identifiable + seating" or weight:
             why = f"{'its own weight' if load == 'gravity' else 'the seating push'} loads no joint at these configurations;"
         else:
             why = ("the robot's links carry no masses, so its own weight loads no joint; give [robot] inertias_urdf (a "

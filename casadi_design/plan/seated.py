@@ -19,6 +19,7 @@ pool engine then chooses the plan among them (:mod:`casadi_design.optimisation.a
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -164,7 +165,7 @@ def approaches(problem: Problem, Q: np.ndarray) -> np.ndarray:
         target = pin.SE3(M.rotation, M.translation - APPROACH_M * M.rotation[:, 2])
         starts = [q] + [np.clip(q + rng.normal(0.0, APPROACH_SPREAD_RAD, q.size), robot.q_min, robot.q_max)
                         for _ in range(APPROACH_TRIES)]
-        for position_only, q0 in [(robot.n < 5, q0) for q0 in starts] + [(True, q0) for q0 in starts]:
+        for position_only, q0 in itertools.product(dict.fromkeys((robot.n < 5, True)), starts):  # the axis, then the point
             qa, err = solve_ik(robot, target, q0, position_only=position_only, free_spin=True)
             if err <= IK_ACCEPT:
                 break

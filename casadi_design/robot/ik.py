@@ -76,11 +76,13 @@ def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool 
     # what every step uses, made once (a step is mostly Python's overhead: a 7-joint arm's is
     # about 50 us): the configuration of the whole model, the error and the identity
     t, R, e = target.translation, target.rotation, np.empty(6)
-    S = np.eye(6)[:3] if position_only else np.eye(6)  # the rows asked for, of (position, orientation)
+    # the rows asked for: the first k of (position, orientation), or with the spin free the
+    # orientation's along the target's x and y axes (S)
+    S = None
     if free_spin and not position_only:
         S = np.zeros((5, 6))
         S[:3, :3], S[3:, 3:] = np.eye(3), R[:, :2].T
-    k = len(S)
+    k = 3 if position_only else 6 if S is None else 5
     q_full, q_index, v_index, eye = robot.full_q(q), robot.q_index, robot.v_index, np.eye(k)
     world = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
     err = np.inf
@@ -92,12 +94,12 @@ def solve_ik(robot: Robot, target: pin.SE3, q0: np.ndarray, position_only: bool 
         e[:3] = t - M.translation
         if k > 3:  # the orientation's error only where it is asked for
             e[3:] = pin.log3(R @ M.rotation.T)
-        ek = e[:k] if k != 5 else S @ e
+        ek = e[:k] if S is None else S @ e
         err = math.sqrt(ek.dot(ek))  # np.linalg.norm's sum of squares and square root
         if err < IK_TOL:
             break
         J = pin.getFrameJacobian(model, data, fid, world)[:, v_index]
-        J = J[:k] if k != 5 else S @ J
+        J = J[:k] if S is None else S @ J
         lam2 = LAMBDA0**2 + err**2
         q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + lam2 * eye, ek), low, high)
     return q, err
