@@ -44,10 +44,10 @@ def robot_case(data: Path, robot: str) -> tuple[Path, str, list[str]]:
     return ROOT / ("problems" if name == "panda_ball_socket" else "examples") / f"{name}.toml", train or places[0], places
 
 
-def authors(urdf: Path, problem, rec) -> tuple[float, float, float]:
-    """Mean consistency, median spacing error and mean consistency with the ball relocated on
-    the hand (m) of the authors' calibrated URDF on ``rec``'s placements (their ``ball_link``,
-    the chain's joints first)."""
+def authors(urdf: Path, problem, rec) -> np.ndarray:
+    """Consistency, spacing error and consistency with the ball relocated on the hand (m) of the
+    authors' calibrated URDF at each of ``rec``'s placements, (P, 3) (their ``ball_link``, the
+    chain's joints first)."""
     model = pin.buildModelFromUrdf(str(urdf))
     data, fid = model.createData(), model.getFrameId("ball_link")
     out = []
@@ -63,8 +63,7 @@ def authors(urdf: Path, problem, rec) -> tuple[float, float, float]:
         k = rec.point[rows]
         moved = relocated(np.array(R), np.array(P), k, np.eye(3 * len(k)))[1]
         out.append((*figures(problem.artefact, np.array(P), k), moved))
-    out = np.array(out)
-    return float(out[:, 0].mean()), float(np.median(out[:, 1])), float(out[:, 2].mean())
+    return np.array(out)
 
 
 def main() -> int:
@@ -86,7 +85,8 @@ def main() -> int:
         v = cal.validation
         mean = placement_means(v)  # mm, as identification.json's "validation"
         theirs = data / "calibrated_urdf" / robot / "panda.urdf"
-        a = authors(theirs, problem, valid) if theirs.exists() else None
+        per = authors(theirs, problem, valid) if theirs.exists() else None
+        a = None if per is None else (per[:, 0].mean(), np.median(per[:, 1]), per[:, 2].mean())
         print(f"{robot:20s} {train:14s} {len(v):8d}  {mean['nominal_consistency_mm']:7.3f}  {mean['consistency_mm']:10.3f} "
               f"({mean['predicted_consistency_mm']:.3f})      " + (f"{a[0] * 1e3:7.3f}" if a else "      -")
               + f" | {mean['median_spacing_mm']:26.3f}  " + (f"{a[1] * 1e3:7.3f}" if a else "      -")
@@ -96,11 +96,12 @@ def main() -> int:
             u = placement_means(cal.urdf.validation)
             print(f"    calibrated.urdf ({cal.urdf.model}, {len(cal.urdf.names)}): held out {u['consistency_mm']:.3f} "
                   f"(predicted {u['predicted_consistency_mm']:.3f}), median spacing {u['median_spacing_mm']:.3f}")
-        for j in v:
+        for g, j in enumerate(v):
             print(f"    {j.name:16s} consistency {j.consistency_m * 1e3:.3f} (predicted {j.predicted_consistency_m * 1e3:.3f},"
                   f" nominal {j.nominal_consistency_m * 1e3:.2f})  spacing {j.spacing_m * 1e3:.3f}  ball moved "
                   f"{np.linalg.norm(j.moved_m) * 1e3:.2f} mm ({j.moved_std:.1f} std), relocated "
-                  f"{j.relocated_consistency_m * 1e3:.3f}, beyond the prediction {j.beyond} of {j.rows}")
+                  f"{j.relocated_consistency_m * 1e3:.3f}, beyond the prediction {j.beyond} of {j.rows}"
+                  + ("" if per is None else f" | authors: consistency {per[g, 0] * 1e3:.3f}, spacing {per[g, 1] * 1e3:.3f}"))
     return 0
 
 
