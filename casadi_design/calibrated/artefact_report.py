@@ -74,10 +74,22 @@ def outliers(cal: ArtefactCalibration) -> list[dict]:
     return [{"configuration": where, "score": score} for where, score in cal.outliers]
 
 
+def recorded_well(judged: tuple[Judged, ...]) -> tuple[list[str], dict]:
+    """The names of the placements recorded badly (:attr:`Judged.recorded_badly`) and the
+    :func:`placement_means` of the others; ([], {}) when none or all are."""
+    bad = [j.name for j in judged if j.recorded_badly]
+    well = tuple(j for j in judged if not j.recorded_badly)
+    return (bad, placement_means(well)) if bad and well else ([], {})
+
+
 def judged_record(cal: ArtefactCalibration) -> dict:
-    """``training`` and ``validation``: per placement the figures (mm) and their means."""
+    """``training`` and ``validation``: per placement the figures (mm) and their means; the
+    held-out means over the placements recorded well too (``recorded_well``, None when every
+    placement or none was)."""
+    bad, well = recorded_well(cal.validation)
     return {"training": {"placements": [j.as_dict() for j in cal.training], **placement_means(cal.training)},
-            "validation": ({"placements": [j.as_dict() for j in cal.validation], **placement_means(cal.validation)}
+            "validation": ({"placements": [j.as_dict() for j in cal.validation], **placement_means(cal.validation),
+                            "recorded_well": {"without": bad, **well} if bad else None}
                            if cal.validation else None)}
 
 
@@ -117,8 +129,12 @@ def artefact_summary(cal: ArtefactCalibration) -> list[str]:
 
 
 def held_out(cal: ArtefactCalibration) -> str:
-    """The held-out placements' mean consistency and median spacing error, measured and predicted (mm)."""
-    m = placement_means(cal.validation)
-    return (f"mean consistency {m['consistency_mm']:.3f} mm (predicted {m['predicted_consistency_mm']:.3f}, nominal "
-            f"{m['nominal_consistency_mm']:.2f}), median spacing error {m['median_spacing_mm']:.3f} mm (predicted "
-            f"{m['predicted_median_spacing_mm']:.3f})")
+    """The held-out placements' mean consistency and median spacing error, measured and predicted
+    (mm); the same over the placements recorded well where some were not."""
+    def means(m: dict) -> str:
+        return (f"mean consistency {m['consistency_mm']:.3f} mm (predicted {m['predicted_consistency_mm']:.3f}, "
+                f"nominal {m['nominal_consistency_mm']:.2f}), median spacing error {m['median_spacing_mm']:.3f} mm "
+                f"(predicted {m['predicted_median_spacing_mm']:.3f})")
+    bad, well = recorded_well(cal.validation)
+    return means(placement_means(cal.validation)) + (
+        f"; without {', '.join(bad)} (recorded badly), {means(well)}" if bad else "")

@@ -320,7 +320,14 @@ class Judged:
                    ("consistency", "spacing", "predicted_consistency", "predicted_spacing", "nominal_consistency",
                     "nominal_spacing", "relocated_consistency")},
                 "measured_point_moved_mm": [x * 1e3 for x in self.moved_m],
-                "measured_point_moved_std": self.moved_std, "configurations_beyond_prediction": self.beyond}
+                "measured_point_moved_std": self.moved_std, "configurations_beyond_prediction": self.beyond,
+                "recorded_badly": self.recorded_badly}
+
+    @property
+    def recorded_badly(self) -> bool:
+        """More than :data:`UNSEATED_SHARE` of the configurations beyond the prediction: balls not
+        seated, or the tool moved while it was recorded; the consistency is not the robot's."""
+        return self.beyond > UNSEATED_SHARE * self.rows
 
 
 #: The measured point moved on the hand when its move is beyond this many standard deviations
@@ -636,7 +643,7 @@ def calibrate_artefact(problem: Problem, rec: Recordings, valid: Recordings | No
     C = Hi @ Jp.T @ Vtt @ Jp @ Hi  # the least squares' covariance under the rows' errors
     training = judged(problem, f, rec, field, scale.s_m, rec)
     validation = judged(problem, f, valid, field, scale.s_m, rec) if valid is not None else []
-    unseated = [j for j in validation if j.beyond > UNSEATED_SHARE * j.rows]
+    unseated = [j for j in validation if j.recorded_badly]
     moved = [j for j in validation if j.moved_std > MOVED_STD and j not in unseated]
     if moved:
         more.append("the measured point sits elsewhere on the hand at " + ", ".join(

@@ -10,6 +10,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from casadi_design.calibrated.artefact_report import held_out, judged_record
 from casadi_design.calibrated.report import parameter_unit
 from casadi_design.cli import main
 from casadi_design.errors import ProblemError
@@ -134,27 +135,43 @@ def test_the_configurations_beyond_the_prediction_are_those_moved():
 
 
 def test_a_placement_recorded_badly_is_said_so(simulated, ideal):
-    """Held out, a placement whose configurations mostly sat 1 mm off their socket (balls not
-    seated) has them beyond the prediction and a note to record it again; recorded well, none is
-    and no note is printed."""
+    """Held out beside one recorded well, a placement whose configurations mostly sat 1 mm off
+    their socket (balls not seated) has them beyond the prediction, a note to record it again,
+    and the held-out means are given without it too: those of the placement recorded well,
+    recomputed from the calibrated robot's ball centres. Recorded well, none is beyond, no note
+    is printed and no second mean given."""
     problem, _, Q, k, g = simulated
     train, valid = _split(Q, k, g)
     steps = ideal[5][g == 1]
     rng = np.random.default_rng(11)
+    n = valid.N
     for bad in (False, True):
         Qv = valid.Q.copy()
         if bad:
-            off = rng.standard_normal((len(Qv), 3))
-            keep = np.arange(len(Qv)) % 3 == 0  # a third seated, the others 1 mm off in random directions
+            off = rng.standard_normal((n, 3))
+            keep = np.arange(n) % 3 == 0  # a third seated, the others 1 mm off in random directions
             Qv[~keep] += np.einsum("kij,kj->ki", steps[~keep], 1e-3 * off[~keep] / np.linalg.norm(off[~keep], axis=1)[:, None])
-        cal = calibrate_artefact(problem, train, Recordings(Qv, valid.point, valid.placement, valid.names, valid.sources),
-                                 model="identifiable", with_field=False)
-        j = cal.validation[0]
+        two = Recordings(np.vstack([Qv, valid.Q]), np.tile(valid.point, 2), np.repeat([0, 1], n), ("side", "side again"),
+                         tuple(f"{name} {i}" for name in ("side", "side again") for i in range(n)))
+        cal = calibrate_artefact(problem, train, two, model="identifiable", with_field=False)
+        j, again = cal.validation
         noted = [n for n in cal.notes if "record the placement again" in n]
+        record = judged_record(cal)["validation"]
+        assert not again.recorded_badly and again.beyond <= 1
         if bad:
-            assert j.beyond > UNSEATED_SHARE * j.rows and len(noted) == 1 and f"at side ({j.beyond} of" in noted[0]
+            assert j.recorded_badly and j.beyond > UNSEATED_SHARE * j.rows
+            assert len(noted) == 1 and f"at side ({j.beyond} of" in noted[0]
+            p, _ = ball_points(cal.fit.fit.model, valid.Q, cal.fit.X)
+            consistency, spacing = figures(problem.artefact, p, valid.point)
+            well = record["recorded_well"]
+            assert well["without"] == ["side"]
+            assert well["consistency_mm"] == pytest.approx(consistency * 1e3, rel=1e-9)
+            assert well["median_spacing_mm"] == pytest.approx(spacing * 1e3, rel=1e-9, abs=1e-12)
+            assert record["consistency_mm"] == pytest.approx((j.consistency_m + consistency) / 2 * 1e3, rel=1e-9)
+            assert f"without side (recorded badly), mean consistency {consistency * 1e3:.3f} mm" in held_out(cal)
         else:
-            assert j.beyond <= 1 and not noted
+            assert not j.recorded_badly and j.beyond <= 1 and not noted
+            assert record["recorded_well"] is None and "recorded badly" not in held_out(cal)
 
 
 def _folder(path, Q, k):
