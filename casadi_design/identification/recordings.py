@@ -27,8 +27,8 @@ import numpy as np
 from ..calibration.artefact import artefact
 from ..errors import ProblemError
 from ..problem.build import Problem
-from ..records.export import (LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_cells, limits_past, read_plan_file,
-                              read_plan_table)
+from ..records.export import (LIMIT_TOL, SEATED_COLUMNS, check_joint_limits, csv_cells, limits_past,
+                              past_limit_text, read_plan_file, read_plan_table)
 
 #: The column of a plan CSV that names each placement number.
 PLACEMENT_NAME = SEATED_COLUMNS[2]
@@ -209,8 +209,7 @@ def _limits(problem: Problem, Q: np.ndarray, sources: list[str], tolerance: floa
     i = int(rows[j])
     unit = ["m" if robot.is_prismatic(k) else "rad" for k in range(robot.n)]
     if worst[j] > tolerance:
-        allowed = (f"by more than --limit-tolerance {tolerance:g} ({unit[j]})" if tolerance > LIMIT_TOL else
-                   "(the robot cannot reach it)")
+        allowed = past_limit_text(tolerance, unit[j])
         raise ProblemError(f"{sources[i]}: {robot.joints[j]} = {Q[i, j]:.6g} is outside its limits "
                            f"[{robot.q_min[j]:.6g}, {robot.q_max[j]:.6g}] {unit[j]} {allowed}; check the joint order "
                            "and units (identify accepts readings past a limit with --limit-tolerance)")

@@ -420,6 +420,13 @@ def limits_past(robot, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return rows, past[rows, np.arange(past.shape[1])], np.sum(past > LIMIT_TOL, axis=0)
 
 
+def past_limit_text(tolerance: float, unit: str) -> str:
+    """How far a reading refused is past its joint's limit, for people: beyond ``tolerance``
+    (``unit``) when identify was given one, else out of reach."""
+    return (f"by more than --limit-tolerance {tolerance:g} ({unit})" if tolerance > LIMIT_TOL
+            else "(the robot cannot reach it)")
+
+
 def check_joint_limits(problem: Problem, plan: PlanFile, Q: np.ndarray, lines: list[int],
                        tolerance: float = LIMIT_TOL, rename: dict[str, str] | None = None) -> list[str]:
     """Notes on the joint values ``Q`` of a plan file past a limit by at most ``tolerance``
@@ -435,8 +442,7 @@ def check_joint_limits(problem: Problem, plan: PlanFile, Q: np.ndarray, lines: l
     robot, path, header = problem.robot, plan.path, plan.header
     rename = rename or {}
     rows, worst, over = limits_past(robot, Q)
-    allowed = (f"by more than --limit-tolerance {tolerance:g} (rad or m)" if tolerance > LIMIT_TOL
-               else "(the robot cannot reach it)")
+    allowed = past_limit_text(tolerance, "rad or m")
     notes = []
     for k, j in enumerate(robot.joints):
         si, people, scale = joint_units(problem, k)
